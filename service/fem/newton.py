@@ -1,0 +1,241 @@
+"""Static equilibrium by Newton's method on the total energy, with line search and load stepping.
+
+The equilibrium u_g minimises  Pi(u) = E(u) - g . u  over u with u = 0 on fixed nodes. Each
+Newton step solves K du = -(f_int - g) with a sparse direct factorisation and takes the longest
+step in {1, 1/2, 1/4, ...} that lowers Pi (Armijo) and keeps every det F > 0; an indefinite
+tangent is shifted until it factorises, so every step is a descent step.
+
+Loads are followed along a straight path from the starting state: a start u0 is in equilibrium
+under its own internal force f0 = f_int(u0), so the path g(s) = f0 + s (g - f0), s in [0, 1],
+begins balanced whatever u0 is. When Newton struggles at a step, the step is halved; when it
+succeeds quickly, the next one doubles. A tangent predictor (one extra solve with the factor
+already in hand) starts each load step. Divergence is a result (``converged=False`` with a
+``status``), never an exception or a NaN.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+
+import numpy as np
+import scipy.sparse as sp
+
+from .assembly import Assembler
+from .linsolve import NotPositiveDefinite, SparseSolver, make_solver
+
+log = logging.getLogger(__name__)
+
+Array = np.ndarray
+
+
+@dataclasses.dataclass(frozen=True)
+class NewtonOptions:
+    """Tolerances and limits. rtol is on ||f_int - g|| / ||g - f_int(u0)|| over free dofs."""
+
+    rtol: float = 1e-9
+    step_rtol: float = 1e-4  # looser tolerance at intermediate load steps
+    max_iter: int = 100  # Newton iterations in all, over every load step
+    max_step_iter: int = 12  # iterations at one load step before the step is cut
+    min_load_step: float = 2.0**-10
+    max_halvings: int = 30  # line search
+    step_strain: float = 0.75  # largest |grad du| a load step's linear predictor may ask for
+    armijo: float = 1e-4
+    backend: str | None = None  # sparse solver; fastest available by default
+
+
+@dataclasses.dataclass
+class NewtonResult:
+    """What a solve produced, converged or not.
+
+    Shape: u (n, 3). `solver` holds the factorisation of the last tangent used (at or next to
+    u), ready for adjoint solves and for predicting the next load.
+    """
+
+    u: Array
+    converged: bool
+    status: str  # converged | max_iter | load_step_too_small | line_search | non_finite
+    iterations: int
+    load_steps: int
+    residuals: list[float]
+    seconds: float
+    solver: SparseSolver | None = None
+    shifted: int = 0  # tangents that needed a diagonal shift (indefinite)
+
+    @property
+    def residual(self) -> float:
+        return self.residuals[-1] if self.residuals else 0.0
+
+
+class NewtonSolver:
+    """Newton's method for one mesh and material; holds the solver of its sparsity pattern.
+
+    Not thread-safe (it owns one factorisation); make one per thread or session.
+    """
+
+    def __init__(self, assembler: Assembler, options: NewtonOptions | None = None) -> None:
+        self.asm = assembler
+        self.options = options or NewtonOptions()
+        K0 = assembler.stiffness_at_rest()
+        self.solver = make_solver(K0, self.options.backend)
+        self._diag = _diagonal_slots(K0)
+        self._mean_diag = float(K0.diagonal().mean())
+        self._tau = 1e-4 * self._mean_diag  # last shift that worked: where the next search starts
+
+    # -- one factorisation, shifted if indefinite ----------------------------------------------
+
+    def factor(self, K: sp.csr_matrix) -> int:
+        """Factorise K, adding tau I until it is positive definite; returns how many shifts."""
+        try:
+            self.solver.factor(K)
+            return 0
+        except NotPositiveDefinite:
+            pass
+        base = K.data[self._diag].copy()
+        tau = self._tau
+        for shifts in range(1, 12):
+            K.data[self._diag] = base + tau
+            try:
+                self.solver.factor(K)
+                log.debug("tangent shifted by %.3g to factorise", tau)
+                self._tau = max(tau / 10.0, 1e-8 * self._mean_diag)
+                return shifts
+            except NotPositiveDefinite:
+                tau *= 10.0
+        raise ArithmeticError("tangent could not be made positive definite")
+
+    # -- the solve ----------------------------------------------------------------------------
+
+    def solve(self, g: Array, u0: Array | None = None) -> NewtonResult:
+        """Equilibrium under nodal forces g (forces on fixed nodes are ignored).
+
+        Shape: g (n, 3), u0 (n, 3) or None (rest) -> result.u (n, 3).
+        """
+        t0 = time.perf_counter()
+        asm, opt = self.asm, self.options
+        g = np.asarray(g, np.float64)
+        x = np.zeros(asm.n_free) if u0 is None else asm.pack(u0).astype(np.float64)
+        target = asm.pack(g)
+        if not (np.isfinite(target).all() and np.isfinite(x).all()):
+            return self._result(x, False, "non_finite", 0, 0, [], t0)
+
+        F = asm.F(asm.unpack(x))
+        if not np.all(np.isfinite(asm.material.energy(F))):
+            return self._result(x, False, "non_finite", 0, 0, [], t0)
+        f0 = asm.pack(asm.internal_force(None, F))
+        ref = float(np.linalg.norm(target - f0))
+        if ref == 0.0:
+            return self._result(x, True, "converged", 0, 0, [0.0], t0)
+
+        # the first load step: as long as the linear predictor keeps |grad du| moderate
+        shifts = self.factor(asm.tangent(None, F))
+        dx_full = self.solver.solve(target - f0)
+        grad = asm.F(asm.unpack(dx_full)) - np.eye(3)
+        ds = float(min(1.0, opt.step_strain / max(np.sqrt((grad**2).sum(axis=(1, 2)).max()), 1e-300)))
+        s, iterations, steps = 0.0, 0, 0
+        residuals: list[float] = []
+        have_factor = True
+        status = "converged"
+        while s < 1.0:
+            s_try = min(1.0, s + ds)
+            load = f0 + s_try * (target - f0)
+            x_try = x
+            if have_factor:  # tangent predictor along the load path
+                x_pred = x + self.solver.solve((s_try - s) * (target - f0))
+                if np.isfinite(asm.energy(asm.unpack(x_pred))):
+                    x_try = x_pred
+            tol = opt.rtol if s_try == 1.0 else max(opt.rtol, opt.step_rtol)
+            budget = min(opt.max_step_iter, opt.max_iter - iterations)
+            x_new, ok, its, hist, nshift, factored, why = self._newton(x_try, load, tol * ref, ref, budget)
+            iterations += its
+            shifts += nshift
+            residuals += hist
+            have_factor = have_factor or factored
+            if ok:
+                x, s, steps = x_new, s_try, steps + 1
+                if its <= 4:
+                    ds = min(2.0 * ds, 1.0)
+                continue
+            if iterations >= opt.max_iter:
+                status = "max_iter"
+                x = x_new if _is_better(hist) else x
+                break
+            ds *= 0.5
+            if ds < opt.min_load_step:
+                status = "load_step_too_small" if why != "non_finite" else why
+                break
+        converged = status == "converged"
+        if not converged:
+            log.info("Newton stopped: %s after %d iterations (residual %.2e)", status, iterations,
+                     residuals[-1] if residuals else np.nan)
+        res = self._result(x, converged, status, iterations, steps, residuals, t0)
+        res.solver = self.solver if have_factor else None
+        res.shifted = shifts
+        return res
+
+    def _newton(self, x: Array, load: Array, atol: float, ref: float, budget: int):
+        """Newton iterations at a fixed load. Returns (x, ok, iterations, history, shifts,
+        factored, reason)."""
+        asm, opt = self.asm, self.options
+        hist: list[float] = []
+        shifts = 0
+        factored = False
+        F = asm.F(asm.unpack(x))
+        W = asm.material.energy(F)
+        Pi = float(asm.mesh.volumes @ W) - float(load @ x)
+        for it in range(budget + 1):
+            r = asm.pack(asm.internal_force(None, F)) - load
+            rn = float(np.linalg.norm(r))
+            hist.append(rn / ref)
+            if not np.isfinite(rn):
+                return x, False, it, hist, shifts, factored, "non_finite"
+            if rn <= atol:
+                return x, True, it, hist, shifts, factored, "converged"
+            if it == budget:
+                break
+            K = asm.tangent(None, F)
+            shifts += self.factor(K)
+            factored = True
+            dx = -self.solver.solve(r)
+            slope = float(r @ dx)  # < 0: descent (K positive definite)
+            alpha = 1.0
+            for _ in range(opt.max_halvings):
+                x_new = x + alpha * dx
+                F_new = asm.F(asm.unpack(x_new))
+                W_new = asm.material.energy(F_new)
+                Pi_new = float(asm.mesh.volumes @ W_new) - float(load @ x_new)
+                if np.isfinite(Pi_new):
+                    # roundoff: near the solution Pi cannot resolve the decrease any more
+                    lost = abs(slope) * alpha < 1e-13 * max(abs(Pi), 1e-300)
+                    if Pi_new <= Pi + opt.armijo * alpha * slope or lost:
+                        break
+                alpha *= 0.5
+            else:
+                return x, False, it + 1, hist, shifts, factored, "line_search"
+            x, F, Pi = x_new, F_new, Pi_new
+        return x, False, budget, hist, shifts, factored, "max_iter"
+
+    def _result(self, x, converged, status, iterations, steps, residuals, t0) -> NewtonResult:
+        return NewtonResult(
+            u=self.asm.unpack(x),
+            converged=converged,
+            status=status,
+            iterations=iterations,
+            load_steps=steps,
+            residuals=residuals,
+            seconds=time.perf_counter() - t0,
+        )
+
+
+def _is_better(hist: list[float]) -> bool:
+    return len(hist) > 1 and np.isfinite(hist[-1]) and hist[-1] < hist[0]
+
+
+def _diagonal_slots(K: sp.csr_matrix) -> Array:
+    """Index into K.data of each diagonal entry (the pattern must hold the whole diagonal)."""
+    rows = np.repeat(np.arange(K.shape[0]), np.diff(K.indptr))
+    slots = np.flatnonzero(rows == K.indices)
+    if slots.size != K.shape[0]:
+        raise ValueError("the stiffness pattern lacks some diagonal entries")
+    return slots

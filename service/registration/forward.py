@@ -1,0 +1,102 @@
+"""The one interface between the registration engine and a forward model (FEM or network).
+
+A :class:`ForwardModel` is immutable and shared by every session of a model. For a session it
+makes a :class:`ForwardOperator` restricted to the session's support (the controls) and to the
+nodes the objective reads (the matching surface), so each evaluation computes only what the
+optimisation needs; the operator may keep warm-start state, so it belongs to one session.
+
+    op = model.restrict(support, nodes)
+    u_nodes, pullback = op(g)          # g (k, 3) -> u (p, 3); pullback(u_bar (p, 3)) -> (k, 3)
+    u_all = op.displacement(g)         # the full field, once the optimisation is done
+
+The pullback is the vector-Jacobian product (the adjoint): backpropagation for the network, the
+transposed tangent solve for the FEM. It is valid until the operator's next call.
+:func:`torch_forward` wraps an operator as a torch autograd function.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Protocol
+
+import numpy as np
+
+from ..fem.material import NeoHookean
+from ..mesh import TetMesh
+
+Array = np.ndarray
+Pullback = Callable[[Array], Array]
+
+
+class ForwardFailed(RuntimeError):
+    """The forward model could not produce a displacement for these forces (e.g. Newton
+    diverged). The engine turns it into ``status: forward_failed``, never into a crash."""
+
+    def __init__(self, status: str, detail: str = "") -> None:
+        super().__init__(f"{status}: {detail}" if detail else status)
+        self.status = status
+
+
+class ForwardOperator(Protocol):
+    support: Array  # (k,) node ids where forces act
+    nodes: Array  # (p,) node ids whose displacement __call__ returns
+
+    def __call__(self, g: Array) -> tuple[Array, Pullback]:
+        """Shape: g (k, 3) -> u (p, 3), pullback (p, 3) -> (k, 3)."""
+
+    def displacement(self, g: Array) -> Array:
+        """The displacement of every node. Shape: (k, 3) -> (n, 3)."""
+
+    def reset(self) -> None:
+        """Forget warm-start state (after a failed frame, say)."""
+
+
+class ForwardModel(Protocol):
+    method: str  # "fem" or "network"
+    mesh: TetMesh
+    material: NeoHookean
+
+    def with_stiffness(self, E: float) -> "ForwardModel":
+        """The same model for another Young's modulus (a new object)."""
+
+    def restrict(self, support: Array, nodes: Array | None = None) -> ForwardOperator:
+        """An operator from forces on `support` to displacements of `nodes` (all by default)."""
+
+
+def check_support(mesh: TetMesh, support: Array) -> Array:
+    """Validated support node ids: integers, in range, not fixed, no repeats. Shape: (k,)."""
+    s = np.asarray(support)
+    if s.ndim != 1 or s.size == 0:
+        raise ValueError("support must be a non-empty list of node ids")
+    if not np.issubdtype(s.dtype, np.integer):
+        raise ValueError("support node ids must be integers")
+    s = s.astype(np.int64)
+    if s.min() < 0 or s.max() >= mesh.n_nodes:
+        raise ValueError(f"support node ids must lie in 0..{mesh.n_nodes - 1}")
+    if not mesh.free_mask[s].all():
+        bad = s[~mesh.free_mask[s]]
+        raise ValueError(f"support contains fixed nodes: {bad[:10].tolist()}")
+    if np.unique(s).size != s.size:
+        raise ValueError("support repeats node ids")
+    return s
+
+
+def torch_forward(op: ForwardOperator):
+    """A torch autograd function g (k, 3) -> u (p, 3) whose backward is the operator's pullback.
+
+    Lets torch code (a loss, another network) sit on top of either forward model.
+    """
+    import torch
+
+    class _Forward(torch.autograd.Function):
+        @staticmethod
+        def forward(ctx, g):
+            u, pullback = op(g.detach().cpu().numpy().astype(np.float64))
+            ctx.pullback = pullback
+            return torch.as_tensor(u, dtype=g.dtype, device=g.device)
+
+        @staticmethod
+        def backward(ctx, u_bar):
+            gb = ctx.pullback(u_bar.detach().cpu().numpy().astype(np.float64))
+            return torch.as_tensor(gb, dtype=u_bar.dtype, device=u_bar.device)
+
+    return _Forward.apply
