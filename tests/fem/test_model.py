@@ -1,0 +1,78 @@
+"""The FEM forward model: its adjoint against finite differences, torch autograd, stiffness."""
+
+import numpy as np
+import pytest
+import torch
+
+from service.fem.material import NeoHookean
+from service.fem.model import FEMModel
+from service.fem.newton import NewtonOptions
+from service.registration.forward import ForwardFailed, torch_forward
+
+
+@pytest.fixture(scope="module")
+def model(bar):
+    return FEMModel(bar, NeoHookean(4500.0, 0.49))
+
+
+def support_and_load(mesh):
+    support = mesh.free_surface_nodes[mesh.nodes[mesh.free_surface_nodes, 0] >= 3.0]
+    rng = np.random.default_rng(0)
+    g = rng.normal(size=(support.size, 3)) * 20.0 + [0.0, 0.0, -60.0]
+    return support, g
+
+
+def test_pullback_matches_finite_differences(model):
+    support, g = support_and_load(model.mesh)
+    nodes = model.mesh.surface_nodes[::3]
+    op = model.restrict(support, nodes)
+    u, pullback = op(g)
+    assert np.abs(u).max() > 0.3  # the nonlinear regime
+    u_bar = np.random.default_rng(1).normal(size=u.shape)
+    grad = pullback(u_bar)
+    h = 1e-2  # loads are ~50: small enough for O(h^2), large against Newton's tolerance
+    rng = np.random.default_rng(2)
+    for _ in range(4):
+        d = rng.normal(size=g.shape)
+        fd = (np.sum(u_bar * op(g + h * d)[0]) - np.sum(u_bar * op(g - h * d)[0])) / (2 * h)
+        assert np.sum(grad * d) == pytest.approx(fd, rel=1e-6)
+
+
+def test_torch_autograd_uses_the_adjoint(model):
+    support, g = support_and_load(model.mesh)
+    op = model.restrict(support)
+    gt = torch.tensor(g, requires_grad=True)
+    u = torch_forward(op)(gt)
+    (u**2).sum().backward()
+    u_np, pullback = op(g)
+    np.testing.assert_allclose(gt.grad.numpy(), pullback(2 * u_np), rtol=1e-8)
+
+
+def test_displacement_equals_solve(model):
+    support, g = support_and_load(model.mesh)
+    full = model.restrict(support).displacement(g)
+    np.testing.assert_allclose(full, model.solve(g, support).u, atol=1e-10)
+
+
+def test_with_stiffness_scales_the_response(model):
+    support, g = support_and_load(model.mesh)
+    stiff = model.with_stiffness(4 * model.material.E)
+    np.testing.assert_allclose(stiff.solve(4 * g, support).u, model.solve(g, support).u, atol=1e-8)
+    assert model.material.E == 4500.0  # the original is untouched
+
+
+def test_failed_solve_raises_forward_failed(bar):
+    model = FEMModel(bar, NeoHookean(4500.0, 0.49), NewtonOptions(max_iter=1))
+    support, g = support_and_load(bar)
+    with pytest.raises(ForwardFailed) as info:
+        model.restrict(support)(10 * g)
+    assert info.value.status in {"max_iter", "load_step_too_small"}
+
+
+def test_support_is_validated(model):
+    with pytest.raises(ValueError, match="fixed"):
+        model.restrict(model.mesh.fixed[:2])
+    with pytest.raises(ValueError, match="integers"):
+        model.restrict(np.array([1.5, 2.0]))
+    with pytest.raises(ValueError, match="lie in"):
+        model.restrict(np.array([10**6]))

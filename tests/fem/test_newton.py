@@ -1,0 +1,117 @@
+"""Newton's method: exact answers, the linear limit, scaling, hard cases, failure as a result."""
+
+import numpy as np
+import pytest
+
+from service.fem.assembly import Assembler
+from service.fem.material import NeoHookean
+from service.fem.newton import NewtonOptions, NewtonSolver
+
+
+def tip_load(mesh, total) -> np.ndarray:
+    """`total` (3,) spread evenly over the nodes of the free end (x = max)."""
+    g = np.zeros((mesh.n_nodes, 3))
+    end = np.flatnonzero(mesh.nodes[:, 0] == mesh.nodes[:, 0].max())
+    g[end] = np.asarray(total) / end.size
+    return g
+
+
+def end_face_load(mesh, traction: np.ndarray) -> np.ndarray:
+    """Consistent nodal forces of a uniform traction on the end face (a third of each area)."""
+    x = mesh.nodes
+    faces = mesh.surface_faces[(x[mesh.surface_faces, 0] == x[:, 0].max()).all(axis=1)]
+    area = 0.5 * np.linalg.norm(np.cross(x[faces[:, 1]] - x[faces[:, 0]], x[faces[:, 2]] - x[faces[:, 0]]), axis=1)
+    g = np.zeros((mesh.n_nodes, 3))
+    for k in range(3):
+        np.add.at(g, faces[:, k], np.outer(area / 3.0, traction))
+    return g
+
+
+def test_zero_load_gives_rest(bar):
+    res = NewtonSolver(Assembler(bar, NeoHookean(4500.0, 0.49))).solve(np.zeros((bar.n_nodes, 3)))
+    assert res.converged and res.iterations == 0
+    assert not res.u.any()
+
+
+def test_uniaxial_stretch_matches_analytical_solution(bar):
+    """nu = 0: uniaxial stress has no lateral contraction, so the clamped bar stretches
+    homogeneously; P11 = mu (s - 1/s) for a stretch s, exactly representable with P1."""
+    mat = NeoHookean(4500.0, 0.0)
+    s = 1.6
+    g = end_face_load(bar, np.array([mat.mu * (s - 1.0 / s), 0.0, 0.0]))
+    res = NewtonSolver(Assembler(bar, mat)).solve(g)
+    assert res.converged
+    expected = np.zeros_like(bar.nodes)
+    expected[:, 0] = (s - 1.0) * bar.nodes[:, 0]
+    np.testing.assert_allclose(res.u, expected, atol=1e-9)
+
+
+def test_small_loads_follow_linear_elasticity(bar):
+    asm = Assembler(bar, NeoHookean(4500.0, 0.45))
+    solver = NewtonSolver(asm)
+    K = asm.stiffness_at_rest()
+    diffs = []
+    for eps in (1e-2, 1e-3):
+        g = tip_load(bar, [0.0, 0.0, -eps * 100.0])
+        u_lin = asm.unpack(np.linalg.solve(K.toarray(), asm.pack(g)))
+        u = solver.solve(g).u
+        diffs.append(np.linalg.norm(u - u_lin) / np.linalg.norm(u_lin))
+    assert diffs[1] < 1e-3
+    assert diffs[1] == pytest.approx(diffs[0] / 10.0, rel=0.2)  # first order in the load
+
+
+def test_stiffer_material_and_larger_load_give_the_same_displacement(bar):
+    g = tip_load(bar, [0.0, 30.0, -120.0])
+    u1 = NewtonSolver(Assembler(bar, NeoHookean(4500.0, 0.49))).solve(g)
+    u10 = NewtonSolver(Assembler(bar, NeoHookean(45000.0, 0.49))).solve(10.0 * g)
+    assert u1.converged and u10.converged
+    assert np.abs(u1.u).max() > 1.0  # a large deformation (a quarter of the length)
+    np.testing.assert_allclose(u10.u, u1.u, atol=1e-8)
+
+
+def test_nearly_incompressible(bar):
+    res = NewtonSolver(Assembler(bar, NeoHookean(4500.0, 0.499))).solve(tip_load(bar, [0, 0, -100.0]))
+    assert res.converged and np.isfinite(res.u).all()
+    assert np.abs(res.u).max() > 0.5
+    J = np.linalg.det(Assembler(bar, NeoHookean(4500.0, 0.499)).F(res.u))
+    assert np.abs(J - 1).max() < 0.05
+
+
+def test_crushing_load_never_produces_nan(bar):
+    """A load that tries to push the tip through the bar: converged or a clear failure."""
+    g = np.zeros((bar.n_nodes, 3))
+    corner = np.argmin(np.linalg.norm(bar.nodes - [4.0, 1.0, 1.0], axis=1))
+    g[corner] = [-3000.0, -3000.0, -3000.0]
+    res = NewtonSolver(Assembler(bar, NeoHookean(4500.0, 0.49))).solve(g)
+    assert np.isfinite(res.u).all()
+    assert res.status in {"converged", "max_iter", "load_step_too_small", "line_search"}
+    J = np.linalg.det(Assembler(bar, NeoHookean(4500.0, 0.49)).F(res.u))
+    assert (J > 0).all()
+    if res.converged:
+        assert J.min() < 0.2  # it really did nearly invert elements
+
+
+def test_warm_start_needs_fewer_iterations(bar):
+    solver = NewtonSolver(Assembler(bar, NeoHookean(4500.0, 0.49)))
+    g1 = tip_load(bar, [0.0, 0.0, -80.0])
+    first = solver.solve(g1)
+    cold = solver.solve(1.05 * g1)
+    warm = solver.solve(1.05 * g1, first.u)
+    assert warm.converged and cold.converged
+    assert warm.iterations < cold.iterations
+    np.testing.assert_allclose(warm.u, cold.u, atol=1e-8)
+
+
+def test_iteration_cap_is_reported_not_raised(bar):
+    solver = NewtonSolver(Assembler(bar, NeoHookean(4500.0, 0.49)), NewtonOptions(max_iter=2))
+    res = solver.solve(tip_load(bar, [0.0, 0.0, -150.0]))
+    assert not res.converged
+    assert res.status in {"max_iter", "load_step_too_small"}
+    assert np.isfinite(res.u).all()
+
+
+def test_non_finite_load_is_reported(bar):
+    g = tip_load(bar, [0.0, 0.0, np.nan])
+    res = NewtonSolver(Assembler(bar, NeoHookean(4500.0, 0.49))).solve(g)
+    assert not res.converged and res.status == "non_finite"
+    assert np.isfinite(res.u).all()
