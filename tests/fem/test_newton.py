@@ -72,7 +72,7 @@ def test_stiffer_material_and_larger_load_give_the_same_displacement(bar):
 def test_nearly_incompressible(bar):
     res = NewtonSolver(Assembler(bar, NeoHookean(4500.0, 0.499))).solve(tip_load(bar, [0, 0, -100.0]))
     assert res.converged and np.isfinite(res.u).all()
-    assert np.abs(res.u).max() > 0.5
+    assert np.abs(res.u).max() > 0.3  # a tenth of the length: well past linear
     J = np.linalg.det(Assembler(bar, NeoHookean(4500.0, 0.499)).F(res.u))
     assert np.abs(J - 1).max() < 0.05
 

@@ -1,0 +1,290 @@
+"""Mesh files in: tetrahedral meshes through meshio, closed surfaces through trimesh + tetgen.
+
+Whatever the format, what comes out has been through :meth:`TetMesh.build`, so a bad file is
+refused here with a :class:`MeshError` naming it, not deep inside a solve.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import io
+import logging
+from collections.abc import Mapping
+from pathlib import Path
+from types import MappingProxyType
+
+import numpy as np
+
+from .mesh import MeshError, TetMesh
+
+log = logging.getLogger(__name__)
+
+Array = np.ndarray
+
+#: Suffixes read as closed triangle surfaces and tetrahedralised; anything else goes to meshio.
+SURFACE_SUFFIXES = frozenset({".stl", ".obj", ".ply", ".off"})
+
+#: TetGen options, as switches ``-pq1.5/18Y -O10/7 -o/165 -Q``: fill a piecewise-linear complex
+#: (p) with quality tets (radius-edge ratio <= 1.5, target dihedral >= 18 deg: q), keep the
+#: surface triangulation as given so its vertices come out first and unchanged (Y), then the
+#: strongest optimisation (flips, smoothing, insertion; 20 passes, aiming at dihedral <= 165 deg)
+#: to remove the slivers Delaunay refinement leaves. Passed as keywords: the switch-string path
+#: of the tetgen package writes to stdout. TetGen is deterministic for a given input.
+TETGEN_OPTIONS: Mapping[str, object] = MappingProxyType(dict(
+    plc=True,
+    quality=True,
+    minratio=1.5,
+    mindihedral=18.0,
+    nobisect=True,
+    opt_max_flip_level=10,
+    opt_scheme=7,
+    opt_iterations=20,
+    optmaxdihedral=165.0,
+    quiet=True,
+))
+
+#: A tet whose smallest dihedral angle is below this many degrees counts as a sliver.
+SLIVER_DEG = 5.0
+
+_EDGE_PAIRS = np.array([(k, l) for k in range(4) for l in range(k + 1, 4)])
+
+
+@dataclasses.dataclass(frozen=True)
+class MeshQuality:
+    """Shape statistics of a tet mesh: angles in degrees, volume in the mesh's (scaled) units."""
+
+    min_dihedral: float
+    max_dihedral: float
+    n_slivers: int  # tets whose smallest dihedral angle is < SLIVER_DEG
+    volume: float
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class LoadedMesh:
+    """A mesh read from a file (or generated), validated and repaired.
+
+    Shape: nodes (n, 3) float64 after scaling, tets (t, 4) int64 positively oriented, kept (n,)
+    or None. `kept[i]` is the file's id of node i when unused nodes were dropped (None when every
+    node was kept); `n_source_nodes` is the file's node count, the range of ids a scene may use.
+    """
+
+    nodes: Array
+    tets: Array
+    source: Path | None
+    tetrahedralised: bool
+    kept: Array | None
+    n_source_nodes: int
+    quality: MeshQuality
+
+    def source_to_mesh(self) -> Array:
+        """Map from the file's node ids to mesh ids (-1 for dropped nodes). Shape: (n_source,)."""
+        if self.kept is None:
+            return np.arange(self.n_source_nodes, dtype=np.int64)
+        new_id = np.full(self.n_source_nodes, -1, np.int64)
+        new_id[self.kept] = np.arange(self.kept.size)
+        return new_id
+
+    def to_mesh(self, fixed: Array | None = None) -> TetMesh:
+        """The TetMesh with these Dirichlet nodes (mesh ids; the arrays are already validated)."""
+        return TetMesh(self.nodes, self.tets, np.zeros(0, np.int64) if fixed is None else fixed)
+
+
+def dihedral_angles(nodes: Array, tets: Array) -> Array:
+    """The six interior dihedral angles of each tet, in degrees.
+
+    Shape: nodes (n, 3), tets (t, 4) -> (t, 6).
+    The angle at the edge opposite nodes k, l is pi minus the angle between the gradients of
+    their shape functions (inward normals of the faces opposite k and l).
+    """
+    x = nodes[tets]
+    D = np.transpose(x[:, 1:] - x[:, :1], (0, 2, 1))
+    g = np.empty((len(tets), 4, 3))
+    g[:, 1:] = np.linalg.inv(D)
+    g[:, 0] = -g[:, 1:].sum(axis=1)
+    g /= np.linalg.norm(g, axis=2, keepdims=True)
+    cos = -(g[:, _EDGE_PAIRS[:, 0]] * g[:, _EDGE_PAIRS[:, 1]]).sum(axis=2)
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def mesh_quality(nodes: Array, tets: Array) -> MeshQuality:
+    """Dihedral-angle extremes, sliver count and volume of a (positively oriented) mesh."""
+    ang = dihedral_angles(nodes, tets)
+    x = nodes[tets]
+    vol = np.linalg.det(x[:, 1:] - x[:, :1]).sum() / 6.0
+    return MeshQuality(
+        min_dihedral=float(ang.min()),
+        max_dihedral=float(ang.max()),
+        n_slivers=int((ang.min(axis=1) < SLIVER_DEG).sum()),
+        volume=float(vol),
+    )
+
+
+def tetrahedralise(
+    vertices: Array,
+    faces: Array,
+    *,
+    max_volume: float | None = None,
+) -> tuple[Array, Array]:
+    """Fill a closed triangle surface with quality tets (tetgen, :data:`TETGEN_OPTIONS`).
+
+    Shape: vertices (v, 3), faces (f, 3) -> nodes (n, 3) whose first v rows are `vertices`,
+    tets (t, 4) int64.
+    `max_volume` adds TetGen's -a bound (same units as the vertices, cubed) for a finer interior.
+    """
+    import tetgen  # imported at first use: only surfaces need it
+
+    options = dict(TETGEN_OPTIONS)
+    if max_volume is not None:
+        options.update(fixedvolume=True, maxvolume=float(max_volume))
+    gen = tetgen.TetGen(np.asarray(vertices, np.float64), np.asarray(faces, np.int32))
+    try:
+        nodes, tets, *_ = gen.tetrahedralize(**options)
+    except RuntimeError as exc:  # tetgen refuses self-intersecting input this way
+        raise MeshError(f"tetgen could not fill the surface ({exc})") from exc
+    return np.asarray(nodes, np.float64), np.asarray(tets, np.int64)
+
+
+def _read_surface(path: Path) -> tuple[Array, Array]:
+    """A closed triangle surface from an .stl/.obj/.ply/.off file, merged and outward oriented."""
+    import trimesh
+
+    try:
+        surf = trimesh.load_mesh(path, process=True)
+    except Exception as exc:  # trimesh's loaders raise many types on a corrupt file
+        raise MeshError(f"{path}: trimesh could not read it ({type(exc).__name__}: {exc})") from exc
+    if not isinstance(surf, trimesh.Trimesh) or len(surf.faces) == 0:
+        raise MeshError(f"{path}: no triangles in this surface file")
+    if not surf.is_watertight:
+        edges = np.sort(surf.edges, axis=1)
+        _, counts = np.unique(edges, axis=0, return_counts=True)
+        raise MeshError(
+            f"{path}: the surface is not watertight ({int((counts == 1).sum())} open edges, "
+            f"{int((counts > 2).sum())} non-manifold edges); only a closed surface encloses a "
+            "volume to fill with tets: close it, or give a tetrahedral mesh"
+        )
+    if not surf.is_winding_consistent:
+        raise MeshError(f"{path}: the surface's triangles are not consistently oriented")
+    if surf.volume < 0:
+        surf.invert()
+    return np.asarray(surf.vertices, np.float64), np.asarray(surf.faces, np.int64)
+
+
+def _is_gmsh1(path: Path) -> bool:
+    if path.suffix.lower() != ".msh":
+        return False
+    with open(path, "rb") as f:
+        return f.read(64).lstrip().startswith(b"$NOD")
+
+
+def _read_gmsh1(path: Path) -> tuple[Array, Array]:
+    """Nodes and tets of a legacy gmsh v1 file ($NOD/$ELM, e.g. SOFA's meshes), which meshio
+    cannot read. Element rows are: id, type, reg-phys, reg-elem, n, node ids; type 4 is a tet.
+    """
+    lines = path.read_text().split("\n")
+    try:
+        i = next(k for k, line in enumerate(lines) if line.strip() == "$NOD")
+        n = int(lines[i + 1])
+        node_rows = np.array([line.split() for line in lines[i + 2:i + 2 + n]], np.float64)
+        j = next(k for k, line in enumerate(lines) if line.strip() == "$ELM")
+        m = int(lines[j + 1])
+        rows = [line.split() for line in lines[j + 2:j + 2 + m]]
+        tets = np.array([r[5:9] for r in rows if r[1] == "4"], np.int64)
+    except (ValueError, IndexError, StopIteration) as exc:
+        raise MeshError(f"{path}: not a readable gmsh v1 file ({exc})") from exc
+    if len(tets) == 0:
+        raise MeshError(f"{path}: no tetrahedra in this file")
+    ids = node_rows[:, 0].astype(np.int64)  # gmsh ids are arbitrary labels: map them to rows
+    lookup = np.full(ids.max() + 1, -1, np.int64)
+    lookup[ids] = np.arange(len(ids))
+    if tets.max() >= len(lookup) or (lookup[tets] < 0).any():
+        raise MeshError(f"{path}: elements refer to undefined nodes")
+    log.info("%s: legacy gmsh v1 file, %d tets (other elements ignored)", path.name, len(tets))
+    return node_rows[:, 1:4], lookup[tets]
+
+
+def _read_tets(path: Path) -> tuple[Array, Array]:
+    """Nodes and 4-node tets of any volume mesh meshio reads; other cells are ignored.
+
+    Why ignore: gmsh files carry boundary triangles (and lines, points) beside the tets.
+    Quadratic tets (tetra10) keep their four corners; the mid-edge nodes are dropped later as
+    unused.
+    """
+    import meshio
+
+    if _is_gmsh1(path):
+        return _read_gmsh1(path)
+    chatter = io.StringIO()  # meshio's readers print notes (through rich): log them instead
+    try:
+        with contextlib.redirect_stdout(chatter), contextlib.redirect_stderr(chatter):
+            m = meshio.read(path)
+    # meshio raises many types (ReadError, KeyError, ValueError ...), and exits on a format it
+    # cannot guess: neither may take the service down
+    except (Exception, SystemExit) as exc:
+        said = " ".join(chatter.getvalue().split())
+        raise MeshError(
+            f"{path}: meshio could not read it ({type(exc).__name__}: {said or exc})"
+        ) from exc
+    if chatter.getvalue().strip():
+        log.debug("%s: meshio says: %s", path.name, " ".join(chatter.getvalue().split()))
+    blocks = [c.data[:, :4] for c in m.cells if c.type in ("tetra", "tetra10")]
+    if not blocks:
+        kinds = sorted({c.type for c in m.cells}) or ["none"]
+        raise MeshError(
+            f"{path}: no tetrahedra in this file (cells: {', '.join(kinds)}); "
+            "give a volume mesh, or a closed surface as .stl/.obj/.ply to tetrahedralise"
+        )
+    ignored = sum(len(c.data) for c in m.cells if c.type not in ("tetra", "tetra10"))
+    if ignored:
+        log.info("%s: ignored %d non-tet cells (boundary triangles, lines, ...)", path.name,
+                 ignored)
+    return np.asarray(m.points, np.float64)[:, :3], np.concatenate(blocks).astype(np.int64)
+
+
+def load_mesh(
+    path: str | Path, scale: float = 1.0, *, max_volume: float | None = None
+) -> LoadedMesh:
+    """Read a tetrahedral mesh or tetrahedralise a closed surface, scale it, and validate it.
+
+    Shape: result.nodes (n, 3) = file coordinates x `scale`.
+    `max_volume` (after scaling) bounds tet volume when a surface is tetrahedralised.
+    Raises MeshError with the file's name for anything unusable.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise MeshError(f"{path}: no such mesh file")
+    if not scale > 0:
+        raise MeshError(f"{path}: scale must be > 0, got {scale}")
+    surface = path.suffix.lower() in SURFACE_SUFFIXES
+    if surface:
+        vertices, faces = _read_surface(path)
+        vertices = vertices * scale
+        try:
+            nodes, tets = tetrahedralise(vertices, faces, max_volume=max_volume)
+        except MeshError as exc:
+            raise MeshError(f"{path}: {exc}") from exc
+        log.info("%s: tetrahedralised %d surface vertices into %d nodes, %d tets",
+                 path.name, len(vertices), len(nodes), len(tets))
+    else:
+        nodes, tets = _read_tets(path)
+        nodes = nodes * scale
+    try:
+        mesh, kept = TetMesh.build(nodes, tets)
+    except MeshError as exc:
+        raise MeshError(f"{path}: {exc}") from exc
+    quality = mesh_quality(mesh.nodes, mesh.tets)
+    if quality.n_slivers:  # a warning only when they are more than a stray few
+        level = logging.WARNING if quality.n_slivers > 0.01 * mesh.n_tets else logging.INFO
+        log.log(level, "%s: %d sliver tets (min dihedral %.1f deg)", path.name,
+                quality.n_slivers, quality.min_dihedral)
+    log.info("%s: %d nodes, %d tets, min dihedral %.1f deg", path.name, mesh.n_nodes,
+             mesh.n_tets, quality.min_dihedral)
+    return LoadedMesh(
+        nodes=mesh.nodes,
+        tets=mesh.tets,
+        source=path,
+        tetrahedralised=surface,
+        kept=kept,
+        n_source_nodes=len(nodes),
+        quality=quality,
+    )

@@ -1,0 +1,107 @@
+"""TetMesh: validation and repair, the outward boundary, volumes, surface patches, boxes."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+
+from service.mesh import MeshError, TetMesh, signed_volumes
+from service.phantoms import grid_tets
+
+UNIT_TET = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+
+
+def test_cube_surface_is_closed_and_outward(cube):
+    faces = cube.surface_faces
+    assert faces.shape == (6 * 4 * 2, 3)  # 2 x 2 squares per side, 2 triangles each
+    centroid = cube.nodes[faces].mean(axis=1)
+    outward = ((centroid - 0.5) * cube.face_normals).sum(axis=1)
+    assert (outward > 0).all()
+    assert cube.face_areas.sum() == pytest.approx(6.0)
+    # closed: every boundary edge is shared by exactly two boundary faces
+    edges = np.sort(faces[:, [[0, 1], [1, 2], [2, 0]]].reshape(-1, 2), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    assert (counts == 2).all()
+    assert cube.surface_nodes.size == 26  # all 27 grid nodes but the centre
+
+
+def test_cube_volumes_positive_and_sum(cube):
+    assert (cube.volumes > 0).all()
+    assert cube.volumes.sum() == pytest.approx(1.0)
+    assert cube.lumped_areas.sum() == pytest.approx(6.0)
+
+
+def test_inverted_tet_is_reoriented(caplog):
+    with caplog.at_level(logging.WARNING, logger="service.mesh"):
+        mesh, kept = TetMesh.build(UNIT_TET, [[0, 2, 1, 3]])
+    assert kept is None
+    assert signed_volumes(UNIT_TET, np.array([[0, 2, 1, 3]]))[0] < 0
+    assert mesh.volumes[0] == pytest.approx(1 / 6)
+    assert "re-oriented 1 inverted" in caplog.text
+
+
+def test_degenerate_tet_is_refused():
+    nodes = np.vstack([UNIT_TET, [[1.0, 1.0, 0.0]]])  # node 4 is coplanar with 0, 1, 2
+    with pytest.raises(MeshError, match="degenerate"):
+        TetMesh.build(nodes, [[0, 1, 2, 3], [0, 1, 2, 4]])
+
+
+def test_repeated_node_is_refused():
+    with pytest.raises(MeshError, match="repeat a node"):
+        TetMesh.build(UNIT_TET, [[0, 1, 1, 3]])
+
+
+def test_two_components_are_refused():
+    nodes = np.vstack([UNIT_TET, UNIT_TET + 5.0])
+    with pytest.raises(MeshError, match="2 separate components"):
+        TetMesh.build(nodes, [[0, 1, 2, 3], [4, 5, 6, 7]])
+
+
+def test_unused_node_is_dropped_with_map(caplog):
+    nodes = np.vstack([UNIT_TET[:2], [[9.0, 9, 9]], UNIT_TET[2:]])  # node 2 is unused
+    with caplog.at_level(logging.WARNING, logger="service.mesh"):
+        mesh, kept = TetMesh.build(nodes, [[0, 1, 3, 4]], fixed=[2, 4])
+    assert kept.tolist() == [0, 1, 3, 4]
+    np.testing.assert_array_equal(mesh.nodes, nodes[kept])
+    assert mesh.tets.tolist() == [[0, 1, 2, 3]]
+    assert mesh.fixed.tolist() == [3]  # old 4 -> new 3; the dropped 2 is gone
+    assert "dropped 1 nodes" in caplog.text
+
+
+def test_bad_indices_and_shapes_are_refused():
+    with pytest.raises(MeshError, match="outside"):
+        TetMesh.build(UNIT_TET, [[0, 1, 2, 4]])
+    with pytest.raises(MeshError, match="non-empty"):
+        TetMesh.build(UNIT_TET, np.zeros((0, 4), int))
+    with pytest.raises(MeshError, match="fixed node ids"):
+        TetMesh.build(UNIT_TET, [[0, 1, 2, 3]], fixed=[7])
+
+
+def test_surface_patch_is_free_connected_and_near(bar):
+    free = set(bar.free_surface_nodes.tolist())
+    top = np.flatnonzero(np.isclose(bar.nodes, [2.0, 0.5, 1.0]).all(axis=1))[0]
+    patch = bar.surface_patch(top, 9)
+    assert patch[0] == top and len(patch) == 9 and len(set(patch.tolist())) == 9
+    assert set(patch.tolist()) <= free
+    assert np.linalg.norm(bar.nodes[patch] - bar.nodes[top], axis=1).max() <= 1.2
+    # next to the clamp the patch skips the fixed nodes and stays on the surface
+    near = np.flatnonzero(np.isclose(bar.nodes, [1.0, 0.5, 1.0]).all(axis=1))[0]
+    patch = bar.surface_patch(near, 12)
+    assert set(patch.tolist()) <= free and not np.isin(patch, bar.fixed).any()
+
+
+def test_nodes_in_box(cube):
+    left = cube.nodes_in_box([0, 0, 0], [0.5, 1, 1])
+    assert left.size == 18 and (cube.nodes[left, 0] <= 0.5).all()
+    corner = cube.nodes_in_box([0.9, 0.9, 0.9], [2, 2, 2])
+    assert cube.nodes[corner].tolist() == [[1.0, 1.0, 1.0]]
+
+
+def test_free_surface_excludes_fixed(bar):
+    assert not np.isin(bar.free_surface_nodes, bar.fixed).any()
+    assert bar.fixed.size == 9 and (bar.nodes[bar.fixed, 0] == 0).all()
+    nodes, tets = grid_tets((1, 1, 1), 1.0)
+    mesh, _ = TetMesh.build(nodes, tets)
+    assert mesh.free_surface_nodes.size == 8 and mesh.surface_faces.shape == (12, 3)

@@ -1,0 +1,148 @@
+"""Mesh files: meshio formats, gmsh files with boundary triangles, surfaces through tetgen."""
+
+from __future__ import annotations
+
+import meshio
+import numpy as np
+import pytest
+import trimesh
+
+from service.mesh import MeshError, TetMesh
+from service.meshfile import dihedral_angles, load_mesh
+from service.phantoms import grid_tets
+from tests.conftest import LIVER, needs_liver
+
+
+@pytest.fixture(scope="module")
+def box() -> tuple[np.ndarray, np.ndarray]:
+    """A 3 x 2 x 2 hex box of 1 cm cells (positively oriented Kuhn tets)."""
+    return grid_tets((3, 2, 2), 0.01)
+
+
+@needs_liver()
+def test_paper_liver_msh_loads_tets_only():
+    m = load_mesh(LIVER / "liver.msh")
+    assert m.nodes.shape == (3046, 3) and m.tets.shape == (10703, 4)
+    assert m.kept is None and not m.tetrahedralised and m.n_source_nodes == 3046
+    assert m.quality.volume > 0 and m.quality.min_dihedral > 1.0
+    assert m.to_mesh().n_nodes == 3046
+
+
+@pytest.mark.parametrize(
+    "name, fmt",
+    [("m.vtu", None), ("m.vtk", None), ("m.msh", "gmsh22"), ("m.mesh", None)],
+)
+def test_meshio_formats_round_trip(tmp_path, box, name, fmt):
+    nodes, tets = box
+    path = tmp_path / name
+    kwargs = {"file_format": fmt, "binary": False} if fmt else {}
+    meshio.write(path, meshio.Mesh(nodes, [("tetra", tets)]), **kwargs)
+    m = load_mesh(path)
+    np.testing.assert_allclose(m.nodes, nodes, atol=1e-12)
+    np.testing.assert_array_equal(m.tets, tets)
+    assert m.kept is None and m.source == path
+
+
+def test_boundary_cells_ignored_and_unused_nodes_mapped(tmp_path, box):
+    nodes, tets = box
+    extra = np.vstack([nodes[:5], [[1.0, 1.0, 1.0]], nodes[5:]])  # an unused node at index 5
+    tets = np.where(tets >= 5, tets + 1, tets)
+    tris = TetMesh(nodes, grid_tets((3, 2, 2), 0.01)[1]).surface_faces
+    tris = np.where(tris >= 5, tris + 1, tris)
+    path = tmp_path / "with_tris.msh"
+    cells = [("triangle", tris), ("tetra", tets), ("vertex", np.array([[5]]))]
+    meshio.write(path, meshio.Mesh(extra, cells), file_format="gmsh22", binary=False)
+    m = load_mesh(path)
+    assert m.n_source_nodes == len(extra) and len(m.nodes) == len(nodes)
+    assert 5 not in m.kept.tolist()
+    np.testing.assert_allclose(m.nodes, nodes)
+    assert m.source_to_mesh()[5] == -1 and m.source_to_mesh()[6] == 5
+
+
+def test_scale_applies(tmp_path, box):
+    nodes, tets = box
+    path = tmp_path / "mm.vtu"
+    meshio.write(path, meshio.Mesh(nodes * 1000.0, [("tetra", tets)]))
+    m = load_mesh(path, scale=0.001)
+    np.testing.assert_allclose(m.nodes, nodes, atol=1e-15)
+    assert m.quality.volume == pytest.approx(0.03 * 0.02 * 0.02)
+
+
+def test_inverted_tets_are_repaired(tmp_path, box, caplog):
+    nodes, tets = box
+    flipped = tets.copy()
+    flipped[::2, [2, 3]] = flipped[::2, [3, 2]]
+    path = tmp_path / "flipped.vtu"
+    meshio.write(path, meshio.Mesh(nodes, [("tetra", flipped)]))
+    m = load_mesh(path)
+    assert m.to_mesh().volumes.min() > 0
+    assert "re-oriented" in caplog.text
+
+
+def test_file_without_tets_names_the_file(tmp_path, box):
+    nodes, tets = box
+    path = tmp_path / "surface_only.vtu"
+    tris = TetMesh(nodes, tets).surface_faces
+    meshio.write(path, meshio.Mesh(nodes, [("triangle", tris)]))
+    with pytest.raises(MeshError, match=r"surface_only\.vtu: no tetrahedra"):
+        load_mesh(path)
+
+
+def test_bad_meshes_name_the_file(tmp_path):
+    tet = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    path = tmp_path / "two.vtu"
+    two = np.array([[0, 1, 2, 3], [4, 5, 6, 7]])
+    meshio.write(path, meshio.Mesh(np.vstack([tet, tet + 3]), [("tetra", two)]))
+    with pytest.raises(MeshError, match=r"two\.vtu: .*2 separate components"):
+        load_mesh(path)
+    flat = tmp_path / "flat.vtu"
+    pts = np.vstack([tet, [[1.0, 1.0, 0.0]]])
+    meshio.write(flat, meshio.Mesh(pts, [("tetra", np.array([[0, 1, 2, 3], [0, 1, 2, 4]]))]))
+    with pytest.raises(MeshError, match=r"flat\.vtu: .*degenerate"):
+        load_mesh(flat)
+    with pytest.raises(MeshError, match="no such mesh file"):
+        load_mesh(tmp_path / "missing.vtu")
+    junk = tmp_path / "junk.xyz"
+    junk.write_text("not a mesh")
+    with pytest.raises(MeshError, match=r"junk\.xyz: meshio could not read it"):
+        load_mesh(junk)
+
+
+def test_closed_surface_is_tetrahedralised(tmp_path):
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=0.05)
+    path = tmp_path / "ball.stl"
+    sphere.export(path)
+    m = load_mesh(path)
+    assert m.tetrahedralised and m.kept is None
+    mesh = m.to_mesh()
+    assert (mesh.volumes > 0).all()
+    assert mesh.volumes.sum() == pytest.approx(sphere.volume, rel=1e-6)
+    # the surface is kept as given: its vertices come first and form the whole boundary
+    nv = len(sphere.vertices)
+    assert mesh.surface_nodes.tolist() == list(range(nv))
+    assert len(mesh.surface_faces) == len(sphere.faces)
+    np.testing.assert_allclose(np.linalg.norm(mesh.nodes[:nv], axis=1), 0.05, rtol=1e-6)
+    assert dihedral_angles(mesh.nodes, mesh.tets).min() > 5.0
+    again = load_mesh(path)
+    np.testing.assert_array_equal(again.nodes, m.nodes)
+    np.testing.assert_array_equal(again.tets, m.tets)
+
+
+def test_surface_scale_and_max_volume(tmp_path):
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=50.0)  # millimetres
+    path = tmp_path / "ball.obj"
+    sphere.export(path)
+    coarse = load_mesh(path, scale=0.001)
+    fine = load_mesh(path, scale=0.001, max_volume=2e-7)
+    assert np.linalg.norm(coarse.nodes, axis=1).max() == pytest.approx(0.05, rel=1e-6)
+    assert len(fine.tets) > len(coarse.tets)
+    assert fine.quality.volume == pytest.approx(coarse.quality.volume)
+
+
+def test_open_surface_is_refused(tmp_path):
+    sphere = trimesh.creation.icosphere(subdivisions=1)
+    holed = trimesh.Trimesh(sphere.vertices, sphere.faces[1:], process=False)
+    path = tmp_path / "holed.ply"
+    holed.export(path)
+    with pytest.raises(MeshError, match=r"holed\.ply: the surface is not watertight \(3 open"):
+        load_mesh(path)

@@ -1,0 +1,269 @@
+"""Scenes: builtin and file scenes load; every kind of mistake is refused naming its key."""
+
+from __future__ import annotations
+
+import textwrap
+from pathlib import Path
+
+import meshio
+import numpy as np
+import pytest
+
+from service.phantoms import grid_tets
+from service.scene import SceneError, builtin_scene, load_scene, parse_scene, resolve_scene
+from tests.conftest import LIVER, needs_liver
+
+REPO = Path(__file__).resolve().parents[1]
+
+GOOD = """
+name = "block-1"
+
+[mesh]
+path = "meshes/block.vtu"
+scale = 0.001
+
+[material]
+law = "neo-hookean"
+E = 4500
+nu = 0.49
+
+[boundary]
+{boundary}
+
+[training]
+samples = 10
+max_force = 0.5
+patch_nodes = [2, 6]
+{training}
+"""
+
+
+@pytest.fixture()
+def folder(tmp_path) -> Path:
+    """A scene folder with a 4 x 2 x 2 hex block in millimetres (10 mm cells) in meshes/."""
+    nodes, tets = grid_tets((4, 2, 2), 10.0)
+    (tmp_path / "meshes").mkdir()
+    meshio.write(tmp_path / "meshes" / "block.vtu", meshio.Mesh(nodes, [("tetra", tets)]))
+    return tmp_path
+
+
+def write(folder: Path, boundary: str = "fixed_box = [[-1, -1, -1], [0.001, 1, 1]]",
+          training: str = "", text: str | None = None) -> Path:
+    path = folder / "scene.toml"
+    path.write_text(text if text is not None else GOOD.format(boundary=boundary, training=training))
+    return path
+
+
+def error_of(folder: Path, **kw) -> str:
+    with pytest.raises(SceneError) as info:
+        scene = load_scene(write(folder, **kw))
+        mesh, _ = scene.build_mesh()
+        scene.region_nodes(mesh)
+    return str(info.value)
+
+
+# -- loading ----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name, n_nodes, n_fixed", [("beam", 500, 25), ("phantom", None, None)])
+def test_builtin_scenes_load(name, n_nodes, n_fixed):
+    scene = builtin_scene(name)
+    assert scene.name == name and scene.material.E == 4500.0 and scene.material.nu == 0.49
+    assert scene.mesh.generator == name
+    mesh, loaded = scene.build_mesh()
+    assert loaded.source is None and loaded.kept is None
+    if n_nodes:
+        assert mesh.n_nodes == n_nodes and mesh.fixed.size == n_fixed
+    region = scene.region_nodes(mesh)
+    np.testing.assert_array_equal(region, mesh.free_surface_nodes)
+    assert resolve_scene(name).name == name
+
+
+def test_good_scene_loads_with_relative_paths_and_defaults(folder):
+    scene = load_scene(write(folder))
+    assert scene.mesh.path == (folder / "meshes" / "block.vtu").resolve()
+    assert scene.origin.endswith("scene.toml")
+    t = scene.training
+    assert (t.seed, t.load_steps, t.multi_patch, t.normal_fraction) == (0, 5, 0.2, 0.5)
+    assert scene.training.patch_nodes == (2, 6)
+    mesh, loaded = scene.build_mesh()
+    assert mesh.n_nodes == 45 and not loaded.tetrahedralised
+    np.testing.assert_allclose(np.ptp(mesh.nodes, axis=0), [0.04, 0.02, 0.02])  # scaled to m
+    assert resolve_scene(folder / "scene.toml").name == "block-1"
+
+
+def test_fixed_box_selects_after_scaling(folder):
+    scene = load_scene(write(folder, boundary="fixed_box = [[0.015, -1, -1], [0.025, 1, 1]]"))
+    mesh, _ = scene.build_mesh()
+    assert mesh.fixed.size == 9 and np.allclose(mesh.nodes[mesh.fixed, 0], 0.02)
+
+
+def test_fixed_nodes_file_text_and_npy(folder):
+    (folder / "fixed.txt").write_text("# clamp\n0\n1\n2\n")
+    mesh, _ = load_scene(write(folder, boundary='fixed_nodes_file = "fixed.txt"')).build_mesh()
+    assert mesh.fixed.tolist() == [0, 1, 2]
+    np.save(folder / "fixed.npy", np.array([3, 4]))
+    scene = load_scene(write(folder, boundary='fixed_nodes_file = "fixed.npy"\nfree_nodes = [4]'))
+    assert scene.build_mesh()[0].fixed.tolist() == [3]
+
+
+def test_regions(folder):
+    scene = load_scene(write(folder, training="region_box = [[0.03, -1, -1], [1, 1, 1]]"))
+    mesh, _ = scene.build_mesh()
+    region = scene.region_nodes(mesh)
+    assert region.size and (mesh.nodes[region, 0] >= 0.03).all()
+    assert np.isin(region, mesh.free_surface_nodes).all()
+    sphere = "region_sphere = {centre = [0.04, 0.01, 0.02], radius = 0.0101}"
+    scene = load_scene(write(folder, training=sphere))
+    mesh, _ = scene.build_mesh()
+    assert sorted(map(tuple, mesh.nodes[scene.region_nodes(mesh)].round(3))) == [
+        (0.03, 0.01, 0.02), (0.04, 0.0, 0.02), (0.04, 0.01, 0.01), (0.04, 0.01, 0.02),
+        (0.04, 0.02, 0.02),
+    ]
+    ids = mesh.free_surface_nodes[:4].tolist()
+    scene = load_scene(write(folder, training=f"region = {ids}"))
+    assert scene.region_nodes(scene.build_mesh()[0]).tolist() == ids
+
+
+def test_ids_are_mapped_when_unused_nodes_are_dropped(tmp_path):
+    nodes, tets = grid_tets((2, 1, 1), 1.0)
+    nodes = np.vstack([[[9.0, 9, 9]], nodes])  # an unused node 0 shifts every id by one
+    meshio.write(tmp_path / "m.vtu", meshio.Mesh(nodes, [("tetra", tets + 1)]))
+    text = GOOD.replace("meshes/block.vtu", "m.vtu").replace("scale = 0.001", "").format(
+        boundary="fixed_nodes = [1, 2, 3, 4]", training="region = [12]")
+    scene = load_scene(write(tmp_path, text=text))
+    mesh, loaded = scene.build_mesh()
+    assert loaded.kept is not None and mesh.fixed.tolist() == [0, 1, 2, 3]
+    assert scene.region_nodes(mesh).tolist() == [11]
+    bad = text.replace("fixed_nodes = [1, 2, 3, 4]", "fixed_nodes = [0, 1]")
+    with pytest.raises(SceneError, match=r"\[boundary\] fixed_nodes: nodes \[0\] belong to no tet"):
+        load_scene(write(tmp_path, text=bad)).build_mesh()
+
+
+# -- errors name the key ----------------------------------------------------------------------
+
+
+def edited(old: str, new: str, boundary: str = "fixed_nodes = [0]", training: str = "") -> str:
+    """The good scene with one piece of text replaced."""
+    text = GOOD.format(boundary=boundary, training=training)
+    assert old in text
+    return text.replace(old, new)
+
+
+def test_unknown_key(folder):
+    msg = error_of(folder, training="epochs = 3")
+    assert "scene.toml: [training] epochs: unknown key" in msg
+    text = GOOD.format(boundary="fixed_nodes = [0]", training="") + "\n[extras]\na = 1\n"
+    assert "scene.toml: [extras]: unknown table" in error_of(folder, text=text)
+
+
+def test_nu_too_large(folder):
+    msg = error_of(folder, text=edited("nu = 0.49", "nu = 0.6"))
+    assert msg.endswith("scene.toml: [material] nu: must be < 0.5, got 0.6")
+
+
+def test_two_fixed_selections(folder):
+    msg = error_of(folder, boundary="fixed_nodes = [0]\nfixed_box = [[0, 0, 0], [1, 1, 1]]")
+    assert "[boundary]: give exactly one of fixed_nodes, fixed_nodes_file, fixed_box" in msg
+    assert "(got fixed_nodes, fixed_box)" in msg
+
+
+def test_no_fixed_selection_for_a_file(folder):
+    assert "[boundary]: give exactly one of" in error_of(folder, boundary="")
+
+
+def test_fixed_id_out_of_range(folder):
+    msg = error_of(folder, boundary="fixed_nodes = [0, 45]")
+    assert "[boundary] fixed_nodes: node ids must lie in 0..44, got [45]" in msg
+    msg = error_of(folder, boundary="fixed_nodes = [0, -2]")
+    assert "[boundary] fixed_nodes[1]: must be >= 0, got -2" in msg
+
+
+def test_everything_freed_is_singular(folder):
+    msg = error_of(folder, boundary="fixed_nodes = [0]\nfree_nodes = [0]")
+    assert "[boundary]: no node is fixed" in msg and "singular" in msg
+
+
+def test_empty_fixed_box(folder):
+    msg = error_of(folder, boundary="fixed_box = [[5, 5, 5], [6, 6, 6]]")
+    assert "[boundary] fixed_box: selects no node" in msg
+
+
+def test_missing_material(folder):
+    text = edited('[material]\nlaw = "neo-hookean"\nE = 4500\nnu = 0.49\n', "")
+    assert "scene.toml: [material]: missing table" in error_of(folder, text=text)
+    assert "[material] E: missing (required)" in error_of(folder, text=edited("E = 4500\n", ""))
+
+
+def test_region_not_on_surface(folder):
+    nodes, _ = grid_tets((4, 2, 2), 10.0)
+    interior = int(np.flatnonzero((nodes == [20.0, 10.0, 10.0]).all(axis=1))[0])
+    msg = error_of(folder, training=f"region = [{interior}]")
+    assert (f"[training] region: 1 nodes are not free surface nodes (interior or fixed): "
+            f"[{interior}]") in msg
+    assert "[training] region: " in error_of(folder, training="region = [0]")  # fixed by the box
+
+
+@pytest.mark.parametrize(
+    "old, new, expected",
+    [
+        ("[2, 6]", "[6, 2]", "[training] patch_nodes: must be [lo, hi] with lo <= hi"),
+        ("[2, 6]", "[0, 2]", "[training] patch_nodes[0]: must be >= 1, got 0"),
+        ("samples = 10", "samples = 1.5", "[training] samples: must be a valid integer"),
+        ("max_force = 0.5", "max_force = inf", "[training] max_force: must be a finite number"),
+        ("block-1", "a b", "name: must be letters, digits, '-' and '_' only, got 'a b'"),
+        ("block.vtu", "nope.vtu", "[mesh] path: file not found"),
+        ('"neo-hookean"', '"st-venant"', "[material] law: must be 'neo-hookean'"),
+        ("name = ", "name = \nname = ", "not valid TOML"),
+    ],
+)
+def test_value_errors_name_the_key(folder, old, new, expected):
+    assert expected in error_of(folder, text=edited(old, new))
+
+
+def test_training_options(folder):
+    msg = error_of(folder, training="region = [1]\nregion_box = [[0, 0, 0], [1, 1, 1]]")
+    assert "[training]: give at most one of region, region_file, region_box" in msg
+    msg = error_of(folder, training="multi_patch = 1.5")
+    assert "[training] multi_patch: must be <= 1.0, got 1.5" in msg
+    msg = error_of(folder, training="region_sphere = {centre = [0, 0, 0], radius = 0}")
+    assert "[training] region_sphere.radius: must be > 0.0, got 0" in msg
+    with pytest.raises(SceneError, match="builtins: beam, phantom"):
+        resolve_scene("kidney")
+
+
+def test_generator_scene_and_mesh_source_exclusive():
+    text = textwrap.dedent("""
+        name = "b"
+        [mesh]
+        generator = "beam"
+        [material]
+        E = 1000
+        nu = 0.3
+        [boundary]
+        fixed_box = [[0.185, -1, -1], [1, 1, 1]]
+        [training]
+        samples = 1
+        max_force = 0.01
+        patch_nodes = [1, 1]
+        """)
+    mesh, _ = parse_scene(text).build_mesh()
+    assert mesh.fixed.size == 25 and np.allclose(mesh.nodes[mesh.fixed, 0], 0.19)
+    for mesh_keys in (f'generator = "beam"\npath = "{__file__}"', "scale = 2.0"):
+        with pytest.raises(SceneError, match=r"<scene>: \[mesh\]: give exactly one of path, gen"):
+            parse_scene(text.replace('generator = "beam"', mesh_keys))
+
+
+@needs_liver()
+def test_paper_liver_scene():
+    scene = load_scene(REPO / "benchmarks" / "scenes" / "liver_paper.toml")
+    mesh, _ = scene.build_mesh()
+    dirichlet = np.load(LIVER / "dirichlet-vertices.npy")
+    assert mesh.n_nodes == 3046 and mesh.fixed.size == dirichlet.size - 1 and 756 not in mesh.fixed
+    region = scene.region_nodes(mesh)
+    support = scene.support_nodes(mesh)
+    assert support.size == 60 and np.isin(support, mesh.free_surface_nodes).all()
+    centre = mesh.nodes[support].mean(axis=0)
+    assert (np.linalg.norm(mesh.nodes[region] - centre, axis=1) <= 0.05).all()
+    assert region.size > 100
+    assert scene.matching_faces(mesh).shape == (4745, 3)
