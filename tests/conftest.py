@@ -32,3 +32,51 @@ def cube() -> TetMesh:
 
 def needs_liver():
     return pytest.mark.skipif(not LIVER.exists(), reason="../shared/meshes/liver_paper not present")
+
+
+BAR_SCENE = """
+name = "{name}"
+
+[mesh]
+path = "bar.vtu"
+
+[material]
+law = "neo-hookean"
+E = 4500.0
+nu = 0.45
+
+[boundary]
+fixed_box = [[-0.01, -1, -1], [0.01, 2, 2]]
+
+[training]
+samples = {samples}
+max_force = 60.0
+patch_nodes = [3, 6]
+load_steps = 3
+"""
+
+
+def write_bar_scene(folder: Path, bar: TetMesh, name: str = "bar", samples: int = 60) -> Path:
+    """A scene TOML over the `bar` fixture's mesh: the smallest thing the trainer can build."""
+    import meshio
+
+    folder.mkdir(parents=True, exist_ok=True)
+    meshio.write(folder / "bar.vtu", meshio.Mesh(bar.nodes, [("tetra", bar.tets)]))
+    path = folder / f"{name}.toml"
+    path.write_text(BAR_SCENE.format(name=name, samples=samples))
+    return path
+
+
+@pytest.fixture(scope="session")
+def bar_store(tmp_path_factory, bar):
+    """A model store with one small trained entry ("bar"), built by the real trainer."""
+    from service.scene import load_scene
+    from service.surrogate.build import build
+    from service.surrogate.train import TrainConfig
+
+    root = tmp_path_factory.mktemp("bar_store")
+    scene = load_scene(write_bar_scene(root / "scene", bar))
+    config = TrainConfig(hidden=(64, 64), rank=24, epochs=60, batch=32, lr=3e-3, patience=60)
+    report = build(scene, root / "store", workers=0, data_root=root / "data", config=config,
+                   command="elastreg train bar.toml", progress=False)
+    return root / "store", report

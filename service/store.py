@@ -1,0 +1,241 @@
+"""The model store: one folder per trained model, checked before it is trusted.
+
+    <store>/<id>/manifest.json        what it is: scene, material, mesh facts, network layout,
+                                      training figures, validation metrics, code version,
+                                      the command that rebuilds it, and a SHA-256 per file
+    <store>/<id>/mesh.npz             nodes, tets, fixed nodes, the load region
+    <store>/<id>/weights.safetensors  the network's tensors (normalisation buffers included)
+
+Loading re-hashes every file against the manifest and the mesh arrays against the recorded
+mesh hash, builds the network from the manifest and loads the weights strictly; any mismatch
+is a :class:`StoreError` naming the entry and what is wrong, and :func:`open_store` skips that
+entry (logged) while the others load. Weights are read with safetensors: no pickle anywhere.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from safetensors.torch import load_file, save_file
+
+from . import __version__
+from .fem.material import NeoHookean
+from .fem.model import FEMModel
+from .mesh import TetMesh
+from .surrogate.model import NetworkModel
+from .surrogate.network import PaperSurrogate, ReducedSurrogate
+
+log = logging.getLogger(__name__)
+
+FORMAT_VERSION = 1
+MANIFEST = "manifest.json"
+MESH = "mesh.npz"
+WEIGHTS = "weights.safetensors"
+
+
+class StoreError(RuntimeError):
+    """An entry that cannot be used, and why."""
+
+
+def default_store() -> Path:
+    """ELASTREG_STORE, else the project's own model_store/ beside the package."""
+    env = os.environ.get("ELASTREG_STORE")
+    return Path(env) if env else Path(__file__).resolve().parents[1] / "model_store"
+
+
+def sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Entry:
+    """A loaded model: its manifest and both forward models over one mesh."""
+
+    id: str
+    path: Path
+    manifest: dict = dataclasses.field(repr=False)
+    mesh: TetMesh = dataclasses.field(repr=False)
+    region: np.ndarray = dataclasses.field(repr=False)
+    network: NetworkModel = dataclasses.field(repr=False)
+    fem: FEMModel = dataclasses.field(repr=False)
+
+    def model(self, method: str):
+        if method == "network":
+            return self.network
+        if method == "fem":
+            return self.fem
+        raise ValueError(f"unknown method {method!r}; choose 'network' or 'fem'")
+
+    def summary(self) -> dict:
+        m = self.manifest
+        return {
+            "id": self.id,
+            "n_nodes": self.mesh.n_nodes,
+            "n_tets": self.mesh.n_tets,
+            "n_surface_nodes": int(self.mesh.surface_nodes.size),
+            "n_fixed_nodes": int(self.mesh.fixed.size),
+            "n_region_nodes": int(self.region.size),
+            "material": m["material"],
+            "methods": ["network", "fem"],
+            "training": m.get("training", {}),
+            "network": m.get("network", {}),
+            "mesh_renumbered": bool(m["mesh"].get("renumbered", False)),
+            "bounding_box": self.mesh.bounding_box.tolist(),
+            "created": m.get("created"),
+            "code_version": m.get("code_version"),
+        }
+
+
+def network_from_manifest(spec: dict, state: dict[str, torch.Tensor]) -> torch.nn.Module:
+    """Rebuild the module the manifest describes (shapes come from the saved tensors)."""
+    layout = spec.get("layout")
+    if layout == "reduced":
+        basis = state["basis"]
+        net = ReducedSurrogate(int(spec["n_in"]), basis, [int(h) for h in spec["hidden"]])
+    elif layout == "paper":
+        net = PaperSurrogate(int(spec["n_in"]), int(spec["n_out"]), depth=len(spec["hidden"]) + 1)
+    else:
+        raise StoreError(f"unknown network layout {layout!r}")
+    net.load_state_dict(state, strict=True)
+    return net.eval()
+
+
+def write_entry(
+    store: Path,
+    entry_id: str,
+    mesh: TetMesh,
+    region: np.ndarray,
+    net: torch.nn.Module,
+    *,
+    material: NeoHookean,
+    scene: dict,
+    training: dict,
+    network: dict,
+    rebuild: str,
+    renumbered: bool = False,
+) -> Path:
+    """Write an entry atomically: built in a temporary folder, then renamed into place."""
+    store = Path(store)
+    store.mkdir(parents=True, exist_ok=True)
+    final = store / entry_id
+    tmp = Path(tempfile.mkdtemp(prefix=f".{entry_id}-", dir=store))
+    try:
+        np.savez(tmp / MESH, nodes=mesh.nodes, tets=mesh.tets, fixed=mesh.fixed, region=np.asarray(region, np.int64))
+        state = {k: v.detach().cpu().contiguous() for k, v in net.state_dict().items()}
+        save_file(state, str(tmp / WEIGHTS), metadata={"elastreg": __version__})
+        manifest = {
+            "format_version": FORMAT_VERSION,
+            "id": entry_id,
+            "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            "code_version": __version__,
+            "scene": scene,
+            "material": {"law": material.law, "E": material.E, "nu": material.nu},
+            "mesh": {**mesh.summary(), "hash": mesh.hash, "renumbered": renumbered},
+            "network": {**network, "parameters": int(sum(p.numel() for p in net.parameters()))},
+            "training": training,
+            "rebuild": rebuild,
+            "files": {name: sha256(tmp / name) for name in (MESH, WEIGHTS)},
+        }
+        (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1, default=_jsonable))
+        if final.exists():
+            old = store / f".{entry_id}-old-{os.getpid()}"
+            os.replace(final, old)
+            os.replace(tmp, final)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, final)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return final
+
+
+def _jsonable(x):
+    if isinstance(x, (np.integer, np.floating)):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, Path):
+        return str(x)
+    raise TypeError(f"not JSON serialisable: {type(x).__name__}")
+
+
+def load_entry(path: Path) -> Entry:
+    """Load and verify one entry; a :class:`StoreError` says what is wrong."""
+    path = Path(path)
+    name = path.name
+    try:
+        manifest = json.loads((path / MANIFEST).read_text())
+    except FileNotFoundError:
+        raise StoreError(f"{name}: no {MANIFEST}") from None
+    except json.JSONDecodeError as exc:
+        raise StoreError(f"{name}: {MANIFEST} is not valid JSON ({exc})") from None
+    version = manifest.get("format_version")
+    if version != FORMAT_VERSION:
+        raise StoreError(f"{name}: manifest format {version!r} is not supported (expected {FORMAT_VERSION})")
+    for fname, digest in manifest.get("files", {}).items():
+        f = path / fname
+        if not f.exists():
+            raise StoreError(f"{name}: {fname} is missing")
+        if sha256(f) != digest:
+            raise StoreError(f"{name}: {fname} does not match its checksum in the manifest (corrupt or changed)")
+    if set(manifest.get("files", {})) != {MESH, WEIGHTS}:
+        raise StoreError(f"{name}: the manifest must list {MESH} and {WEIGHTS}")
+    try:
+        with np.load(path / MESH, allow_pickle=False) as z:
+            mesh = TetMesh(z["nodes"], z["tets"], z["fixed"])
+            region = z["region"].astype(np.int64)
+    except (KeyError, ValueError, OSError) as exc:
+        raise StoreError(f"{name}: {MESH} is unreadable ({exc})") from None
+    if mesh.hash != manifest["mesh"].get("hash"):
+        raise StoreError(f"{name}: the mesh does not match the hash recorded in the manifest")
+    try:
+        mat = manifest["material"]
+        material = NeoHookean(float(mat["E"]), float(mat["nu"]))
+        state = load_file(str(path / WEIGHTS))
+        net = network_from_manifest(manifest["network"], state)
+    except StoreError:
+        raise
+    except (KeyError, ValueError, RuntimeError) as exc:
+        raise StoreError(f"{name}: the weights do not fit the manifest ({exc})") from None
+    network = NetworkModel(mesh, material, region, net, E0=material.E)
+    return Entry(manifest["id"], path, manifest, mesh, region, network, FEMModel(mesh, material))
+
+
+def open_store(store: Path) -> tuple[dict[str, Entry], dict[str, str]]:
+    """Every loadable entry by id, and the refused ones with the reason (each one logged)."""
+    store = Path(store)
+    entries: dict[str, Entry] = {}
+    errors: dict[str, str] = {}
+    if not store.is_dir():
+        log.warning("model store %s does not exist", store)
+        return entries, errors
+    for path in sorted(p for p in store.iterdir() if p.is_dir() and not p.name.startswith(".")):
+        try:
+            entry = load_entry(path)
+        except StoreError as exc:
+            log.error("skipping model %s", exc)
+            errors[path.name] = str(exc)
+            continue
+        if entry.id in entries:
+            msg = f"{path.name}: duplicate model id {entry.id!r}"
+            log.error("skipping model %s", msg)
+            errors[path.name] = msg
+            continue
+        entries[entry.id] = entry
+        log.info("loaded model %s (%d nodes)", entry.id, entry.mesh.n_nodes)
+    return entries, errors

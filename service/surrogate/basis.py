@@ -1,0 +1,45 @@
+"""The reduced output space: a POD basis of training displacements, and the exact linear
+(small-strain) response to region forces expressed in it."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ..fem.assembly import Assembler
+from ..fem.linsolve import make_solver
+
+Array = np.ndarray
+
+
+def pod_basis(U: Array, rank: int, seed: int = 0) -> tuple[Array, Array]:
+    """Leading left singular vectors of the snapshot matrix (randomised SVD).
+
+    Shape: U (N, 3n) snapshots as rows -> basis (3n, r) orthonormal columns, singular values (r,).
+    No mean is removed: zero force gives zero displacement, and the basis must keep that.
+    """
+    rank = int(min(rank, *U.shape))
+    torch.manual_seed(seed)
+    A = torch.from_numpy(np.ascontiguousarray(U, dtype=np.float32)).T  # (3n, N)
+    Q, S, _ = torch.svd_lowrank(A, q=min(rank + 16, min(A.shape)), niter=3)
+    return Q[:, :rank].numpy().astype(np.float64), S[:rank].numpy().astype(np.float64)
+
+
+def linear_response(asm: Assembler, region: Array) -> Array:
+    """Small-strain displacement of every node per unit force on each region dof.
+
+    Shape: region (R,) -> (3n, 3R), column 3 a + i answers a unit force on node region[a], axis i.
+    One factorisation of the rest stiffness and 3R right-hand sides.
+    """
+    K = asm.stiffness_at_rest()
+    solver = make_solver(K)
+    solver.factor(K)
+    mesh = asm.mesh
+    R = len(region)
+    rhs = np.zeros((3 * mesh.n_nodes, 3 * R))
+    cols = np.arange(3 * R)
+    rhs[(3 * np.repeat(region, 3) + np.tile(np.arange(3), R)), cols] = 1.0
+    X = solver.solve(rhs[mesh.free_dofs])
+    out = np.zeros((3 * mesh.n_nodes, 3 * R))
+    out[mesh.free_dofs] = X
+    return out

@@ -1,0 +1,246 @@
+"""Training data: random local surface loads, solved by the FEM along load paths.
+
+One *path* is one random load grown in `steps` equal increments from rest; each converged step
+is a sample, so a path costs little more than one solve (every step warm-starts from the last).
+A path is a pure function of (scene, seed, index): the work maps over indices with Dask, each
+finished path is written to its own file at once (atomically), and a rerun skips the indices
+already on disk, so an interrupted run resumes where it stopped and loses nothing.
+
+Shapes on disk, per path file ``path_NNNNNN.npz``: ``forces`` (s, r, 3) float32 on the region
+nodes, ``u`` (s, n, 3) float32 for all nodes, ``newton_iterations`` (s,), s <= steps.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+import re
+import time
+from functools import lru_cache
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from ..fem.material import NeoHookean
+from ..fem.newton import NewtonOptions, NewtonSolver
+from ..fem.assembly import Assembler
+from ..mesh import TetMesh
+
+log = logging.getLogger(__name__)
+
+Array = np.ndarray
+
+
+@dataclasses.dataclass(frozen=True)
+class LoadSpec:
+    """The load distribution a scene declares (SCENES.md [training])."""
+
+    region: tuple[int, ...]  # free surface node ids where loads may act
+    max_force: float  # N, largest total load of one sample
+    patch_nodes: tuple[int, int] = (5, 40)
+    steps: int = 5  # samples per path
+    multi_patch: float = 0.2  # fraction of paths with two patches
+    normal_fraction: float = 0.5  # mean share of the outward normal in a load's direction
+    pull_fraction: float = 2.0 / 3.0  # outward pulls (a grasper retracting) vs pushes
+    seed: int = 0
+
+
+def _unit(v: Array) -> Array:
+    return v / np.linalg.norm(v)
+
+
+def sample_path_load(mesh: TetMesh, spec: LoadSpec, rng: np.random.Generator) -> Array:
+    """The final (largest) load of one path, on the region nodes. Shape: (r, 3).
+
+    A patch is the k region nodes nearest (along the surface) to a random region node, with k
+    uniform in patch_nodes. Its direction mixes the outward normal and a random tangent: the
+    normal share a ~ Beta(2 nf, 2 (1 - nf)) has mean nf = `normal_fraction`, and the normal
+    part points outwards (a pull) with probability `pull_fraction`. The total force spreads evenly or as a
+    smooth bump over the patch. The path's total magnitude is max_force * sqrt(U(0.05, 1)), so
+    that with the path's equal steps the samples cover magnitudes roughly uniformly.
+    """
+    region = np.asarray(spec.region)
+    in_region = np.zeros(mesh.n_nodes, bool)
+    in_region[region] = True
+    pos = np.full(mesh.n_nodes, -1)
+    pos[region] = np.arange(region.size)
+    g = np.zeros((region.size, 3))
+    n_patches = 2 if rng.random() < spec.multi_patch else 1
+    total = spec.max_force * np.sqrt(rng.uniform(0.05, 1.0))
+    shares = rng.dirichlet(np.ones(n_patches)) if n_patches > 1 else np.ones(1)
+    lo, hi = spec.patch_nodes
+    for share in shares:
+        centre = int(rng.choice(region))
+        k = int(rng.integers(lo, hi + 1))
+        patch = _region_patch(mesh, centre, k, in_region)
+        normal = _unit(mesh.vertex_normals[patch].sum(axis=0))
+        tangent = _unit(np.cross(normal, _unit(rng.normal(size=3))))
+        nf = min(max(spec.normal_fraction, 1e-3), 1 - 1e-3)
+        a = rng.beta(2.0 * nf, 2.0 * (1.0 - nf))
+        sign = 1.0 if rng.random() < spec.pull_fraction else -1.0
+        direction = _unit(sign * a * normal + np.sqrt(1.0 - a * a) * tangent)
+        if rng.random() < 0.5:
+            w = np.ones(patch.size)
+        else:
+            d = np.linalg.norm(mesh.nodes[patch] - mesh.nodes[centre], axis=1)
+            w = 1.0 - (d / (d.max() * 1.05 + 1e-300)) ** 2
+        g[pos[patch]] += np.outer(w / w.sum(), direction) * (total * share)
+    return g
+
+
+def _region_patch(mesh: TetMesh, centre: int, k: int, in_region: Array) -> Array:
+    """The k region nodes nearest to `centre` along the surface."""
+    from scipy.sparse import csgraph
+
+    dist = csgraph.dijkstra(mesh.surface_graph, indices=centre)
+    cand = np.flatnonzero(in_region & np.isfinite(dist))
+    return cand[np.argsort(dist[cand], kind="stable")[:k]]
+
+
+@lru_cache(maxsize=2)
+def _solver(mesh: TetMesh, material: NeoHookean, rtol: float) -> NewtonSolver:
+    """One Newton solver per worker process and problem (it owns a factorisation)."""
+    return NewtonSolver(Assembler(mesh, material), NewtonOptions(rtol=rtol))
+
+
+def solve_path(mesh: TetMesh, material: NeoHookean, spec: LoadSpec, index: int, rtol: float = 1e-7) -> dict:
+    """Solve path `index` step by step; keeps the steps that converged (a pure function)."""
+    rng = np.random.default_rng([spec.seed, index])
+    g_region = sample_path_load(mesh, spec, rng)
+    solver = _solver(mesh, material, rtol)
+    region = np.asarray(spec.region)
+    forces, us, its = [], [], []
+    u = None
+    t0 = time.perf_counter()
+    for step in range(1, spec.steps + 1):
+        g = np.zeros((mesh.n_nodes, 3))
+        g[region] = g_region * (step / spec.steps)
+        res = solver.solve(g, u)
+        if not res.converged:
+            log.info("path %d: step %d did not converge (%s)", index, step, res.status)
+            break
+        u = res.u
+        forces.append(g[region])
+        us.append(u)
+        its.append(res.iterations)
+    return {
+        "index": index,
+        "forces": np.asarray(forces, np.float32).reshape(-1, region.size, 3),
+        "u": np.asarray(us, np.float32).reshape(-1, mesh.n_nodes, 3),
+        "newton_iterations": np.asarray(its, np.int32),
+        "seconds": time.perf_counter() - t0,
+    }
+
+
+# -- the data set on disk -------------------------------------------------------------------
+
+
+_PATH_NAME = re.compile(r"path_(\d{6})\.npz")
+
+
+def path_file(data_dir: Path, index: int) -> Path:
+    return Path(data_dir) / f"path_{index:06d}.npz"
+
+
+def done_indices(data_dir: Path) -> set[int]:
+    """Indices of finished paths (half-written files are hidden temporaries, never matched)."""
+    names = (p.name for p in Path(data_dir).glob("path_*.npz"))
+    return {int(m.group(1)) for m in map(_PATH_NAME.fullmatch, names) if m}
+
+
+def write_path(data_dir: Path, result: dict) -> None:
+    """Atomic write: a half-written file never looks like a finished path."""
+    final = path_file(data_dir, result["index"])
+    tmp = final.with_name(f".{final.stem}.tmp.npz")
+    np.savez(tmp, forces=result["forces"], u=result["u"], newton_iterations=result["newton_iterations"])
+    os.replace(tmp, final)
+
+
+def load_dataset(data_dir: Path, indices: list[int] | None = None) -> tuple[Array, Array, Array]:
+    """All samples on disk: forces (N, r, 3), u (N, n, 3) float32, and each sample's path index."""
+    idx = sorted(done_indices(data_dir)) if indices is None else sorted(indices)
+    F, U, P = [], [], []
+    for i in idx:
+        with np.load(path_file(data_dir, i)) as z:
+            F.append(z["forces"])
+            U.append(z["u"])
+            P.append(np.full(len(z["forces"]), i))
+    if not F:
+        raise FileNotFoundError(f"no samples in {data_dir}")
+    return np.concatenate(F), np.concatenate(U), np.concatenate(P)
+
+
+def generate(
+    mesh: TetMesh,
+    material: NeoHookean,
+    spec: LoadSpec,
+    data_dir: Path,
+    n_paths: int,
+    *,
+    workers: int = 2,
+    scheduler: str | None = None,
+    progress: bool = True,
+) -> Iterator[dict]:
+    """Solve paths 0..n_paths-1 that are not on disk yet, in parallel; yields each as written.
+
+    With `scheduler` the work goes to that Dask cluster; otherwise a LocalCluster of `workers`
+    single-threaded processes (one per core: the factorisation is the hot spot and threads
+    would only fight over it). With workers=0 it runs in this process (tests, debugging).
+    """
+    data_dir = Path(data_dir)
+    data_dir.mkdir(parents=True, exist_ok=True)
+    todo = [i for i in range(n_paths) if i not in done_indices(data_dir)]
+    bar = _progress(n_paths, n_paths - len(todo), progress)
+    if not todo:
+        bar.close()
+        return
+    if workers == 0 and scheduler is None:
+        for i in todo:
+            result = solve_path(mesh, material, spec, i)
+            write_path(data_dir, result)
+            bar.update(1)
+            bar.set_postfix(samples=_count(bar, result))
+            yield result
+        bar.close()
+        return
+
+    from dask.distributed import Client, LocalCluster, as_completed
+
+    cluster = None
+    if scheduler is None:
+        one_thread = {k: "1" for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
+        cluster = LocalCluster(
+            n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
+            env=one_thread,
+        )
+    client = Client(scheduler or cluster)
+    try:
+        m, mat, s = client.scatter([mesh, material, spec], broadcast=True)
+        futures = client.map(solve_path, [m] * len(todo), [mat] * len(todo), [s] * len(todo), todo, pure=False)
+        for fut in as_completed(futures):
+            result = fut.result()
+            write_path(data_dir, result)
+            bar.update(1)
+            bar.set_postfix(samples=_count(bar, result))
+            fut.release()
+            yield result
+    finally:
+        bar.close()
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def _progress(total: int, initial: int, enabled: bool):
+    from tqdm.auto import tqdm
+
+    bar = tqdm(total=total, initial=initial, desc="load paths", unit="path", disable=not enabled)
+    bar.samples = 0
+    return bar
+
+
+def _count(bar, result: dict) -> int:
+    bar.samples += len(result["forces"])
+    return bar.samples

@@ -1,0 +1,93 @@
+"""Surrogate networks: nodal forces on the load region -> nodal displacements.
+
+Two layouts:
+
+- ``"reduced"`` (the default, chosen by measurement: see the README's surrogate section): an MLP
+  from the region's force dofs to the coefficients of a POD basis learnt from the training
+  displacements, plus a linear skip path initialised with the exact small-strain response
+  projected onto that basis. Physics gives the linear part for free; the network only learns the
+  nonlinear remainder, and the basis keeps its output small (r << 3n) and smooth.
+- ``"paper"``: the paper's network, fully connected layers as wide as the number of degrees of
+  freedom with PReLU activations, nodal forces in, nodal displacements out.
+
+Shapes: forces g (B, 3R) flattened node-major over the region's R nodes; coefficients (B, r);
+displacements (B, 3n) node-major.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+
+def mlp(n_in: int, hidden: list[int], n_out: int) -> nn.Sequential:
+    """Linear/PReLU stack; the last layer is linear and starts at zero (the skip path rules
+    at initialisation, so training starts from the physics prior, not from noise)."""
+    layers: list[nn.Module] = []
+    width = n_in
+    for h in hidden:
+        layers += [nn.Linear(width, h), nn.PReLU(h)]
+        width = h
+    last = nn.Linear(width, n_out)
+    nn.init.zeros_(last.weight)
+    nn.init.zeros_(last.bias)
+    layers.append(last)
+    return nn.Sequential(*layers)
+
+
+class ReducedSurrogate(nn.Module):
+    """c = A g + MLP(g) in a POD basis; u = basis @ (c * scale).
+
+    `skip` (r, 3R) is the linear response in basis coordinates (trainable, physics-initialised).
+    Inputs are divided by `force_scale` and coefficients multiplied by `coef_scale` so the
+    network works with O(1) numbers.
+    """
+
+    layout = "reduced"
+
+    def __init__(
+        self,
+        n_in: int,
+        basis: torch.Tensor,
+        hidden: list[int],
+        skip: torch.Tensor | None = None,
+        force_scale: float = 1.0,
+        coef_scale: torch.Tensor | None = None,
+    ) -> None:
+        super().__init__()
+        r = basis.shape[1]
+        self.register_buffer("basis", basis.float())  # (3n, r), orthonormal columns
+        self.register_buffer("force_scale", torch.tensor(float(force_scale)))
+        cs = torch.ones(r) if coef_scale is None else coef_scale.float()
+        self.register_buffer("coef_scale", cs)
+        self.skip = nn.Linear(n_in, r, bias=False)
+        if skip is None:
+            nn.init.zeros_(self.skip.weight)
+        else:
+            with torch.no_grad():
+                self.skip.weight.copy_(skip.float() * (force_scale / cs[:, None]))
+        self.net = mlp(n_in, hidden, r)
+        self.hidden = list(hidden)
+
+    def coefficients(self, g: torch.Tensor) -> torch.Tensor:
+        x = g / self.force_scale
+        return (self.skip(x) + self.net(x)) * self.coef_scale
+
+    def forward(self, g: torch.Tensor) -> torch.Tensor:
+        return self.coefficients(g) @ self.basis.T
+
+
+class PaperSurrogate(nn.Module):
+    """The paper's layout: FC layers of width 3n (the dofs), PReLU, forces in, displacements out."""
+
+    layout = "paper"
+
+    def __init__(self, n_in: int, n_out: int, depth: int = 4, force_scale: float = 1.0, u_scale: float = 1.0) -> None:
+        super().__init__()
+        self.register_buffer("force_scale", torch.tensor(float(force_scale)))
+        self.register_buffer("u_scale", torch.tensor(float(u_scale)))
+        self.net = mlp(n_in, [n_out] * (depth - 1), n_out)
+        self.hidden = [n_out] * (depth - 1)
+
+    def forward(self, g: torch.Tensor) -> torch.Tensor:
+        return self.net(g / self.force_scale) * self.u_scale

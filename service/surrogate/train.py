@@ -1,0 +1,182 @@
+"""Fitting a surrogate to FEM samples: split by load path, Adam with cosine decay, early stop
+on the validation mean nodal error, fixed seeds, metrics in millimetres."""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import logging
+import time
+
+import numpy as np
+import torch
+
+from ..fem.assembly import Assembler
+from .basis import linear_response, pod_basis
+from .network import PaperSurrogate, ReducedSurrogate
+
+log = logging.getLogger(__name__)
+
+Array = np.ndarray
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    layout: str = "reduced"  # "reduced" or "paper"
+    hidden: tuple[int, ...] = (512, 512)
+    rank: int = 128  # POD modes (reduced layout)
+    physics_skip: bool = True  # linear small-strain response as the skip path
+    epochs: int = 300
+    batch: int = 128
+    lr: float = 1e-3
+    weight_decay: float = 0.0
+    patience: int = 60  # epochs without validation improvement before stopping
+    val_fraction: float = 0.1
+    seed: int = 0
+    device: str | None = None  # "cuda" when there is one, else "cpu"
+    threads: int | None = None  # torch CPU threads (default: torch's)
+
+
+@dataclasses.dataclass
+class TrainResult:
+    model: torch.nn.Module
+    metrics: dict  # validation figures of the best epoch
+    history: list[dict]
+    config: TrainConfig
+    train_paths: Array
+    val_paths: Array
+
+
+def split_paths(path_ids: Array, val_fraction: float, seed: int) -> tuple[Array, Array]:
+    """Whole load paths go to one side: steps of one path are too alike to split."""
+    paths = np.unique(path_ids)
+    rng = np.random.default_rng(seed)
+    rng.shuffle(paths)
+    n_val = max(1, int(round(val_fraction * paths.size))) if paths.size > 1 else 0
+    return np.sort(paths[n_val:]), np.sort(paths[:n_val])
+
+
+def nodal_errors(pred: Array, true: Array) -> Array:
+    """Euclidean error per node per sample. Shape: (N, 3n) x2 -> (N, n)."""
+    d = (pred - true).reshape(len(pred), -1, 3)
+    return np.sqrt((d**2).sum(-1))
+
+
+def evaluate(model: torch.nn.Module, F: Array, U: Array, device: str = "cpu", chunk: int = 512) -> dict:
+    """Mean and 95th-percentile nodal error (mm), and mean relative error, over samples."""
+    errs, rel = [], []
+    model.eval()
+    with torch.no_grad():
+        for i in range(0, len(F), chunk):
+            g = torch.from_numpy(F[i : i + chunk].reshape(len(F[i : i + chunk]), -1)).float().to(device)
+            pred = model(g).cpu().numpy()
+            true = U[i : i + chunk].reshape(len(pred), -1)
+            e = nodal_errors(pred, true)
+            errs.append(e)
+            rel.append(np.linalg.norm(pred - true, axis=1) / np.maximum(np.linalg.norm(true, axis=1), 1e-12))
+    e = np.concatenate(errs)
+    return {
+        "mean_mm": float(e.mean() * 1e3),
+        "p95_mm": float(np.percentile(e, 95) * 1e3),
+        "max_mm": float(e.max() * 1e3),
+        "relative": float(np.mean(np.concatenate(rel))),
+        "samples": int(len(F)),
+    }
+
+
+def build_model(config: TrainConfig, asm: Assembler, region: Array, F: Array, U: Array) -> torch.nn.Module:
+    """The untrained network, with its basis and physics prior computed from the training set."""
+    n_in = 3 * len(region)
+    force_scale = float(np.sqrt((F.reshape(len(F), -1) ** 2).sum(1).mean() / n_in)) or 1.0
+    if config.layout == "paper":
+        u_scale = float(np.sqrt((U.reshape(len(U), -1) ** 2).mean())) or 1.0
+        return PaperSurrogate(n_in, U.shape[1] * U.shape[2], depth=max(2, len(config.hidden) + 1),
+                              force_scale=force_scale, u_scale=u_scale)
+    if config.layout != "reduced":
+        raise ValueError(f"unknown layout {config.layout!r}")
+    basis, _ = pod_basis(U.reshape(len(U), -1), config.rank, config.seed)
+    coefs = U.reshape(len(U), -1) @ basis
+    coef_scale = torch.full((basis.shape[1],), float(np.sqrt((coefs**2).mean())) or 1.0)
+    skip = None
+    if config.physics_skip:
+        skip = torch.from_numpy(basis.T @ linear_response(asm, region))  # (r, 3R)
+    return ReducedSurrogate(n_in, torch.from_numpy(basis), list(config.hidden), skip, force_scale, coef_scale)
+
+
+def targets(model: torch.nn.Module, U: Array) -> Array:
+    """What the network is fitted to: basis coefficients (reduced) or raw displacements."""
+    U = U.reshape(len(U), -1)
+    if isinstance(model, ReducedSurrogate):
+        return U @ model.basis.double().numpy()
+    return U
+
+
+def train(
+    F: Array,
+    U: Array,
+    path_ids: Array,
+    asm: Assembler,
+    region: Array,
+    config: TrainConfig = TrainConfig(),
+    progress: bool = True,
+) -> TrainResult:
+    """Fit a surrogate to samples F (N, R, 3) -> U (N, n, 3), validating on held-out paths."""
+    from tqdm.auto import tqdm
+
+    if config.threads:
+        torch.set_num_threads(config.threads)
+    device = config.device or ("cuda" if torch.cuda.is_available() else "cpu")
+    torch.manual_seed(config.seed)
+    train_paths, val_paths = split_paths(path_ids, config.val_fraction, config.seed)
+    tr = np.isin(path_ids, train_paths)
+    va = np.isin(path_ids, val_paths) if val_paths.size else tr
+    F = F.reshape(len(F), -1).astype(np.float32)
+
+    model = build_model(config, asm, region, F[tr], U[tr]).to(device)
+    Y = torch.from_numpy(targets(model.cpu(), U).astype(np.float32))
+    model.to(device)
+    X = torch.from_numpy(F)
+    Xtr, Ytr = X[tr].to(device), Y[tr].to(device)
+    y_norm = float((Ytr**2).sum(1).mean())
+    reduced = isinstance(model, ReducedSurrogate)
+
+    def predict(x):
+        return model.coefficients(x) if reduced else model(x)
+
+    opt = torch.optim.Adam(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=config.epochs, eta_min=config.lr * 1e-2)
+    gen = torch.Generator().manual_seed(config.seed)
+    best, best_state, history, stale = np.inf, None, [], 0
+    bar = tqdm(range(config.epochs), desc="training", unit="epoch", disable=not progress)
+    t0 = time.perf_counter()
+    for epoch in bar:
+        model.train()
+        order = torch.randperm(len(Xtr), generator=gen).to(device)
+        total = 0.0
+        for i in range(0, len(order), config.batch):
+            idx = order[i : i + config.batch]
+            loss = ((predict(Xtr[idx]) - Ytr[idx]) ** 2).sum(1).mean() / y_norm
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            total += loss.item() * len(idx)
+        sched.step()
+        metrics = evaluate(model, F[va], U[va], device)
+        history.append({"epoch": epoch, "loss": total / len(Xtr), **metrics, "seconds": time.perf_counter() - t0})
+        bar.set_postfix(loss=f"{total / len(Xtr):.2e}", val_mm=f"{metrics['mean_mm']:.3f}", p95=f"{metrics['p95_mm']:.2f}")
+        if metrics["mean_mm"] < best:
+            best, best_state, stale = metrics["mean_mm"], copy.deepcopy(model.state_dict()), 0
+        else:
+            stale += 1
+            if stale >= config.patience:
+                log.info("early stop at epoch %d", epoch)
+                break
+    bar.close()
+    model.load_state_dict(best_state)
+    model.cpu().eval()
+    final = evaluate(model, F[va], U[va])
+    final["zero_mean_mm"] = float(np.linalg.norm(U[va], axis=-1).mean() * 1e3)  # the u = 0 baseline
+    final["train_samples"] = int(tr.sum())
+    final["train_seconds"] = time.perf_counter() - t0
+    final["epochs"] = len(history)
+    return TrainResult(model, final, history, config, train_paths, val_paths)

@@ -1,0 +1,88 @@
+"""The trainer end to end on a tiny scene, and the model store's checks."""
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from service.fem.model import FEMModel
+from service.store import StoreError, load_entry, open_store
+
+
+def test_training_produces_a_loadable_entry_that_learnt(bar_store):
+    store, report = bar_store
+    entries, errors = open_store(store)
+    assert errors == {} and set(entries) == {"bar"}
+    entry = entries["bar"]
+    m = entry.manifest
+    assert m["rebuild"] == "elastreg train bar.toml"
+    assert m["training"]["samples"] == report.samples == 60
+    assert m["material"] == {"law": "neo-hookean", "E": 4500.0, "nu": 0.45}
+    val = m["training"]["validation"]
+    assert val["mean_mm"] < 0.5 * report.metrics["zero_mean_mm"]  # far better than u = 0
+    # the network and the FEM agree on a fresh load like the training ones (a surface patch)
+    tip = entry.region[np.argmax(entry.mesh.nodes[entry.region, 0])]
+    support = np.intersect1d(entry.mesh.surface_patch(tip, 5), entry.region)
+    g = np.tile([0.0, 0.0, -30.0 / support.size], (support.size, 1))
+    u_net = entry.network.restrict(support).displacement(g)
+    u_fem = entry.fem.solve(g, support).u
+    assert np.linalg.norm(u_net - u_fem) < 0.3 * np.linalg.norm(u_fem)
+
+
+def test_stiffness_scaling_matches_the_fem(bar_store):
+    entry = load_entry(bar_store[0] / "bar")
+    support = entry.region[:4]
+    g = np.tile([0.0, 5.0, -8.0], (4, 1))
+    E = 2.5 * entry.fem.material.E
+    # physics: at fixed nu the response to g at E is the response to g E0 / E at E0
+    fem_E = FEMModel(entry.mesh, entry.fem.material.with_stiffness(E)).solve(g, support).u
+    np.testing.assert_allclose(fem_E, entry.fem.solve(g / 2.5, support).u, atol=1e-9)
+    # and the network's per-session E follows the same law, so it tracks the FEM at E
+    net_E = entry.network.with_stiffness(E).restrict(support).displacement(g)
+    net_0 = entry.network.restrict(support).displacement(g / 2.5)
+    np.testing.assert_allclose(net_E, net_0, atol=1e-7)
+    assert np.linalg.norm(net_E - fem_E) < 0.5 * np.linalg.norm(fem_E)
+
+
+@pytest.mark.parametrize(
+    "damage,message",
+    [
+        (lambda p: p.joinpath("weights.safetensors").write_bytes(b"\0" * 64), "checksum"),
+        (lambda p: p.joinpath("mesh.npz").unlink(), "missing"),
+        (lambda p: p.joinpath("manifest.json").write_text("{not json"), "not valid JSON"),
+        (lambda p: _edit_manifest(p, format_version=99), "format"),
+        (lambda p: _edit_manifest(p, files={}), "must list"),
+    ],
+)
+def test_a_corrupt_entry_is_refused_and_the_others_still_load(bar_store, tmp_path, damage, message):
+    store = tmp_path / "store"
+    shutil.copytree(bar_store[0] / "bar", store / "bar")
+    shutil.copytree(bar_store[0] / "bar", store / "broken")
+    damage(store / "broken")
+    with pytest.raises(StoreError, match=message):
+        load_entry(store / "broken")
+    entries, errors = open_store(store)
+    assert set(entries) == {"bar"} and set(errors) == {"broken"}
+
+
+def test_a_mesh_swapped_under_valid_checksums_is_refused(bar_store, tmp_path):
+    entry = tmp_path / "bar"
+    shutil.copytree(bar_store[0] / "bar", entry)
+    with np.load(entry / "mesh.npz") as z:
+        arrays = dict(z)
+    arrays["nodes"] = arrays["nodes"] * 1.01
+    np.savez(entry / "mesh.npz", **arrays)
+    from service.store import sha256
+
+    m = json.loads((entry / "manifest.json").read_text())
+    m["files"]["mesh.npz"] = sha256(entry / "mesh.npz")
+    (entry / "manifest.json").write_text(json.dumps(m))
+    with pytest.raises(StoreError, match="hash"):
+        load_entry(entry)
+
+
+def _edit_manifest(path, **changes):
+    m = json.loads((path / "manifest.json").read_text())
+    m.update(changes)
+    (path / "manifest.json").write_text(json.dumps(m))

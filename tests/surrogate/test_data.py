@@ -1,0 +1,68 @@
+"""Training data: the load sampler, path solves, and resumable generation (in-process and Dask)."""
+
+import numpy as np
+import pytest
+
+from service.fem.material import NeoHookean
+from service.surrogate.data import LoadSpec, done_indices, generate, load_dataset, path_file, sample_path_load, solve_path
+
+MAT = NeoHookean(4500.0, 0.45)
+
+
+@pytest.fixture(scope="module")
+def spec(bar):
+    region = bar.free_surface_nodes[bar.nodes[bar.free_surface_nodes, 0] > 1.0]
+    return LoadSpec(region=tuple(region.tolist()), max_force=60.0, patch_nodes=(3, 6), steps=3, multi_patch=0.3)
+
+
+def test_loads_stay_in_the_region_and_under_the_cap(bar, spec):
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        g = sample_path_load(bar, spec, rng)
+        assert g.shape == (len(spec.region), 3)
+        assert np.linalg.norm(g.sum(axis=0)) <= spec.max_force + 1e-9
+        loaded = np.count_nonzero(np.abs(g).sum(1))
+        assert 3 <= loaded <= 12  # one or two patches of 3..6 nodes
+
+
+def test_pulls_dominate_when_asked(bar, spec):
+    from dataclasses import replace
+
+    pulls = replace(spec, pull_fraction=1.0, normal_fraction=0.9, multi_patch=0.0)
+    rng = np.random.default_rng(1)
+    normals = bar.vertex_normals[np.asarray(spec.region)]
+    outward = [np.sum(sample_path_load(bar, pulls, rng) * normals) > 0 for _ in range(30)]
+    assert all(outward)
+
+
+def test_a_path_is_a_pure_function_of_its_index(bar, spec):
+    a, b = solve_path(bar, MAT, spec, 7), solve_path(bar, MAT, spec, 7)
+    np.testing.assert_array_equal(a["forces"], b["forces"])
+    np.testing.assert_array_equal(a["u"], b["u"])
+    assert len(a["forces"]) == spec.steps  # every step converged
+    np.testing.assert_allclose(a["forces"][0] * 3, a["forces"][2], rtol=1e-5)  # equal steps
+
+
+def test_generation_resumes_without_losing_or_redoing_paths(tmp_path, bar, spec):
+    out = tmp_path / "data"
+    assert len(list(generate(bar, MAT, spec, out, 6, workers=0, progress=False))) == 6
+    before = {i: path_file(out, i).stat().st_mtime_ns for i in range(6)}
+    path_file(out, 2).unlink()  # an interrupted run: one path lost...
+    (out / ".path_000004.tmp.npz").write_bytes(b"half written")  # ...one half-written
+    redone = [r["index"] for r in generate(bar, MAT, spec, out, 6, workers=0, progress=False)]
+    assert redone == [2]
+    assert done_indices(out) == set(range(6))
+    assert all(path_file(out, i).stat().st_mtime_ns == before[i] for i in (0, 1, 3, 4, 5))
+    F, U, P = load_dataset(out)
+    assert F.shape == (18, len(spec.region), 3) and U.shape == (18, bar.n_nodes, 3)
+    np.testing.assert_array_equal(np.unique(P), np.arange(6))
+
+
+def test_dask_cluster_gives_the_same_samples(tmp_path, bar, spec):
+    local = list(generate(bar, MAT, spec, tmp_path / "a", 3, workers=0, progress=False))
+    dask = list(generate(bar, MAT, spec, tmp_path / "b", 3, workers=1, progress=False))
+    assert sorted(r["index"] for r in dask) == [0, 1, 2]
+    Fa, Ua, _ = load_dataset(tmp_path / "a")
+    Fb, Ub, _ = load_dataset(tmp_path / "b")
+    np.testing.assert_array_equal(Fa, Fb)
+    np.testing.assert_allclose(Ua, Ub, atol=1e-9)

@@ -1,0 +1,112 @@
+"""The network forward model: the NumPy hot path is the torch network and its exact adjoint."""
+
+import numpy as np
+import pytest
+import torch
+
+from service.fem.assembly import Assembler
+from service.fem.material import NeoHookean
+from service.surrogate.basis import linear_response, pod_basis
+from service.surrogate.model import NetworkModel
+from service.surrogate.network import PaperSurrogate, ReducedSurrogate
+
+MAT = NeoHookean(4500.0, 0.45)
+
+
+def randomised(net: torch.nn.Module, seed: int = 0) -> torch.nn.Module:
+    """Random weights everywhere (the trained zero-initialised last layer would hide bugs)."""
+    gen = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in net.parameters():
+            p.copy_(torch.randn(p.shape, generator=gen) * 0.3)
+    return net.eval()
+
+
+@pytest.fixture(scope="module", params=["reduced", "paper"])
+def model(request, bar):
+    region = bar.free_surface_nodes[bar.nodes[bar.free_surface_nodes, 0] > 1.0]
+    n_in = 3 * region.size
+    if request.param == "reduced":
+        rng = np.random.default_rng(0)
+        basis, _ = pod_basis(rng.normal(size=(40, 3 * bar.n_nodes)), 12)
+        net = ReducedSurrogate(n_in, torch.from_numpy(basis), [32, 16], torch.randn(12, n_in), 2.0,
+                               torch.full((12,), 0.5))
+    else:
+        net = PaperSurrogate(n_in, 3 * bar.n_nodes, depth=3, force_scale=2.0, u_scale=0.1)
+    return NetworkModel(bar, MAT, region, randomised(net), E0=MAT.E)
+
+
+def case(model):
+    support = model.region[::2]
+    nodes = model.mesh.surface_nodes[::3]
+    g = np.random.default_rng(1).normal(size=(support.size, 3))
+    return support, nodes, g
+
+
+def torch_reference(model, support, g):
+    x = torch.zeros(3 * model.region.size, dtype=torch.float32)
+    cols = torch.from_numpy(model.region_columns(support))
+    gt = torch.tensor(g.ravel(), dtype=torch.float32, requires_grad=True)
+    x = x.index_put((cols,), gt * model.stiffness_factor)
+    return gt, model.net(x[None])[0].reshape(-1, 3)
+
+
+def test_operator_matches_the_torch_network(model):
+    support, nodes, g = case(model)
+    u, _ = model.restrict(support, nodes)(g)
+    _, ref = torch_reference(model, support, g)
+    np.testing.assert_allclose(u, ref.detach().numpy()[nodes], rtol=1e-4, atol=1e-5 * np.abs(u).max())
+    full = model.restrict(support, nodes).displacement(g)
+    np.testing.assert_allclose(full, ref.detach().numpy(), rtol=1e-4, atol=1e-5 * np.abs(full).max())
+
+
+def test_pullback_is_torch_backpropagation(model):
+    support, nodes, g = case(model)
+    _, pullback = model.restrict(support, nodes)(g)
+    u_bar = np.random.default_rng(2).normal(size=(nodes.size, 3))
+    gt, ref = torch_reference(model, support, g)
+    (ref[torch.from_numpy(nodes)] * torch.from_numpy(u_bar).float()).sum().backward()
+    np.testing.assert_allclose(pullback(u_bar), gt.grad.numpy().reshape(-1, 3), rtol=1e-4, atol=1e-5)
+
+
+def test_pullback_matches_finite_differences(model):
+    support, nodes, g = case(model)
+    op = model.restrict(support, nodes)
+    u_bar = np.random.default_rng(3).normal(size=(nodes.size, 3))
+    grad = op(g)[1](u_bar)
+    d = np.random.default_rng(4).normal(size=g.shape)
+    h = 1e-2
+    fd = (np.sum(u_bar * op(g + h * d)[0]) - np.sum(u_bar * op(g - h * d)[0])) / (2 * h)
+    assert np.sum(grad * d) == pytest.approx(fd, rel=2e-2, abs=1e-3)  # float32, PReLU kinks
+
+
+def test_stiffness_scales_the_input(model):
+    support, nodes, g = case(model)
+    stiff = model.with_stiffness(3 * MAT.E)
+    np.testing.assert_allclose(stiff.restrict(support, nodes)(3 * g)[0], model.restrict(support, nodes)(g)[0], rtol=1e-4, atol=1e-6)
+    assert model.material.E == MAT.E
+
+
+def test_support_outside_the_region_is_refused(model):
+    outside = np.setdiff1d(model.mesh.free_surface_nodes, model.region)[:2]
+    with pytest.raises(ValueError, match="outside the network's load region"):
+        model.restrict(outside)
+
+
+def test_linear_response_solves_the_rest_stiffness(bar):
+    asm = Assembler(bar, MAT)
+    region = bar.free_surface_nodes[:5]
+    G = linear_response(asm, region)
+    g = np.zeros((bar.n_nodes, 3))
+    g[region[2], 1] = 1.0
+    u = asm.unpack(np.linalg.solve(asm.stiffness_at_rest().toarray(), asm.pack(g)))
+    np.testing.assert_allclose(G[:, 3 * 2 + 1], u.ravel(), atol=1e-12 * np.abs(u).max() + 1e-15)
+
+
+def test_pod_basis_is_orthonormal_and_captures_a_low_rank_set():
+    rng = np.random.default_rng(5)
+    U = rng.normal(size=(50, 4)) @ rng.normal(size=(4, 90))
+    basis, s = pod_basis(U, 4)
+    np.testing.assert_allclose(basis.T @ basis, np.eye(4), atol=1e-5)
+    np.testing.assert_allclose(U @ basis @ basis.T, U, atol=1e-4 * np.abs(U).max())
+    assert (np.diff(s) <= 1e-6).all()
