@@ -15,6 +15,7 @@ import numpy as np
 from ..mesh import TetMesh
 from ..registration.forward import ForwardFailed, check_support
 from .assembly import Assembler
+from .linsolve import make_solver
 from .material import NeoHookean
 from .newton import NewtonOptions, NewtonResult, NewtonSolver
 
@@ -67,6 +68,8 @@ class FEMOperator:
         self.nodes = np.arange(model.mesh.n_nodes) if nodes is None else np.asarray(nodes, np.int64)
         self._newton = model.newton()
         self._u: Array | None = None  # last equilibrium: the next solve's start
+        self._rest = None
+        self._jac: Array | None = None
         self.last: NewtonResult | None = None
 
     def reset(self) -> None:
@@ -85,8 +88,41 @@ class FEMOperator:
     def displacement(self, g: Array) -> Array:
         return self._solve(np.asarray(g, np.float64)).u
 
+    def _rest_solver(self):
+        """Factorisation of the rest stiffness, made on first use (the rest state's adjoint)."""
+        if self._rest is None:
+            K0 = self.model.assembler.stiffness_at_rest()
+            solver = make_solver(K0, self.model.options.backend)
+            solver.factor(K0)
+            self._rest = solver
+        return self._rest
+
+    def jacobian(self) -> Array:
+        """du/dg at rest (small strain) for the operator's nodes, cached: 3k solves with the rest
+        factorisation. Shape: (p, 3, 3k), columns node-major over the support."""
+        if self._jac is None:
+            asm, mesh, k = self.model.assembler, self.mesh, self.support.size
+            rhs = np.zeros((3 * mesh.n_nodes, 3 * k))
+            rows = (3 * self.support[:, None] + np.arange(3)).ravel()
+            rhs[rows, np.arange(3 * k)] = 1.0
+            X = np.zeros_like(rhs)
+            X[mesh.free_dofs] = self._rest_solver().solve(rhs[mesh.free_dofs])
+            self._jac = X.reshape(mesh.n_nodes, 3, 3 * k)[self.nodes]
+        return self._jac
+
     def __call__(self, g: Array) -> tuple[Array, callable]:
-        res = self._solve(np.asarray(g, np.float64))
+        g = np.asarray(g, np.float64)
+        if not np.any(g):  # zero load: the rest state, exactly; keeps the warm start intact
+            asm, solver = self.model.assembler, self._rest_solver()
+            nodes, support, mesh = self.nodes, self.support, self.mesh
+
+            def rest_pullback(u_bar: Array) -> Array:
+                rhs = np.zeros((mesh.n_nodes, 3))
+                np.add.at(rhs, nodes, u_bar)
+                return asm.unpack(solver.solve(asm.pack(rhs)))[support]
+
+            return np.zeros((nodes.size, 3)), rest_pullback
+        res = self._solve(g)
         asm, solver = self.model.assembler, res.solver
         u = res.u
         nodes, support, mesh = self.nodes, self.support, self.mesh

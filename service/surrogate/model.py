@@ -133,6 +133,7 @@ class NetworkOperator:
         W0, b0, a0 = layers[0]
         layers[0] = (np.ascontiguousarray(W0[:, cols] * x_scale), b0, a0)
         self._layers = layers
+        self._jac: Array | None = None
 
     def reset(self) -> None:  # stateless: nothing to forget
         pass
@@ -168,6 +169,21 @@ class NetworkOperator:
             return (hb + xb).astype(np.float64).reshape(k, 3)
 
         return u.astype(np.float64).reshape(-1, 3), pullback
+
+    def jacobian(self) -> Array:
+        """du/dg of the network at g = 0 (its small-load response) for the operator's nodes,
+        cached. Shape: (p, 3, 3k)."""
+        if self._jac is None:
+            k3 = self._layers[0][0].shape[1]
+            _, tape = self._hidden(np.zeros(k3, np.float32))
+            D = np.eye(k3, dtype=np.float64)
+            for W, slope in tape:  # forward-mode through the hidden layers
+                D = slope[:, None] * (W @ D)
+            W_last = self._layers[-1][0].astype(np.float64)
+            dy = W_last @ D + (self._skip if self._skip is not None else 0.0)
+            J = self._readout @ dy if self._readout is not None else dy
+            self._jac = J.reshape(self.nodes.size, 3, k3)
+        return self._jac
 
     def displacement(self, g: Array) -> Array:
         """Every node's displacement (the readout over the whole mesh). Shape: (n, 3)."""

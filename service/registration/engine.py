@@ -1,0 +1,301 @@
+"""One frame's registration: min over support forces g of J(u_g) + alpha/2 |g|^2 with L-BFGS-B.
+
+The engine sees a forward operator (network or FEM, :mod:`.forward`) and a point-to-surface
+distance; it never knows which method it drives. Each frame:
+
+1. evaluates the rest state g = 0: its gradient is the reference for the relative tolerance
+   (how hard the cloud pulls on the undeformed organ, independent of where the frame starts,
+   so a warm start that begins near the optimum stops early), and a cloud already on the rest
+   surface ends the frame at once;
+2. evaluates the warm start g0 and builds a Gauss-Newton preconditioner there
+   (:mod:`.precondition`): L-BFGS-B then runs in variables where the curvature is about the
+   identity and the first unit step is the Gauss-Newton step;
+3. runs L-BFGS-B (SciPy) with exact gradients (the forward model's adjoint) and keeps the best
+   iterate it saw, whatever stops it.
+
+Scaling also keeps SciPy's stopping tests meaningful: J is about 1e-6 m^2 on a liver, and its
+tests are absolute below 1.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import time
+from typing import Callable
+
+import numpy as np
+from scipy.optimize import minimize
+
+from .forward import ForwardFailed, ForwardOperator
+from .precondition import Preconditioner, gauss_newton_hessian, residual_jacobian
+
+log = logging.getLogger(__name__)
+
+Array = np.ndarray
+
+
+@dataclasses.dataclass(frozen=True)
+class SolveOptions:
+    alpha: float = 1e-7  # regularisation weight on |g|^2 (m^2 / N^2, with J in m^2)
+    gtol: float = 1e-4
+    max_iter: int = 100
+    force_bound: float | None = None  # |g_i| <= bound per component, newtons
+    force_scale: float = 0.1  # N: the optimiser's unit when the model gives no Jacobian
+    precondition: bool = False  # Gauss-Newton preconditioning (precondition.py): measured to
+    # cost iterations on the liver (its rest Jacobian misleads once deformed), so off by default
+    max_evaluations: int | None = None  # default: 3 x max_iter
+    max_failures: int = 4  # forward failures at trial points before the frame gives up
+
+
+@dataclasses.dataclass
+class Timing:
+    forward: float = 0.0
+    distance: float = 0.0
+    gradient: float = 0.0
+    total: float = 0.0
+
+    def as_ms(self) -> dict[str, float]:
+        d = {k: 1e3 * v for k, v in dataclasses.asdict(self).items()}
+        d["optimizer"] = max(0.0, d["total"] - d["forward"] - d["distance"] - d["gradient"])
+        return d
+
+
+@dataclasses.dataclass
+class FrameSolution:
+    """The best iterate of one frame and how the optimiser got there. Shape: g (k, 3)."""
+
+    g: Array
+    objective: float  # J at g (m^2), without the regularisation
+    value: float  # J + alpha/2 |g|^2
+    converged: bool
+    status: str  # converged | max_iter | line_search | forward_failed | non_finite | stalled
+    iterations: int
+    evaluations: int
+    timing: Timing
+    message: str = ""
+
+
+class _Stop(Exception):
+    def __init__(self, status: str, message: str) -> None:
+        self.status, self.message = status, message
+
+
+class _Done(Exception):
+    """Nothing to optimise: the rest state is the answer."""
+
+
+class Objective:
+    """Phi(g) = J(x0 + u_g) + alpha/2 |g|^2 and its gradient (the adjoint), timed, with the
+    best iterate remembered. Shape: g (k, 3); x0 (p, 3) rest positions of `op.nodes`."""
+
+    def __init__(self, op: ForwardOperator, distance, rest_positions: Array, alpha: float, timing: Timing | None = None):
+        self.op, self.distance, self.rest, self.alpha = op, distance, rest_positions, float(alpha)
+        self.timing = timing or Timing()
+        self.evaluations = 0
+        self.best_value, self.best_g, self.best_J = math.inf, None, math.inf
+        self.last_u: Array | None = None  # displacement of op.nodes at the last evaluation
+        self.rest_u: Array | None = None  # ... and at g = 0
+
+    def __call__(self, g: Array) -> tuple[float, Array, float]:
+        """(Phi, dPhi/dg (k, 3), J). Raises _Stop when the forward model fails or a value is
+        not finite."""
+        self.evaluations += 1
+        t0 = time.perf_counter()
+        try:
+            u, pullback = self.op(g)
+        except ForwardFailed as exc:
+            self.timing.forward += time.perf_counter() - t0
+            raise _Stop("forward_failed", str(exc)) from None
+        t1 = time.perf_counter()
+        self.last_u = u
+        if not np.any(g):
+            self.rest_u = u
+        J, dJ_dx = self.distance(self.rest + u)
+        t2 = time.perf_counter()
+        grad = pullback(dJ_dx) + self.alpha * g
+        t3 = time.perf_counter()
+        self.timing.forward += t1 - t0
+        self.timing.distance += t2 - t1
+        self.timing.gradient += t3 - t2
+        value = J + 0.5 * self.alpha * float(np.sum(g * g))
+        if not (math.isfinite(value) and np.isfinite(grad).all()):
+            raise _Stop("non_finite", "the objective or its gradient is not finite")
+        if value < self.best_value:
+            self.best_value, self.best_g, self.best_J = value, np.array(g, np.float64), J
+        return value, grad, J
+
+
+class ScalarScaling:
+    """The fallback when a model offers no Jacobian: g = s z, objective / F."""
+
+    diagonal = True
+
+    def __init__(self, force_scale: float, value_scale: float) -> None:
+        self.s, self.value_scale = force_scale, value_scale
+
+    def to_g(self, z: Array) -> Array:
+        return self.s * z
+
+    def to_z(self, g: Array) -> Array:
+        return g / self.s
+
+    def grad_z(self, grad_g: Array) -> Array:
+        return grad_g * (self.s / self.value_scale)
+
+
+def _preconditioner(op, distance, rest: Array, u: Array, grad: Array, alpha: float, diagonal: bool):
+    """The Gauss-Newton preconditioner at the start of the frame (None if the model offers no
+    Jacobian or the distance cannot say where the points land)."""
+    jacobian = getattr(op, "jacobian", None)
+    closest = getattr(distance, "closest", None)
+    if jacobian is None or closest is None:
+        return None
+    x = rest + u
+    c = closest(x)
+    faces = distance.faces[c.face]
+    tri = x[faces]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+    weights = getattr(c, "weights", None)
+    if weights is None:
+        weights = np.asarray(getattr(c, "kept", np.ones(len(faces))), np.float64)
+    A = residual_jacobian(jacobian().astype(np.float64), faces, c.bary, n)
+    P = Preconditioner(gauss_newton_hessian(A, alpha, weights), diagonal=diagonal)
+    P.set_step(grad.ravel())
+    return P
+
+
+def solve_frame(
+    op: ForwardOperator,
+    distance: Callable[[Array], tuple[float, Array]],
+    rest_positions: Array,
+    g0: Array,
+    options: SolveOptions = SolveOptions(),
+) -> FrameSolution:
+    """Register one frame.
+
+    `distance(x)` returns J and dJ/dx for positions x (p, 3) of `op.nodes` (rest positions
+    `rest_positions` (p, 3) plus displacement). Shape: g0 (k, 3) the starting forces.
+    """
+    t_start = time.perf_counter()
+    timing = Timing()
+    k = len(op.support)
+    evaluate = Objective(op, distance, rest_positions, options.alpha, timing)
+    evaluate.best_g = np.asarray(g0, np.float64).copy()
+    max_eval = options.max_evaluations or 3 * options.max_iter
+    bounded = options.force_bound is not None
+
+    status, message, nit = "converged", "", 0
+    try:
+        # the rest state: the objective's scale, the gradient reference, the trivial answer
+        zero = np.zeros((k, 3))
+        v_rest, grad_rest, _ = evaluate(zero)
+        size = float(np.linalg.norm(np.ptp(rest_positions, axis=0))) or 1.0
+        if v_rest <= 0.5 * (1e-9 * size) ** 2:  # the cloud lies on the rest surface
+            raise _Done()
+        start = np.asarray(g0, np.float64)
+        if bounded:
+            start = np.clip(start, -options.force_bound, options.force_bound)
+        if np.any(start):
+            v0, grad0, _ = evaluate(start)
+            u0 = evaluate.last_u
+        else:
+            start, v0, grad0, u0 = zero, v_rest, grad_rest, evaluate.rest_u
+        P = None
+        if options.precondition:
+            P = _preconditioner(op, distance, rest_positions, u0, grad0, options.alpha, diagonal=bounded)
+        if P is None:
+            P = ScalarScaling(options.force_scale, v_rest if v_rest > 0 else 1.0)
+        # the stopping test, in force space whatever variables L-BFGS-B runs in: whitening
+        # amplifies the gradient along weakly seen directions, which would distort it
+        g_tol = options.gtol * float(np.abs(grad_rest).max())
+        if g_tol == 0.0:
+            raise _Done()
+        lo = -options.force_bound if bounded else -np.inf
+        hi = options.force_bound if bounded else np.inf
+        z0 = P.to_z(start.ravel())
+        cache = {"z": z0, "out": (v0 / P.value_scale, P.grad_z(grad0.ravel()))}
+
+        best = {"z": z0, "f": cache["out"][0]}
+        failures = []
+
+        def fun(z: Array) -> tuple[float, Array]:
+            if np.array_equal(z, cache["z"]):
+                return cache["out"]
+            if evaluate.evaluations >= max_eval:
+                raise _Stop("max_iter", "evaluation budget spent")
+            try:
+                value, grad, _ = evaluate(P.to_g(z).reshape(k, 3))
+            except _Stop as stop:
+                if stop.status != "forward_failed" or len(failures) >= options.max_failures:
+                    raise
+                # a trial point the forward model cannot reach: a steep bowl around the best
+                # point, so the line search reads it as an overshoot and shortens the step
+                failures.append(stop.message)
+                w = 10.0 * (1.0 + abs(best["f"]))
+                dz = z - best["z"]
+                return best["f"] + w * float(dz @ dz) + w, 2.0 * w * dz
+            f, gz = value / P.value_scale, P.grad_z(grad.ravel())
+            if f < best["f"]:
+                best.update(z=z.copy(), f=f)
+            last.update(z=z, g=P.to_g(z), grad=grad.ravel())
+            return f, gz
+
+        last = {"z": z0, "g": start.ravel(), "grad": grad0.ravel()}
+
+        def converged(intermediate_result) -> None:
+            """Projected gradient in force space against gtol x the rest state's."""
+            if not np.array_equal(intermediate_result.x, last["z"]):
+                return
+            g, grad = last["g"], last["grad"]
+            pg = np.where(grad > 0, np.minimum(grad, g - lo), np.maximum(grad, g - hi))
+            if np.abs(pg).max() <= g_tol:
+                raise StopIteration
+
+        bounds = None
+        if bounded:
+            b = P.to_z(np.full(3 * k, float(options.force_bound)))
+            bounds = list(zip(-b, b))
+        res = minimize(
+            fun, z0, jac=True, method="L-BFGS-B", bounds=bounds, callback=converged,
+            options={"maxiter": options.max_iter, "gtol": 0.0, "ftol": 1e-15, "maxcor": 20, "maxls": 30},
+        )  # fmt: skip
+        nit = int(res.nit)
+        message = str(res.message)
+        status = _status(res)
+        if failures and status != "converged":
+            status, message = "forward_failed", f"{len(failures)} trial points failed: {failures[-1]}"
+    except _Done:
+        status, message = "converged", "the cloud lies on the rest surface: no force needed"
+        evaluate.best_g, evaluate.best_value, evaluate.best_J = np.zeros((k, 3)), v_rest, v_rest
+    except _Stop as stop:
+        status, message = stop.status, stop.message
+
+    timing.total = time.perf_counter() - t_start
+    return FrameSolution(
+        g=evaluate.best_g,
+        objective=float(evaluate.best_J),
+        value=float(evaluate.best_value),
+        converged=status == "converged",
+        status=status,
+        iterations=nit,
+        evaluations=evaluate.evaluations,
+        timing=timing,
+        message=message,
+    )
+
+
+def _status(res) -> str:
+    """Why SciPy's L-BFGS-B stopped, in the API's words."""
+    msg = str(res.message).upper()
+    if "CALLBACK" in msg or "STOPITERATION" in msg or "PROJECTED GRADIENT" in msg:
+        return "converged"  # our force-space gradient test (or SciPy's own) was met
+    if "RELATIVE REDUCTION" in msg:
+        return "stalled"  # no further decrease at working precision before the gradient test
+    if "ITERATIONS REACHED" in msg or "EVALUATIONS" in msg:
+        return "max_iter"
+    if "ABNORMAL" in msg or "LINE SEARCH" in msg or "LNSRCH" in msg:
+        return "line_search"
+    return "converged" if res.success else "stalled"

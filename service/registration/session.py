@@ -1,0 +1,208 @@
+"""A registration stream: one model, one configuration, frames in order, warm-started.
+
+A session keeps the previous frame's forces and starts the next frame's L-BFGS-B from them. A
+support change maps those forces onto the new support (nodes in both keep theirs, new nodes
+start at zero) and rebuilds the restricted operator. A frame that fails (the forward model
+diverged, or something was not finite) returns its best iterate with ``converged: false`` and
+leaves the warm start exactly as it was; a frame that merely ran out of iterations still moves
+the warm start to its best iterate, which is better than where it began.
+
+Only the outputs the session asks for are computed: the optimisation itself reads the
+displacement of the matching surface's nodes alone.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+import time
+
+import numpy as np
+
+from ..fem.assembly import Assembler
+from ..fem.material import NeoHookean
+from ..mesh import TetMesh
+from .distance import PointToSurface
+from .engine import SolveOptions, solve_frame
+from .forward import ForwardFailed, ForwardModel, check_support
+
+Array = np.ndarray
+
+OUTPUTS = ("displacement", "surface_displacement", "forces", "stress")
+FAILED = ("forward_failed", "non_finite")
+
+
+@dataclasses.dataclass(frozen=True)
+class SessionConfig:
+    """Every setting of a stream, defaults filled in (what the API echoes back)."""
+
+    method: str = "network"
+    support: tuple[int, ...] | None = None  # default: every node the model can load
+    alpha: float = 1e-7
+    gtol: float = 1e-3
+    max_iter: int = 100
+    force_bound: float | None = None
+    matching: tuple[tuple[int, int, int], ...] | None = None  # default: the whole boundary
+    outputs: tuple[str, ...] = ("displacement", "forces")
+    warm_start: bool = True
+    E: float | None = None
+    loss: str = "squared"  # squared | huber | trimmed
+    loss_param: float | None = None  # huber: delta (m); trimmed: fraction ignored
+
+
+@dataclasses.dataclass
+class FrameResult:
+    frame_id: int | str | None
+    converged: bool
+    status: str
+    objective: float
+    distance_rms: float
+    iterations: int
+    evaluations: int
+    net_force: Array  # (3,)
+    timing_ms: dict[str, float]
+    support: Array  # (k,) the node ids the forces are aligned with
+    outputs: dict[str, Array]  # only the requested ones
+    message: str = ""
+
+
+def default_support(model: ForwardModel) -> Array:
+    """Every node the model can put a force on: its load region, or the free surface."""
+    region = getattr(model, "region", None)
+    return np.asarray(region if region is not None else model.mesh.free_surface_nodes, np.int64)
+
+
+def von_mises(mesh: TetMesh, material: NeoHookean, u: Array) -> Array:
+    """Von Mises equivalent of the Cauchy stress per tet, Pa. Shape: u (n, 3) -> (t,)."""
+    sigma = material.cauchy(Assembler(mesh, material).F(u))
+    dev = sigma - np.trace(sigma, axis1=1, axis2=2)[:, None, None] * np.eye(3) / 3.0
+    return np.sqrt(1.5 * np.einsum("tij,tij->t", dev, dev))
+
+
+class Session:
+    """Frames of one stream, in order. Thread-safe: frames of one session never interleave."""
+
+    def __init__(self, model: ForwardModel, config: SessionConfig) -> None:
+        if config.E is not None:
+            model = model.with_stiffness(config.E)
+        unknown = set(config.outputs) - set(OUTPUTS)
+        if unknown:
+            raise ValueError(f"unknown outputs {sorted(unknown)}; choose from {list(OUTPUTS)}")
+        self.model = model
+        self.mesh = model.mesh
+        faces = self.mesh.surface_faces if config.matching is None else _check_faces(self.mesh, config.matching)
+        self.distance = PointToSurface(faces, loss=config.loss, loss_param=config.loss_param)
+        support = default_support(model) if config.support is None else check_support(self.mesh, np.asarray(config.support))
+        self.config = dataclasses.replace(config, E=float(model.material.E))
+        self._options = SolveOptions(
+            alpha=config.alpha, gtol=config.gtol, max_iter=config.max_iter, force_bound=config.force_bound
+        )
+        self._rest = self.mesh.nodes[self.distance.nodes]
+        self._lock = threading.Lock()
+        self._set_support(support, None)
+        self.frames = 0
+        self.converged = 0
+        self.failed = 0
+        self.seconds = 0.0
+        self.created = time.time()
+        self.last_used = time.monotonic()
+
+    def _set_support(self, support: Array, g_old: Array | None) -> None:
+        self.op = self.model.restrict(support, self.distance.nodes)
+        g = np.zeros((support.size, 3))
+        if g_old is not None:
+            old = {int(n): i for i, n in enumerate(self.support)}
+            keep = np.array([old.get(int(n), -1) for n in support])
+            g[keep >= 0] = g_old[keep[keep >= 0]]
+        self.support = support
+        self.g = g
+
+    def frame(self, points: Array, support: Array | None = None, frame_id=None) -> FrameResult:
+        points = np.asarray(points, np.float64)
+        if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0:
+            raise ValueError(f"points must be a non-empty (m, 3) array, got shape {points.shape}")
+        if not np.isfinite(points).all():
+            raise ValueError("points contain NaN or infinite values")
+        with self._lock:
+            self.last_used = time.monotonic()
+            t0 = time.perf_counter()
+            if support is not None:
+                support = check_support(self.mesh, np.asarray(support))
+                if not np.array_equal(support, self.support):
+                    self._set_support(support, self.g)
+            self.distance.bind(points)
+            g0 = self.g if self.config.warm_start else np.zeros_like(self.g)
+            sol = solve_frame(self.op, self.distance, self._rest, g0, self._options)
+            t1 = time.perf_counter()
+            if sol.status in FAILED:
+                self.op.reset()
+                self.failed += 1
+            else:
+                self.g = sol.g
+            outputs, rms = self._outputs(sol.g)
+            timing = sol.timing.as_ms()
+            timing["outputs"] = 1e3 * (time.perf_counter() - t1)
+            timing["total"] = 1e3 * (time.perf_counter() - t0)
+            self.frames += 1
+            self.converged += int(sol.converged)
+            self.seconds += timing["total"] / 1e3
+            return FrameResult(
+                frame_id=frame_id,
+                converged=sol.converged,
+                status=sol.status,
+                objective=sol.objective,
+                distance_rms=rms,
+                iterations=sol.iterations,
+                evaluations=sol.evaluations,
+                net_force=sol.g.sum(axis=0),
+                timing_ms=timing,
+                support=self.support,
+                outputs=outputs,
+                message=sol.message,
+            )
+
+    def _outputs(self, g: Array) -> tuple[dict[str, Array], float]:
+        """The requested fields at the frame's forces, and the RMS point-to-surface distance."""
+        want = set(self.config.outputs)
+        out: dict[str, Array] = {}
+        u_all = None
+        try:
+            if want & {"displacement", "surface_displacement", "stress"}:
+                u_all = self.op.displacement(g)
+                u_nodes = u_all[self.distance.nodes]
+            else:
+                u_nodes, _ = self.op(g)
+        except ForwardFailed:  # the best iterate's field could not be recomputed: no NaN
+            u_all = None
+            u_nodes = np.zeros((self.distance.nodes.size, 3))
+        rms = float(np.sqrt(np.mean(self.distance.closest(self._rest + u_nodes).sq_distances)))
+        if u_all is not None:
+            if "displacement" in want:
+                out["displacement"] = u_all
+            if "surface_displacement" in want:
+                out["surface_displacement"] = u_all[self.mesh.surface_nodes]
+            if "stress" in want:
+                out["stress"] = von_mises(self.mesh, self.model.material, u_all)
+        if "forces" in want:
+            out["forces"] = g
+        return out, rms
+
+    def summary(self) -> dict:
+        return {
+            "frames": self.frames,
+            "converged": self.converged,
+            "failed": self.failed,
+            "seconds": self.seconds,
+            "support_size": int(self.support.size),
+        }
+
+
+def _check_faces(mesh: TetMesh, faces) -> Array:
+    f = np.asarray(faces)
+    if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
+        raise ValueError("matching must be a non-empty list of node-id triples")
+    if not np.issubdtype(f.dtype, np.integer):
+        raise ValueError("matching node ids must be integers")
+    if f.min() < 0 or f.max() >= mesh.n_nodes:
+        raise ValueError(f"matching node ids must lie in 0..{mesh.n_nodes - 1}")
+    return f.astype(np.int64)

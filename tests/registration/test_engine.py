@@ -1,0 +1,126 @@
+"""The registration engine: the full objective's gradient for both forward models, recovery of
+known loads, bounds, and failure reporting."""
+
+import numpy as np
+import pytest
+
+from service.fem.material import NeoHookean
+from service.fem.model import FEMModel
+from service.fem.newton import NewtonOptions
+from service.registration.distance import PointToSurface
+from service.registration.engine import Objective, SolveOptions, solve_frame
+from service.store import load_entry
+from service.synthetic import sample_surface
+
+MAT = NeoHookean(4500.0, 0.45)
+
+
+@pytest.fixture(scope="module")
+def entry(bar_store):
+    return load_entry(bar_store[0] / "bar")
+
+
+def tip_support(mesh, region=None):
+    """A one-sided patch, as a tool's uncertain contact zone: the top-face nodes of the bar's
+    last quarter (inside the network's region)."""
+    cand = mesh.free_surface_nodes if region is None else region
+    top = mesh.nodes[cand, 2] >= mesh.nodes[:, 2].max() - 1e-9
+    return np.sort(cand[(mesh.nodes[cand, 0] >= 3.0) & top])
+
+
+def frame_from_load(mesh, support, g, n_points=300, seed=0):
+    """The true deformed state under g and a cloud sampled on its whole boundary."""
+    u = FEMModel(mesh, MAT).solve(g, support).u
+    pts, _, _ = sample_surface(mesh.nodes + u, mesh.surface_faces, n_points, np.random.default_rng(seed))
+    return u, pts
+
+
+def objective_for(model, mesh, support, points, alpha=1e-6):
+    dist = PointToSurface(mesh.surface_faces)
+    dist.bind(points)
+    op = model.restrict(support, dist.nodes)
+    return Objective(op, dist, mesh.nodes[dist.nodes], alpha)
+
+
+@pytest.mark.parametrize("method", ["fem", "network"])
+def test_full_objective_gradient_matches_finite_differences(method, entry):
+    mesh = entry.mesh
+    model = entry.fem if method == "fem" else entry.network
+    support = tip_support(mesh, entry.region)
+    rng = np.random.default_rng(0)
+    g_true = np.tile([0.0, 0.0, -40.0 / support.size], (support.size, 1))
+    _, pts = frame_from_load(mesh, support, g_true)
+    phi = objective_for(model, mesh, support, pts)
+    g = 0.6 * g_true + rng.normal(scale=0.5, size=g_true.shape)
+    value, grad, _ = phi(g)
+    h = 1e-3 if method == "fem" else 2e-2  # float32 network: a larger step
+    for _ in range(3):
+        d = rng.normal(size=g.shape)
+        d /= np.linalg.norm(d)
+        fd = (phi(g + h * d)[0] - phi(g - h * d)[0]) / (2 * h)
+        assert np.sum(grad * d) == pytest.approx(fd, rel=2e-3 if method == "fem" else 5e-2, abs=1e-3 * np.abs(grad).max())
+
+
+@pytest.mark.parametrize("method", ["fem", "network"])
+def test_known_loads_are_recovered(method, entry):
+    """Frames made by the FEM from known loads (full-surface clouds): both methods find the
+    deformation; the FEM recovers the resultant force closely, the small network roughly."""
+    mesh = entry.mesh
+    support = tip_support(mesh, entry.region)
+    tool = support[np.argsort(mesh.nodes[support, 0])[-6:]]  # the true load: on part of the support
+    g_true = np.zeros((support.size, 3))
+    g_true[np.isin(support, tool)] = [0.0, 1.0, 24.0 / tool.size]  # a pull, slightly sideways
+    u_true, pts = frame_from_load(mesh, support, g_true)
+    dist = PointToSurface(mesh.surface_faces)
+    dist.bind(pts)
+    model = entry.fem if method == "fem" else entry.network
+    op = model.restrict(support, dist.nodes)
+    sol = solve_frame(op, dist, mesh.nodes[dist.nodes], np.zeros_like(g_true), SolveOptions(alpha=1e-9, gtol=1e-6, max_iter=300))
+    u = model.restrict(support).displacement(sol.g)
+    tre = np.linalg.norm(u - u_true, axis=1).mean()
+    disp = np.linalg.norm(u_true, axis=1).mean()
+    force_err = np.linalg.norm(sol.g.sum(0) - g_true.sum(0)) / np.linalg.norm(g_true.sum(0))
+    print(f"{method}: TRE {tre:.2e} m ({tre / disp:.1%} of the mean displacement), force error {force_err:.1%}, {sol.iterations} iterations")
+    assert sol.status in {"converged", "stalled"}
+    if method == "fem":
+        assert tre < 0.01 * disp and force_err < 0.02
+    else:
+        assert tre < 0.2 * disp and force_err < 0.3
+
+
+def test_bounds_are_respected(entry):
+    mesh = entry.mesh
+    support = tip_support(mesh)
+    g_true = np.tile([0.0, 0.0, -40.0 / support.size], (support.size, 1))
+    _, pts = frame_from_load(mesh, support, g_true)
+    dist = PointToSurface(mesh.surface_faces)
+    dist.bind(pts)
+    bound = 0.5 * np.abs(g_true).max()
+    op = entry.fem.restrict(support, dist.nodes)
+    sol = solve_frame(op, dist, mesh.nodes[dist.nodes], np.zeros_like(g_true), SolveOptions(force_bound=bound, alpha=1e-9))
+    assert np.abs(sol.g).max() <= bound * (1 + 1e-12)
+    assert np.isclose(np.abs(sol.g).max(), bound)  # the bound is active: the true load exceeds it
+
+
+def test_forward_failure_is_a_result_not_an_exception(entry):
+    mesh = entry.mesh
+    support = tip_support(mesh)
+    g_true = np.tile([0.0, 0.0, -40.0 / support.size], (support.size, 1))
+    _, pts = frame_from_load(mesh, support, g_true)
+    dist = PointToSurface(mesh.surface_faces)
+    dist.bind(pts)
+    fragile = FEMModel(mesh, MAT, NewtonOptions(max_iter=1))
+    sol = solve_frame(fragile.restrict(support, dist.nodes), dist, mesh.nodes[dist.nodes], np.zeros_like(g_true))
+    assert not sol.converged and sol.status == "forward_failed"
+    assert np.isfinite(sol.g).all() and np.isfinite(sol.objective)
+
+
+def test_a_cloud_on_the_rest_surface_needs_no_force(entry):
+    mesh = entry.mesh
+    support = tip_support(mesh)
+    pts, _, _ = sample_surface(mesh.nodes, mesh.surface_faces, 200, np.random.default_rng(0))
+    dist = PointToSurface(mesh.surface_faces)
+    dist.bind(pts)
+    sol = solve_frame(entry.fem.restrict(support, dist.nodes), dist, mesh.nodes[dist.nodes], np.zeros((support.size, 3)))
+    assert sol.converged
+    assert np.abs(sol.g).max() < 1e-6
