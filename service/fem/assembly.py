@@ -56,20 +56,31 @@ def generic_element_stiffness(A: Array, grads: Array, vol: Array) -> Array:
     return np.einsum("taJ,tiJbk->taibk", grads, tmp) * vol[:, None, None, None, None]
 
 
+def _kernels():
+    """The compiled kernels, or None where numba is missing (the NumPy path then runs)."""
+    try:
+        from . import kernels
+    except ImportError:  # pragma: no cover - numba is a dependency; this keeps a fallback
+        return None
+    return kernels
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class Assembler:
     """Energy, forces and tangent of a mesh under one material, with u given on all nodes.
 
     Shape: u (n, 3) everywhere; the tangent is over the free dofs, (3 n_free, 3 n_free).
+    `compiled` picks the numba kernels (default where available) or the NumPy reference.
     """
 
     mesh: TetMesh
     material: NeoHookean
+    compiled: bool = dataclasses.field(default_factory=lambda: _kernels() is not None)
 
     def with_material(self, material: NeoHookean) -> "Assembler":
         """Same mesh and precomputed pattern, another material (the pattern is shared)."""
-        new = Assembler(self.mesh, material)
-        for name in ("_pattern",):
+        new = Assembler(self.mesh, material, self.compiled)
+        for name in ("_pattern", "_slots"):
             if name in self.__dict__:
                 new.__dict__[name] = self.__dict__[name]
         return new
@@ -81,12 +92,23 @@ class Assembler:
     def F(self, u: Array) -> Array:
         return deformation_gradient(u, self.mesh.tets, self.mesh.shape_gradients)
 
+    def _args(self, u: Array) -> tuple:
+        m = self.mesh
+        return (np.ascontiguousarray(u, np.float64), m.tets, m.shape_gradients, m.volumes,
+                self.material.mu, self.material.lam)  # fmt: skip
+
     def energy(self, u: Array) -> float:
         """Stored elastic energy sum_e vol_e W(F_e); +inf if any tet is inverted."""
+        if self.compiled:
+            return float(_kernels().energy(*self._args(u)))
         return float(self.mesh.volumes @ self.material.energy(self.F(u)))
 
     def internal_force(self, u: Array, F: Array | None = None) -> Array:
         """dE/du at every node. Shape: (n, 3)."""
+        if self.compiled and F is None:
+            out = np.empty((self.mesh.n_nodes, 3))
+            _kernels().internal_force(*self._args(u), out)
+            return out
         F = self.F(u) if F is None else F
         P = self.material.stress(F) * self.mesh.volumes[:, None, None]
         fe = np.matmul(self.mesh.shape_gradients, P.transpose(0, 2, 1))  # vol P grad N_a
@@ -121,13 +143,26 @@ class Assembler:
         indptr = np.searchsorted(r, np.arange(nf + 1))
         return keep, slot.ravel(), indptr, c
 
+    @cached_property
+    def _slots(self) -> Array:
+        """CSR slot of every element entry (t * 144,), -1 where a dof is fixed."""
+        keep, slot, _, _ = self._pattern
+        full = np.full(keep.size, -1, np.int64)
+        full[keep] = slot
+        return full
+
     def tangent(self, u: Array, F: Array | None = None) -> sp.csr_matrix:
         """Tangent stiffness over the free dofs, symmetric. Shape: (3 n_free, 3 n_free)."""
-        F = self.F(u) if F is None else F
-        Ke = self.element_stiffness(F).reshape(-1)
-        keep, slot, indptr, indices = self._pattern
-        data = np.bincount(slot, weights=Ke[keep], minlength=indices.size)
+        _, _, indptr, indices = self._pattern
         nf = self.n_free
+        if self.compiled and F is None:
+            data = np.empty(indices.size)
+            _kernels().tangent_data(*self._args(u), self._slots, data)
+        else:
+            F = self.F(u) if F is None else F
+            Ke = self.element_stiffness(F).reshape(-1)
+            keep, slot, _, _ = self._pattern
+            data = np.bincount(slot, weights=Ke[keep], minlength=indices.size)
         return sp.csr_matrix((data, indices, indptr), shape=(nf, nf))
 
     def stiffness_at_rest(self) -> sp.csr_matrix:

@@ -123,7 +123,7 @@ class FEMOperator:
 
             return np.zeros((nodes.size, 3)), rest_pullback
         res = self._solve(g)
-        asm, solver = self.model.assembler, res.solver
+        asm, newton = self.model.assembler, self._newton
         u = res.u
         nodes, support, mesh = self.nodes, self.support, self.mesh
 
@@ -131,12 +131,12 @@ class FEMOperator:
             rhs = np.zeros((mesh.n_nodes, 3))
             np.add.at(rhs, nodes, u_bar)
             b = asm.pack(rhs)
-            K = asm.tangent(u)
-            if solver is None:  # the start was already in equilibrium: no factor in hand
-                self._newton.factor(K)
-                p = self._newton.solver.solve(b)
-            else:
-                p = _refined_solve(K, solver.solve, b)
+            # the exact tangent at the solution: the adjoint is one solve, and the next
+            # evaluation (warm-started from u) reuses this factor for its predictor
+            if newton.factor_at(u):
+                p = newton.solver.solve(b)
+            else:  # an unstable equilibrium: refine on the shifted factor
+                p = _refined_solve(asm.tangent(u), newton.solver.solve, b)
             return asm.unpack(p)[support]
 
         return u[nodes], pullback

@@ -82,11 +82,26 @@ class NewtonSolver:
         self._diag = _diagonal_slots(K0)
         self._mean_diag = float(K0.diagonal().mean())
         self._tau = 1e-4 * self._mean_diag  # last shift that worked: where the next search starts
+        self._factor_x: np.ndarray | None = None  # free dofs where the factor is the exact tangent
 
     # -- one factorisation, shifted if indefinite ----------------------------------------------
 
+    def factor_at(self, u: Array) -> bool:
+        """Make the held factorisation the exact tangent at u (a no-op if it already is).
+
+        Returns False if that tangent is not positive definite (an unstable state): the factor
+        is then of a shifted tangent. Shape: u (n, 3).
+        """
+        x = self.asm.pack(u)
+        if self._factor_x is not None and np.array_equal(self._factor_x, x):
+            return True
+        exact = self.factor(self.asm.tangent(u)) == 0
+        self._factor_x = x.copy() if exact else None
+        return exact
+
     def factor(self, K: sp.csr_matrix) -> int:
         """Factorise K, adding tau I until it is positive definite; returns how many shifts."""
+        self._factor_x = None
         try:
             self.solver.factor(K)
             return 0
@@ -120,10 +135,10 @@ class NewtonSolver:
         if not (np.isfinite(target).all() and np.isfinite(x).all()):
             return self._result(x, False, "non_finite", 0, 0, [], t0)
 
-        F = asm.F(asm.unpack(x))
-        if not np.all(np.isfinite(asm.material.energy(F))):
+        u_start = asm.unpack(x)
+        if not np.isfinite(asm.energy(u_start)):
             return self._result(x, False, "non_finite", 0, 0, [], t0)
-        f0 = asm.pack(asm.internal_force(None, F))
+        f0 = asm.pack(asm.internal_force(u_start))
         if not np.any(target - f0):
             return self._result(x, True, "converged", 0, 0, [0.0], t0)
         # relative to the load, not to the increment from a warm start (which can be tiny)
@@ -131,7 +146,12 @@ class NewtonSolver:
         if ref == 0.0:
             return self._result(x, True, "converged", 0, 0, [0.0], t0)
 
-        shifts = self.factor(asm.tangent(None, F))
+        # the predictor's factor: reused when the last one was made exactly here
+        if self._factor_x is not None and np.array_equal(self._factor_x, x):
+            shifts = 0
+        else:
+            shifts = self.factor(asm.tangent(u_start))
+            self._factor_x = x.copy() if shifts == 0 else None
         s, ds, iterations, steps = 0.0, 1.0, 0, 0
         residuals: list[float] = []
         have_factor = True
@@ -187,11 +207,10 @@ class NewtonSolver:
         hist: list[float] = []
         shifts = 0
         factored = False
-        F = asm.F(asm.unpack(x))
-        W = asm.material.energy(F)
-        Pi = float(asm.mesh.volumes @ W) - float(load @ x)
+        u = asm.unpack(x)
+        Pi = asm.energy(u) - float(load @ x)
         for it in range(budget + 1):
-            r = asm.pack(asm.internal_force(None, F)) - load
+            r = asm.pack(asm.internal_force(u)) - load
             rn = float(np.linalg.norm(r))
             hist.append(rn / ref)
             if not np.isfinite(rn):
@@ -204,7 +223,7 @@ class NewtonSolver:
                 return x, True, it, hist, shifts, factored, "converged"
             if it == budget:
                 break
-            K = asm.tangent(None, F)
+            K = asm.tangent(u)
             shifts += self.factor(K)
             factored = True
             dx = -self.solver.solve(r)
@@ -212,9 +231,8 @@ class NewtonSolver:
             alpha = 1.0
             for _ in range(opt.max_halvings):
                 x_new = x + alpha * dx
-                F_new = asm.F(asm.unpack(x_new))
-                W_new = asm.material.energy(F_new)
-                Pi_new = float(asm.mesh.volumes @ W_new) - float(load @ x_new)
+                u_new = asm.unpack(x_new)
+                Pi_new = asm.energy(u_new) - float(load @ x_new)
                 if np.isfinite(Pi_new):
                     # roundoff: near the solution Pi cannot resolve the decrease any more
                     lost = abs(slope) * alpha < 1e-13 * max(abs(Pi), 1e-300)
@@ -223,7 +241,7 @@ class NewtonSolver:
                 alpha *= 0.5
             else:
                 return x, False, it + 1, hist, shifts, factored, "line_search"
-            x, F, Pi = x_new, F_new, Pi_new
+            x, u, Pi = x_new, u_new, Pi_new
         return x, False, budget, hist, shifts, factored, "max_iter"
 
     def _result(self, x, converged, status, iterations, steps, residuals, t0) -> NewtonResult:

@@ -81,3 +81,18 @@ def test_homogeneous_stretch_patch(bar):
     end = bar.nodes[:, 0] == bar.nodes[:, 0].max()
     area = 1.0  # the bar's 1 x 1 end face
     np.testing.assert_allclose(f[end].sum(0), P0 @ np.array([1.0, 0, 0]) * area, rtol=1e-10)
+
+
+def test_compiled_kernels_equal_the_numpy_reference(bar):
+    import pytest
+
+    pytest.importorskip("numba")
+    mat = NeoHookean(4500.0, 0.49)
+    fast, ref = Assembler(bar, mat, compiled=True), Assembler(bar, mat, compiled=False)
+    u = displaced(bar, 0.05, seed=4)
+    assert fast.energy(u) == np.float64(ref.energy(u)) or np.isclose(fast.energy(u), ref.energy(u), rtol=1e-12)
+    np.testing.assert_allclose(fast.internal_force(u), ref.internal_force(u), atol=1e-11 * mat.E)
+    np.testing.assert_allclose(fast.tangent(u).toarray(), ref.tangent(u).toarray(), atol=1e-11 * mat.E)
+    crushed = u.copy()
+    crushed[bar.free_mask] = -bar.nodes[bar.free_mask] * 2.0  # inverts elements
+    assert np.isinf(fast.energy(crushed)) and np.isinf(ref.energy(crushed))
