@@ -72,8 +72,10 @@ def build(
     config: TrainConfig = TrainConfig(),
     command: str = "",
     progress: bool = True,
+    name: str | None = None,
 ) -> BuildReport:
-    """Generate (or resume) the scene's data, train, and write the store entry."""
+    """Generate (or resume) the scene's data, train, and write the store entry (id: `name`,
+    else the scene's name; variants of one scene share its data)."""
     mesh, loaded = scene.build_mesh()
     region = scene.region_nodes(mesh, loaded)
     mat = scene.material
@@ -110,7 +112,7 @@ def build(
         "physics_skip": bool(config.physics_skip) if config.layout == "reduced" else False,
     }
     entry = write_entry(
-        store, scene.name, mesh, region, net,
+        store, name or scene.name, mesh, region, net,
         material=material,
         scene=json.loads(scene.model_dump_json()),
         training=training,

@@ -1,0 +1,179 @@
+"""Benchmark cases: registration sequences with known answers, and the runner that scores them.
+
+A case is what the paper scores: a mesh, a support (where the registration may put forces), a
+matching surface, and frames with their clouds, true node positions and true resultant force.
+The runner streams a case through a :class:`~service.registration.session.Session` and records,
+per frame, the mean target registration error over all nodes (mm), the resultant-force error
+(%), the wall time (ms) and the optimiser's counts.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..fem.material import NeoHookean
+from ..mesh import TetMesh
+from ..registration.session import Session, SessionConfig
+from ..synthetic import make_sequence, perturb
+
+log = logging.getLogger(__name__)
+
+Array = np.ndarray
+
+#: where ../shared sits beside the checkout (the paper's liver and its sequence)
+SHARED = Path(__file__).resolve().parents[3] / "shared"
+LIVER = SHARED / "meshes" / "liver_paper"
+
+
+@dataclasses.dataclass
+class Case:
+    """Shape: positions (T, n, 3), net_forces (T, 3), clouds T x (m, 3), support (k,),
+    matching (f, 3) node-id triangles or None (the whole boundary)."""
+
+    name: str
+    mesh: TetMesh
+    support: Array
+    matching: Array | None
+    clouds: list[Array]
+    positions: Array
+    net_forces: Array
+
+    @property
+    def frames(self) -> int:
+        return len(self.clouds)
+
+    def with_clouds(self, clouds: list[Array], name: str | None = None) -> "Case":
+        return dataclasses.replace(self, clouds=clouds, name=name or self.name)
+
+
+@dataclasses.dataclass
+class FrameRecord:
+    case: str
+    method: str
+    frame: int
+    tre_mm: float
+    force_error_pct: float
+    ms: float
+    iterations: int
+    evaluations: int
+    status: str
+    converged: bool
+    finite: bool  # no NaN or infinity anywhere in the result
+
+
+def liver_paper_case() -> Case:
+    """The paper's liver and its recorded Neo-Hookean sequence (shared/meshes/liver_paper)."""
+    import meshio
+
+    raw = meshio.read(LIVER / "liver.msh")
+    fixed = np.load(LIVER / "dirichlet-vertices.npy")
+    mesh, _ = TetMesh.build(raw.points, raw.cells_dict["tetra"], fixed[fixed != 756])
+    seq = LIVER / "sequences" / "neohookean" / "s1"
+    clouds = [np.loadtxt(seq / "pointclouds" / f"pc{k:02d}.txt") for k in range(50)]
+    return Case(
+        name="liver s1 (paper)",
+        mesh=mesh,
+        support=np.load(seq / "forces-vertices-default.npy").astype(np.int64),
+        matching=np.load(LIVER / "matching-triangles.npy").astype(np.int64),
+        clouds=clouds,
+        positions=np.load(seq / "positions-default.npy"),
+        net_forces=np.load(seq / "true-forces.npy"),
+    )
+
+
+def synthetic_case(
+    name: str,
+    mesh: TetMesh,
+    material: NeoHookean,
+    tool: Array,
+    support: Array,
+    *,
+    matching: Array | None = None,
+    frames: int = 20,
+    peak_force: float = 1.0,
+    n_points: int = 500,
+    seed: int = 0,
+    **kwargs,
+) -> Case:
+    """A sequence made the way the paper made its own: a local force grows on `tool`, the FEM
+    gives each frame, a camera sees part of the deformed surface."""
+    seq = make_sequence(mesh, material, tool, n_frames=frames, peak_force=peak_force, n_points=n_points, seed=seed, **kwargs)
+    return Case(name, mesh, np.asarray(support, np.int64), matching, seq.clouds, seq.positions, seq.net_forces)
+
+
+def noisy(case: Case, noise: float = 0.0, outliers: float = 0.0, points: int | None = None, seed: int = 0) -> Case:
+    """The same frames with noisy, outlier-ridden or thinned clouds."""
+    rng = np.random.default_rng(seed)
+    clouds = []
+    for c in case.clouds:
+        if points is not None and points < len(c):
+            c = c[rng.choice(len(c), size=points, replace=False)]
+        clouds.append(perturb(c, rng, noise, outliers, spread=0.02))
+    return case.with_clouds(clouds)
+
+
+def run_case(model, case: Case, config: SessionConfig, method: str | None = None) -> list[FrameRecord]:
+    """Stream every frame of `case` through one session; score each frame."""
+    config = dataclasses.replace(
+        config,
+        support=tuple(int(i) for i in case.support),
+        matching=None if case.matching is None else tuple(map(tuple, case.matching.tolist())),
+        outputs=("displacement", "forces"),
+    )
+    session = Session(model, config)
+    rest = case.mesh.nodes
+    out = []
+    for k, cloud in enumerate(case.clouds):
+        t0 = time.perf_counter()
+        r = session.frame(cloud, frame_id=k)
+        ms = 1e3 * (time.perf_counter() - t0)
+        u = r.outputs.get("displacement")
+        finite = bool(u is not None and np.isfinite(u).all() and np.isfinite(r.net_force).all())
+        tre = float(np.linalg.norm(rest + u - case.positions[k], axis=1).mean() * 1e3) if finite else float("nan")
+        true_f = case.net_forces[k]
+        fe = float(np.linalg.norm(r.net_force - true_f) / max(np.linalg.norm(true_f), 1e-300) * 100)
+        out.append(FrameRecord(case.name, method or model.method, k, tre, fe, ms, r.iterations, r.evaluations, r.status, r.converged, finite))
+    return out
+
+
+def rest_baseline(case: Case) -> list[FrameRecord]:
+    """No registration: the rest shape and no force."""
+    out = []
+    for k in range(case.frames):
+        tre = float(np.linalg.norm(case.positions[k] - case.mesh.nodes, axis=1).mean() * 1e3)
+        out.append(FrameRecord(case.name, "none (rest shape)", k, tre, 100.0, 0.0, 0, 0, "-", True, True))
+    return out
+
+
+def summarise(records: list[FrameRecord], skip_first: bool = True) -> dict:
+    """Medians and means over frames; time over warm frames (the first is a cold start)."""
+    if not records:
+        return {}
+    tre = np.array([r.tre_mm for r in records])
+    fe = np.array([r.force_error_pct for r in records])
+    warm = records[1:] if skip_first and len(records) > 1 else records
+    ms = np.array([r.ms for r in warm])
+    return {
+        "case": records[0].case,
+        "method": records[0].method,
+        "frames": len(records),
+        "tre_mean_mm": float(np.nanmean(tre)),
+        "tre_median_mm": float(np.nanmedian(tre)),
+        "tre_max_mm": float(np.nanmax(tre)),
+        "force_error_mean_pct": float(np.nanmean(fe)),
+        "force_error_median_pct": float(np.nanmedian(fe)),
+        "ms_median": float(np.median(ms)),
+        "ms_p90": float(np.percentile(ms, 90)),
+        "ms_mean": float(ms.mean()),
+        "ms_std": float(ms.std()),
+        "iterations_mean": float(np.mean([r.iterations for r in records])),
+        "iterations_std": float(np.std([r.iterations for r in records])),
+        "converged_fraction": float(np.mean([r.converged for r in records])),
+        "all_finite": bool(all(r.finite for r in records)),
+        "statuses": sorted({r.status for r in records}),
+    }

@@ -1,0 +1,66 @@
+"""The paper's liver experiment on our code: its recorded Neo-Hookean sequence and sequences of
+our own made the same way (a local force on a few nodes, a partial cloud, a support larger than
+the true load), each registered by the network and by the Newton-based method, beside the rest
+shape."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import numpy as np
+
+from ..registration.session import SessionConfig
+from .cases import Case, liver_paper_case, rest_baseline, run_case, summarise, synthetic_case
+
+log = logging.getLogger(__name__)
+
+#: the settings the report runs each method with (the Pareto part sweeps around them)
+NETWORK = SessionConfig(method="network", gtol=1e-4, max_iter=200, alpha=1e-7)
+FEM = SessionConfig(method="fem", gtol=1e-4, max_iter=200, alpha=1e-7)
+
+
+def own_sequences(paper: Case, region: np.ndarray, material, frames: int, seed: int = 1) -> list[Case]:
+    """Three sequences on the paper's liver: a tool patch of 21 nodes inside the trained region,
+    a support of 60 nodes around it, the camera looking at the tool's side, 1.5 to 3.5 N."""
+    mesh = paper.mesh
+    rng = np.random.default_rng(seed)
+    in_region = np.zeros(mesh.n_nodes, bool)
+    in_region[region] = True
+    centre = mesh.nodes[paper.support].mean(0)
+    near = region[np.linalg.norm(mesh.nodes[region] - centre, axis=1) < 0.03]
+    cases = []
+    for i, (force, turn) in enumerate([(3.5, 20.0), (2.5, 45.0), (1.5, 60.0)]):
+        c = int(rng.choice(near))
+        tool = _region_patch(mesh, c, 21, in_region)
+        support = _region_patch(mesh, c, 60, in_region)
+        cases.append(synthetic_case(
+            f"liver own {i + 1}", mesh, material, tool, support, matching=paper.matching,
+            frames=frames, peak_force=force, turn_deg=turn, seed=seed + i,
+        ))  # fmt: skip
+    return cases
+
+
+def _region_patch(mesh, centre: int, k: int, in_region: np.ndarray) -> np.ndarray:
+    patch = mesh.surface_patch(centre, 4 * k)
+    return patch[in_region[patch]][:k]
+
+
+def liver_part(entry, *, frames: int | None = None, own_frames: int = 20, fem: bool = True) -> dict:
+    """Records and summaries for every case and method. `frames` cuts the paper's sequence
+    (quick runs)."""
+    paper = liver_paper_case()
+    if frames is not None:
+        paper = dataclasses.replace(paper, clouds=paper.clouds[:frames], positions=paper.positions[:frames],
+                                    net_forces=paper.net_forces[:frames])  # fmt: skip
+    cases = [paper] + own_sequences(paper, entry.region, entry.fem.material, own_frames)
+    records, summaries = [], []
+    for case in cases:
+        runs = [rest_baseline(case), run_case(entry.network, case, NETWORK)]
+        if fem:
+            runs.append(run_case(entry.fem, case, FEM))
+        for recs in runs:
+            records += recs
+            summaries.append(summarise(recs))
+            log.info("%s / %s: %s", case.name, recs[0].method, summaries[-1])
+    return {"records": records, "summaries": summaries}

@@ -1,0 +1,125 @@
+"""``elastreg``: the command line. Each subcommand parses its flags and calls one function."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import shlex
+import sys
+from pathlib import Path
+
+
+def _train(args: argparse.Namespace) -> int:
+    from .scene import SceneError, resolve_scene
+    from .store import default_store
+    from .surrogate.build import build
+    from .surrogate.train import TrainConfig
+
+    try:
+        scene = resolve_scene(args.scene)
+    except SceneError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    config = TrainConfig(
+        layout=args.layout,
+        hidden=tuple(args.hidden),
+        rank=args.rank,
+        physics_skip=not args.no_physics_skip,
+        epochs=args.epochs,
+        seed=args.seed,
+    )
+    command = "elastreg " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    report = build(
+        scene,
+        Path(args.store) if args.store else default_store(),
+        samples=args.samples,
+        workers=args.workers,
+        scheduler=args.scheduler,
+        data_root=Path(args.data) if args.data else None,
+        config=config,
+        command=command,
+        name=args.name,
+    )
+    m = report.metrics
+    print(
+        f"{args.name or scene.name}: {report.samples} samples ({report.data_seconds:.0f} s of FEM), "
+        f"trained in {report.train_seconds:.0f} s; validation mean {m['mean_mm']:.3f} mm, "
+        f"p95 {m['p95_mm']:.3f} mm (u = 0: {m['zero_mean_mm']:.3f} mm) -> {report.entry}"
+    )
+    return 0
+
+
+def _serve(args: argparse.Namespace) -> int:
+    from .api.server import serve
+
+    serve(store=args.store, host=args.host, port=args.port, workers=args.workers)
+    return 0
+
+
+def _demo(args: argparse.Namespace) -> int:
+    from clients.demo import run
+
+    return run(model=args.model, frames=args.frames, method=args.method, encoding=args.encoding, store=args.store)
+
+
+def _bench(args: argparse.Namespace) -> int:
+    from .bench.report import main
+
+    return main(args)
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="elastreg", description=__doc__)
+    p.add_argument("-v", "--verbose", action="store_true", help="log progress (INFO)")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    d = sub.add_parser("demo", help="serve the shipped default model, stream a synthetic sequence through the API, print error and latency per frame")
+    d.add_argument("--model", default="phantom", help="model id in the store (default: phantom)")
+    d.add_argument("--frames", type=int, default=20)
+    d.add_argument("--method", choices=["network", "fem"], default="network")
+    d.add_argument("--encoding", choices=["msgpack", "json"], default="msgpack")
+    d.add_argument("--store", default=None, help="model store (default: the project's model_store/)")
+    d.set_defaults(func=_demo)
+
+    s = sub.add_parser("serve", help="run the HTTP/WebSocket API over a model store")
+    s.add_argument("--store", default=None, help="model store (default: $ELASTREG_STORE or the project's model_store/)")
+    s.add_argument("--host", default="127.0.0.1")
+    s.add_argument("--port", type=int, default=8000)
+    s.add_argument("--workers", type=int, default=1, help="server processes (sessions live in the process that made them)")
+    s.set_defaults(func=_serve)
+
+    t = sub.add_parser("train", help="generate FEM data for a scene and train its surrogate into the model store")
+    t.add_argument("scene", help="a scene .toml, or a shipped scene name (beam, phantom)")
+    t.add_argument("--store", default=None, help="model store (default: $ELASTREG_STORE or the project's model_store/)")
+    t.add_argument("--name", default=None, help="model id in the store (default: the scene's name)")
+    t.add_argument("--samples", type=int, default=None, help="samples to generate (default: the scene's)")
+    t.add_argument("--workers", type=int, default=2, help="local Dask worker processes (one per core)")
+    t.add_argument("--scheduler", default=None, help="address of an existing Dask scheduler for the data generation")
+    t.add_argument("--data", default=None, help="data folder root (default: $ELASTREG_DATA or ~/.cache/elastreg/data)")
+    t.add_argument("--layout", choices=["reduced", "paper"], default="reduced")
+    t.add_argument("--hidden", type=int, nargs="+", default=[512, 512], help="hidden layer widths (reduced layout)")
+    t.add_argument("--rank", type=int, default=128, help="POD modes (reduced layout)")
+    t.add_argument("--no-physics-skip", action="store_true", help="no linear small-strain skip path")
+    t.add_argument("--epochs", type=int, default=300)
+    t.add_argument("--seed", type=int, default=0)
+    t.set_defaults(func=_train)
+
+    b = sub.add_parser("bench", help="error against run time: tables and plots (see the README)")
+    from .bench.report import add_arguments
+
+    add_arguments(b)
+    b.set_defaults(func=_bench)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    logging.basicConfig(
+        level=logging.INFO if args.verbose else logging.WARNING,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    return int(args.func(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
