@@ -1,4 +1,6 @@
-"""``elastreg``: the command line. Each subcommand parses its flags and calls one function."""
+"""elastreg: real-time elastic registration of organ meshes to partial point clouds.
+
+Each subcommand parses its flags and calls one function."""
 
 from __future__ import annotations
 

@@ -832,8 +832,8 @@ class PointToSurface:
             raise ValueError(f"points must be a non-empty (m, 3) array, got shape {y.shape}")
         if not np.isfinite(y).all():
             raise ValueError("points contain NaN or infinite coordinates")
-        self.points = np.ascontiguousarray(y)
-        self._yt = np.ascontiguousarray(y.T)
+        self.points = np.array(y, order="C")  # our own writable copy: the caller's array may be
+        self._yt = np.ascontiguousarray(y.T)  # a read-only view of a message buffer
         self._indices = []
         self._footprints = [(x0, full) for x0, full in self._footprints if full]
 

@@ -652,3 +652,18 @@ def test_liver_cloud_against_brute_force():
                 S.closest(x).distance, brute_distance(local, x, y), atol=1e-12
             )
     assert S.closest(np.asarray(positions[10])[S.nodes]).rms < 1e-9  # the cloud lies on it
+
+
+def test_bind_accepts_a_read_only_cloud():
+    """A MessagePack packed array arrives as a read-only np.frombuffer view."""
+    import trimesh
+
+    from service.registration.distance import PointToSurface
+
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    dist = PointToSurface(np.asarray(sphere.faces))
+    pts = np.frombuffer((np.asarray(sphere.vertices[:20]) * 1.5).tobytes(), dtype=np.float64).reshape(20, 3)
+    assert not pts.flags.writeable
+    dist.bind(pts)
+    J, grad = dist(np.asarray(sphere.vertices)[dist.nodes])
+    assert np.isfinite(J) and J > 0 and np.isfinite(grad).all()

@@ -1,0 +1,39 @@
+# elastreg: the registration API (`elastreg serve`) on port 8000, with the shipped models.
+#
+#   docker build -t elastreg .
+#   docker run --rm -p 8000:8000 elastreg
+#   docker run --rm -p 8000:8000 -e ELASTREG_SOLVER_THREADS=4 elastreg elastreg serve --host 0.0.0.0 --workers 2
+#
+# The same install as the README (CPU torch first, then the package); nothing is fetched at
+# run time. Settings come from ELASTREG_* variables (service/config.py).
+FROM python:3.11-slim
+
+ENV PYTHONDONTWRITEBYTECODE=1 \
+    PYTHONUNBUFFERED=1 \
+    PIP_NO_CACHE_DIR=1 \
+    PIP_DISABLE_PIP_VERSION_CHECK=1
+
+WORKDIR /app
+
+RUN pip install torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu
+
+COPY pyproject.toml README.md ./
+COPY service ./service
+COPY clients ./clients
+RUN pip install .
+
+COPY model_store ./model_store
+
+RUN useradd --create-home --uid 10001 elastreg
+USER elastreg
+
+# the installed package does not sit beside model_store/: name the store; numba caches its
+# compiled distance kernel somewhere writable
+ENV ELASTREG_STORE=/app/model_store \
+    NUMBA_CACHE_DIR=/tmp/numba-cache
+
+EXPOSE 8000
+HEALTHCHECK --interval=30s --timeout=5s --start-period=60s \
+    CMD python -c "import urllib.request; urllib.request.urlopen('http://127.0.0.1:8000/health', timeout=4)"
+
+CMD ["elastreg", "serve", "--host", "0.0.0.0", "--port", "8000"]

@@ -1,0 +1,234 @@
+"""What the network API costs, and what it sustains.
+
+    python benchmarks/api_bench.py --store model_store --model phantom           # full
+    python benchmarks/api_bench.py --store /tmp/store_phantom --quick             # minutes
+
+1. Overhead: a 1,000-point frame through the API (HTTP and WebSocket, MessagePack and JSON)
+   against the same frame in-process (``Session.frame``), the same session config, the same
+   cloud repeated (warm-started, so each repeat is a short, steady solve). Two figures per row:
+   the median of (round trip - the server's own solve time) over paired frames, which is the
+   overhead free of solve-time noise, and median round trip - median in-process time.
+2. Throughput: 1, 4 and 16 concurrent WebSocket streams (MessagePack) replaying frames:
+   frames per second over all streams and latency percentiles (clients/loadtest.py).
+3. Memory: the server's RSS after warm-up, after 10,000 frames, and after 1,000 sessions opened
+   and dropped (half HTTP, closed with DELETE; half WebSocket, the socket dropped).
+
+The server runs as its own process (``elastreg serve``), so its RSS is its own and the client's
+work does not share its interpreter.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import os
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from clients.client import AsyncClient, Client  # noqa: E402
+from clients.loadtest import make_frames, run_load  # noqa: E402
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def start_server(store: Path, threads: int) -> tuple[subprocess.Popen, str]:
+    port = free_port()
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "ELASTREG_SOLVER_THREADS": str(threads),
+           "ELASTREG_MAX_SESSIONS": "64"}
+    log = tempfile.NamedTemporaryFile("w+", prefix="elastreg-bench-server-", suffix=".log", delete=False)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "service.cli", "serve", "--store", str(store), "--port", str(port)],
+        env=env, stdout=log, stderr=subprocess.STDOUT,
+    )
+    url = f"http://127.0.0.1:{port}"
+    deadline = time.monotonic() + 180
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise RuntimeError(f"the server exited: {Path(log.name).read_text()[-2000:]}")
+        try:
+            with Client(url, encoding="json", timeout=2) as c:
+                c.health()
+            return proc, url
+        except Exception:
+            time.sleep(0.2)
+    proc.kill()
+    raise RuntimeError("the server did not start")
+
+
+def rss_mb(pid: int) -> float:
+    import psutil
+
+    return psutil.Process(pid).memory_info().rss / 2**20
+
+
+def median(x) -> float:
+    return float(np.median(x))
+
+
+# -- 1. overhead ----------------------------------------------------------------------------------
+
+
+def in_process(store: Path, model: str, support, cloud, repeats: int) -> np.ndarray:
+    from threadpoolctl import threadpool_limits
+
+    from service.registration.session import Session, SessionConfig
+    from service.store import load_entry
+
+    entry = load_entry(store / model)
+    session = Session(entry.network, SessionConfig(support=tuple(int(i) for i in support)))
+    times = []
+    with threadpool_limits(1):  # as the server runs its solves (blas_threads = 1)
+        for i in range(repeats + 5):
+            t0 = time.perf_counter()
+            session.frame(cloud)
+            if i >= 5:
+                times.append(1e3 * (time.perf_counter() - t0))
+    return np.asarray(times)
+
+
+def through_api(url: str, model: str, support, cloud, repeats: int, transport: str, encoding: str):
+    rtt, solve = [], []
+    with Client(url, encoding=encoding) as api:
+        if transport == "http":
+            s = api.open_session(model, support=support)
+            call, close = s.frame, s.close
+        else:
+            s = api.stream(model, support=support)
+            call, close = s.frame, s.close
+        for i in range(repeats + 5):
+            t0 = time.perf_counter()
+            r = call(cloud)
+            if i >= 5:
+                rtt.append(1e3 * (time.perf_counter() - t0))
+                solve.append(r["timing_ms"]["total"])
+        close()
+    return np.asarray(rtt), np.asarray(solve)
+
+
+def overhead(url, store, model, support, cloud, repeats) -> list[dict]:
+    base = in_process(store, model, support, cloud, repeats)
+    rows = [{"path": "in-process Session.frame", "median_ms": round(median(base), 3)}]
+    for transport in ("http", "ws"):
+        for encoding in ("msgpack", "json"):
+            rtt, solve = through_api(url, model, support, cloud, repeats, transport, encoding)
+            rows.append({
+                "path": f"{transport} {encoding}",
+                "median_ms": round(median(rtt), 3),
+                "server_solve_ms": round(median(solve), 3),
+                "overhead_paired_ms": round(median(rtt - solve), 3),
+                "overhead_vs_in_process_ms": round(median(rtt) - median(base), 3),
+            })
+    return rows
+
+
+# -- 3. memory ------------------------------------------------------------------------------------
+
+
+async def many_frames(url, model, support, clouds, total: int, streams: int = 4) -> int:
+    async with AsyncClient(url) as api:
+        opened = [await api.stream(model, support=support) for _ in range(streams)]
+        per = total // streams
+
+        async def go(i, st):
+            for k in range(per):
+                await st.frame(clouds[(i + k) % len(clouds)])
+
+        await asyncio.gather(*(go(i, st) for i, st in enumerate(opened)))
+        for st in opened:
+            await st.close()
+    return per * streams
+
+
+async def churn_sessions(url, model, support, cloud, total: int) -> None:
+    async with AsyncClient(url) as api:
+        for k in range(total):
+            if k % 2:
+                s = await api.open_session(model, support=support)
+                await s.frame(cloud)
+                await s.close()
+            else:
+                st = await api.stream(model, support=support)
+                await st.send(cloud)  # dropped with its frame in flight
+                await st.ws.close()
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--store", default=str(ROOT / "model_store"))
+    p.add_argument("--model", default="phantom")
+    p.add_argument("--quick", action="store_true", help="smaller counts and shorter runs")
+    p.add_argument("--threads", type=int, default=2, help="the server's solver threads")
+    p.add_argument("--points", type=int, default=1000)
+    p.add_argument("--out", default=None, help="also write the figures as JSON here")
+    args = p.parse_args(argv)
+    store = Path(args.store)
+    repeats, seconds = (40, 5.0) if args.quick else (200, 20.0)
+    n_frames, n_sessions = (1000, 200) if args.quick else (10_000, 1000)
+
+    proc, url = start_server(store, args.threads)
+    report: dict = {"model": args.model, "points": args.points, "quick": args.quick, "solver_threads": args.threads}
+    try:
+        async def frames():
+            async with AsyncClient(url) as api:
+                return await make_frames(api, args.model, n_points=args.points)
+
+        clouds, support = asyncio.run(frames())
+        print(f"server {url} (pid {proc.pid}); model {args.model}; {args.points} points; support {support.size} nodes")
+
+        rows = overhead(url, store, args.model, support, clouds[-1], repeats)
+        report["overhead"] = rows
+        print(f"\n1. API overhead, {args.points}-point frame, median of {repeats} (ms)")
+        print(f"{'path':<26}{'round trip':>11}{'solve':>8}{'overhead':>10}{'vs in-proc':>12}")
+        for r in rows:
+            print(f"{r['path']:<26}{r['median_ms']:>11.2f}{r.get('server_solve_ms', float('nan')):>8.2f}"
+                  f"{r.get('overhead_paired_ms', float('nan')):>10.2f}"
+                  f"{r.get('overhead_vs_in_process_ms', float('nan')):>12.2f}")
+
+        print(f"\n2. concurrent WebSocket streams (msgpack), {seconds:g} s each")
+        report["throughput"] = []
+        for n in (1, 4, 16):
+            load = asyncio.run(run_load(url, args.model, streams=n, seconds=seconds, frames=clouds, support=support))
+            report["throughput"].append(load.as_dict())
+            print("  " + load.text())
+
+        print("\n3. server memory (RSS)")
+        mem = {"after_warmup_mb": rss_mb(proc.pid)}
+        t0 = time.perf_counter()
+        done = asyncio.run(many_frames(url, args.model, support, clouds, n_frames))
+        mem[f"after_{done}_frames_mb"] = rss_mb(proc.pid)
+        mem["frames_seconds"] = time.perf_counter() - t0
+        asyncio.run(churn_sessions(url, args.model, support, clouds[0], n_sessions))
+        time.sleep(1.0)
+        mem[f"after_{n_sessions}_sessions_mb"] = rss_mb(proc.pid)
+        with Client(url) as api:
+            mem["open_sessions_after"] = api.health()["sessions"]["open"]
+        report["memory"] = {k: round(v, 1) if isinstance(v, float) else v for k, v in mem.items()}
+        for k, v in report["memory"].items():
+            print(f"  {k}: {v}")
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+    if args.out:
+        Path(args.out).write_text(json.dumps(report, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

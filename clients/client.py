@@ -1,0 +1,474 @@
+"""A Python client for the elastreg API: HTTP and WebSocket, sync and async, JSON and
+MessagePack; NumPy arrays in, NumPy arrays out.
+
+>>> with Client("http://127.0.0.1:8000") as api:                      # doctest: +SKIP
+...     mesh = api.mesh("phantom")                                     # arrays: nodes (n, 3), ...
+...     with api.stream("phantom", support=ids) as stream:             # a WebSocket session
+...         result = stream.frame(points)                              # (m, 3) in, a dict out
+...     result["displacement"].shape                                    # (n, 3)
+
+HTTP sessions (``open_session``) live in the server process that opened them: behind several
+processes, route them with affinity (see the README) or use ``stream``, whose session lives
+with its connection. With ``encoding="msgpack"`` (the default) arrays travel as packed bytes.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import httpx
+import msgpack
+import numpy as np
+
+try:  # optional: faster JSON that writes NumPy arrays itself
+    import orjson
+except ImportError:  # pragma: no cover
+    orjson = None
+
+JSON_MEDIA = "application/json"
+MSGPACK_MEDIA = "application/msgpack"
+_FLOAT_KEYS = frozenset({"displacement", "surface_displacement", "forces", "stress", "net_force", "nodes", "values"})
+_INT_KEYS = frozenset({"support", "tets", "surface_faces", "surface_nodes", "fixed_nodes", "region_nodes", "matching"})
+_PACKED = frozenset({"dtype", "shape", "data"})
+_DTYPES = {"<f4", "<f8", "<i4", "<i8"}
+
+
+class ApiError(RuntimeError):
+    """The server refused a request: ``status`` (HTTP code, or the stream error's code) and
+    ``detail`` (its explanation)."""
+
+    def __init__(self, status: int, detail: Any, instance: str | None = None) -> None:
+        super().__init__(f"{status}: {detail}")
+        self.status = status
+        self.detail = detail
+        self.instance = instance
+
+
+class StreamError(ApiError):
+    """A stream's error message (the stream stays open), or a refused first message
+    (``close_code`` set: the server closed the stream)."""
+
+    def __init__(self, status: int, detail: Any, frame_id=None, close_code: int | None = None) -> None:
+        super().__init__(status, detail)
+        self.frame_id = frame_id
+        self.close_code = close_code
+
+
+# -- encoding ------------------------------------------------------------------------------------
+
+
+def _pack(a: np.ndarray) -> dict:
+    if a.dtype.kind == "f":
+        dt = "<f4" if a.dtype.itemsize == 4 else "<f8"
+    elif a.dtype.kind in "iu":
+        dt = "<i4" if a.dtype.kind == "i" and a.dtype.itemsize <= 4 else "<i8"
+    else:
+        raise TypeError(f"cannot send an array of dtype {a.dtype}")
+    a = np.ascontiguousarray(a, dtype=dt)
+    return {"dtype": dt, "shape": list(a.shape), "data": a.tobytes()}
+
+
+def _outgoing(obj, encoding: str):
+    if isinstance(obj, np.ndarray):
+        if encoding == "msgpack":
+            return _pack(obj)
+        return obj if orjson is not None else obj.tolist()
+    if isinstance(obj, dict):
+        return {k: _outgoing(v, encoding) for k, v in obj.items() if v is not None}
+    if isinstance(obj, (list, tuple)):
+        return [_outgoing(v, encoding) for v in obj]
+    if isinstance(obj, np.generic):
+        return obj.item()
+    return obj
+
+
+def encode(obj, encoding: str) -> bytes:
+    """A request body (arrays packed for MessagePack, listed for JSON; None values left out)."""
+    obj = _outgoing(obj, encoding)
+    if encoding == "msgpack":
+        return msgpack.packb(obj, use_bin_type=True)
+    if orjson is not None:
+        return orjson.dumps(obj, default=_tolist, option=orjson.OPT_SERIALIZE_NUMPY)
+    return json.dumps(obj, separators=(",", ":"), allow_nan=False).encode()
+
+
+def _tolist(obj):
+    if isinstance(obj, (np.ndarray, np.generic)):
+        return obj.tolist()
+    raise TypeError(f"cannot encode {type(obj).__name__} as JSON")
+
+
+def _incoming(obj, key: str | None = None):
+    if isinstance(obj, dict):
+        if obj.keys() == _PACKED and obj.get("dtype") in _DTYPES:
+            return np.frombuffer(obj["data"], dtype=obj["dtype"]).reshape(obj["shape"]).copy()
+        return {k: _incoming(v, k) for k, v in obj.items()}
+    if isinstance(obj, list):
+        if key in _FLOAT_KEYS:
+            return np.asarray(obj, dtype=np.float64)  # JSON null (a non-finite value) -> NaN
+        if key in _INT_KEYS:
+            return np.asarray(obj, dtype=np.int64)
+        return [_incoming(v) for v in obj]
+    return obj
+
+
+def decode(data: bytes | str, encoding: str):
+    """A reply body, arrays as NumPy arrays (packed ones copied: writable)."""
+    if encoding == "msgpack":
+        obj = msgpack.unpackb(data, raw=False)
+    else:
+        obj = orjson.loads(data) if orjson is not None else json.loads(data)
+    return _incoming(obj)
+
+
+def _frame_body(points, support, frame_id) -> dict:
+    return {
+        "points": np.asarray(points, dtype=np.float64),
+        "support": None if support is None else np.asarray(support, dtype=np.int64),
+        "frame_id": frame_id,
+    }
+
+
+def _config_body(model: str, config: dict) -> dict:
+    body = {"model": model, **config}
+    for key in ("support", "matching"):
+        if body.get(key) is not None:
+            body[key] = np.asarray(body[key], dtype=np.int64)
+    if body.get("outputs") is not None:
+        body["outputs"] = list(body["outputs"])
+    return body
+
+
+def _ws_url(base_url: str) -> str:
+    url = httpx.URL(base_url)
+    scheme = "wss" if url.scheme == "https" else "ws"
+    return str(url.copy_with(scheme=scheme, path=url.path.rstrip("/") + "/stream"))
+
+
+def _reply(message, encoding: str) -> dict:
+    obj = decode(message, "msgpack" if isinstance(message, (bytes, bytearray)) else "json")
+    if isinstance(obj, dict) and set(obj) == {"error"}:
+        e = obj["error"]
+        raise StreamError(int(e.get("code", 0)), e.get("detail"), e.get("frame_id"))
+    return obj
+
+
+# -- sync ----------------------------------------------------------------------------------------
+
+
+class _Base:
+    def __init__(self, base_url: str, encoding: str) -> None:
+        if encoding not in ("msgpack", "json"):
+            raise ValueError("encoding must be 'msgpack' or 'json'")
+        self.base_url = base_url.rstrip("/")
+        self.encoding = encoding
+        media = MSGPACK_MEDIA if encoding == "msgpack" else JSON_MEDIA
+        self.headers = {"content-type": media, "accept": media}
+
+    def _result(self, r: httpx.Response):
+        kind = "msgpack" if "msgpack" in r.headers.get("content-type", "") else "json"
+        if r.status_code == 204:
+            return None
+        try:
+            body = decode(r.content, kind) if r.content else None
+        except Exception:
+            body = {"detail": r.text}
+        if r.status_code >= 400:
+            detail = body.get("detail") if isinstance(body, dict) else body
+            raise ApiError(r.status_code, detail, r.headers.get("x-elastreg-instance"))
+        return body
+
+
+class Client(_Base):
+    """The API over HTTP (httpx, one keep-alive connection pool) and WebSocket streams."""
+
+    def __init__(self, base_url: str = "http://127.0.0.1:8000", *, encoding: str = "msgpack",
+                 timeout: float = 60.0) -> None:
+        super().__init__(base_url, encoding)
+        self.timeout = timeout
+        self.http = httpx.Client(base_url=self.base_url, timeout=timeout, headers=self.headers)
+
+    def _call(self, method: str, path: str, body=None):
+        content = None if body is None else encode(body, self.encoding)
+        return self._result(self.http.request(method, path, content=content))
+
+    def health(self) -> dict:
+        return self._call("GET", "/health")
+
+    def models(self) -> list[dict]:
+        return self._call("GET", "/models")
+
+    def model(self, model: str) -> dict:
+        return self._call("GET", f"/models/{model}")
+
+    def mesh(self, model: str) -> dict:
+        """nodes (n, 3), tets (t, 4), surface_faces (f, 3), surface_nodes, fixed_nodes, region_nodes."""
+        return self._call("GET", f"/models/{model}/mesh")
+
+    def simulate(self, model: str, nodes, values, *, method: str = "network", E: float | None = None) -> dict:
+        """Displacement (n, 3) under forces ``values`` (k, 3) on ``nodes`` (k,)."""
+        body = {"forces": {"nodes": np.asarray(nodes, np.int64), "values": np.asarray(values, np.float64)},
+                "method": method, "E": E}
+        return self._call("POST", f"/models/{model}/simulate", body)
+
+    def open_session(self, model: str, **config) -> SessionHandle:
+        """An HTTP session (``POST /sessions``); config as in API.md (support, alpha, outputs...)."""
+        r = self._call("POST", "/sessions", _config_body(model, config))
+        return SessionHandle(self, r["session"], r["config"])
+
+    def stream(self, model: str, *, max_size: int | None = 1 << 27, **config) -> Stream:
+        """A WebSocket stream (``/stream``) whose session lives with the connection."""
+        from websockets.sync.client import connect
+
+        ws = connect(_ws_url(self.base_url), max_size=max_size, compression=None, open_timeout=self.timeout)
+        ws.__enter__()  # the Stream owns the connection (and closes it): websockets >= 17 asks for this
+        return Stream(ws, self.encoding, _config_body(model, config), self.timeout)
+
+    def close(self) -> None:
+        self.http.close()
+
+    def __enter__(self) -> Client:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class SessionHandle:
+    """An open HTTP session: ``frame(points)`` registers one frame; ``close()`` ends it."""
+
+    def __init__(self, client: Client, session_id: str, config: dict) -> None:
+        self.client = client
+        self.id = session_id
+        self.config = config
+
+    def frame(self, points, *, support=None, frame_id=None) -> dict:
+        return self.client._call("POST", f"/sessions/{self.id}/frames", _frame_body(points, support, frame_id))
+
+    def info(self) -> dict:
+        return self.client._call("GET", f"/sessions/{self.id}")
+
+    def close(self) -> None:
+        self.client._call("DELETE", f"/sessions/{self.id}")
+
+    def __enter__(self) -> SessionHandle:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        try:
+            self.close()
+        except ApiError:
+            pass
+
+
+def _closed_code(exc: Exception) -> int | None:
+    rcvd = getattr(exc, "rcvd", None)
+    return getattr(rcvd, "code", None)
+
+
+def _opened(first, wait_close) -> tuple[str, dict]:
+    """The session id and config from a stream's first reply, or StreamError (the server closes
+    a stream whose first message it refused; ``wait_close()`` returns its close code)."""
+    obj = decode(first, "msgpack" if isinstance(first, (bytes, bytearray)) else "json")
+    if isinstance(obj, dict) and set(obj) == {"error"}:
+        e = obj["error"]
+        raise StreamError(int(e.get("code", 0)), e.get("detail"), e.get("frame_id"), close_code=wait_close())
+    return obj["session"], obj["config"]
+
+
+class Stream:
+    """A WebSocket stream (sync): ``send`` frames (they may be pipelined), ``recv`` results in
+    order, or ``frame`` for both. A stream error raises :class:`StreamError`; the stream goes on."""
+
+    def __init__(self, ws, encoding: str, config: dict, timeout: float | None = None) -> None:
+        self.ws = ws
+        self.encoding = encoding
+        self.timeout = timeout
+        from websockets.exceptions import ConnectionClosed
+
+        def wait_close() -> int | None:
+            try:
+                ws.recv(timeout=2.0)
+            except ConnectionClosed as exc:
+                return _closed_code(exc)
+            except Exception:
+                pass
+            return None
+
+        try:
+            self._send_raw(config)
+            first = ws.recv(timeout=timeout)
+            self.session, self.config = _opened(first, wait_close)
+        except ConnectionClosed as exc:
+            raise StreamError(0, "the server closed the stream", close_code=_closed_code(exc)) from None
+        except BaseException:
+            ws.close()
+            raise
+
+    def _send_raw(self, body: dict) -> None:
+        data = encode(body, self.encoding)
+        self.ws.send(data if self.encoding == "msgpack" else data.decode())
+
+    def send(self, points, *, support=None, frame_id=None) -> None:
+        self._send_raw(_frame_body(points, support, frame_id))
+
+    def recv(self, timeout: float | None = None) -> dict:
+        return _reply(self.ws.recv(timeout=timeout if timeout is not None else self.timeout), self.encoding)
+
+    def frame(self, points, *, support=None, frame_id=None) -> dict:
+        self.send(points, support=support, frame_id=frame_id)
+        return self.recv()
+
+    def close(self) -> None:
+        self.ws.close()
+
+    def __enter__(self) -> Stream:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+# -- async ---------------------------------------------------------------------------------------
+
+
+class AsyncClient(_Base):
+    """The same API for asyncio (httpx.AsyncClient and websockets' asyncio client)."""
+
+    def __init__(self, base_url: str = "http://127.0.0.1:8000", *, encoding: str = "msgpack",
+                 timeout: float = 60.0, max_connections: int = 100) -> None:
+        super().__init__(base_url, encoding)
+        self.timeout = timeout
+        self.http = httpx.AsyncClient(base_url=self.base_url, timeout=timeout, headers=self.headers,
+                                      limits=httpx.Limits(max_connections=max_connections))
+
+    async def _call(self, method: str, path: str, body=None):
+        content = None if body is None else encode(body, self.encoding)
+        return self._result(await self.http.request(method, path, content=content))
+
+    async def health(self) -> dict:
+        return await self._call("GET", "/health")
+
+    async def models(self) -> list[dict]:
+        return await self._call("GET", "/models")
+
+    async def model(self, model: str) -> dict:
+        return await self._call("GET", f"/models/{model}")
+
+    async def mesh(self, model: str) -> dict:
+        return await self._call("GET", f"/models/{model}/mesh")
+
+    async def simulate(self, model: str, nodes, values, *, method: str = "network", E: float | None = None) -> dict:
+        body = {"forces": {"nodes": np.asarray(nodes, np.int64), "values": np.asarray(values, np.float64)},
+                "method": method, "E": E}
+        return await self._call("POST", f"/models/{model}/simulate", body)
+
+    async def open_session(self, model: str, **config) -> AsyncSessionHandle:
+        r = await self._call("POST", "/sessions", _config_body(model, config))
+        return AsyncSessionHandle(self, r["session"], r["config"])
+
+    async def stream(self, model: str, *, max_size: int | None = 1 << 27, **config) -> AsyncStream:
+        from websockets import connect
+
+        ws = await connect(_ws_url(self.base_url), max_size=max_size, compression=None, open_timeout=self.timeout)
+        stream = AsyncStream(ws, self.encoding, self.timeout)
+        await stream._open(_config_body(model, config))
+        return stream
+
+    async def aclose(self) -> None:
+        await self.http.aclose()
+
+    async def __aenter__(self) -> AsyncClient:
+        return self
+
+    async def __aexit__(self, *exc) -> None:
+        await self.aclose()
+
+
+class AsyncSessionHandle:
+    def __init__(self, client: AsyncClient, session_id: str, config: dict) -> None:
+        self.client = client
+        self.id = session_id
+        self.config = config
+
+    async def frame(self, points, *, support=None, frame_id=None) -> dict:
+        return await self.client._call("POST", f"/sessions/{self.id}/frames", _frame_body(points, support, frame_id))
+
+    async def info(self) -> dict:
+        return await self.client._call("GET", f"/sessions/{self.id}")
+
+    async def close(self) -> None:
+        await self.client._call("DELETE", f"/sessions/{self.id}")
+
+    async def __aenter__(self) -> AsyncSessionHandle:
+        return self
+
+    async def __aexit__(self, *exc) -> None:
+        try:
+            await self.close()
+        except ApiError:
+            pass
+
+
+class AsyncStream:
+    """A WebSocket stream (asyncio); see :class:`Stream`."""
+
+    def __init__(self, ws, encoding: str, timeout: float | None = None) -> None:
+        self.ws = ws
+        self.encoding = encoding
+        self.timeout = timeout
+        self.session: str | None = None
+        self.config: dict | None = None
+
+    async def _open(self, config: dict) -> None:
+        import asyncio
+
+        from websockets.exceptions import ConnectionClosed
+
+        codes = []
+
+        async def closed() -> None:
+            try:
+                await asyncio.wait_for(self.ws.recv(), 2.0)
+            except ConnectionClosed as exc:
+                codes.append(_closed_code(exc))
+            except Exception:
+                pass
+
+        try:
+            await self._send_raw(config)
+            first = await asyncio.wait_for(self.ws.recv(), self.timeout)
+            obj = decode(first, "msgpack" if isinstance(first, (bytes, bytearray)) else "json")
+            if isinstance(obj, dict) and set(obj) == {"error"}:
+                await closed()
+            self.session, self.config = _opened(first, lambda: codes[0] if codes else None)
+        except ConnectionClosed as exc:
+            raise StreamError(0, "the server closed the stream", close_code=_closed_code(exc)) from None
+        except BaseException:
+            await self.ws.close()
+            raise
+
+    async def _send_raw(self, body: dict) -> None:
+        data = encode(body, self.encoding)
+        await self.ws.send(data if self.encoding == "msgpack" else data.decode())
+
+    async def send(self, points, *, support=None, frame_id=None) -> None:
+        await self._send_raw(_frame_body(points, support, frame_id))
+
+    async def recv(self) -> dict:
+        return _reply(await self.ws.recv(), self.encoding)
+
+    async def frame(self, points, *, support=None, frame_id=None) -> dict:
+        await self.send(points, support=support, frame_id=frame_id)
+        return await self.recv()
+
+    async def close(self) -> None:
+        await self.ws.close()
+
+    async def __aenter__(self) -> AsyncStream:
+        return self
+
+    async def __aexit__(self, *exc) -> None:
+        await self.close()
+

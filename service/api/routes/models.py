@@ -1,0 +1,42 @@
+"""The models in the store: summaries, meshes, and the forward problem."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Request
+
+from .. import work
+from ..deps import ALT_MSGPACK, EntryDep, ModelsDep, PoolDep, ReplyKind, SimulateBody, reply, request_body
+from ..schemas import ErrorOut, MeshOut, ModelSummary, SimulateIn, SimulateOut
+
+router = APIRouter(prefix="/models", tags=["models"])
+NOT_FOUND = {404: {"model": ErrorOut, "description": "unknown model"}}
+
+
+@router.get("", response_model=list[ModelSummary], responses={200: {"content": ALT_MSGPACK}})
+async def list_models(models: ModelsDep, kind: ReplyKind):
+    return reply([work.summary(e) for e in models.values()], kind)
+
+
+@router.get("/{model}", response_model=ModelSummary, responses={**NOT_FOUND, 200: {"content": ALT_MSGPACK}})
+async def get_model(entry: EntryDep, kind: ReplyKind):
+    return reply(work.summary(entry), kind)
+
+
+@router.get("/{model}/mesh", response_model=MeshOut, responses={**NOT_FOUND, 200: {"content": ALT_MSGPACK}})
+async def get_mesh(request: Request, entry: EntryDep, pool: PoolDep, kind: ReplyKind):
+    cache = request.app.state.mesh_cache
+    key = (entry.id, kind)
+    if key not in cache:  # encoded once per model and encoding
+        cache[key] = await pool.run(work.encode, work.mesh_payload(entry), kind)
+    return reply(cache[key], kind)
+
+
+@router.post(
+    "/{model}/simulate",
+    response_model=SimulateOut,
+    responses={**NOT_FOUND, 200: {"content": ALT_MSGPACK}, 422: {"model": ErrorOut}},
+    openapi_extra=request_body(SimulateIn),
+)
+async def simulate(entry: EntryDep, body: SimulateBody, pool: PoolDep, kind: ReplyKind):
+    data = await pool.run(work.simulate, entry, body.value, kind, {"decode": body.decode_ms}, body.t_received)
+    return reply(data, kind)

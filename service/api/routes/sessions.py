@@ -1,0 +1,70 @@
+"""Registration sessions over HTTP: open, post frames, inspect, close.
+
+A session lives in the server process that opened it (see the README on session affinity).
+"""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Response
+
+from .. import work
+from ..deps import (
+    ALT_MSGPACK,
+    CreateBody,
+    FrameBody,
+    HttpSessionDep,
+    ModelsDep,
+    PoolDep,
+    RegistryDep,
+    ReplyKind,
+    SettingsDep,
+    reply,
+    request_body,
+)
+from ..schemas import ErrorOut, FrameIn, FrameResult, SessionCreate, SessionInfo, SessionOpened
+
+router = APIRouter(prefix="/sessions", tags=["sessions"])
+NOT_FOUND = {404: {"model": ErrorOut, "description": "no such session in this process (see session affinity)"}}
+INVALID = {422: {"model": ErrorOut, "description": "a body that does not validate"}}
+
+
+@router.post(
+    "",
+    status_code=201,
+    response_model=SessionOpened,
+    responses={201: {"content": ALT_MSGPACK}, 404: {"model": ErrorOut, "description": "unknown model"},
+               503: {"model": ErrorOut, "description": "at the session limit"}, **INVALID},
+    openapi_extra=request_body(SessionCreate),
+)
+async def open_session(body: CreateBody, models: ModelsDep, registry: RegistryDep, pool: PoolDep,
+                       settings: SettingsDep, kind: ReplyKind):
+    create = body.value
+    entry = models.get(create.model)
+    if entry is None:
+        raise work.not_found_model(create.model, models)
+    held = await work.open_session(entry, create, kind="http", registry=registry, pool=pool)
+    return reply(work.opened(held, settings.instance_id), kind, status=201)
+
+
+@router.post(
+    "/{session_id}/frames",
+    response_model=FrameResult,
+    responses={200: {"content": ALT_MSGPACK}, **NOT_FOUND, **INVALID,
+               413: {"model": ErrorOut, "description": "a point cloud over the limit"}},
+    openapi_extra=request_body(FrameIn),
+)
+async def post_frame(held: HttpSessionDep, body: FrameBody, registry: RegistryDep, pool: PoolDep, kind: ReplyKind):
+    data = await work.http_frame(held, body.value, kind, decode_ms=body.decode_ms, t_received=body.t_received,
+                                 registry=registry, pool=pool)
+    return reply(data, kind)
+
+
+@router.get("/{session_id}", response_model=SessionInfo, responses={200: {"content": ALT_MSGPACK}, **NOT_FOUND})
+async def get_session(session_id: str, registry: RegistryDep, kind: ReplyKind):
+    return reply(work.info(registry.get(session_id, touch=False), registry), kind)
+
+
+@router.delete("/{session_id}", status_code=204, response_class=Response, responses=NOT_FOUND)
+async def close_session(session_id: str, registry: RegistryDep):
+    registry.close(session_id, kind="http")
+    return Response(status_code=204)

@@ -1,0 +1,214 @@
+"""The sessions a server process holds: bounded in number, expired when idle, thread-safe.
+
+A session lives in the process that opened it. Its id starts with that process's instance id
+(``a3f09c-Xq2...``), so a request that reaches another process (several uvicorn workers, or
+replicas behind a load balancer without affinity) gets a 404 that says where the session lives
+instead of a wrong answer, and a load balancer can route on that prefix.
+
+HTTP sessions expire after ``ttl_s`` seconds without a request (a background sweeper drops
+them; a session busy with a frame is never dropped). A WebSocket stream's session belongs to
+its connection: it counts against the limit but is never swept; the stream closes it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import dataclasses
+import secrets
+import threading
+import time
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from ..registration.session import Session
+
+_FORGET = 4096  # closed / expired ids remembered for a precise 404
+
+
+class RegistryFull(RuntimeError):
+    """The process holds its maximum number of sessions (HTTP 503)."""
+
+
+class SessionNotFound(KeyError):
+    """No such session here; ``str()`` explains why, session affinity included (HTTP 404)."""
+
+    def __str__(self) -> str:
+        return str(self.args[0])
+
+
+class WrongKind(RuntimeError):
+    """A stream's session addressed over HTTP (HTTP 409)."""
+
+
+@dataclasses.dataclass(eq=False)
+class Held:
+    """A session as the API holds it: the engine's Session and what the API adds."""
+
+    id: str
+    kind: str  # "http" | "stream"
+    model: str
+    session: Session
+    config: dict[str, Any]  # the effective config, as echoed when it opened
+    created: float = dataclasses.field(default_factory=time.time)
+    touched: float = dataclasses.field(default_factory=time.monotonic)
+    busy: int = 0  # frames in flight (never swept while > 0)
+    lock: asyncio.Lock = dataclasses.field(default_factory=asyncio.Lock)  # HTTP frames, FIFO
+
+    @property
+    def skip_stale(self) -> bool:
+        return bool(self.config.get("skip_stale", False))
+
+
+@dataclasses.dataclass(eq=False)
+class Reservation:
+    id: str
+    kind: str
+    done: bool = False
+
+
+class SessionRegistry:
+    """Held sessions by id. Every method is thread-safe."""
+
+    def __init__(
+        self,
+        *,
+        max_sessions: int,
+        ttl_s: float,
+        instance_id: str,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.max_sessions = max_sessions
+        self.ttl_s = ttl_s
+        self.instance_id = instance_id
+        self.clock = clock
+        self._held: dict[str, Held] = {}
+        self._pending = 0
+        self._gone: collections.OrderedDict[str, str] = collections.OrderedDict()
+        self._lock = threading.Lock()
+
+    # -- opening -----------------------------------------------------------------------------------
+
+    def reserve(self, kind: str) -> Reservation:
+        """A slot and an id for a session about to be built; RegistryFull at the limit."""
+        with self._lock:
+            if len(self._held) + self._pending >= self.max_sessions:
+                raise RegistryFull(
+                    f"this server process holds its maximum of {self.max_sessions} sessions; "
+                    "close one (DELETE /sessions/{id}) or retry later"
+                )
+            self._pending += 1
+            return Reservation(f"{self.instance_id}-{secrets.token_urlsafe(9)}", kind)
+
+    def commit(self, reservation: Reservation, held: Held) -> Held:
+        with self._lock:
+            if not reservation.done:
+                reservation.done = True
+                self._pending -= 1
+            held.touched = self.clock()
+            self._held[held.id] = held
+        return held
+
+    def cancel(self, reservation: Reservation) -> None:
+        with self._lock:
+            if not reservation.done:
+                reservation.done = True
+                self._pending -= 1
+
+    # -- use ---------------------------------------------------------------------------------------
+
+    def get(self, session_id: str, *, kind: str | None = None, touch: bool = True) -> Held:
+        with self._lock:
+            held = self._held.get(session_id)
+            if held is None:
+                raise SessionNotFound(self._not_found(session_id))
+            if kind is not None and held.kind != kind:
+                raise WrongKind(
+                    f"session {session_id!r} belongs to a WebSocket stream: send its frames on that "
+                    "socket, and close the socket to end it"
+                )
+            if touch:
+                held.touched = self.clock()
+            return held
+
+    def begin(self, held: Held) -> None:
+        """A frame starts: the session is busy (never swept) until :meth:`end`."""
+        with self._lock:
+            held.busy += 1
+            held.touched = self.clock()
+
+    def end(self, held: Held) -> None:
+        with self._lock:
+            held.busy -= 1
+            held.touched = self.clock()
+
+    def close(self, session_id: str, *, kind: str | None = None, why: str = "closed") -> Held:
+        with self._lock:
+            held = self._held.get(session_id)
+            if held is None:
+                raise SessionNotFound(self._not_found(session_id))
+            if kind is not None and held.kind != kind:
+                raise WrongKind(
+                    f"session {session_id!r} belongs to a WebSocket stream: close the socket to end it"
+                )
+            del self._held[session_id]
+            self._forget(session_id, why)
+            return held
+
+    def expire(self, now: float | None = None) -> list[str]:
+        """Drop idle HTTP sessions (idle longer than ttl_s, no frame in flight); their ids."""
+        now = self.clock() if now is None else now
+        with self._lock:
+            gone = [
+                sid
+                for sid, h in self._held.items()
+                if h.kind == "http" and h.busy == 0 and now - h.touched > self.ttl_s
+            ]
+            for sid in gone:
+                del self._held[sid]
+                self._forget(sid, f"expired after {self.ttl_s:g} s without a request")
+        return gone
+
+    def expires_in(self, held: Held) -> float | None:
+        if held.kind != "http":
+            return None
+        return max(0.0, self.ttl_s - (self.clock() - held.touched))
+
+    def idle(self, held: Held) -> float:
+        return 0.0 if held.busy else self.clock() - held.touched
+
+    def counts(self) -> dict[str, int]:
+        with self._lock:
+            http = sum(h.kind == "http" for h in self._held.values())
+            return {"open": len(self._held), "http": http, "stream": len(self._held) - http}
+
+    def __len__(self) -> int:
+        with self._lock:
+            return len(self._held)
+
+    # -- 404s that explain themselves ----------------------------------------------------------------
+
+    def _forget(self, session_id: str, why: str) -> None:
+        self._gone[session_id] = why
+        while len(self._gone) > _FORGET:
+            self._gone.popitem(last=False)
+
+    def _not_found(self, session_id: str) -> str:
+        here = f"this server process is instance {self.instance_id!r}"
+        why = self._gone.get(session_id)
+        if why is not None:
+            return f"session {session_id!r} {why} ({here})"
+        owner = session_id.split("-", 1)[0] if "-" in session_id else None
+        if owner and owner != self.instance_id:
+            return (
+                f"session {session_id!r} is not held here: it was opened by instance {owner!r} and "
+                f"{here}. Sessions live in the process that opened them: route every request of a "
+                "session to that process (session affinity, see the README), or use the WebSocket "
+                "/stream, whose state lives with its connection"
+            )
+        return (
+            f"no session {session_id!r} ({here}): it was closed, expired after {self.ttl_s:g} s "
+            "idle, or never existed. Sessions live in the process that opened them (session "
+            "affinity, see the README)"
+        )

@@ -1,0 +1,127 @@
+"""A real server (uvicorn on a free loopback port, in a background thread) over the small
+trained ``bar`` store, and frames whose answers are known."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import httpx
+import msgpack
+import numpy as np
+import pytest
+
+from service.api.server import BackgroundServer
+from service.config import Settings
+from service.store import load_entry
+from service.synthetic import sample_surface
+
+MAX_POINTS = 3000
+
+
+@dataclasses.dataclass
+class Live:
+    """A running server: its URL, app (for app.state) and settings."""
+
+    server: BackgroundServer
+
+    @property
+    def url(self) -> str:
+        return self.server.url
+
+    @property
+    def ws(self) -> str:
+        return self.server.url.replace("http://", "ws://") + "/stream"
+
+    @property
+    def app(self):
+        return self.server.app
+
+    @property
+    def settings(self) -> Settings:
+        return self.server.settings
+
+
+def start(store, **overrides) -> BackgroundServer:
+    # blas_threads=0: the server shares this process with the rest of the test session; leave
+    # its BLAS and torch threads alone
+    defaults = {"max_points": MAX_POINTS, "max_body_bytes": 1 << 20, "blas_threads": 0}
+    settings = Settings(store=store, **{**defaults, **overrides})
+    return BackgroundServer(settings).start()
+
+
+@pytest.fixture(scope="session")
+def live(bar_store):
+    """The main test server (instance "alpha")."""
+    server = start(bar_store[0], instance_id="alpha", max_sessions=24, solver_threads=2)
+    yield Live(server)
+    server.stop()
+
+
+@pytest.fixture(scope="session")
+def small(bar_store):
+    """A second server process stand-in (instance "beta"): 2 sessions at most, idle ones expire
+    after 2 s (swept every 0.1 s)."""
+    server = start(bar_store[0], instance_id="beta", max_sessions=2, session_ttl_s=2.0, sweep_interval_s=0.1)
+    yield Live(server)
+    server.stop()
+
+
+@pytest.fixture(scope="session")
+def entry(bar_store):
+    """The same model, loaded in the test process (for in-process reference runs)."""
+    return load_entry(bar_store[0] / "bar")
+
+
+@pytest.fixture(scope="session")
+def support(entry):
+    """A patch of the bar's far half, inside the network's region."""
+    mesh = entry.mesh
+    region = entry.region
+    return np.sort(region[mesh.nodes[region, 0] >= 2.5])
+
+
+@pytest.fixture(scope="session")
+def clouds(entry, support):
+    """Six clouds of 200 points on the bar deformed by the network under a growing load."""
+    mesh = entry.mesh
+    rng = np.random.default_rng(0)
+    out = []
+    for t in range(6):
+        g = np.tile([0.0, 0.5, 4.0 * (t + 1) / support.size], (support.size, 1))
+        u = entry.network.predict(g[None], support)[0]
+        pts, _, _ = sample_surface(mesh.nodes + u, mesh.surface_faces, 200, rng)
+        out.append(pts)
+    return out
+
+
+@pytest.fixture
+def http(live):
+    with httpx.Client(base_url=live.url, timeout=60) as c:
+        yield c
+
+
+def packed(a: np.ndarray, dtype: str = "<f8") -> dict:
+    a = np.ascontiguousarray(a, dtype=dtype)
+    return {"dtype": dtype, "shape": list(a.shape), "data": a.tobytes()}
+
+
+def mp(obj) -> bytes:
+    return msgpack.packb(obj, use_bin_type=True)
+
+
+MSGPACK = {"content-type": "application/msgpack", "accept": "application/msgpack"}
+
+
+def unpack(data: bytes):
+    """A MessagePack reply with packed arrays as arrays."""
+
+    def walk(o):
+        if isinstance(o, dict):
+            if set(o) == {"dtype", "shape", "data"}:
+                return np.frombuffer(o["data"], o["dtype"]).reshape(o["shape"])
+            return {k: walk(v) for k, v in o.items()}
+        if isinstance(o, list):
+            return [walk(v) for v in o]
+        return o
+
+    return walk(msgpack.unpackb(data, raw=False))

@@ -1,0 +1,111 @@
+"""The Python client (sync and async, HTTP and WebSocket, JSON and MessagePack), the demo and
+the load test, against the real server."""
+
+from __future__ import annotations
+
+import asyncio
+import io
+
+import numpy as np
+import pytest
+
+from clients import ApiError, AsyncClient, Client, StreamError
+from clients.demo import run as demo
+from clients.loadtest import check_target, run_load
+from clients.loadtest import main as loadtest_main
+
+
+@pytest.mark.parametrize("encoding", ["msgpack", "json"])
+def test_sync_client(live, entry, support, clouds, encoding):
+    with Client(live.url, encoding=encoding) as api:
+        assert api.health()["instance"] == "alpha"
+        assert [m["id"] for m in api.models()] == ["bar"] and api.model("bar")["n_nodes"] == 81
+        mesh = api.mesh("bar")
+        assert mesh["nodes"].dtype == np.float64 and mesh["tets"].shape == (entry.mesh.n_tets, 4)
+        g = np.tile([0.0, 0.0, 5.0 / support.size], (support.size, 1))
+        u = api.simulate("bar", support, g)["displacement"]
+        np.testing.assert_allclose(u, entry.network.predict(g[None], support)[0], rtol=1e-12, atol=1e-15)
+        with api.open_session("bar", support=support, outputs=["displacement", "forces"]) as s:
+            assert s.id.startswith("alpha-") and isinstance(s.config["support"], np.ndarray)
+            r = s.frame(clouds[0], frame_id=1)
+            assert r["displacement"].shape == (81, 3) and r["forces"].shape == (support.size, 3)
+            assert r["net_force"].shape == (3,) and r["frame_id"] == 1
+            with pytest.raises(ApiError) as err:
+                s.frame(np.zeros((3, 2)))
+            assert err.value.status == 422
+            assert s.info()["counters"]["frames"] == 1
+        with api.stream("bar", support=support) as st:
+            a = st.frame(clouds[0])
+            with pytest.raises(StreamError) as err:
+                st.frame(clouds[0], support=[0])
+            assert err.value.status == 422 and "fixed" in err.value.detail and err.value.close_code is None
+            st.send(clouds[1], frame_id="x")
+            st.send(clouds[2], frame_id="y")
+            assert [st.recv()["frame_id"], st.recv()["frame_id"]] == ["x", "y"]
+            assert a["displacement"].shape == (81, 3)
+        with pytest.raises(ApiError) as err:
+            api.model("nope")
+        assert err.value.status == 404 and err.value.instance == "alpha"
+        with pytest.raises(StreamError) as err:
+            api.stream("bar", alpha=-1.0)
+        assert err.value.status == 422 and err.value.close_code == 1008
+
+
+@pytest.mark.parametrize("encoding", ["msgpack", "json"])
+def test_async_client(live, support, clouds, encoding):
+    async def main():
+        async with AsyncClient(live.url, encoding=encoding) as api:
+            assert (await api.health())["status"] == "ok"
+            assert (await api.mesh("bar"))["surface_faces"].shape[1] == 3
+            s = await api.open_session("bar", support=support)
+            r = await s.frame(clouds[0])
+            assert r["displacement"].shape == (81, 3)
+            await s.close()
+            with pytest.raises(ApiError):
+                await s.frame(clouds[0])
+            streams = [await api.stream("bar", support=support) for _ in range(3)]
+            results = await asyncio.gather(*(st.frame(clouds[i], frame_id=i) for i, st in enumerate(streams)))
+            assert [r["frame_id"] for r in results] == [0, 1, 2]
+            with pytest.raises(StreamError):
+                await streams[0].frame(np.full((4, 3), 1.0), support=[-1])
+            assert (await streams[0].frame(clouds[3]))["status"]
+            for st in streams:
+                await st.close()
+            with pytest.raises(StreamError) as err:
+                await api.stream("nope")
+            assert err.value.status == 404 and err.value.close_code == 1008
+
+    asyncio.run(main())
+
+
+def test_loadtest_bounds():
+    check_target("http://127.0.0.1:8000", 4, 10)
+    check_target("http://localhost:1", 1, 1)
+    check_target("http://[::1]:8000", 64, 600)
+    for url, n, s in [("http://example.com", 1, 1), ("http://10.0.0.1:8000", 1, 1), ("ftp://127.0.0.1", 1, 1),
+                      ("http://127.0.0.1", 65, 1), ("http://127.0.0.1", 0, 1), ("http://127.0.0.1", 1, 601),
+                      ("http://127.0.0.1", 1, 0)]:
+        with pytest.raises(ValueError):
+            check_target(url, n, s)
+    assert loadtest_main(["--url", "http://192.168.1.1:8000", "--seconds", "1"]) == 2
+
+
+def test_loadtest_runs(live, support, clouds):
+    report = asyncio.run(run_load(live.url, "bar", streams=2, seconds=1.0, frames=clouds, support=support))
+    assert report.frames > 0 and report.errors == 0 and len(report.per_stream) == 2
+    d = report.as_dict()
+    assert d["p50_ms"] <= d["p95_ms"] <= d["p99_ms"] and d["fps"] > 0
+    assert "frames/s" in report.text()
+
+
+def test_demo_on_the_bar(bar_store):
+    out = io.StringIO()
+    assert demo(model="bar", frames=3, store=bar_store[0], n_points=300, out=out) == 0
+    text = out.getvalue()
+    assert "registration error: median" in text and "latency" in text and text.count("converged") >= 1
+
+
+def test_demo_without_the_model_names_the_command(bar_store):
+    out = io.StringIO()
+    assert demo(model="phantom", frames=3, store=bar_store[0], out=out) != 0
+    assert "elastreg train phantom" in out.getvalue()

@@ -1,0 +1,145 @@
+"""The codec: packed arrays both ways, strict decoding, negotiation, timed encoding."""
+
+from __future__ import annotations
+
+import json
+
+import msgpack
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from service.api import codec
+from service.api.codec import JSON, MSGPACK, DecodeError, UnsupportedMedia
+
+
+@pytest.fixture(params=["orjson", "stdlib"], autouse=True)
+def json_backend(request, monkeypatch):
+    """Every test runs with orjson (when installed) and with the standard library's json."""
+    if request.param == "orjson":
+        if codec.orjson is None:
+            pytest.skip("orjson is not installed")
+    else:
+        monkeypatch.setattr(codec, "orjson", None)
+    return request.param
+
+
+@pytest.mark.parametrize("dtype", ["<f4", "<f8", "<i4", "<i8"])
+def test_packed_round_trip(dtype):
+    a = (np.arange(12).reshape(4, 3) * 1.5).astype(dtype)
+    back = codec.decode(codec.encode({"a": a, "nested": {"b": a[0]}}, MSGPACK), MSGPACK)
+    assert back["a"].dtype == np.dtype(dtype) and back["a"].shape == (4, 3)
+    np.testing.assert_array_equal(back["a"], a)
+    np.testing.assert_array_equal(back["nested"]["b"], a[0])
+
+
+def test_json_lists_and_scalars():
+    body = codec.encode({"a": np.eye(2), "n": np.int64(3), "x": np.float32(0.5), "t": np.eye(3)[:, 0],
+                         "i": np.arange(3, dtype=np.int32), "h": np.ones(2, np.float16)}, JSON)
+    assert json.loads(body) == {"a": [[1.0, 0.0], [0.0, 1.0]], "n": 3, "x": 0.5, "t": [1.0, 0.0, 0.0],
+                                "i": [0, 1, 2], "h": [1.0, 1.0]}
+
+
+def test_overflowing_json_numbers_are_refused_or_infinite():
+    """1e999 is refused by the decoder (orjson) or parsed as inf for the validators to refuse."""
+    try:
+        value = codec.decode(b'{"a": 1e999}', JSON)["a"]
+    except DecodeError as exc:
+        assert "NaN and Infinity" in str(exc)
+    else:
+        assert value == float("inf")
+
+
+def test_non_finite_become_null_in_json_and_stay_in_msgpack():
+    body = {"u": np.array([1.0, np.nan, np.inf]), "J": float("inf")}
+    assert json.loads(codec.encode(body, JSON)) == {"u": [1.0, None, None], "J": None}
+    back = codec.decode(codec.encode(body, MSGPACK), MSGPACK)
+    assert np.isnan(back["u"][1]) and back["J"] == float("inf")
+
+
+@pytest.mark.parametrize(
+    "packed, words",
+    [
+        ({"dtype": "|O", "shape": [1], "data": b"\0" * 8}, "dtype"),
+        ({"dtype": "<f2", "shape": [1], "data": b"\0" * 2}, "dtype"),
+        ({"dtype": ">f8", "shape": [1], "data": b"\0" * 8}, "dtype"),
+        ({"dtype": "<f8", "shape": [2], "data": b"\0" * 8}, "needs 16 bytes"),
+        ({"dtype": "<f8", "shape": [1], "data": "text"}, "bin"),
+        ({"dtype": "<f8", "shape": [-1], "data": b""}, "shape"),
+        ({"dtype": "<f8", "shape": [1.0], "data": b"\0" * 8}, "shape"),
+        ({"dtype": "<f8", "shape": [], "data": b"\0" * 8}, "shape"),
+        ({"dtype": "<f8", "shape": [1, 1, 1, 1, 1], "data": b"\0" * 8}, "shape"),
+        ({"dtype": "<f8", "shape": 3, "data": b"\0" * 24}, "shape"),
+    ],
+)
+def test_bad_packed_arrays(packed, words):
+    with pytest.raises(DecodeError, match=words.replace("(", r"\(")):
+        codec.decode(msgpack.packb({"points": packed}, use_bin_type=True), MSGPACK)
+
+
+@pytest.mark.parametrize(
+    "data, kind, words",
+    [
+        (b'{"a": NaN}', JSON, "NaN"),
+        (b'{"a": -Infinity}', JSON, "NaN"),
+        ('{"a": [1, Infinity]}', JSON, "NaN"),
+        (b'{"a": ', JSON, "not valid JSON"),
+        (b"\xff\xfe\x00", JSON, "not valid JSON"),
+        (b"[" * 100_000, JSON, "not valid JSON"),
+        (b"\xc1", MSGPACK, "not valid MessagePack"),
+        (msgpack.packb({"a": 1}) + b"\x00", MSGPACK, "extra data"),
+        (msgpack.packb({1: 2}), MSGPACK, "map key"),
+        (msgpack.packb(msgpack.ExtType(7, b"x")), MSGPACK, "extension"),
+        (b"\x91" * 100_000, MSGPACK, "not valid MessagePack"),
+        ("text", MSGPACK, "binary"),
+        (b"x" * (2 << 20), JSON, "over the limit"),
+    ],
+)
+def test_strict_decoding(data, kind, words):
+    with pytest.raises(DecodeError, match=words):
+        codec.decode(data, kind, max_bytes=1 << 20)
+
+
+@given(st.binary(max_size=200))
+@settings(max_examples=300, deadline=None)
+def test_garbage_never_escapes_as_anything_but_decode_error(data):
+    for kind in (JSON, MSGPACK):
+        try:
+            codec.decode(data, kind)
+        except DecodeError:
+            pass
+
+
+@pytest.mark.parametrize(
+    "accept, content_type, kind",
+    [
+        (None, None, JSON),
+        (None, "application/msgpack", MSGPACK),
+        ("application/json", "application/msgpack", JSON),  # Accept wins
+        ("application/msgpack", "application/json", MSGPACK),
+        ("application/x-msgpack", None, MSGPACK),
+        ("*/*", "application/msgpack", MSGPACK),  # no preference: the request's encoding
+        ("application/json;q=0.5, application/msgpack", None, MSGPACK),
+        ("application/json, application/msgpack;q=0.1", None, JSON),
+        ("text/html", "application/msgpack; charset=x", MSGPACK),
+    ],
+)
+def test_negotiation(accept, content_type, kind):
+    assert codec.response_kind(accept, content_type) == kind
+
+
+def test_unsupported_content_type():
+    with pytest.raises(UnsupportedMedia):
+        codec.request_kind("application/xml")
+    assert codec.request_kind("application/problem+json") == JSON
+
+
+@pytest.mark.parametrize("kind", [JSON, MSGPACK])
+def test_encode_timed_appends_its_own_time(kind):
+    timing = {"total": 1.0}
+    body = codec.encode_timed({"u": np.ones((10, 3)), "ok": True}, kind, timing)
+    back = codec.decode(body, kind)
+    assert back["ok"] is True and set(back["timing_ms"]) == {"total", "encode"}
+    assert np.asarray(back["u"]).shape == (10, 3) and back["timing_ms"]["encode"] >= 0
+    assert codec.decode(codec.encode_timed({}, kind, {}), kind) == {"timing_ms": {"encode": pytest.approx(0, abs=10)}}

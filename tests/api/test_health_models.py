@@ -1,0 +1,144 @@
+"""GET /health, the model endpoints and /simulate, in JSON and MessagePack, over a real server."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from service import __version__
+from service.api.schemas import Health, MeshOut, ModelSummary, SimulateOut
+
+from .conftest import MAX_POINTS, MSGPACK, mp, packed, unpack
+
+
+def test_health(http, live):
+    r = http.get("/health")
+    assert r.status_code == 200
+    assert r.headers["x-elastreg-instance"] == "alpha"
+    body = Health.model_validate(r.json())
+    assert body.status == "ok" and body.models == 1 and body.device == "cpu" and body.version == __version__
+    assert body.limits.max_points == MAX_POINTS and body.limits.max_sessions == 24
+    assert body.instance == "alpha" and body.skipped_models == {}
+
+
+def test_health_in_msgpack_when_accepted(http):
+    r = http.get("/health", headers={"accept": "application/msgpack"})
+    assert r.headers["content-type"] == "application/msgpack"
+    assert unpack(r.content)["status"] == "ok"
+
+
+def test_models_and_summary(http):
+    models = http.get("/models").json()
+    assert [m["id"] for m in models] == ["bar"]
+    one = ModelSummary.model_validate(http.get("/models/bar").json())
+    assert (one.n_nodes, one.methods) == (81, ["network", "fem"])
+    assert one.material.law == "neo-hookean" and one.material.E == 4500.0
+    assert "validation" in one.training
+
+
+@pytest.mark.parametrize("path", ["/models/nope", "/models/nope/mesh"])
+def test_unknown_model_is_404(http, path):
+    r = http.get(path)
+    assert r.status_code == 404 and "nope" in r.json()["detail"] and "bar" in r.json()["detail"]
+    r = http.get(path, headers={"accept": "application/msgpack"})
+    assert r.status_code == 404 and "nope" in unpack(r.content)["detail"]
+
+
+def test_mesh_json_and_msgpack_agree(http, entry):
+    j = http.get("/models/bar/mesh").json()
+    MeshOut.model_validate(j)
+    m = unpack(http.get("/models/bar/mesh", headers=MSGPACK).content)
+    mesh = entry.mesh
+    for key, ref in [("nodes", mesh.nodes), ("tets", mesh.tets), ("surface_faces", mesh.surface_faces),
+                     ("surface_nodes", mesh.surface_nodes), ("fixed_nodes", mesh.fixed), ("region_nodes", entry.region)]:
+        np.testing.assert_array_equal(np.asarray(j[key]), ref)
+        np.testing.assert_array_equal(m[key], ref)
+    assert m["nodes"].dtype == np.float64 and m["tets"].dtype == np.int64
+
+
+def test_simulate_network_matches_in_process(http, entry, support):
+    g = np.tile([0.0, 0.0, 10.0 / support.size], (support.size, 1))
+    want = entry.network.predict(g[None], support)[0]
+    r = http.post("/models/bar/simulate", json={"forces": {"nodes": support.tolist(), "values": g.tolist()}})
+    assert r.status_code == 200
+    body = SimulateOut.model_validate(r.json())
+    np.testing.assert_allclose(np.asarray(body.displacement), want, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(body.net_force, g.sum(0))
+    assert body.converged and {"solve", "decode", "encode"} <= set(body.timing_ms)
+    r = http.post("/models/bar/simulate", headers=MSGPACK,
+                  content=mp({"forces": {"nodes": packed(support, "<i8"), "values": packed(g, "<f8")}}))
+    np.testing.assert_allclose(unpack(r.content)["displacement"], want, rtol=1e-12, atol=1e-15)
+
+
+def test_simulate_fem_and_stiffness(http, entry, support):
+    g = np.tile([0.0, 0.0, 10.0 / support.size], (support.size, 1))
+    r = http.post("/models/bar/simulate", json={"method": "fem", "forces": {"nodes": support.tolist(), "values": g.tolist()}})
+    body = r.json()
+    assert r.status_code == 200 and body["converged"] and body["method"] == "fem" and body["iterations"] >= 1
+    u = np.asarray(body["displacement"])
+    np.testing.assert_allclose(u, entry.fem.solve(g, support).u, rtol=1e-8, atol=1e-12)
+    stiff = http.post("/models/bar/simulate", json={"method": "fem", "E": 9000.0,
+                                                  "forces": {"nodes": support.tolist(), "values": g.tolist()}}).json()
+    assert np.abs(stiff["displacement"]).max() < np.abs(u).max()
+
+
+@pytest.mark.parametrize(
+    "forces, words",
+    [
+        ({"nodes": [0], "values": [[0, 0, 1]]}, "fixed"),
+        ({"nodes": [10_000], "values": [[0, 0, 1]]}, "0..80"),
+        ({"nodes": [1.5], "values": [[0, 0, 1]]}, "integers"),
+        ({"nodes": [-1], "values": [[0, 0, 1]]}, "non-negative"),
+        ({"nodes": [], "values": []}, "non-empty"),
+        ({"nodes": [70, 71], "values": [[0, 0, 1]]}, "2 nodes but 1 values"),
+        ({"nodes": [70], "values": [[0, 0]]}, "(m, 3)"),
+        ({"nodes": [70], "values": "x"}, "array"),
+    ],
+)
+def test_simulate_refuses_bad_forces(http, forces, words):
+    r = http.post("/models/bar/simulate", json={"forces": forces})
+    assert r.status_code == 422, r.text
+    assert any(words in e["msg"] for e in r.json()["detail"]), r.json()
+
+
+def test_simulate_unknown_model_and_method(http):
+    assert http.post("/models/nope/simulate", json={"forces": {"nodes": [70], "values": [[0, 0, 1]]}}).status_code == 404
+    r = http.post("/models/bar/simulate", json={"method": "magic", "forces": {"nodes": [70], "values": [[0, 0, 1]]}})
+    assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", "method"]
+
+
+def test_openapi_and_docs(http):
+    spec = http.get("/openapi.json").json()
+    for path in ("/health", "/models", "/models/{model}", "/models/{model}/mesh", "/models/{model}/simulate",
+                 "/sessions", "/sessions/{session_id}/frames", "/sessions/{session_id}"):
+        assert path in spec["paths"]
+    body = spec["paths"]["/sessions/{session_id}/frames"]["post"]["requestBody"]["content"]
+    assert set(body) == {"application/json", "application/msgpack"}
+    assert {"SessionCreate", "FrameIn", "SimulateIn", "FrameResult"} <= set(spec["components"]["schemas"])
+    assert http.get("/docs").status_code == 200
+
+
+def test_a_bad_store_entry_is_skipped_and_reported(bar_store, tmp_path, caplog):
+    """A store with one good entry and two bad ones: the server starts, serves the good one,
+    logs the bad ones and names them, with the reason, in /health."""
+    import shutil
+
+    import httpx
+
+    from .conftest import start
+
+    store = tmp_path / "store"
+    shutil.copytree(bar_store[0] / "bar", store / "bar")
+    shutil.copytree(bar_store[0] / "bar", store / "corrupt")
+    (store / "corrupt" / "weights.safetensors").write_bytes(b"not the weights")
+    (store / "empty").mkdir()
+    with caplog.at_level("ERROR", logger="service.store"):
+        server = start(store, instance_id="gamma")
+    try:
+        health = httpx.get(server.url + "/health").json()
+        assert health["models"] == 1 and set(health["skipped_models"]) == {"corrupt", "empty"}
+        assert "checksum" in health["skipped_models"]["corrupt"]
+        assert [m["id"] for m in httpx.get(server.url + "/models").json()] == ["bar"]
+        assert "corrupt" in caplog.text
+    finally:
+        server.stop()

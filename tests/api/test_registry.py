@@ -1,0 +1,113 @@
+"""The session registry (unit): limits, expiry on a fake clock, 404s that explain themselves,
+and the settings' validators."""
+
+from __future__ import annotations
+
+import pytest
+from pydantic import ValidationError
+
+from service.api.sessions import Held, RegistryFull, SessionNotFound, SessionRegistry, WrongKind
+from service.config import Settings
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def held(reg: SessionRegistry, kind: str = "http") -> Held:
+    r = reg.reserve(kind)
+    return reg.commit(r, Held(id=r.id, kind=kind, model="m", session=None, config={}))
+
+
+def test_limit_counts_reservations_and_frees_on_cancel():
+    reg = SessionRegistry(max_sessions=2, ttl_s=10, instance_id="i1")
+    a = held(reg)
+    r = reg.reserve("http")
+    with pytest.raises(RegistryFull):
+        reg.reserve("stream")
+    reg.cancel(r)
+    reg.cancel(r)  # twice is harmless
+    held(reg, "stream")
+    assert reg.counts() == {"open": 2, "http": 1, "stream": 1}
+    reg.close(a.id)
+    held(reg)
+
+
+def test_idle_http_sessions_expire_streams_and_busy_ones_do_not():
+    clock = Clock()
+    reg = SessionRegistry(max_sessions=8, ttl_s=10, instance_id="i1", clock=clock)
+    idle, busy, stream = held(reg), held(reg), held(reg, "stream")
+    reg.begin(busy)
+    clock.t = 11
+    assert reg.expire() == [idle.id]
+    with pytest.raises(SessionNotFound, match="expired after 10 s"):
+        reg.get(idle.id)
+    reg.end(busy)
+    clock.t = 15
+    assert reg.expire() == []  # touched at 11 by end()
+    clock.t = 22
+    assert reg.expire() == [busy.id]
+    assert reg.get(stream.id).kind == "stream"
+
+
+def test_get_touches_unless_told_not_to():
+    clock = Clock()
+    reg = SessionRegistry(max_sessions=8, ttl_s=10, instance_id="i1", clock=clock)
+    h = held(reg)
+    clock.t = 8
+    reg.get(h.id, touch=False)
+    assert reg.expires_in(h) == pytest.approx(2)
+    reg.get(h.id)
+    assert reg.expires_in(h) == pytest.approx(10)
+
+
+def test_not_found_messages():
+    reg = SessionRegistry(max_sessions=8, ttl_s=10, instance_id="i1")
+    with pytest.raises(SessionNotFound, match="opened by instance 'other'.*affinity"):
+        reg.get("other-abc")
+    with pytest.raises(SessionNotFound, match="never existed"):
+        reg.get("i1-abc")
+    h = held(reg)
+    reg.close(h.id)
+    with pytest.raises(SessionNotFound, match="closed"):
+        reg.get(h.id)
+    s = held(reg, "stream")
+    with pytest.raises(WrongKind):
+        reg.get(s.id, kind="http")
+    with pytest.raises(WrongKind):
+        reg.close(s.id, kind="http")
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        {"max_points": 0},
+        {"max_sessions": 0},
+        {"session_ttl_s": 0},
+        {"solver_threads": 0},
+        {"blas_threads": -1},
+        {"blas_threads": 257},
+        {"instance_id": "has-dash"},
+        {"instance_id": ""},
+        {"max_points": 1_000_000, "max_body_bytes": 1 << 20},
+    ],
+)
+def test_settings_refuse_bad_values(bad, tmp_path):
+    with pytest.raises(ValidationError):
+        Settings(store=tmp_path, **bad)
+
+
+def test_settings_from_environment(monkeypatch, tmp_path):
+    monkeypatch.setenv("ELASTREG_MAX_POINTS", "1234")
+    monkeypatch.setenv("ELASTREG_STORE", str(tmp_path))
+    monkeypatch.setenv("ELASTREG_SOLVER_THREADS", "3")
+    s = Settings()
+    assert (s.max_points, s.store, s.solver_threads) == (1234, tmp_path, 3)
+    assert Settings().instance_id != s.instance_id  # a random id per process (per Settings)
+    monkeypatch.setenv("ELASTREG_MAX_SESSIONS", "lots")
+    with pytest.raises(ValidationError):
+        Settings()

@@ -1,0 +1,163 @@
+"""HTTP sessions: open, frames (JSON, MessagePack packed and listed), inspect, close; results
+equal to the same frames run in-process; limits, expiry and session affinity."""
+
+from __future__ import annotations
+
+import time
+
+import httpx
+import numpy as np
+import pytest
+
+from service.api.schemas import FrameResult, SessionInfo, SessionOpened
+from service.registration.session import Session, SessionConfig
+
+from .conftest import MSGPACK, mp, packed, unpack
+
+DEFAULTS = SessionConfig()
+
+
+def open_session(http, **config) -> dict:
+    r = http.post("/sessions", json={"model": "bar", **config})
+    assert r.status_code == 201, r.text
+    return r.json()
+
+
+def test_open_echoes_every_setting(http, entry):
+    body = open_session(http)
+    SessionOpened.model_validate(body)
+    c = body["config"]
+    assert body["session"].startswith("alpha-") and body["instance"] == "alpha"
+    assert c["model"] == "bar" and c["method"] == "network"
+    assert (c["alpha"], c["gtol"], c["max_iter"]) == (DEFAULTS.alpha, DEFAULTS.gtol, DEFAULTS.max_iter)
+    assert c["outputs"] == ["displacement", "forces"] and c["warm_start"] is True and c["skip_stale"] is False
+    assert c["E"] == 4500.0 and c["force_bound"] is None and c["loss"] == "squared"
+    np.testing.assert_array_equal(c["support"], entry.region)  # the default: the load region
+    np.testing.assert_array_equal(c["matching"], entry.mesh.surface_faces)
+    assert http.delete(f"/sessions/{body['session']}").status_code == 204
+
+
+def test_frames_match_in_process_session(http, entry, support, clouds):
+    """The API adds nothing to the numbers: the same frames give the same results, JSON or
+    MessagePack, as a Session called in-process."""
+    config = dict(support=support.tolist(), alpha=1e-6, outputs=["displacement", "forces", "stress", "surface_displacement"])
+    ref = Session(entry.network, SessionConfig(support=tuple(support.tolist()), alpha=1e-6,
+                                               outputs=("displacement", "forces", "stress", "surface_displacement")))
+    sid_json = open_session(http, **config)["session"]
+    sid_mp = open_session(http, **config)["session"]
+    for t, pts in enumerate(clouds[:4]):
+        want = ref.frame(pts)
+        j = http.post(f"/sessions/{sid_json}/frames", json={"points": pts.tolist(), "frame_id": t})
+        assert j.status_code == 200
+        got = FrameResult.model_validate(j.json())
+        m = unpack(http.post(f"/sessions/{sid_mp}/frames", headers=MSGPACK,
+                             content=mp({"points": packed(pts), "frame_id": f"f{t}"})).content)
+        assert got.frame_id == t and m["frame_id"] == f"f{t}"
+        for key in ("displacement", "forces", "stress", "surface_displacement"):
+            np.testing.assert_allclose(np.asarray(getattr(got, key)), want.outputs[key], rtol=1e-9, atol=1e-14)
+            np.testing.assert_allclose(m[key], want.outputs[key], rtol=1e-9, atol=1e-14)
+        np.testing.assert_array_equal(m["support"], support)
+        assert got.iterations == want.iterations and got.status == want.status
+        assert got.objective == pytest.approx(want.objective, rel=1e-9, abs=1e-18)
+        timing = m["timing_ms"]
+        assert {"total", "forward", "distance", "gradient", "decode", "queue", "server", "encode"} <= set(timing)
+    for sid in (sid_json, sid_mp):
+        http.delete(f"/sessions/{sid}")
+
+
+def test_msgpack_nested_lists_and_float32(http, support, clouds):
+    sid = open_session(http, support=support.tolist(), outputs=["forces"])["session"]
+    a = unpack(http.post(f"/sessions/{sid}/frames", headers=MSGPACK, content=mp({"points": clouds[0].tolist()})).content)
+    assert set(a) >= {"forces", "support", "net_force"} and "displacement" not in a
+    b = unpack(http.post(f"/sessions/{sid}/frames", headers=MSGPACK,
+                         content=mp({"points": packed(clouds[1], "<f4"), "support": packed(support, "<i4")})).content)
+    assert b["forces"].shape == (support.size, 3)
+    # JSON request, MessagePack reply: Accept wins
+    r = http.post(f"/sessions/{sid}/frames", json={"points": clouds[2].tolist()}, headers={"accept": "application/msgpack"})
+    assert r.headers["content-type"] == "application/msgpack"
+    http.delete(f"/sessions/{sid}")
+
+
+def test_support_change_keeps_common_forces(http, support, clouds):
+    sid = open_session(http, support=support.tolist(), outputs=["forces"])["session"]
+    first = http.post(f"/sessions/{sid}/frames", json={"points": clouds[3].tolist()}).json()
+    smaller = support[::2]
+    r = http.post(f"/sessions/{sid}/frames", json={"points": clouds[3].tolist(), "support": smaller.tolist()}).json()
+    assert r["support"] == smaller.tolist() and np.shape(r["forces"]) == (smaller.size, 3)
+    info = http.get(f"/sessions/{sid}").json()
+    assert info["config"]["support"] == smaller.tolist() and info["counters"]["support_size"] == smaller.size
+    assert first["converged"] in (True, False)
+    http.delete(f"/sessions/{sid}")
+
+
+def test_get_counts_and_delete(http, clouds, support):
+    sid = open_session(http, support=support.tolist())["session"]
+    for pts in clouds[:2]:
+        assert http.post(f"/sessions/{sid}/frames", json={"points": pts.tolist()}).status_code == 200
+    info = SessionInfo.model_validate(http.get(f"/sessions/{sid}").json())
+    assert info.counters.frames == 2 and info.kind == "http" and info.instance == "alpha"
+    assert 0 < info.expires_in_s <= 600
+    assert http.delete(f"/sessions/{sid}").status_code == 204
+    for method, path in [("GET", f"/sessions/{sid}"), ("DELETE", f"/sessions/{sid}"), ("POST", f"/sessions/{sid}/frames")]:
+        r = http.request(method, path, json={"points": clouds[0].tolist()})
+        assert r.status_code == 404 and "closed" in r.json()["detail"]
+
+
+def test_fem_session(http, support, clouds):
+    sid = open_session(http, method="fem", support=support.tolist(), max_iter=20, outputs=["displacement"])["session"]
+    r = http.post(f"/sessions/{sid}/frames", json={"points": clouds[1].tolist()})
+    assert r.status_code == 200 and np.shape(r.json()["displacement"]) == (81, 3)
+    assert r.json()["status"] in ("converged", "max_iter", "line_search")
+    http.delete(f"/sessions/{sid}")
+
+
+def test_unknown_session_explains_affinity(http, small, clouds, support):
+    """A frame that reaches a process that does not hold its session gets a 404 naming both
+    processes, never a result from another session."""
+    sid = open_session(http, support=support.tolist())["session"]  # held by "alpha"
+    with httpx.Client(base_url=small.url) as other:
+        r = other.post(f"/sessions/{sid}/frames", json={"points": clouds[0].tolist()})
+        assert r.status_code == 404 and r.headers["x-elastreg-instance"] == "beta"
+        detail = r.json()["detail"]
+        assert "'alpha'" in detail and "'beta'" in detail and "affinity" in detail
+    r = http.post("/sessions/alpha-doesnotexist/frames", json={"points": clouds[0].tolist()})
+    assert r.status_code == 404 and "affinity" in r.json()["detail"]
+    http.delete(f"/sessions/{sid}")
+
+
+def test_session_limit_is_503_then_recovers(small, clouds):
+    with httpx.Client(base_url=small.url) as c:
+        ids = [c.post("/sessions", json={"model": "bar"}).json()["session"] for _ in range(2)]
+        r = c.post("/sessions", json={"model": "bar"})
+        assert r.status_code == 503 and "maximum of 2" in r.json()["detail"]
+        # the sessions themselves still work
+        assert c.post(f"/sessions/{ids[0]}/frames", json={"points": clouds[0].tolist()}).status_code == 200
+        c.delete(f"/sessions/{ids[1]}")
+        sid = c.post("/sessions", json={"model": "bar"})
+        assert sid.status_code == 201
+        for s in (ids[0], sid.json()["session"]):
+            c.delete(f"/sessions/{s}")
+
+
+def test_idle_sessions_expire(small, clouds):
+    with httpx.Client(base_url=small.url) as c:
+        sid = c.post("/sessions", json={"model": "bar"}).json()["session"]
+        assert c.post(f"/sessions/{sid}/frames", json={"points": clouds[0].tolist()}).status_code == 200
+        assert c.get("/health").json()["sessions"]["http"] == 1
+        deadline = time.monotonic() + 10
+        while c.get("/health").json()["sessions"]["http"] and time.monotonic() < deadline:
+            time.sleep(0.1)
+        r = c.post(f"/sessions/{sid}/frames", json={"points": clouds[0].tolist()})
+        assert r.status_code == 404 and "expired" in r.json()["detail"]
+
+
+def test_stream_session_visible_but_not_addressable_over_http(live, http, clouds):
+    from websockets.sync.client import connect
+
+    with connect(live.ws) as ws:
+        ws.send('{"model": "bar"}')
+        sid = __import__("json").loads(ws.recv())["session"]
+        info = http.get(f"/sessions/{sid}").json()
+        assert info["kind"] == "stream" and info["expires_in_s"] is None
+        assert http.post(f"/sessions/{sid}/frames", json={"points": clouds[0].tolist()}).status_code == 409
+        assert http.delete(f"/sessions/{sid}").status_code == 409
