@@ -164,6 +164,9 @@ class SessionSettings(_Request):
     E: Finite | None = Field(None, gt=0, description="Young's modulus for this session, Pa (default: the model's)")
     loss: Loss = Field("squared", description="point-to-surface loss")
     loss_param: Finite | None = Field(None, gt=0, description="huber: threshold (length); trimmed: fraction ignored")
+    carry_curvature: bool | None = Field(
+        None, description="precondition each frame with the curvature the previous frames measured (unbounded solves)"
+    )
     skip_stale: bool = Field(
         False,
         description="WebSocket only: when frames queue up behind a solve, solve only the newest and say how "
@@ -331,6 +334,7 @@ class SessionConfigOut(_Reply):
     E: float
     loss: Loss
     loss_param: float | None
+    carry_curvature: bool
     skip_stale: bool
 
 

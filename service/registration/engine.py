@@ -29,7 +29,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 from .forward import ForwardFailed, ForwardOperator
-from .precondition import Preconditioner, gauss_newton_hessian, residual_jacobian
+from .precondition import Curvature, Preconditioner, gauss_newton_hessian, residual_jacobian
 
 log = logging.getLogger(__name__)
 
@@ -173,11 +173,14 @@ def solve_frame(
     rest_positions: Array,
     g0: Array,
     options: SolveOptions = SolveOptions(),
+    curvature: Curvature | None = None,
 ) -> FrameSolution:
     """Register one frame.
 
     `distance(x)` returns J and dJ/dx for positions x (p, 3) of `op.nodes` (rest positions
     `rest_positions` (p, 3) plus displacement). Shape: g0 (k, 3) the starting forces.
+    `curvature`, carried by a stream from frame to frame, preconditions unbounded solves and
+    learns from this one.
     """
     t_start = time.perf_counter()
     timing = Timing()
@@ -204,7 +207,9 @@ def solve_frame(
         else:
             start, v0, grad0, u0 = zero, v_rest, grad_rest, evaluate.rest_u
         P = None
-        if options.precondition:
+        if curvature is not None and not bounded:
+            P = curvature.preconditioner(grad0.ravel())
+        if P is None and options.precondition:
             P = _preconditioner(op, distance, rest_positions, u0, grad0, options.alpha, diagonal=bounded)
         if P is None:
             P = ScalarScaling(options.force_scale, v_rest if v_rest > 0 else 1.0)
@@ -244,12 +249,15 @@ def solve_frame(
             return f, gz
 
         last = {"z": z0, "g": start.ravel(), "grad": grad0.ravel()}
+        path_g, path_grad = [last["g"]], [last["grad"]]  # accepted iterates: curvature pairs
 
         def converged(intermediate_result) -> None:
             """Projected gradient in force space against gtol x the rest state's."""
             if not np.array_equal(intermediate_result.x, last["z"]):
                 return
             g, grad = last["g"], last["grad"]
+            path_g.append(g)
+            path_grad.append(grad)
             pg = np.where(grad > 0, np.minimum(grad, g - lo), np.maximum(grad, g - hi))
             if np.abs(pg).max() <= g_tol:
                 raise StopIteration
@@ -265,6 +273,8 @@ def solve_frame(
         nit = int(res.nit)
         message = str(res.message)
         status = _status(res)
+        if curvature is not None and not bounded:
+            curvature.update(path_g, path_grad)
         if failures and status != "converged":
             status, message = "forward_failed", f"{len(failures)} trial points failed: {failures[-1]}"
     except _Done:

@@ -86,3 +86,51 @@ class Preconditioner:
     @property
     def value_scale(self) -> float:
         return self.c * self.c
+
+
+class Curvature:
+    """A dense BFGS model of Phi's Hessian in force space, carried from frame to frame.
+
+    Consecutive frames of a stream are nearby problems with nearly the same curvature, but
+    L-BFGS-B starts every frame with an empty memory. This keeps what the past frames measured
+    (pairs s = g_{k+1} - g_k, y = grad_{k+1} - grad_k along accepted iterates) in a matrix B,
+    and the next frame runs in variables whitened by B, so its first step is already a
+    quasi-Newton step. Curvature is measured at the current deformation, unlike a Jacobian taken
+    at rest. Shape: B (K, K), K = 3 x support size.
+    """
+
+    def __init__(self, size: int, max_size: int = 600) -> None:
+        self.size = size
+        self.enabled = size <= max_size  # a K^3 Cholesky per frame stays cheap below this
+        self.B: Array | None = None
+        self.pairs = 0
+
+    def update(self, gs: list[Array], grads: list[Array]) -> None:
+        """BFGS updates with the pairs of one frame's accepted iterates (skips those with too
+        little curvature, so B stays positive definite)."""
+        if not self.enabled:
+            return
+        for k in range(len(gs) - 1):
+            s, y = gs[k + 1] - gs[k], grads[k + 1] - grads[k]
+            sy = float(s @ y)
+            if sy <= 1e-8 * float(np.linalg.norm(s) * np.linalg.norm(y)) or sy <= 0:
+                continue
+            if self.B is None:
+                self.B = np.eye(self.size) * (float(y @ y) / sy)
+            Bs = self.B @ s
+            self.B += np.outer(y, y) / sy - np.outer(Bs, Bs) / float(s @ Bs)
+            self.pairs += 1
+
+    def preconditioner(self, grad: Array) -> "Preconditioner | None":
+        if self.B is None:
+            return None
+        try:
+            P = Preconditioner(0.5 * (self.B + self.B.T))
+        except np.linalg.LinAlgError:  # lost definiteness to roundoff: start again
+            self.B = None
+            return None
+        P.set_step(grad)
+        return P
+
+    def reset(self) -> None:
+        self.B, self.pairs = None, 0

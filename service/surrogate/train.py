@@ -25,12 +25,13 @@ class TrainConfig:
     layout: str = "reduced"  # "reduced" or "paper"
     hidden: tuple[int, ...] = (512, 512)
     rank: int = 128  # POD modes (reduced layout)
-    physics_skip: bool = True  # linear small-strain response as the skip path
-    epochs: int = 300
+    physics_skip: bool = False  # linear small-strain skip path: measured no better on held-out
+    # paths and 2x worse on the paper's frames (see the README's surrogate section)
+    epochs: int = 200
     batch: int = 128
     lr: float = 1e-3
     weight_decay: float = 0.0
-    patience: int = 60  # epochs without validation improvement before stopping
+    patience: int = 40  # epochs without validation improvement before stopping
     val_fraction: float = 0.1
     seed: int = 0
     device: str | None = None  # "cuda" when there is one, else "cpu"
