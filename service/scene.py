@@ -15,7 +15,8 @@ Keys beyond SCENES.md (all optional):
 - ``[training] seed`` (0), ``load_steps`` (5: converged steps kept along one load path),
   ``multi_patch`` (0.2: fraction of samples loaded on two patches), ``normal_fraction`` (0.5: how
   much of a load is along the surface normal rather than tangential, on average),
-  ``pull_fraction`` (2/3: how often the normal part pulls outwards, as a grasper does).
+  ``pull_fraction`` (2/3: how often the normal part pulls outwards, as a grasper does),
+  ``twist_fraction`` (0: how often a patch carries a torque instead of a single direction).
 - ``[registration]``: read by the benchmark and the trainer, permissive (other keys are kept in
   ``model_extra``): ``support`` or ``support_file`` (node ids where registration may put
   forces), ``matching_file`` (a .npy (f, 3) array of the boundary triangles point clouds lie on).
@@ -174,6 +175,7 @@ class TrainingSpec(_Table):
     multi_patch: Fraction = 0.2
     normal_fraction: Fraction = 0.5
     pull_fraction: Fraction = 2.0 / 3.0
+    twist_fraction: Fraction = 0.0
 
     @field_validator("patch_nodes")
     @classmethod

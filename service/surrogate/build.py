@@ -37,6 +37,7 @@ def load_spec(scene: Scene, region: np.ndarray) -> LoadSpec:
         multi_patch=float(t.multi_patch),
         normal_fraction=float(t.normal_fraction),
         pull_fraction=float(t.pull_fraction),
+        twist_fraction=float(t.twist_fraction),
         seed=int(t.seed),
     )
 

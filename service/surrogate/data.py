@@ -44,6 +44,7 @@ class LoadSpec:
     multi_patch: float = 0.2  # fraction of paths with two patches
     normal_fraction: float = 0.5  # mean share of the outward normal in a load's direction
     pull_fraction: float = 2.0 / 3.0  # outward pulls (a grasper retracting) vs pushes
+    twist_fraction: float = 0.0  # patches loaded by a torque (tangential, turning about the centre)
     seed: int = 0
 
 
@@ -58,7 +59,9 @@ def sample_path_load(mesh: TetMesh, spec: LoadSpec, rng: np.random.Generator) ->
     uniform in patch_nodes. Its direction mixes the outward normal and a random tangent: the
     normal share a ~ Beta(2 nf, 2 (1 - nf)) has mean nf = `normal_fraction`, and the normal
     part points outwards (a pull) with probability `pull_fraction`. The total force spreads evenly or as a
-    smooth bump over the patch. The path's total magnitude is max_force * sqrt(U(0.05, 1)), so
+    smooth bump over the patch. With probability `twist_fraction` a patch instead carries a torque:
+    each node pulls tangentially about the patch's centre (a twisting grip; the total is then the
+    sum of the nodal magnitudes). The path's total magnitude is max_force * sqrt(U(0.05, 1)), so
     that with the path's equal steps the samples cover magnitudes roughly uniformly.
     """
     region = np.asarray(spec.region)
@@ -86,6 +89,12 @@ def sample_path_load(mesh: TetMesh, spec: LoadSpec, rng: np.random.Generator) ->
         else:
             d = np.linalg.norm(mesh.nodes[patch] - mesh.nodes[centre], axis=1)
             w = 1.0 - (d / (d.max() * 1.05 + 1e-300)) ** 2
+        if spec.twist_fraction > 0 and rng.random() < spec.twist_fraction:
+            arm = mesh.nodes[patch] - mesh.nodes[patch].mean(axis=0)
+            turn = np.cross(normal, arm) * rng.choice([-1.0, 1.0])
+            turn /= np.maximum(np.linalg.norm(turn, axis=1, keepdims=True), 1e-300)
+            g[pos[patch]] += turn * (w / w.sum() * total * share)[:, None]
+            continue
         g[pos[patch]] += np.outer(w / w.sum(), direction) * (total * share)
     return g
 
