@@ -7,7 +7,7 @@ distance; it never knows which method it drives. Each frame:
    (how hard the cloud pulls on the undeformed organ, independent of where the frame starts,
    so a warm start that begins near the optimum stops early), and a cloud already on the rest
    surface ends the frame at once;
-2. evaluates the warm start g0 and builds a Gauss-Newton preconditioner there
+2. evaluates the warm start g0 (and any fallback starts; the lowest wins) and builds a Gauss-Newton preconditioner there
    (:mod:`.precondition`): L-BFGS-B then runs in variables where the curvature is about the
    identity and the first unit step is the Gauss-Newton step;
 3. runs L-BFGS-B (SciPy) with exact gradients (the forward model's adjoint) and keeps the best
@@ -174,13 +174,16 @@ def solve_frame(
     g0: Array,
     options: SolveOptions = SolveOptions(),
     curvature: Curvature | None = None,
+    fallbacks: tuple[Array, ...] = (),
 ) -> FrameSolution:
     """Register one frame.
 
     `distance(x)` returns J and dJ/dx for positions x (p, 3) of `op.nodes` (rest positions
     `rest_positions` (p, 3) plus displacement). Shape: g0 (k, 3) the starting forces.
     `curvature`, carried by a stream from frame to frame, preconditions unbounded solves and
-    learns from this one.
+    learns from this one. `fallbacks` are other starting forces (k, 3) worth one evaluation
+    each (a stream's last converged forces); the frame starts from the lowest objective among
+    them, g0 and zero.
     """
     t_start = time.perf_counter()
     timing = Timing()
@@ -198,14 +201,20 @@ def solve_frame(
         size = float(np.linalg.norm(np.ptp(rest_positions, axis=0))) or 1.0
         if v_rest <= 0.5 * (1e-9 * size) ** 2:  # the cloud lies on the rest surface
             raise _Done()
-        start = np.asarray(g0, np.float64)
-        if bounded:
-            start = np.clip(start, -options.force_bound, options.force_bound)
-        if np.any(start):
-            v0, grad0, _ = evaluate(start)
-            u0 = evaluate.last_u
-        else:
-            start, v0, grad0, u0 = zero, v_rest, grad_rest, evaluate.rest_u
+        # the start: the lowest of the warm start, the fallbacks and the rest state, so a
+        # start that a bad frame left far off costs one evaluation, not the frame
+        start, v0, grad0, u0 = zero, v_rest, grad_rest, evaluate.rest_u
+        tried = [zero]
+        for cand in (g0, *fallbacks):
+            cand = np.asarray(cand, np.float64)
+            if bounded:
+                cand = np.clip(cand, -options.force_bound, options.force_bound)
+            if any(np.array_equal(cand, t) for t in tried):
+                continue
+            tried.append(cand)
+            v, grad, _ = evaluate(cand)
+            if v < v0:
+                start, v0, grad0, u0 = cand, v, grad, evaluate.last_u
         P = None
         if curvature is not None and not bounded:
             P = curvature.preconditioner(grad0.ravel())

@@ -5,7 +5,10 @@ support change maps those forces onto the new support (nodes in both keep theirs
 start at zero) and rebuilds the restricted operator. A frame that fails (the forward model
 diverged, or something was not finite) returns its best iterate with ``converged: false`` and
 leaves the warm start exactly as it was; a frame that merely ran out of iterations still moves
-the warm start to its best iterate, which is better than where it began.
+the warm start to its best iterate, which is better than where it began, but the next frame also
+tries the last converged frame's forces and starts from the better of the two (a cloud that was
+garbage, a kilometre away say, costs one evaluation, not the frames after it), and only
+converged frames teach the carried curvature.
 
 Only the outputs the session asks for are computed: the optimisation itself reads the
 displacement of the matching surface's nodes alone.
@@ -118,6 +121,7 @@ class Session:
             g[keep >= 0] = g_old[keep[keep >= 0]]
         self.support = support
         self.g = g
+        self._anchor = g  # the last converged frame's forces: a fallback start after a bad frame
         self.curvature = Curvature(3 * support.size) if self.config.carry_curvature else None
 
     def frame(self, points: Array, support: Array | None = None, frame_id=None) -> FrameResult:
@@ -135,7 +139,9 @@ class Session:
                     self._set_support(support, self.g)
             self.distance.bind(points)
             g0 = self.g if self.config.warm_start else np.zeros_like(self.g)
-            sol = solve_frame(self.op, self.distance, self._rest, g0, self._options, self.curvature)
+            fallbacks = (self._anchor,) if self.config.warm_start else ()
+            learnt = self.curvature.snapshot() if self.curvature is not None else None
+            sol = solve_frame(self.op, self.distance, self._rest, g0, self._options, self.curvature, fallbacks)
             t1 = time.perf_counter()
             if sol.status in FAILED:
                 self.op.reset()
@@ -144,6 +150,10 @@ class Session:
                 self.failed += 1
             else:
                 self.g = sol.g
+                if sol.converged:
+                    self._anchor = sol.g
+                elif self.curvature is not None:  # learn curvature from converged frames only
+                    self.curvature.restore(learnt)
             outputs, rms = self._outputs(sol.g)
             timing = sol.timing.as_ms()
             timing["outputs"] = 1e3 * (time.perf_counter() - t1)

@@ -1,0 +1,89 @@
+"""Streams: warm starts, requested outputs only, and frames that must not break
+a session (far-away clouds, non-finite clouds)."""
+
+import numpy as np
+import pytest
+
+from service.registration.session import Session, SessionConfig
+from service.store import load_entry
+from service.synthetic import make_sequence
+
+
+@pytest.fixture(scope="module")
+def entry(bar_store):
+    return load_entry(bar_store[0] / "bar")
+
+
+@pytest.fixture(scope="module")
+def sequence(entry):
+    """A slowly growing pull on the bar's free end, the whole boundary visible."""
+    mesh = entry.mesh
+    tip = entry.region[np.argsort(mesh.nodes[entry.region, 0])[-6:]]
+    return tip, make_sequence(mesh, entry.fem.material, tip, n_frames=24, peak_force=30.0, n_points=300, seed=3)
+
+
+def _support(entry, tool):
+    mesh = entry.mesh
+    near = entry.region[np.argsort(np.linalg.norm(mesh.nodes[entry.region] - mesh.nodes[tool].mean(0), axis=1))]
+    return tuple(int(i) for i in np.sort(near[:14]))
+
+
+@pytest.mark.parametrize("method", ["network", "fem"])
+def test_warm_start_cuts_iterations(entry, sequence, method):
+    tool, seq = sequence
+    model = entry.network if method == "network" else entry.fem
+    counts = {}
+    for warm in (True, False):  # cold: from zero force, with no memory of earlier frames
+        config = SessionConfig(method=method, support=_support(entry, tool), warm_start=warm, carry_curvature=warm, gtol=1e-5)
+        s = Session(model, config)
+        counts[warm] = [s.frame(c).iterations for c in seq.clouds]
+    print(method, "warm", counts[True], "cold", counts[False])
+    # every warm frame after the first starts from its predecessor's forces and curvature
+    assert sum(counts[True][1:]) < 0.8 * sum(counts[False][1:])
+
+
+def test_far_away_cloud_does_not_poison_the_stream(entry, sequence):
+    tool, seq = sequence
+    s = Session(entry.network, SessionConfig(support=_support(entry, tool)))
+    before = s.frame(seq.clouds[3])
+    g_before = s.g.copy()
+    far = seq.clouds[3] + np.array([1e3, -1e3, 5e2])  # a kilometre away: a mis-registered camera
+    r = s.frame(far)
+    assert np.isfinite(r.net_force).all() and np.isfinite(r.outputs["displacement"]).all()
+    assert np.isfinite(r.objective) and r.status
+    # the next good frame registers as well as before
+    again = s.frame(seq.clouds[3])
+    assert again.distance_rms <= 1.5 * before.distance_rms + 1e-6
+    assert np.isfinite(s.g).all()
+    assert np.linalg.norm(again.net_force - before.net_force) <= 0.05 * np.linalg.norm(g_before.sum(0)) + 1e-6
+
+
+def test_bad_cloud_is_refused_and_leaves_the_state(entry, sequence):
+    tool, seq = sequence
+    s = Session(entry.network, SessionConfig(support=_support(entry, tool)))
+    s.frame(seq.clouds[2])
+    g = s.g.copy()
+    bad = seq.clouds[2].copy()
+    bad[5] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        s.frame(bad)
+    with pytest.raises(ValueError, match="shape"):
+        s.frame(np.zeros((4, 2)))
+    assert np.array_equal(s.g, g) and s.frames == 1
+
+
+def test_forces_stay_on_the_support_and_outputs_are_only_those_asked(entry, sequence):
+    tool, seq = sequence
+    support = _support(entry, tool)
+    s = Session(entry.fem, SessionConfig(method="fem", support=support, outputs=("forces",)))
+    r = s.frame(seq.clouds[-1])
+    assert set(r.outputs) == {"forces"}
+    assert r.outputs["forces"].shape == (len(support), 3)
+    assert np.array_equal(r.support, np.asarray(support))
+    # the displacement the FEM gives for the returned support forces, and nothing elsewhere,
+    # is what the session would have sent
+    full = Session(entry.fem, SessionConfig(method="fem", support=support, outputs=("displacement", "forces")))
+    rf = full.frame(seq.clouds[-1])
+    u = entry.fem.solve(rf.outputs["forces"], np.asarray(support)).u
+    assert np.allclose(u, rf.outputs["displacement"], atol=1e-9 * max(1.0, np.abs(u).max()))
+
