@@ -18,7 +18,7 @@ log = logging.getLogger(__name__)
 
 NETWORK_GTOL = (3e-2, 1e-2, 3e-3, 1e-3, 3e-4, 1e-4, 3e-5, 1e-5)
 NETWORK_MAX_ITER = (3, 5, 10, 20, 40, 80)
-FEM_GTOL = (1e-2, 1e-3, 1e-4)
+FEM_GTOL = (1e-3, 1e-4, 3e-5, 1e-5)
 POINTS = (50, 100, 250, 500)
 
 
