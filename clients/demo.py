@@ -19,7 +19,7 @@ import numpy as np
 from .client import Client
 
 TOOL_NODES = 12
-SUPPORT_NODES = 120
+SUPPORT_NODES = 36
 PEAK_FRACTION = 0.7  # of the model's training max_force
 
 

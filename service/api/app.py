@@ -10,13 +10,12 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import os
 
 from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
 
 from .. import __version__
-from ..config import Settings, get_settings
+from ..config import Settings, get_settings, limit_threads
 from . import deps, errors
 from .routes import health, models, sessions, stream
 from .schemas import REQUEST_MODELS
@@ -24,26 +23,6 @@ from .sessions import SessionRegistry
 from .work import SolvePool
 
 log = logging.getLogger(__name__)
-
-_THREAD_ENV = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
-
-
-def limit_threads(n: int) -> None:
-    """BLAS/OpenMP threads per solve, process-wide: the pool runs solves side by side, and
-    nested BLAS threads would fight over the cores. Libraries already loaded are limited with
-    threadpoolctl (when installed); ones loaded later read the environment."""
-    for var in _THREAD_ENV:
-        os.environ[var] = str(n)
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:
-        log.info("threadpoolctl is not installed: BLAS threads limited through the environment only")
-    else:
-        threadpool_limits(limits=n)
-    import torch
-
-    torch.set_num_threads(n)
-
 
 def _warm_up() -> None:
     """Compile (or load) the distance kernel now rather than in the first session."""

@@ -95,13 +95,17 @@ def _smoke_case(entry):
 
 
 def main(args: argparse.Namespace) -> int:
+    from ..config import Settings, limit_threads
     from ..store import default_store
     from . import machine
 
+    blas_threads = Settings().blas_threads
+    if blas_threads:  # measure what the server runs: its solves use this many BLAS threads
+        limit_threads(blas_threads)
     store = Path(args.store) if args.store else default_store()
     out = Path(args.out)
     (out / "figures").mkdir(parents=True, exist_ok=True)
-    results: dict = {"machine": machine.describe(), "started": time.strftime("%Y-%m-%d %H:%M:%S"), "parts": {}}
+    results: dict = {"machine": {**machine.describe(), "blas_threads": blas_threads}, "started": time.strftime("%Y-%m-%d %H:%M:%S"), "parts": {}}
     quick = args.quick or args.smoke is not None
     fem_on = not args.no_fem
     parts = [p for p in args.parts if p in PARTS]
@@ -211,7 +215,7 @@ def write_report(results: dict, out: Path) -> None:
     m = results["machine"]
     md.append(f"Run {results['started']} on {m['cpu']}, {m['cores']} cores, GPU: {m['gpu'] or 'none'}; "
               f"commit {m['commit']}; sparse solver {m['sparse_solver']}; torch {m['torch']}, numpy {m['numpy']}, "
-              f"scipy {m['scipy']}. Whole run: {results['seconds']:.0f} s. Times are medians over warm frames "
+              f"scipy {m['scipy']}; {m.get('blas_threads') or 'default'} BLAS thread(s) per solve, as the server runs. Whole run: {results['seconds']:.0f} s. Times are medians over warm frames "
               f"(the first frame of a stream is a cold start).\n")  # fmt: skip
     if "fem" in parts:
         f = parts["fem"]
