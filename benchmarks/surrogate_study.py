@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import os
 import time
 from pathlib import Path
 
@@ -69,7 +70,7 @@ def main() -> None:
     p.add_argument("--store", default=None, help="also score these trained entries (--models) on the paper's frames")
     p.add_argument("--models", nargs="*", default=["liver_paper", "liver_paper_skip"])
     args = p.parse_args()
-    torch.set_num_threads(2)
+    torch.set_num_threads(int(os.environ.get("ELASTREG_STUDY_THREADS", "2")))
     scene = load_scene(ROOT / "benchmarks" / "scenes" / "liver_paper.toml")
     mesh, loaded = scene.build_mesh()
     region = scene.region_nodes(mesh, loaded)

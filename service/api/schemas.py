@@ -151,7 +151,7 @@ class SessionSettings(_Request):
         None, description="node ids where forces may act (default: the model's load region)"
     )
     alpha: Finite | None = Field(None, gt=0, description="regularisation weight on |g|^2")
-    gtol: Finite | None = Field(None, gt=0, le=1, description="relative tolerance on the projected gradient")
+    gtol: Finite | None = Field(None, gt=0, le=1, description="relative tolerance on the projected gradient (default: 3e-4 for the network, 1e-4 for the FEM)")
     max_iter: int | None = Field(None, ge=1, le=10_000, description="L-BFGS-B iterations per frame")
     force_bound: Finite | None = Field(None, gt=0, description="bound on each force component, N (none by default)")
     matching: Triangles | None = Field(
