@@ -282,8 +282,8 @@ def solve_frame(
         nit = int(res.nit)
         message = str(res.message)
         status = _status(res)
-        if curvature is not None and not bounded:
-            curvature.update(path_g, path_grad)
+        if curvature is not None and not bounded and status == "converged":
+            curvature.update(path_g, path_grad)  # only converged frames teach the carried curvature
         if failures and status != "converged":
             status, message = "forward_failed", f"{len(failures)} trial points failed: {failures[-1]}"
     except _Done:

@@ -144,9 +144,3 @@ class Curvature:
 
     def reset(self) -> None:
         self.B, self.pairs = None, 0
-
-    def snapshot(self) -> tuple[Array | None, int]:
-        return (None if self.B is None else self.B.copy(order="F")), self.pairs
-
-    def restore(self, state: tuple[Array | None, int]) -> None:
-        self.B, self.pairs = state

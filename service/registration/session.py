@@ -147,7 +147,6 @@ class Session:
             self.distance.bind(points)
             g0 = self.g if self.config.warm_start else np.zeros_like(self.g)
             fallbacks = (self._anchor,) if self.config.warm_start else ()
-            learnt = self.curvature.snapshot() if self.curvature is not None else None
             sol = solve_frame(self.op, self.distance, self._rest, g0, self._options, self.curvature, fallbacks)
             t1 = time.perf_counter()
             if sol.status in FAILED:
@@ -159,8 +158,6 @@ class Session:
                 self.g = sol.g
                 if sol.converged:
                     self._anchor = sol.g
-                elif self.curvature is not None:  # learn curvature from converged frames only
-                    self.curvature.restore(learnt)
             outputs, rms = self._outputs(sol.g)
             timing = sol.timing.as_ms()
             timing["outputs"] = 1e3 * (time.perf_counter() - t1)

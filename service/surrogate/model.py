@@ -163,7 +163,7 @@ class NetworkOperator:
             ub = np.asarray(u_bar, np.float32).reshape(-1)
             if self._readout is not None:
                 # the distance's gradient lives on the closest triangles' nodes only: read out
-                # through those rows (a fifth of the matching surface's for a 500-point cloud)
+                # through those rows when they are fewer than half
                 rows = np.flatnonzero(ub)
                 R = self._readout
                 yb = R[rows].T @ ub[rows] if rows.size < 0.5 * ub.size else R.T @ ub
