@@ -10,8 +10,8 @@
    overhead free of solve-time noise, and median round trip - median in-process time.
 2. Throughput: 1, 4 and 16 concurrent WebSocket streams (MessagePack) replaying frames:
    frames per second over all streams and latency percentiles (clients/loadtest.py).
-3. Memory: the server's RSS after warm-up, after 10,000 frames, and after 1,000 sessions opened
-   and dropped (half HTTP, closed with DELETE; half WebSocket, the socket dropped).
+3. Memory: the server's RSS after warm-up, every 2,000 of 10,000 frames, and every 200 of 1,000
+   sessions opened and dropped (half HTTP, closed with DELETE; half WebSocket, the socket dropped).
 
 The server runs as its own process (``elastreg serve``), so its RSS is its own and the client's
 work does not share its interpreter.
@@ -205,15 +205,18 @@ def main(argv=None) -> int:
             report["throughput"].append(load.as_dict())
             print("  " + load.text())
 
-        print("\n3. server memory (RSS)")
+        print("\n3. server memory (RSS), sampled in five steps of frames, then of sessions")
         mem = {"after_warmup_mb": rss_mb(proc.pid)}
         t0 = time.perf_counter()
-        done = asyncio.run(many_frames(url, args.model, support, clouds, n_frames))
-        mem[f"after_{done}_frames_mb"] = rss_mb(proc.pid)
+        done = 0
+        for _ in range(5):
+            done += asyncio.run(many_frames(url, args.model, support, clouds, n_frames // 5))
+            mem[f"after_{done}_frames_mb"] = rss_mb(proc.pid)
         mem["frames_seconds"] = time.perf_counter() - t0
-        asyncio.run(churn_sessions(url, args.model, support, clouds[0], n_sessions))
-        time.sleep(1.0)
-        mem[f"after_{n_sessions}_sessions_mb"] = rss_mb(proc.pid)
+        for step in range(1, 6):
+            asyncio.run(churn_sessions(url, args.model, support, clouds[0], n_sessions // 5))
+            time.sleep(1.0)
+            mem[f"after_{step * (n_sessions // 5)}_sessions_mb"] = rss_mb(proc.pid)
         with Client(url) as api:
             mem["open_sessions_after"] = api.health()["sessions"]["open"]
         report["memory"] = {k: round(v, 1) if isinstance(v, float) else v for k, v in mem.items()}

@@ -154,6 +154,9 @@ class SessionSettings(_Request):
     gtol: Finite | None = Field(None, gt=0, le=1, description="relative tolerance on the projected gradient (default: 3e-4 for the network, 1e-4 for the FEM)")
     max_iter: int | None = Field(None, ge=1, le=10_000, description="L-BFGS-B iterations per frame")
     force_bound: Finite | None = Field(None, gt=0, description="bound on each force component, N (none by default)")
+    time_budget_ms: Finite | None = Field(
+        None, gt=0, le=3_600_000, description="per frame: past it the frame returns its best iterate with status time_limit"
+    )
     matching: Triangles | None = Field(
         None, description="triangles the points may lie on (default: the whole boundary)"
     )
@@ -328,6 +331,7 @@ class SessionConfigOut(_Reply):
     gtol: float
     max_iter: int
     force_bound: float | None
+    time_budget_ms: float | None
     matching: list[Tri]
     outputs: list[OutputName]
     warm_start: bool
@@ -366,7 +370,7 @@ class SessionInfo(_Reply):
 class FrameResult(_Reply):
     frame_id: int | str | None
     converged: bool
-    status: str = Field(description="converged, max_iter, line_search, forward_failed, ...")
+    status: str = Field(description="converged, max_iter, time_limit, line_search, forward_failed, ...")
     message: str = ""
     objective: float | None
     distance_rms: float | None

@@ -47,6 +47,8 @@ class SolveOptions:
     # cost iterations on the liver (its rest Jacobian misleads once deformed), so off by default
     max_evaluations: int | None = None  # default: 3 x max_iter
     max_failures: int = 4  # forward failures at trial points before the frame gives up
+    time_budget: float | None = None  # seconds: past it the frame returns its best iterate
+    # (status time_limit); a display wants a frame in time more than a last digit
 
 
 @dataclasses.dataclass
@@ -70,7 +72,7 @@ class FrameSolution:
     objective: float  # J at g (m^2), without the regularisation
     value: float  # J + alpha/2 |g|^2
     converged: bool
-    status: str  # converged | max_iter | line_search | forward_failed | non_finite | stalled
+    status: str  # converged | max_iter | time_limit | line_search | forward_failed | non_finite | stalled
     iterations: int
     evaluations: int
     timing: Timing
@@ -192,6 +194,7 @@ def solve_frame(
     evaluate.best_g = np.asarray(g0, np.float64).copy()
     max_eval = options.max_evaluations or 3 * options.max_iter
     bounded = options.force_bound is not None
+    deadline = None if options.time_budget is None else t_start + options.time_budget
 
     status, message, nit = "converged", "", 0
     try:
@@ -240,6 +243,8 @@ def solve_frame(
                 return cache["out"]
             if evaluate.evaluations >= max_eval:
                 raise _Stop("max_iter", "evaluation budget spent")
+            if deadline is not None and time.perf_counter() > deadline:
+                raise _Stop("time_limit", f"time budget of {1e3 * options.time_budget:g} ms spent")
             try:
                 value, grad, _ = evaluate(P.to_g(z).reshape(k, 3))
             except _Stop as stop:

@@ -59,6 +59,7 @@ class SessionConfig:
     loss: str = "squared"  # squared | huber | trimmed
     loss_param: float | None = None  # huber: delta (m); trimmed: fraction ignored
     carry_curvature: bool = True  # precondition each frame with the curvature past frames measured
+    time_budget_ms: float | None = None  # per frame: past it, the best iterate (status time_limit)
 
 
 @dataclasses.dataclass
@@ -107,7 +108,8 @@ class Session:
         gtol = config.gtol if config.gtol is not None else DEFAULT_GTOL.get(model.method, 1e-4)
         self.config = dataclasses.replace(config, E=float(model.material.E), gtol=gtol)
         self._options = SolveOptions(
-            alpha=config.alpha, gtol=gtol, max_iter=config.max_iter, force_bound=config.force_bound
+            alpha=config.alpha, gtol=gtol, max_iter=config.max_iter, force_bound=config.force_bound,
+            time_budget=None if config.time_budget_ms is None else 1e-3 * config.time_budget_ms,
         )
         self._rest = self.mesh.nodes[self.distance.nodes]
         self._lock = threading.Lock()

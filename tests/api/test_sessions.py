@@ -31,7 +31,7 @@ def test_open_echoes_every_setting(http, entry):
     assert c["model"] == "bar" and c["method"] == "network"
     assert (c["alpha"], c["gtol"], c["max_iter"]) == (DEFAULTS.alpha, DEFAULT_GTOL["network"], DEFAULTS.max_iter)
     assert c["outputs"] == ["displacement", "forces"] and c["warm_start"] is True and c["skip_stale"] is False
-    assert c["E"] == 4500.0 and c["force_bound"] is None and c["loss"] == "squared"
+    assert c["E"] == 4500.0 and c["force_bound"] is None and c["loss"] == "squared" and c["time_budget_ms"] is None
     np.testing.assert_array_equal(c["support"], entry.region)  # the default: the load region
     np.testing.assert_array_equal(c["matching"], entry.mesh.surface_faces)
     assert http.delete(f"/sessions/{body['session']}").status_code == 204
@@ -108,6 +108,23 @@ def test_fem_session(http, support, clouds):
     r = http.post(f"/sessions/{sid}/frames", json={"points": clouds[1].tolist()})
     assert r.status_code == 200 and np.shape(r.json()["displacement"]) == (81, 3)
     assert r.json()["status"] in ("converged", "max_iter", "line_search")
+    http.delete(f"/sessions/{sid}")
+
+
+def test_time_budget_cuts_a_frame_short(http, support, clouds):
+    """A FEM frame with a budget smaller than one Newton solve returns at once with its best
+    iterate and status time_limit; the session goes on and the budget is echoed."""
+    body = open_session(http, method="fem", support=support.tolist(), time_budget_ms=0.001, outputs=["forces"])
+    assert body["config"]["time_budget_ms"] == 0.001
+    sid = body["session"]
+    for cloud in clouds[1:3]:
+        r = http.post(f"/sessions/{sid}/frames", json={"points": cloud.tolist()})
+        assert r.status_code == 200
+        out = r.json()
+        assert out["status"] == "time_limit" and out["converged"] is False
+        assert np.isfinite(out["forces"]).all()
+    r = http.post("/sessions", json={"model": "bar", "time_budget_ms": -1})
+    assert r.status_code == 422 and "time_budget_ms" in r.text
     http.delete(f"/sessions/{sid}")
 
 

@@ -124,3 +124,23 @@ def test_a_cloud_on_the_rest_surface_needs_no_force(entry):
     sol = solve_frame(entry.fem.restrict(support, dist.nodes), dist, mesh.nodes[dist.nodes], np.zeros((support.size, 3)))
     assert sol.converged
     assert np.abs(sol.g).max() < 1e-6
+
+
+def test_time_budget_returns_the_best_iterate(entry):
+    """A frame past its time budget stops between evaluations with its best iterate, which is
+    no worse than where it started; without the budget the same frame converges."""
+    mesh = entry.mesh
+    support = tip_support(mesh)
+    g_true = np.tile([0.0, 0.0, -40.0 / support.size], (support.size, 1))
+    _, pts = frame_from_load(mesh, support, g_true)
+    dist = PointToSurface(mesh.surface_faces)
+    dist.bind(pts)
+    op = entry.fem.restrict(support, dist.nodes)
+    rest = mesh.nodes[dist.nodes]
+    start = np.zeros_like(g_true)
+    cut = solve_frame(op, dist, rest, start, SolveOptions(alpha=1e-9, time_budget=1e-6))
+    assert cut.status == "time_limit" and not cut.converged and "time budget" in cut.message
+    assert np.isfinite(cut.g).all()
+    assert cut.value <= objective_for(entry.fem, mesh, support, pts, alpha=1e-9)(start)[0]
+    full = solve_frame(op, dist, rest, start, SolveOptions(alpha=1e-9))
+    assert full.converged and full.evaluations > cut.evaluations
