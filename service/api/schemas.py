@@ -170,6 +170,10 @@ class SessionSettings(_Request):
     carry_curvature: bool | None = Field(
         None, description="precondition each frame with the curvature the previous frames measured (unbounded solves)"
     )
+    precondition: bool | None = Field(
+        None, description="Gauss-Newton preconditioning from the rest Jacobian for frames that start cold "
+        "(whole-surface clouds; the reduced network only; off by default)",
+    )
     skip_stale: bool = Field(
         False,
         description="WebSocket only: when frames queue up behind a solve, solve only the newest and say how "
@@ -339,6 +343,7 @@ class SessionConfigOut(_Reply):
     loss: Loss
     loss_param: float | None
     carry_curvature: bool
+    precondition: bool
     skip_stale: bool
 
 

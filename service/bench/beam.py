@@ -2,7 +2,8 @@
 a point cloud of the whole deformed surface and registered from rest by the network method.
 The paper reports (Titan RTX): registration error 6e-5 +- 6.15e-5, 48 +- 19 ms, 27 +- 11
 iterations; it does not say which error, so both the RMS cloud-to-surface distance and the mean
-nodal error (TRE) are given, in metres."""
+nodal error (TRE) are given, in metres. Each case starts from rest with the Gauss-Newton
+preconditioner (``precondition``), the setting made for such whole-surface cold starts."""
 
 from __future__ import annotations
 
@@ -44,7 +45,10 @@ def beam_part(entry, n_cases: int = 60, n_points: int = 500, seed: int = 0, conf
     mesh = entry.mesh
     rng = np.random.default_rng(seed)
     max_force = float(entry.manifest["training"]["load_distribution"]["max_force"])
-    config = config or SessionConfig(method="network", gtol=1e-4, max_iter=300, warm_start=False, outputs=("displacement",))
+    # from rest, so the stream's carried curvature never applies: the damped Gauss-Newton
+    # preconditioner does (measured: 43 iterations, all converged, against 133 and 71 %)
+    config = config or SessionConfig(method="network", gtol=1e-4, max_iter=300, warm_start=False, outputs=("displacement",),
+                                     precondition=True)
     session = Session(entry.network, config)
     rows = []
     fem = entry.fem
@@ -81,6 +85,7 @@ def beam_part(entry, n_cases: int = 60, n_points: int = 500, seed: int = 0, conf
         "max_displacement_m": ms_("max_displacement_m"),
         "converged_fraction": float(np.mean([row["status"] == "converged" for row in rows])) if rows else 0.0,
         "paper": PAPER,
+        "config": {"gtol": config.gtol, "max_iter": config.max_iter, "precondition": config.precondition, "points": n_points},
     }
     log.info("beam: %s", summary)
     return {"rows": rows, "summary": summary}

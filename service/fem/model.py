@@ -69,7 +69,6 @@ class FEMOperator:
         self._newton = model.newton()
         self._u: Array | None = None  # last equilibrium: the next solve's start
         self._rest = None
-        self._jac: Array | None = None
         self.last: NewtonResult | None = None
 
     def reset(self) -> None:
@@ -96,19 +95,6 @@ class FEMOperator:
             solver.factor(K0)
             self._rest = solver
         return self._rest
-
-    def jacobian(self) -> Array:
-        """du/dg at rest (small strain) for the operator's nodes, cached: 3k solves with the rest
-        factorisation. Shape: (p, 3, 3k), columns node-major over the support."""
-        if self._jac is None:
-            asm, mesh, k = self.model.assembler, self.mesh, self.support.size
-            rhs = np.zeros((3 * mesh.n_nodes, 3 * k))
-            rows = (3 * self.support[:, None] + np.arange(3)).ravel()
-            rhs[rows, np.arange(3 * k)] = 1.0
-            X = np.zeros_like(rhs)
-            X[mesh.free_dofs] = self._rest_solver().solve(rhs[mesh.free_dofs])
-            self._jac = X.reshape(mesh.n_nodes, 3, 3 * k)[self.nodes]
-        return self._jac
 
     def __call__(self, g: Array) -> tuple[Array, callable]:
         g = np.asarray(g, np.float64)

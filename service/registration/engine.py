@@ -7,9 +7,10 @@ distance; it never knows which method it drives. Each frame:
    (how hard the cloud pulls on the undeformed organ, independent of where the frame starts,
    so a warm start that begins near the optimum stops early), and a cloud already on the rest
    surface ends the frame at once;
-2. evaluates the warm start g0 (and any fallback starts; the lowest wins) and builds a Gauss-Newton preconditioner there
-   (:mod:`.precondition`): L-BFGS-B then runs in variables where the curvature is about the
-   identity and the first unit step is the Gauss-Newton step;
+2. evaluates the warm start g0 (and any fallback starts; the lowest wins) and whitens the
+   variables there (:mod:`.precondition`) with the curvature the stream carries, or, if asked
+   and none applies, a damped Gauss-Newton model: L-BFGS-B then runs in variables where the
+   curvature is about the identity and the first unit step is a (quasi-)Newton step;
 3. runs L-BFGS-B (SciPy) with exact gradients (the forward model's adjoint) and keeps the best
    iterate it saw, whatever stops it.
 
@@ -29,7 +30,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 from .forward import ForwardFailed, ForwardOperator
-from .precondition import Curvature, Preconditioner, gauss_newton_hessian, residual_jacobian
+from .precondition import Curvature, gauss_newton
 
 log = logging.getLogger(__name__)
 
@@ -43,8 +44,9 @@ class SolveOptions:
     max_iter: int = 100
     force_bound: float | None = None  # |g_i| <= bound per component, newtons
     force_scale: float = 0.1  # N: the optimiser's unit when the model gives no Jacobian
-    precondition: bool = False  # Gauss-Newton preconditioning (precondition.py): measured to
-    # cost iterations on the liver (its rest Jacobian misleads once deformed), so off by default
+    precondition: bool = False  # damped Gauss-Newton preconditioning from the rest Jacobian
+    # (precondition.py) where no carried curvature applies: halves the beam's iterations from
+    # rest; on the liver's partial clouds it costs time and force accuracy, so opt-in
     max_evaluations: int | None = None  # default: 3 x max_iter
     max_failures: int = 4  # forward failures at trial points before the frame gives up
     time_budget: float | None = None  # seconds: past it the frame returns its best iterate
@@ -132,8 +134,6 @@ class Objective:
 class ScalarScaling:
     """The fallback when a model offers no Jacobian: g = s z, objective / F."""
 
-    diagonal = True
-
     def __init__(self, force_scale: float, value_scale: float) -> None:
         self.s, self.value_scale = force_scale, value_scale
 
@@ -147,13 +147,15 @@ class ScalarScaling:
         return grad_g * (self.s / self.value_scale)
 
 
-def _preconditioner(op, distance, rest: Array, u: Array, grad: Array, alpha: float, diagonal: bool):
-    """The Gauss-Newton preconditioner at the start of the frame (None if the model offers no
-    Jacobian or the distance cannot say where the points land)."""
-    jacobian = getattr(op, "jacobian", None)
+def _gauss_newton(op, distance, rest: Array, u: Array, grad: Array, alpha: float):
+    """The damped Gauss-Newton preconditioner at the frame's start (None if the model offers
+    no low-rank Jacobian or the distance cannot say where the points land)."""
+    low_rank = getattr(op, "low_rank_jacobian", None)
     closest = getattr(distance, "closest", None)
-    if jacobian is None or closest is None:
+    jac = low_rank() if low_rank is not None and closest is not None else None
+    if jac is None:
         return None
+    U, Q = jac
     x = rest + u
     c = closest(x)
     faces = distance.faces[c.face]
@@ -163,8 +165,7 @@ def _preconditioner(op, distance, rest: Array, u: Array, grad: Array, alpha: flo
     weights = getattr(c, "weights", None)
     if weights is None:
         weights = np.asarray(getattr(c, "kept", np.ones(len(faces))), np.float64)
-    A = residual_jacobian(jacobian().astype(np.float64), faces, c.bary, n)
-    P = Preconditioner(gauss_newton_hessian(A, alpha, weights), diagonal=diagonal)
+    P = gauss_newton(U, Q, faces, c.bary, n, alpha, weights)
     P.set_step(grad.ravel())
     return P
 
@@ -224,8 +225,8 @@ def solve_frame(
             # rest state it misleads (cold starts on the paper's liver: 12 % converged with
             # it, 100 % without)
             P = curvature.preconditioner(grad0.ravel())
-        if P is None and options.precondition:
-            P = _preconditioner(op, distance, rest_positions, u0, grad0, options.alpha, diagonal=bounded)
+        if P is None and options.precondition and not bounded:
+            P = _gauss_newton(op, distance, rest_positions, u0, grad0, options.alpha)
         if P is None:
             P = ScalarScaling(options.force_scale, v_rest if v_rest > 0 else 1.0)
         # the stopping test, in force space whatever variables L-BFGS-B runs in: whitening

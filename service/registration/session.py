@@ -59,6 +59,8 @@ class SessionConfig:
     loss: str = "squared"  # squared | huber | trimmed
     loss_param: float | None = None  # huber: delta (m); trimmed: fraction ignored
     carry_curvature: bool = True  # precondition each frame with the curvature past frames measured
+    precondition: bool = False  # damped Gauss-Newton from the rest Jacobian where no carried
+    # curvature applies (cold starts): for whole-surface clouds (the beam); reduced networks only
     time_budget_ms: float | None = None  # per frame: past it, the best iterate (status time_limit)
 
 
@@ -110,6 +112,7 @@ class Session:
         self._options = SolveOptions(
             alpha=config.alpha, gtol=gtol, max_iter=config.max_iter, force_bound=config.force_bound,
             time_budget=None if config.time_budget_ms is None else 1e-3 * config.time_budget_ms,
+            precondition=config.precondition,
         )
         self._rest = self.mesh.nodes[self.distance.nodes]
         self._lock = threading.Lock()

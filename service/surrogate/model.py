@@ -133,7 +133,7 @@ class NetworkOperator:
         W0, b0, a0 = layers[0]
         layers[0] = (np.ascontiguousarray(W0[:, cols] * x_scale), b0, a0)
         self._layers = layers
-        self._jac: Array | None = None
+        self._jac: tuple[Array, Array] | None = None
 
     def reset(self) -> None:  # stateless: nothing to forget
         pass
@@ -177,19 +177,24 @@ class NetworkOperator:
 
         return u.astype(np.float64).reshape(-1, 3), pullback
 
-    def jacobian(self) -> Array:
-        """du/dg of the network at g = 0 (its small-load response) for the operator's nodes,
-        cached. Shape: (p, 3, 3k)."""
+    def low_rank_jacobian(self) -> tuple[Array, Array] | None:
+        """du/dg at g = 0 as U Q^T, Q orthonormal: the reduced network answers in r basis
+        coefficients, so its Jacobian has rank r << 3k (the Gauss-Newton preconditioner's
+        input). Reverse mode, r rows, in float64; kept in float32 like the network. Cached.
+        Shape: U (3p, r) node-major over the operator's nodes, Q (3k, r); None for the paper's
+        layout (no basis)."""
+        if self._readout is None:
+            return None
         if self._jac is None:
             k3 = self._layers[0][0].shape[1]
             _, tape = self._hidden(np.zeros(k3, np.float32))
-            D = np.eye(k3, dtype=np.float64)
-            for W, slope in tape:  # forward-mode through the hidden layers
-                D = slope[:, None] * (W @ D)
-            W_last = self._layers[-1][0].astype(np.float64)
-            dy = W_last @ D + (self._skip if self._skip is not None else 0.0)
-            J = self._readout @ dy if self._readout is not None else dy
-            self._jac = J.reshape(self.nodes.size, 3, k3)
+            R = self._layers[-1][0].astype(np.float64)
+            for W, slope in reversed(tape):
+                R = (R * slope.astype(np.float64)) @ W.astype(np.float64)
+            C = R + self._skip  # dc/dg (r, 3k)
+            Q, Rt = np.linalg.qr(C.T)  # C = Rt^T Q^T
+            U = self._readout.astype(np.float64) @ Rt.T
+            self._jac = (U.astype(np.float32), np.ascontiguousarray(Q, np.float32))
         return self._jac
 
     def displacement(self, g: Array) -> Array:
