@@ -81,10 +81,12 @@ def beam_part(entry, n_cases: int = 60, n_points: int = 500, seed: int = 0, conf
         "rms_distance_m": ms_("rms_distance_m"),
         "tre_m": ms_("tre_m"),
         "ms": ms_("ms"),
+        "ms_median": float(np.median([row["ms"] for row in rows])) if rows else float("nan"),
         "iterations": ms_("iterations"),
         "max_displacement_m": ms_("max_displacement_m"),
         "converged_fraction": float(np.mean([row["status"] == "converged" for row in rows])) if rows else 0.0,
         "paper": PAPER,
+        "unknowns": 3 * int(session.support.size),
         "config": {"gtol": config.gtol, "max_iter": config.max_iter, "precondition": config.precondition, "points": n_points},
     }
     log.info("beam: %s", summary)
