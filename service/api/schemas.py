@@ -150,7 +150,9 @@ class SessionSettings(_Request):
     support: NodeIds | None = Field(
         None, description="node ids where forces may act (default: the model's load region)"
     )
-    alpha: Finite | None = Field(None, gt=0, description="regularisation weight on |g|^2")
+    alpha: Finite | None = Field(
+        None, gt=0, description="regularisation weight on |g|^2 (default: 1e-7 at the model's E, x (E_model / E)^2 at another E)"
+    )
     gtol: Finite | None = Field(None, gt=0, le=1, description="relative tolerance on the projected gradient (default: 3e-4 for the network, 1e-4 for the FEM)")
     max_iter: int | None = Field(None, ge=1, le=10_000, description="L-BFGS-B iterations per frame")
     force_bound: Finite | None = Field(None, gt=0, description="bound on each force component, N (none by default)")

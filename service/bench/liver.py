@@ -17,8 +17,8 @@ log = logging.getLogger(__name__)
 
 #: the settings the report runs each method with: the service's defaults (the Pareto part
 #: sweeps around them)
-NETWORK = SessionConfig(method="network", max_iter=200, alpha=1e-7)
-FEM = SessionConfig(method="fem", max_iter=200, alpha=1e-7)
+NETWORK = SessionConfig(method="network", max_iter=200)
+FEM = SessionConfig(method="fem", max_iter=200)
 
 
 def own_sequences(paper: Case, region: np.ndarray, material, frames: int, seed: int = 1) -> list[Case]:

@@ -39,6 +39,11 @@ OUTPUTS = ("displacement", "surface_displacement", "forces", "stress")
 #: 6 %; 1e-4 buys 0.18 mm and 4.7 % for 30 ms); the Newton method needs 1e-4 for a force error
 #: under 1 % (1.4 s per frame)
 DEFAULT_GTOL = {"network": 3e-4, "fem": 1e-4}
+#: the regularisation weight (m^2 / N^2) at the model's own stiffness. A session at another E
+#: gets DEFAULT_ALPHA (E_model / E)^2: u(g; E) = u(g E_model / E; E_model) exactly, so this keeps
+#: the problem the same one in scaled forces (a fixed alpha at E x 10 with 10x loads penalised
+#: the forces 100x harder: 48 % force error and 0.56 mm on the liver, against 12 % and 0.12 mm)
+DEFAULT_ALPHA = 1e-7
 FAILED = ("forward_failed", "non_finite")
 
 
@@ -48,7 +53,7 @@ class SessionConfig:
 
     method: str = "network"
     support: tuple[int, ...] | None = None  # default: every node the model can load
-    alpha: float = 1e-7
+    alpha: float | None = None  # default: DEFAULT_ALPHA, scaled to the session's stiffness
     gtol: float | None = None  # default: DEFAULT_GTOL of the method
     max_iter: int = 200
     force_bound: float | None = None
@@ -97,6 +102,7 @@ class Session:
     """Frames of one stream, in order. Thread-safe: frames of one session never interleave."""
 
     def __init__(self, model: ForwardModel, config: SessionConfig) -> None:
+        E_model = float(model.material.E)
         if config.E is not None:
             model = model.with_stiffness(config.E)
         unknown = set(config.outputs) - set(OUTPUTS)
@@ -108,9 +114,10 @@ class Session:
         self.distance = PointToSurface(faces, loss=config.loss, loss_param=config.loss_param)
         support = default_support(model) if config.support is None else check_support(self.mesh, np.asarray(config.support))
         gtol = config.gtol if config.gtol is not None else DEFAULT_GTOL.get(model.method, 1e-4)
-        self.config = dataclasses.replace(config, E=float(model.material.E), gtol=gtol)
+        alpha = config.alpha if config.alpha is not None else DEFAULT_ALPHA * (E_model / float(model.material.E)) ** 2
+        self.config = dataclasses.replace(config, E=float(model.material.E), gtol=gtol, alpha=alpha)
         self._options = SolveOptions(
-            alpha=config.alpha, gtol=gtol, max_iter=config.max_iter, force_bound=config.force_bound,
+            alpha=alpha, gtol=gtol, max_iter=config.max_iter, force_bound=config.force_bound,
             time_budget=None if config.time_budget_ms is None else 1e-3 * config.time_budget_ms,
             precondition=config.precondition,
         )

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from service.api.schemas import FrameResult, SessionInfo, SessionOpened
-from service.registration.session import DEFAULT_GTOL, Session, SessionConfig
+from service.registration.session import DEFAULT_ALPHA, DEFAULT_GTOL, Session, SessionConfig
 
 from .conftest import MSGPACK, mp, packed, unpack
 
@@ -29,7 +29,7 @@ def test_open_echoes_every_setting(http, entry):
     c = body["config"]
     assert body["session"].startswith("alpha-") and body["instance"] == "alpha"
     assert c["model"] == "bar" and c["method"] == "network"
-    assert (c["alpha"], c["gtol"], c["max_iter"]) == (DEFAULTS.alpha, DEFAULT_GTOL["network"], DEFAULTS.max_iter)
+    assert (c["alpha"], c["gtol"], c["max_iter"]) == (DEFAULT_ALPHA, DEFAULT_GTOL["network"], DEFAULTS.max_iter)
     assert c["outputs"] == ["displacement", "forces"] and c["warm_start"] is True and c["skip_stale"] is False
     assert c["E"] == 4500.0 and c["force_bound"] is None and c["loss"] == "squared" and c["time_budget_ms"] is None
     np.testing.assert_array_equal(c["support"], entry.region)  # the default: the load region

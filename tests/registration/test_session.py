@@ -102,3 +102,22 @@ def test_forces_stay_on_the_support_and_outputs_are_only_those_asked(entry, sequ
     u = entry.fem.solve(rf.outputs["forces"], np.asarray(support)).u
     assert np.allclose(u, rf.outputs["displacement"], atol=1e-9 * max(1.0, np.abs(u).max()))
 
+
+
+@pytest.mark.parametrize("method", ["network", "fem"])
+def test_a_stiffer_session_solves_the_same_problem_in_scaled_forces(entry, sequence, method):
+    """u(g; E) = u(g E0 / E; E0): a session at 10 E0 sees a cloud made at E0 as the same
+    registration with ten times the forces. Its default alpha scales by (E0 / E)^2 so the
+    regulariser does too: same shape, forces x 10. An explicit alpha is kept as given."""
+    tool, seq = sequence
+    model = entry.network if method == "network" else entry.fem
+    support = _support(entry, tool)
+    base = Session(model, SessionConfig(method=method, support=support, gtol=1e-6))
+    stiff = Session(model, SessionConfig(method=method, support=support, gtol=1e-6, E=10 * model.material.E))
+    assert stiff.config.alpha == pytest.approx(base.config.alpha / 100)
+    a, b = base.frame(seq.clouds[-1]), stiff.frame(seq.clouds[-1])
+    scale = np.linalg.norm(a.outputs["displacement"], axis=1).mean()
+    assert np.linalg.norm(b.outputs["displacement"] - a.outputs["displacement"], axis=1).mean() < 0.02 * scale
+    np.testing.assert_allclose(b.net_force, 10 * a.net_force, rtol=0.03, atol=0.03 * np.linalg.norm(10 * a.net_force))
+    given = Session(model, SessionConfig(method=method, support=support, alpha=1e-6, E=10 * model.material.E))
+    assert given.config.alpha == 1e-6
