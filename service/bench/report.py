@@ -312,6 +312,13 @@ def write_report(results: dict, out: Path) -> None:
         md.append(_table(rows, [("case", "case"), ("method", "method"), ("frames_made", "frames"), ("converged_fraction", "converged"),
                                 ("tre_mean_mm", "mean TRE (mm)"), ("force_error_mean_pct", "force error (%)"), ("ms_median", "ms / frame"),
                                 ("all_finite", "no NaN"), ("crashed", "crashed"), ("statuses", "statuses")]))  # fmt: skip
+        short = [r for r in rows if not r.get("crashed") and r.get("converged_fraction", 1.0) < 1.0]
+        if short:
+            md.append("\nNot converged on every frame (the fraction that did, and why the others stopped; "
+                      "`time_limit` is the Newton method's 10 s budget per frame): "
+                      + "; ".join(f"{r['case']} / {r['method']}: {r['converged_fraction']:.0%} "
+                                  f"({', '.join(s for s in r.get('statuses', []) if s != 'converged')})" for r in short)
+                      + ".\n")  # fmt: skip
         bad = [r for r in rows if r.get("crashed") or not r.get("all_finite", True)]
         md.append("\n" + ("Every case ran without a crash or a NaN.\n" if not bad else
                          "Cases that crashed or produced NaN: " + ", ".join(f"{r['case']} / {r['method']}" for r in bad) + "\n"))  # fmt: skip
