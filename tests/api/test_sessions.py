@@ -32,6 +32,7 @@ def test_open_echoes_every_setting(http, entry):
     assert (c["alpha"], c["gtol"], c["max_iter"]) == (DEFAULT_ALPHA, DEFAULT_GTOL["network"], DEFAULTS.max_iter)
     assert c["outputs"] == ["displacement", "forces"] and c["warm_start"] is True and c["skip_stale"] is False
     assert c["E"] == 4500.0 and c["force_bound"] is None and c["loss"] == "squared" and c["time_budget_ms"] is None
+    assert c["precondition"] is False
     np.testing.assert_array_equal(c["support"], entry.region)  # the default: the load region
     np.testing.assert_array_equal(c["matching"], entry.mesh.surface_faces)
     assert http.delete(f"/sessions/{body['session']}").status_code == 204

@@ -35,6 +35,17 @@ def frame_from_load(mesh, support, g, n_points=300, seed=0):
     return u, pts
 
 
+def tip_pull(entry):
+    """A downward pull spread over the tip support, its cloud, and a distance bound to it."""
+    mesh = entry.mesh
+    support = tip_support(mesh)
+    g_true = np.tile([0.0, 0.0, -40.0 / support.size], (support.size, 1))
+    _, pts = frame_from_load(mesh, support, g_true)
+    dist = PointToSurface(mesh.surface_faces)
+    dist.bind(pts)
+    return mesh, support, g_true, pts, dist
+
+
 def objective_for(model, mesh, support, points, alpha=1e-6):
     dist = PointToSurface(mesh.surface_faces)
     dist.bind(points)
@@ -89,12 +100,7 @@ def test_known_loads_are_recovered(method, entry):
 
 
 def test_bounds_are_respected(entry):
-    mesh = entry.mesh
-    support = tip_support(mesh)
-    g_true = np.tile([0.0, 0.0, -40.0 / support.size], (support.size, 1))
-    _, pts = frame_from_load(mesh, support, g_true)
-    dist = PointToSurface(mesh.surface_faces)
-    dist.bind(pts)
+    mesh, support, g_true, pts, dist = tip_pull(entry)
     bound = 0.5 * np.abs(g_true).max()
     op = entry.fem.restrict(support, dist.nodes)
     sol = solve_frame(op, dist, mesh.nodes[dist.nodes], np.zeros_like(g_true), SolveOptions(force_bound=bound, alpha=1e-9))
@@ -103,12 +109,7 @@ def test_bounds_are_respected(entry):
 
 
 def test_forward_failure_is_a_result_not_an_exception(entry):
-    mesh = entry.mesh
-    support = tip_support(mesh)
-    g_true = np.tile([0.0, 0.0, -40.0 / support.size], (support.size, 1))
-    _, pts = frame_from_load(mesh, support, g_true)
-    dist = PointToSurface(mesh.surface_faces)
-    dist.bind(pts)
+    mesh, support, g_true, pts, dist = tip_pull(entry)
     fragile = FEMModel(mesh, MAT, NewtonOptions(max_iter=1))
     sol = solve_frame(fragile.restrict(support, dist.nodes), dist, mesh.nodes[dist.nodes], np.zeros_like(g_true))
     assert not sol.converged and sol.status == "forward_failed"
@@ -129,12 +130,7 @@ def test_a_cloud_on_the_rest_surface_needs_no_force(entry):
 def test_time_budget_returns_the_best_iterate(entry):
     """A frame past its time budget stops between evaluations with its best iterate, which is
     no worse than where it started; without the budget the same frame converges."""
-    mesh = entry.mesh
-    support = tip_support(mesh)
-    g_true = np.tile([0.0, 0.0, -40.0 / support.size], (support.size, 1))
-    _, pts = frame_from_load(mesh, support, g_true)
-    dist = PointToSurface(mesh.surface_faces)
-    dist.bind(pts)
+    mesh, support, g_true, pts, dist = tip_pull(entry)
     op = entry.fem.restrict(support, dist.nodes)
     rest = mesh.nodes[dist.nodes]
     start = np.zeros_like(g_true)
