@@ -163,7 +163,8 @@ def main(args: argparse.Namespace) -> int:
         variants = {}
         if args.smoke is None:
             entries, _ = open_store(store)
-            variants = {k: e.network for k, e in entries.items() if k.startswith(args.liver_model + "_")}
+            named = {args.liver_model: liver_entry, **{k: e for k, e in entries.items() if k.startswith(args.liver_model + "_")}}
+            variants = {_surrogate_label(k, e.manifest["network"]): e.network for k, e in named.items()}
         if args.smoke is not None:
             sweep = dict(gtols=(1e-2, 1e-4), caps=(5,), points=(50,), fem_gtols=(1e-2,), fem_frames=2)
         elif quick:
@@ -191,6 +192,14 @@ def main(args: argparse.Namespace) -> int:
     write_report(results, out)
     print(f"report written to {out / 'report.md'} ({results['seconds']:.0f} s)")
     return 0
+
+
+def _surrogate_label(name: str, net: dict) -> str:
+    """A variant's name and size, for the Pareto table: 'liver_paper_small (256x256, r 64, 0.2M)'."""
+    size = "x".join(str(h) for h in net.get("hidden", []))
+    rank = f", r {net['rank']}" if net.get("rank") else ""
+    skip = ", physics skip" if net.get("physics_skip") else ""
+    return f"{name} ({size}{rank}{skip}, {net.get('parameters', 0) / 1e6:.2f}M parameters)"
 
 
 def _merge_previous(results: dict, out: Path) -> dict:
