@@ -16,6 +16,9 @@ def test_bench_smoke_writes_the_whole_report(bar_store, tmp_path):
         assert heading in report
     assert (out / "figures" / "pareto.png").stat().st_size > 1000
     assert (out / "figures" / "liver_frames.png").stat().st_size > 1000
+    assert (out / "figures" / "beam_pareto.png").stat().st_size > 1000
+    beam = results["parts"]["beam"]["pareto"]  # both methods on the beam's sweep
+    assert {r["method"] for r in beam} == {"network", "fem"} and "on the beam" in report
     for s in results["parts"]["liver"]["summaries"]:
         assert s["all_finite"]
     net = next(s for s in results["parts"]["liver"]["summaries"] if s["method"] == "network")
