@@ -174,7 +174,7 @@ class SessionSettings(_Request):
     )
     precondition: bool | None = Field(
         None, description="Gauss-Newton preconditioning from the rest Jacobian for frames that start cold "
-        "(whole-surface clouds; the reduced network only; off by default)",
+        "(whole-surface clouds; off by default)",
     )
     skip_stale: bool = Field(
         False,

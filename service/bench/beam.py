@@ -112,7 +112,7 @@ def beam_pareto(entry, cases: list[dict], *, gtols=(1e-2, 1e-3, 1e-4, 1e-5), cap
     for n in points:
         if n < min(len(c["points"]) for c in cases):
             row("points", n, "network", entry.network, cases, CONFIG, n)
-    fem = dataclasses.replace(CONFIG, method="fem", time_budget_ms=10_000.0, precondition=False)
+    fem = dataclasses.replace(CONFIG, method="fem", time_budget_ms=10_000.0)
     for gtol in fem_gtols:
         row("gtol", gtol, "fem", entry.fem, cases[:fem_cases], dataclasses.replace(fem, gtol=gtol))
     return rows

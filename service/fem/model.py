@@ -69,6 +69,7 @@ class FEMOperator:
         self._newton = model.newton()
         self._u: Array | None = None  # last equilibrium: the next solve's start
         self._rest = None
+        self._low_rank: tuple[Array, Array] | None = None
         self.last: NewtonResult | None = None
 
     def reset(self) -> None:
@@ -95,6 +96,24 @@ class FEMOperator:
             solver.factor(K0)
             self._rest = solver
         return self._rest
+
+    def low_rank_jacobian(self, rank: int = 128) -> tuple[Array, Array]:
+        """du/dg at rest (small strain) on the operator's nodes as U Q^T, Q orthonormal: 3k
+        solves with the rest factorisation, then a truncated SVD (the Gauss-Newton
+        preconditioner's input; the compliance's spectrum decays fast, so r modes carry it).
+        Cached. Shape: U (3p, r) node-major, Q (3k, r)."""
+        if self._low_rank is None:
+            mesh, k = self.mesh, self.support.size
+            rhs = np.zeros((3 * mesh.n_nodes, 3 * k))
+            rows = (3 * self.support[:, None] + np.arange(3)).ravel()
+            rhs[rows, np.arange(3 * k)] = 1.0
+            X = np.zeros_like(rhs)
+            X[mesh.free_dofs] = self._rest_solver().solve(rhs[mesh.free_dofs])
+            J = X.reshape(mesh.n_nodes, 3, 3 * k)[self.nodes].reshape(3 * self.nodes.size, 3 * k)
+            W, sv, Vt = np.linalg.svd(J, full_matrices=False)
+            r = max(1, min(rank, int(np.count_nonzero(sv > 1e-8 * sv[0]))))
+            self._low_rank = (np.ascontiguousarray(W[:, :r] * sv[:r]), np.ascontiguousarray(Vt[:r].T))
+        return self._low_rank
 
     def __call__(self, g: Array) -> tuple[Array, callable]:
         g = np.asarray(g, np.float64)

@@ -45,8 +45,8 @@ class SolveOptions:
     force_bound: float | None = None  # |g_i| <= bound per component, newtons
     force_scale: float = 0.1  # N: the optimiser's unit when the model gives no Jacobian
     precondition: bool = False  # damped Gauss-Newton preconditioning from the rest Jacobian
-    # (precondition.py) where no carried curvature applies: halves the beam's iterations from
-    # rest; on the liver's partial clouds it costs time and force accuracy, so opt-in
+    # (precondition.py) where no carried curvature applies: a third of the beam's iterations
+    # from rest; on the liver's partial clouds it costs time and force accuracy, so opt-in
     max_evaluations: int | None = None  # default: 3 x max_iter
     max_failures: int = 4  # forward failures at trial points before the frame gives up
     time_budget: float | None = None  # seconds: past it the frame returns its best iterate

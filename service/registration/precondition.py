@@ -9,13 +9,15 @@ Forces on neighbouring nodes move the surface almost alike, so H is badly condit
 L-BFGS needs many iterations; in variables z with H = L L^T, g = L^-T z, the curvature is about
 the identity.
 
-The model's Jacobian at rest is low-rank: the network answers in r basis coefficients, so
-B = U Q^T with U (3p, r) and Q (K, r) orthonormal, and H = Q S Q^T + alpha (I - Q Q^T) with an
+The model's Jacobian at rest is low-rank: the network answers in r basis coefficients, and the
+FEM's rest compliance has a fast-decaying spectrum (truncated SVD), so B = U Q^T with U (3p, r)
+and Q (K, r) orthonormal, and H = Q S Q^T + alpha (I - Q Q^T) with an
 r x r matrix S. The factor L is then cheap (an r x r Cholesky) and applying it costs two (K, r)
 products. An approximation is all a preconditioner needs (the optimisation itself uses exact
 gradients), but the rest Jacobian misleads once the shape is far from rest, so the model is
-damped in both parts, Levenberg-Marquardt style (measured on the beam: from rest it halves
-L-BFGS-B's iterations; on the liver's partial clouds it does not help, so it is opt-in).
+damped in both parts, Levenberg-Marquardt style (measured on the beam from rest: a third of
+L-BFGS-B's iterations for the network, and the Newton method's TRE from 4.4 to 0.11 mm; on the
+liver's partial clouds it does not help the network, so it is opt-in).
 """
 
 from __future__ import annotations

@@ -65,7 +65,7 @@ class SessionConfig:
     loss_param: float | None = None  # huber: delta (m); trimmed: fraction ignored
     carry_curvature: bool = True  # precondition each frame with the curvature past frames measured
     precondition: bool = False  # damped Gauss-Newton from the rest Jacobian where no carried
-    # curvature applies (cold starts): for whole-surface clouds (the beam); reduced networks only
+    # curvature applies (cold starts): for whole-surface clouds (the beam); both methods
     time_budget_ms: float | None = None  # per frame: past it, the best iterate (status time_limit)
 
 

@@ -33,17 +33,33 @@ def entry(bar_store):
     return load_entry(bar_store[0] / "bar")
 
 
-def test_cold_start_with_gauss_newton_registers_as_well(entry):
+def test_fem_low_rank_jacobian_is_the_small_load_response(entry):
+    """U Q^T dg is the FEM's response to a small load dg (finite difference from rest)."""
+    mesh = entry.mesh
+    support = entry.region[::3]
+    nodes = mesh.surface_nodes[::2]
+    op = entry.fem.restrict(support, nodes)
+    U, Q = op.low_rank_jacobian()
+    np.testing.assert_allclose(Q.T @ Q, np.eye(Q.shape[1]), atol=1e-10)
+    dg = np.random.default_rng(1).normal(size=(support.size, 3))
+    eps = 1e-4
+    fd = (op(eps * dg)[0] - op(-eps * dg)[0]).ravel() / (2 * eps)
+    np.testing.assert_allclose(U @ (Q.T @ dg.ravel()), fd, rtol=1e-3, atol=1e-4 * np.abs(fd).max())
+
+
+@pytest.mark.parametrize("method", ["network", "fem"])
+def test_cold_start_with_gauss_newton_registers_as_well(entry, method):
     mesh = entry.mesh
     tip = entry.region[np.argsort(mesh.nodes[entry.region, 0])[-6:]]
     seq = make_sequence(mesh, entry.fem.material, tip, n_frames=6, peak_force=30.0, n_points=300, seed=4)
+    model = entry.network if method == "network" else entry.fem
     out = {}
     for pc in (False, True):
-        s = Session(entry.network, SessionConfig(warm_start=False, precondition=pc, gtol=1e-5, outputs=("displacement",)))
+        s = Session(model, SessionConfig(method=method, warm_start=False, precondition=pc, gtol=1e-5, outputs=("displacement",)))
         assert s.config.precondition is pc
         out[pc] = [s.frame(c) for c in seq.clouds[1::2]]
     for plain, gn, truth in zip(out[False], out[True], seq.positions[1::2]):
         err = [np.linalg.norm(mesh.nodes + r.outputs["displacement"] - truth, axis=1).mean() for r in (plain, gn)]
-        print(f"plain {plain.iterations} it, {err[0]:.2e}; Gauss-Newton {gn.iterations} it, {err[1]:.2e}")
+        print(f"{method}: plain {plain.iterations} it, {err[0]:.2e}; Gauss-Newton {gn.iterations} it, {err[1]:.2e}")
         assert gn.converged
         assert err[1] <= 1.5 * err[0] + 1e-3 * np.linalg.norm(truth - mesh.nodes, axis=1).mean()
