@@ -13,8 +13,9 @@ import time
 
 import numpy as np
 
-from ..registration.session import Session, SessionConfig
+from ..registration.session import Session, SessionConfig, default_support
 from ..synthetic import sample_surface
+from .liver import FEM_BUDGET_MS
 
 log = logging.getLogger(__name__)
 
@@ -112,7 +113,7 @@ def beam_pareto(entry, cases: list[dict], *, gtols=(1e-2, 1e-3, 1e-4, 1e-5), cap
     for n in points:
         if n < min(len(c["points"]) for c in cases):
             row("points", n, "network", entry.network, cases, CONFIG, n)
-    fem = dataclasses.replace(CONFIG, method="fem", time_budget_ms=10_000.0)
+    fem = dataclasses.replace(CONFIG, method="fem", time_budget_ms=FEM_BUDGET_MS)
     for gtol in fem_gtols:
         row("gtol", gtol, "fem", entry.fem, cases[:fem_cases], dataclasses.replace(fem, gtol=gtol))
     return rows
@@ -140,7 +141,7 @@ def beam_part(entry, n_cases: int = 60, n_points: int = 500, seed: int = 0, conf
         "max_displacement_m": ms_("max_displacement_m"),
         "converged_fraction": float(np.mean([row["status"] == "converged" for row in rows])) if rows else 0.0,
         "paper": PAPER,
-        "unknowns": 3 * int(Session(entry.network, config).support.size),
+        "unknowns": 3 * (len(config.support) if config.support is not None else default_support(entry.network).size),
         "config": {"gtol": config.gtol, "max_iter": config.max_iter, "precondition": config.precondition, "points": n_points},
     }
     log.info("beam: %s", summary)

@@ -150,7 +150,6 @@ def main(args: argparse.Namespace) -> int:
 
     if "beam" in parts:
         from .beam import beam_part
-
         from .pareto import plot
 
         n = 4 if args.smoke is not None else (15 if quick else 60)

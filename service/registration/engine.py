@@ -162,10 +162,7 @@ def _gauss_newton(op, distance, rest: Array, u: Array, grad: Array, alpha: float
     tri = x[faces]
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
-    weights = getattr(c, "weights", None)
-    if weights is None:
-        weights = np.asarray(getattr(c, "kept", np.ones(len(faces))), np.float64)
-    P = gauss_newton(U, Q, faces, c.bary, n, alpha, weights)
+    P = gauss_newton(U, Q, faces, c.bary, n, alpha, c.kept.astype(np.float64))  # trimmed points weigh 0
     P.set_step(grad.ravel())
     return P
 

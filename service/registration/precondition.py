@@ -45,10 +45,30 @@ def residual_rows(U: Array, faces: Array, bary: Array, normals: Array) -> Array:
     return np.asarray(W @ U)
 
 
-class LowRankPreconditioner:
+class _Whitened:
+    """g = c L^-T z for some factor H = L L^T (the subclass's `whiten` applies L^-1); c makes
+    the first (quasi-)Newton step of unit length in z, so L-BFGS-B's unit first step is already
+    the right one."""
+
+    def whiten(self, v: Array) -> Array:
+        raise NotImplementedError
+
+    def set_step(self, grad_g: Array) -> None:
+        n = float(np.linalg.norm(self.whiten(grad_g)))
+        self.c = n if n > 0 else 1.0
+
+    def grad_z(self, grad_g: Array) -> Array:
+        """Chain rule through g = c L^-T z, with the objective divided by c^2."""
+        return self.whiten(grad_g) / self.c
+
+    @property
+    def value_scale(self) -> float:
+        return self.c * self.c
+
+
+class LowRankPreconditioner(_Whitened):
     """H = Q S Q^T + lam (I - Q Q^T), applied through L = Q L_S Q^T + sqrt(lam) (I - Q Q^T)
-    (S = L_S L_S^T); g = c L^-T z with c making the first Gauss-Newton step of unit length, so
-    L-BFGS-B's unit first step is already the right one. Q's products run in its dtype (float32
+    (S = L_S L_S^T). Q's products run in its dtype (float32
     for the network, whose gradients carry no more digits). Shape: Q (K, r), S (r, r)."""
 
     def __init__(self, Q: Array, S: Array, lam: float) -> None:
@@ -61,9 +81,6 @@ class LowRankPreconditioner:
         self._inv = (Linv - np.eye(len(S)) / self.root).astype(Q.dtype)  # whiten
         self.c = 1.0
 
-    def set_step(self, grad_g: Array) -> None:
-        n = float(np.linalg.norm(self.whiten(grad_g)))
-        self.c = n if n > 0 else 1.0
 
     def whiten(self, v: Array) -> Array:
         """L^-1 v = v / sqrt(lam) + Q (L_S^-1 - I / sqrt(lam)) Q^T v."""
@@ -78,13 +95,6 @@ class LowRankPreconditioner:
         a = self.Q.T @ g.astype(self.Q.dtype)
         return (self.root * g + (self.Q @ (self._fwd @ a)).astype(np.float64)) / self.c
 
-    def grad_z(self, grad_g: Array) -> Array:
-        """Chain rule through g = c L^-T z, with the objective divided by c^2."""
-        return self.whiten(grad_g) / self.c
-
-    @property
-    def value_scale(self) -> float:
-        return self.c * self.c
 
 
 def gauss_newton(U: Array, Q: Array, faces: Array, bary: Array, normals: Array, alpha: float,
@@ -107,8 +117,8 @@ def gauss_newton(U: Array, Q: Array, faces: Array, bary: Array, normals: Array, 
     return LowRankPreconditioner(Q, S, alpha + null * s)
 
 
-class Preconditioner:
-    """g = c L^-T z for a dense H = L L^T (the carried curvature); c as above."""
+class Preconditioner(_Whitened):
+    """g = c L^-T z for a dense H = L L^T (the carried curvature)."""
 
     def __init__(self, H: Array) -> None:
         self.L = sla.cholesky(H, lower=True, check_finite=False)
@@ -117,9 +127,6 @@ class Preconditioner:
         self.Linv = sla.solve_triangular(self.L, np.eye(len(H)), lower=True, check_finite=False)
         self.c = 1.0
 
-    def set_step(self, grad_g: Array) -> None:
-        n = float(np.linalg.norm(self.whiten(grad_g)))
-        self.c = n if n > 0 else 1.0
 
     def whiten(self, v: Array) -> Array:
         return self.Linv @ v
@@ -130,12 +137,6 @@ class Preconditioner:
     def to_z(self, g: Array) -> Array:
         return self.L.T @ g / self.c
 
-    def grad_z(self, grad_g: Array) -> Array:
-        return self.whiten(grad_g) / self.c
-
-    @property
-    def value_scale(self) -> float:
-        return self.c * self.c
 
 
 class Curvature:

@@ -44,11 +44,16 @@ def case(model):
 
 
 def torch_reference(model, support, g):
+    gt = torch.tensor(g.ravel(), dtype=torch.float32, requires_grad=True)
+    return gt, torch_reference_at(model, support, gt)
+
+
+def torch_reference_at(model, support, gt):
+    """The torch network's displacement (n, 3) for flat support forces gt (3k,)."""
     x = torch.zeros(3 * model.region.size, dtype=torch.float32)
     cols = torch.from_numpy(model.region_columns(support))
-    gt = torch.tensor(g.ravel(), dtype=torch.float32, requires_grad=True)
     x = x.index_put((cols,), gt * model.stiffness_factor)
-    return gt, model.net(x[None])[0].reshape(-1, 3)
+    return model.net(x[None])[0].reshape(-1, 3)
 
 
 def test_operator_matches_the_torch_network(model):
@@ -140,10 +145,3 @@ def test_low_rank_jacobian_is_the_network_jacobian_at_rest(model):
     g0 = torch.zeros(3 * support.size)
     ref = torch.autograd.functional.jacobian(lambda g: torch_reference_at(model, support, g)[torch.as_tensor(np.array(nodes))].reshape(-1), g0)
     np.testing.assert_allclose(U @ Q.T, ref.numpy(), rtol=1e-3, atol=1e-4 * float(ref.abs().max()))
-
-
-def torch_reference_at(model, support, gt):
-    x = torch.zeros(3 * model.region.size, dtype=torch.float32)
-    cols = torch.from_numpy(model.region_columns(support))
-    x = x.index_put((cols,), gt * model.stiffness_factor)
-    return model.net(x[None])[0].reshape(-1, 3)
