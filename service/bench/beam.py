@@ -16,6 +16,7 @@ import numpy as np
 from ..registration.session import Session, SessionConfig, default_support
 from ..synthetic import sample_surface
 from .liver import FEM_BUDGET_MS
+from .pareto import sweep
 
 log = logging.getLogger(__name__)
 
@@ -92,31 +93,20 @@ def register(model, cases: list[dict], config: SessionConfig, points: int | None
 
 def beam_pareto(entry, cases: list[dict], *, gtols=(1e-2, 1e-3, 1e-4, 1e-5), caps=(5, 10, 20, 40), points=(50, 150),
                 fem_gtols=(1e-3, 1e-4), fem_cases: int = 6) -> list[dict]:
-    """Error against run time on the beam: the same knobs as the liver's, both methods (the
-    Newton method on the first `fem_cases` cases, 10 s per registration at most)."""
-    rows = []
+    """The beam's sweep: the liver's knobs over these cases (the Newton method on the first
+    `fem_cases`, 10 s per registration at most)."""
 
-    def row(knob, value, method, model, subset, config, pts=None):
-        rs = register(model, subset, config, pts)
-        rows.append({"knob": knob, "value": value, "method": method,
-                     "tre_mm": 1e3 * float(np.mean([r["tre_m"] for r in rs])),
-                     "force_error_pct": float(np.mean([r["force_error_pct"] for r in rs])),
-                     "ms": float(np.median([r["ms"] for r in rs])),
-                     "iterations": float(np.mean([r["iterations"] for r in rs])),
-                     "converged": float(np.mean([r["status"] == "converged" for r in rs]))})  # fmt: skip
-        log.info("beam pareto %s", rows[-1])
+    def score(model, config, n, short):
+        rs = register(model, cases[:fem_cases] if short else cases, config, n)
+        return {"tre_mm": 1e3 * float(np.mean([r["tre_m"] for r in rs])),
+                "force_error_pct": float(np.mean([r["force_error_pct"] for r in rs])),
+                "ms": float(np.median([r["ms"] for r in rs])),
+                "iterations": float(np.mean([r["iterations"] for r in rs])),
+                "converged": float(np.mean([r["status"] == "converged" for r in rs]))}  # fmt: skip
 
-    for gtol in gtols:
-        row("gtol", gtol, "network", entry.network, cases, dataclasses.replace(CONFIG, gtol=gtol))
-    for cap in caps:
-        row("max_iter", cap, "network", entry.network, cases, dataclasses.replace(CONFIG, gtol=1e-6, max_iter=cap))
-    for n in points:
-        if n < min(len(c["points"]) for c in cases):
-            row("points", n, "network", entry.network, cases, CONFIG, n)
     fem = dataclasses.replace(CONFIG, method="fem", time_budget_ms=FEM_BUDGET_MS)
-    for gtol in fem_gtols:
-        row("gtol", gtol, "fem", entry.fem, cases[:fem_cases], dataclasses.replace(fem, gtol=gtol))
-    return rows
+    return sweep(score, entry.network, entry.fem, CONFIG, fem, gtols=gtols, caps=caps, points=points,
+                 max_points=min(len(c["points"]) for c in cases) - 1, fem_gtols=fem_gtols)  # fmt: skip
 
 
 def beam_part(entry, n_cases: int = 60, n_points: int = 500, seed: int = 0, config: SessionConfig | None = None,

@@ -8,9 +8,11 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from typing import Callable
 
 import numpy as np
 
+from ..registration.session import SessionConfig
 from .cases import Case, noisy, run_case, summarise
 from .liver import FEM, NETWORK
 
@@ -22,13 +24,35 @@ FEM_GTOL = (1e-3, 1e-4, 3e-5, 1e-5)
 POINTS = (50, 100, 250, 500)
 
 
-def _row(knob: str, value, model, case: Case, config) -> dict:
-    s = summarise(run_case(model, case, config))
-    row = {"knob": knob, "value": value, "method": config.method, "tre_mm": s["tre_mean_mm"],
-           "force_error_pct": s["force_error_mean_pct"], "ms": s["ms_median"],
-           "iterations": s["iterations_mean"], "converged": s["converged_fraction"]}  # fmt: skip
-    log.info("pareto %s", row)
-    return row
+#: what one sweep point measures: (model, config, cloud points or None for all, whether on the
+#: Newton method's shorter subset) -> mean TRE (mm), mean force error (%), median ms, mean
+#: iterations, converged fraction, under the keys of a row
+Score = Callable[[object, SessionConfig, "int | None", bool], dict]
+
+
+def sweep(score: Score, network_model, fem_model, network: SessionConfig, fem: SessionConfig, *, gtols, caps,
+          points, max_points: int, fem_gtols, variants: dict | None = None) -> list[dict]:
+    """One row per knob setting, the same knobs for every scene: the gradient tolerance and the
+    iteration cap (network), the cloud's size (up to `max_points`), the surrogate (each of
+    `variants`, a name to another trained network), and the Newton method's tolerance."""
+    rows = []
+
+    def row(knob, value, model, config, n=None, short=False):
+        rows.append({"knob": knob, "value": value, "method": config.method, **score(model, config, n, short)})
+        log.info("pareto %s", rows[-1])
+
+    for gtol in gtols:
+        row("gtol", gtol, network_model, dataclasses.replace(network, gtol=gtol, max_iter=max(network.max_iter, 500)))
+    for cap in caps:
+        row("max_iter", cap, network_model, dataclasses.replace(network, gtol=1e-6, max_iter=cap))
+    for n in points:
+        if n <= max_points:
+            row("points", n, network_model, network, n)
+    for name, model in (variants or {}).items():
+        row("surrogate", name, model, network)
+    for gtol in fem_gtols:
+        row("gtol", gtol, fem_model, dataclasses.replace(fem, gtol=gtol), short=True)
+    return rows
 
 
 def pareto_part(
@@ -42,23 +66,18 @@ def pareto_part(
     points=POINTS,
     fem_gtols=FEM_GTOL,
 ) -> list[dict]:
-    """One row per sweep point; `variants` maps a name to another trained network."""
-    rows = []
-    net, fem = entry.network, entry.fem
-    for gtol in gtols:
-        rows.append(_row("gtol", gtol, net, case, dataclasses.replace(NETWORK, gtol=gtol, max_iter=500)))
-    for cap in caps:
-        rows.append(_row("max_iter", cap, net, case, dataclasses.replace(NETWORK, gtol=1e-6, max_iter=cap)))
-    for n in points:
-        if n <= min(len(c) for c in case.clouds):
-            rows.append(_row("points", n, net, noisy(case, points=n), NETWORK))
-    for name, model in (variants or {}).items():
-        rows.append(_row("surrogate", name, model, case, NETWORK))
+    """The liver's sweep over one recorded sequence (the Newton method on its first
+    `fem_frames` frames)."""
     short = dataclasses.replace(case, clouds=case.clouds[:fem_frames], positions=case.positions[:fem_frames],
                                 net_forces=case.net_forces[:fem_frames])  # fmt: skip
-    for gtol in fem_gtols:
-        rows.append(_row("gtol", gtol, fem, short, dataclasses.replace(FEM, gtol=gtol)))
-    return rows
+
+    def score(model, config, n, is_short):
+        s = summarise(run_case(model, short if is_short else (noisy(case, points=n) if n else case), config))
+        return {"tre_mm": s["tre_mean_mm"], "force_error_pct": s["force_error_mean_pct"], "ms": s["ms_median"],
+                "iterations": s["iterations_mean"], "converged": s["converged_fraction"]}  # fmt: skip
+
+    return sweep(score, entry.network, entry.fem, NETWORK, FEM, gtols=gtols, caps=caps, points=points,
+                 max_points=min(len(c) for c in case.clouds), fem_gtols=fem_gtols, variants=variants)  # fmt: skip
 
 
 def pareto_front(rows: list[dict], error: str = "tre_mm") -> list[dict]:

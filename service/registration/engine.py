@@ -24,11 +24,11 @@ import dataclasses
 import logging
 import math
 import time
-from typing import Callable
 
 import numpy as np
 from scipy.optimize import minimize
 
+from .distance import PointToSurface
 from .forward import ForwardFailed, ForwardOperator
 from .precondition import Curvature, gauss_newton
 
@@ -147,17 +147,16 @@ class ScalarScaling:
         return grad_g * (self.s / self.value_scale)
 
 
-def _gauss_newton(op, distance, rest: Array, u: Array, grad: Array, alpha: float):
+def _gauss_newton(op, distance: PointToSurface, rest: Array, u: Array, grad: Array, alpha: float):
     """The damped Gauss-Newton preconditioner at the frame's start (None if the model offers
-    no low-rank Jacobian or the distance cannot say where the points land)."""
+    no low-rank Jacobian)."""
     low_rank = getattr(op, "low_rank_jacobian", None)
-    closest = getattr(distance, "closest", None)
-    jac = low_rank() if low_rank is not None and closest is not None else None
+    jac = low_rank() if low_rank is not None else None
     if jac is None:
         return None
     U, Q = jac
     x = rest + u
-    c = closest(x)
+    c = distance.closest(x)
     faces = distance.faces[c.face]
     tri = x[faces]
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
@@ -169,7 +168,7 @@ def _gauss_newton(op, distance, rest: Array, u: Array, grad: Array, alpha: float
 
 def solve_frame(
     op: ForwardOperator,
-    distance: Callable[[Array], tuple[float, Array]],
+    distance: PointToSurface,
     rest_positions: Array,
     g0: Array,
     options: SolveOptions = SolveOptions(),
@@ -246,8 +245,9 @@ def solve_frame(
                 raise _Stop("max_iter", "evaluation budget spent")
             if deadline is not None and time.perf_counter() > deadline:
                 raise _Stop("time_limit", f"time budget of {1e3 * options.time_budget:g} ms spent")
+            g = P.to_g(z)
             try:
-                value, grad, _ = evaluate(P.to_g(z).reshape(k, 3))
+                value, grad, _ = evaluate(g.reshape(k, 3))
             except _Stop as stop:
                 if stop.status != "forward_failed" or len(failures) >= options.max_failures:
                     raise
@@ -260,7 +260,7 @@ def solve_frame(
             f, gz = value / P.value_scale, P.grad_z(grad.ravel())
             if f < best["f"]:
                 best.update(z=z.copy(), f=f)
-            last.update(z=z, g=P.to_g(z), grad=grad.ravel())
+            last.update(z=z, g=g, grad=grad.ravel())
             return f, gz
 
         last = {"z": z0, "g": start.ravel(), "grad": grad0.ravel()}
@@ -273,8 +273,9 @@ def solve_frame(
             g, grad = last["g"], last["grad"]
             path_g.append(g)
             path_grad.append(grad)
-            pg = np.where(grad > 0, np.minimum(grad, g - lo), np.maximum(grad, g - hi))
-            if np.abs(pg).max() <= g_tol:
+            if bounded:
+                grad = np.where(grad > 0, np.minimum(grad, g - lo), np.maximum(grad, g - hi))
+            if np.abs(grad).max() <= g_tol:
                 raise StopIteration
 
         bounds = None
