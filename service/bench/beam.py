@@ -46,8 +46,10 @@ def beam_loads(mesh, max_force: float, n: int, rng: np.random.Generator) -> list
 
 #: the benchmark's setting: from rest, so the stream's carried curvature never applies and the
 #: damped Gauss-Newton preconditioner does (measured: 43 iterations, all converged, against 133
-#: and 71 % without)
-CONFIG = SessionConfig(method="network", gtol=1e-4, max_iter=300, warm_start=False, outputs=("displacement",), precondition=True)
+#: and 71 % without); gtol 1e-3, the loosest tolerance that matches the paper's error (RMS
+#: 4.6e-5 m against its 6e-5 on the first 30 cases; 3e-4 gives 2.7e-5 for a quarter more
+#: time, and the sweep below shows the rest)
+CONFIG = SessionConfig(method="network", gtol=1e-3, max_iter=300, warm_start=False, outputs=("displacement",), precondition=True)
 
 
 def beam_cases(entry, n_cases: int, n_points: int, seed: int = 0) -> list[dict]:
@@ -91,7 +93,7 @@ def register(model, cases: list[dict], config: SessionConfig, points: int | None
     return rows
 
 
-def beam_pareto(entry, cases: list[dict], *, gtols=(1e-2, 1e-3, 1e-4, 1e-5), caps=(5, 10, 20, 40), points=(50, 150),
+def beam_pareto(entry, cases: list[dict], *, gtols=(1e-2, 1e-3, 3e-4, 1e-4, 1e-5), caps=(5, 10, 20, 40), points=(50, 150),
                 fem_gtols=(1e-3, 1e-4), fem_cases: int = 6) -> list[dict]:
     """The beam's sweep: the liver's knobs over these cases (the Newton method on the first
     `fem_cases`, 10 s per registration at most)."""
