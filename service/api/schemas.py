@@ -159,6 +159,10 @@ class SessionSettings(_Request):
     time_budget_ms: Finite | None = Field(
         None, gt=0, le=3_600_000, description="per frame: past it the frame returns its best iterate with status time_limit"
     )
+    noise: Finite | None = Field(
+        None, gt=0, le=1, description="per-axis noise of the clouds, m: alpha then follows the discrepancy principle "
+        "frame by frame, from its default upwards (each frame's result says its alpha); not with alpha; squared loss",
+    )
     matching: Triangles | None = Field(
         None, description="triangles the points may lie on (default: the whole boundary)"
     )
@@ -346,6 +350,7 @@ class SessionConfigOut(_Reply):
     loss_param: float | None
     carry_curvature: bool
     precondition: bool
+    noise: float | None
     skip_stale: bool
 
 
@@ -384,6 +389,7 @@ class FrameResult(_Reply):
     iterations: int
     evaluations: int
     net_force: Vec3
+    alpha: float | None = Field(None, description="the regularisation weight the frame ran with")
     displacement: list[Vec3] | None = None
     surface_displacement: list[Vec3] | None = Field(None, description="in the order of the mesh's surface_nodes")
     forces: list[Vec3] | None = Field(None, description="(k, 3) aligned with `support`")

@@ -27,7 +27,7 @@ from .sessions import Held, Reservation, SessionRegistry
 
 log = logging.getLogger(__name__)
 
-_FIELDS = ("method", "alpha", "gtol", "max_iter", "force_bound", "time_budget_ms", "warm_start", "E", "loss", "loss_param", "carry_curvature", "precondition")
+_FIELDS = ("method", "alpha", "gtol", "max_iter", "force_bound", "time_budget_ms", "warm_start", "E", "loss", "loss_param", "carry_curvature", "precondition", "noise")
 
 
 def _ms(t0: float) -> float:
@@ -126,6 +126,7 @@ def frame_payload(result) -> dict:
         "iterations": int(result.iterations),
         "evaluations": int(result.evaluations),
         "net_force": result.net_force,
+        "alpha": float(result.alpha),
     }
     out.update(result.outputs)
     if "forces" in result.outputs:

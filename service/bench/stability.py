@@ -56,8 +56,10 @@ def stability_cases(
     for mm in (0.5, 1.0, 2.0):
         c = noisy(base, noise=mm * 1e-3, seed=int(mm * 10))
         out.append((c.with_clouds(c.clouds, f"noise {mm} mm"), {}))
-    # the same 2 mm clouds with the regularisation raised to the noise (alpha 100x): the
-    # default alpha lets L-BFGS fit the noise with forces (measured: 2.0 against 0.39 mm)
+        if mm >= 1.0:  # the same clouds with their noise given: alpha by the discrepancy principle
+            out.append((c.with_clouds(c.clouds, f"noise {mm} mm, noise given"), {"noise": mm * 1e-3}))
+    # the same 2 mm clouds with the regularisation raised by hand (alpha 100x): the default
+    # alpha lets L-BFGS fit the noise with forces (measured: 2.0 against 0.39 mm)
     out.append((c.with_clouds(c.clouds, "noise 2.0 mm, alpha 1e-5"), {"alpha": 1e-5}))
     for frac in (0.1, 0.3):
         c = noisy(base, outliers=frac, seed=int(frac * 100))

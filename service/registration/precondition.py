@@ -189,5 +189,10 @@ class Curvature:
         P.set_step(grad)
         return P
 
+    def shift(self, d: float) -> None:
+        """The regulariser's weight moved by d: its Hessian is alpha I, so B moves by d I."""
+        if self.B is not None and d != 0.0:
+            self.B[np.diag_indices_from(self.B)] += d
+
     def reset(self) -> None:
         self.B, self.pairs = None, 0

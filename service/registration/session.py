@@ -25,6 +25,7 @@ import numpy as np
 from ..fem.assembly import Assembler
 from ..fem.material import NeoHookean
 from ..mesh import TetMesh
+from .discrepancy import AlphaTracker
 from .distance import PointToSurface
 from .engine import SolveOptions, solve_frame
 from .forward import ForwardFailed, ForwardModel, check_support
@@ -67,6 +68,8 @@ class SessionConfig:
     precondition: bool = False  # damped Gauss-Newton from the rest Jacobian where no carried
     # curvature applies (cold starts): for whole-surface clouds (the beam); both methods
     time_budget_ms: float | None = None  # per frame: past it, the best iterate (status time_limit)
+    noise: float | None = None  # per-axis noise of the clouds (m): alpha then follows the
+    # discrepancy principle over the stream, from the default upwards (discrepancy.py); squared loss
 
 
 @dataclasses.dataclass
@@ -82,6 +85,7 @@ class FrameResult:
     timing_ms: dict[str, float]
     support: Array  # (k,) the node ids the forces are aligned with
     outputs: dict[str, Array]  # only the requested ones
+    alpha: float  # the regularisation weight this frame ran with
     message: str = ""
 
 
@@ -115,6 +119,13 @@ class Session:
         support = default_support(model) if config.support is None else check_support(self.mesh, np.asarray(config.support))
         gtol = config.gtol if config.gtol is not None else DEFAULT_GTOL.get(model.method, 1e-4)
         alpha = config.alpha if config.alpha is not None else DEFAULT_ALPHA * (E_model / float(model.material.E)) ** 2
+        self.alpha_tracker: AlphaTracker | None = None
+        if config.noise is not None:
+            if config.alpha is not None:
+                raise ValueError("give alpha or noise, not both: noise chooses alpha frame by frame")
+            if config.loss != "squared":
+                raise ValueError(f"noise chooses alpha for the squared loss only, not {config.loss!r}")
+            self.alpha_tracker = AlphaTracker(alpha, config.noise)  # starts at the default
         self.config = dataclasses.replace(config, E=float(model.material.E), gtol=gtol, alpha=alpha)
         self._options = SolveOptions(
             alpha=alpha, gtol=gtol, max_iter=config.max_iter, force_bound=config.force_bound,
@@ -159,7 +170,10 @@ class Session:
             self.distance.bind(points)
             g0 = self.g if self.config.warm_start else np.zeros_like(self.g)
             fallbacks = (self._anchor,) if self.config.warm_start else ()
-            sol = solve_frame(self.op, self.distance, self._rest, g0, self._options, self.curvature, fallbacks)
+            options = self._options
+            if self.alpha_tracker is not None:
+                options = dataclasses.replace(options, alpha=self.alpha_tracker.alpha)
+            sol = solve_frame(self.op, self.distance, self._rest, g0, options, self.curvature, fallbacks)
             t1 = time.perf_counter()
             if sol.status in FAILED:
                 self.op.reset()
@@ -170,6 +184,11 @@ class Session:
                 self.g = sol.g
                 if sol.converged:
                     self._anchor = sol.g
+                if self.alpha_tracker is not None:
+                    before = self.alpha_tracker.alpha
+                    after = self.alpha_tracker.update(sol.objective, sol.converged)
+                    if self.curvature is not None:
+                        self.curvature.shift(after - before)
             outputs, rms = self._outputs(sol.g)
             timing = sol.timing.as_ms()
             timing["outputs"] = 1e3 * (time.perf_counter() - t1)
@@ -189,6 +208,7 @@ class Session:
                 timing_ms=timing,
                 support=self.support,
                 outputs=outputs,
+                alpha=options.alpha,
                 message=sol.message,
             )
 

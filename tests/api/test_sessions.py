@@ -32,7 +32,7 @@ def test_open_echoes_every_setting(http, entry):
     assert (c["alpha"], c["gtol"], c["max_iter"]) == (DEFAULT_ALPHA, DEFAULT_GTOL["network"], DEFAULTS.max_iter)
     assert c["outputs"] == ["displacement", "forces"] and c["warm_start"] is True and c["skip_stale"] is False
     assert c["E"] == 4500.0 and c["force_bound"] is None and c["loss"] == "squared" and c["time_budget_ms"] is None
-    assert c["precondition"] is False
+    assert c["precondition"] is False and c["noise"] is None
     np.testing.assert_array_equal(c["support"], entry.region)  # the default: the load region
     np.testing.assert_array_equal(c["matching"], entry.mesh.surface_faces)
     assert http.delete(f"/sessions/{body['session']}").status_code == 204
@@ -127,6 +127,27 @@ def test_time_budget_cuts_a_frame_short(http, support, clouds):
     r = http.post("/sessions", json={"model": "bar", "time_budget_ms": -1})
     assert r.status_code == 422 and "time_budget_ms" in r.text
     http.delete(f"/sessions/{sid}")
+
+
+def test_noise_chooses_alpha_frame_by_frame(http, support, clouds):
+    """With the clouds' noise given, the config echoes it and the default alpha it starts from;
+    each frame says the alpha it ran with, which rises on clouds noisier than the fit; noise
+    together with alpha, or a non-positive noise, is a 422."""
+    body = open_session(http, support=support.tolist(), noise=0.05, outputs=["forces"])
+    assert body["config"]["noise"] == 0.05 and body["config"]["alpha"] == DEFAULT_ALPHA
+    sid = body["session"]
+    rng = np.random.default_rng(0)
+    alphas = []
+    for cloud in clouds[1:5]:
+        noisy = cloud + rng.normal(scale=0.05, size=cloud.shape)
+        r = http.post(f"/sessions/{sid}/frames", json={"points": noisy.tolist()})
+        assert r.status_code == 200
+        alphas.append(r.json()["alpha"])
+    assert alphas[0] == DEFAULT_ALPHA and alphas[-1] > alphas[0]
+    http.delete(f"/sessions/{sid}")
+    for bad in ({"noise": 0.01, "alpha": 1e-6}, {"noise": 0}, {"noise": -1}):
+        r = http.post("/sessions", json={"model": "bar", **bad})
+        assert r.status_code == 422 and ("noise" in r.text), r.text
 
 
 def test_unknown_session_explains_affinity(http, small, clouds, support):

@@ -4,7 +4,7 @@ cold start preconditioned with it registers as well as one without."""
 import numpy as np
 import pytest
 
-from service.registration.precondition import LowRankPreconditioner
+from service.registration.precondition import Curvature, LowRankPreconditioner
 from service.registration.session import Session, SessionConfig
 from service.store import load_entry
 from service.synthetic import make_sequence
@@ -63,3 +63,15 @@ def test_cold_start_with_gauss_newton_registers_as_well(entry, method):
         print(f"{method}: plain {plain.iterations} it, {err[0]:.2e}; Gauss-Newton {gn.iterations} it, {err[1]:.2e}")
         assert gn.converged
         assert err[1] <= 1.5 * err[0] + 1e-3 * np.linalg.norm(truth - mesh.nodes, axis=1).mean()
+
+
+def test_curvature_follows_a_change_of_alpha():
+    """The regulariser's Hessian is alpha I: a carried model moves by exactly the change."""
+    rng = np.random.default_rng(1)
+    c = Curvature(6)
+    gs = [rng.normal(size=6) for _ in range(5)]
+    A = np.diag(np.arange(1.0, 7.0))
+    c.update(gs, [A @ g for g in gs])
+    before = c.B.copy()
+    c.shift(0.25)
+    np.testing.assert_allclose(c.B, before + 0.25 * np.eye(6))

@@ -1,6 +1,8 @@
 """Streams: warm starts, requested outputs only, and frames that must not break
 a session (far-away clouds, non-finite clouds)."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -121,3 +123,42 @@ def test_a_stiffer_session_solves_the_same_problem_in_scaled_forces(entry, seque
     np.testing.assert_allclose(b.net_force, 10 * a.net_force, rtol=0.03, atol=0.03 * np.linalg.norm(10 * a.net_force))
     given = Session(model, SessionConfig(method=method, support=support, alpha=1e-6, E=10 * model.material.E))
     assert given.config.alpha == 1e-6
+
+
+@pytest.mark.parametrize("method", ["network", "fem"])
+def test_noise_sets_alpha_by_the_discrepancy_principle(entry, method):
+    """Given the clouds' noise, alpha rises from its default until the fit stops following the
+    noise, and the shapes come out closer to the truth than at the default alpha (195 force
+    unknowns against 100 noisy points: the default fits the noise); a noise level below what
+    the fit leaves anyway keeps the default."""
+    mesh = entry.mesh
+    tip = entry.region[np.argsort(mesh.nodes[entry.region, 0])[-6:]]
+    seq = make_sequence(mesh, entry.fem.material, tip, n_frames=16, peak_force=30.0, n_points=100, seed=3)
+    model = entry.network if method == "network" else entry.fem
+    rng = np.random.default_rng(0)
+    sigma = 0.05  # m, against tip displacements up to 0.1 m
+    clouds = [c + rng.normal(scale=sigma, size=c.shape) for c in seq.clouds]
+    base = SessionConfig(method=method, outputs=("displacement",))
+    tre, alphas = {}, {}
+    for label, config in (("default", base), ("noise", dataclasses.replace(base, noise=sigma)),
+                          ("tiny", dataclasses.replace(base, noise=1e-6))):
+        s = Session(model, config)
+        results = [s.frame(c) for c in clouds]
+        alphas[label] = [r.alpha for r in results]
+        tre[label] = np.mean([np.linalg.norm(mesh.nodes + r.outputs["displacement"] - x, axis=1).mean()
+                              for r, x in zip(results[6:], seq.positions[6:])])
+    print(method, {k: round(v * 1e3, 1) for k, v in tre.items()}, alphas["noise"][::3])
+    default = alphas["default"][0]
+    assert alphas["default"] == [default] * len(clouds) and alphas["noise"][0] == default
+    assert min(alphas["noise"][4:]) > 3 * default  # it rose, and stayed up
+    assert tre["noise"] < 0.7 * tre["default"]  # measured: about half
+    assert alphas["tiny"] == alphas["default"]
+
+
+def test_noise_and_alpha_are_one_choice(entry):
+    with pytest.raises(ValueError, match="alpha or noise"):
+        Session(entry.network, SessionConfig(alpha=1e-6, noise=1e-3))
+    with pytest.raises(ValueError, match="squared loss"):
+        Session(entry.network, SessionConfig(noise=1e-3, loss="huber", loss_param=1e-3))
+    with pytest.raises(ValueError, match="positive length"):
+        Session(entry.network, SessionConfig(noise=-1.0))
