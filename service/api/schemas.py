@@ -160,8 +160,9 @@ class SessionSettings(_Request):
         None, gt=0, le=3_600_000, description="per frame: past it the frame returns its best iterate with status time_limit"
     )
     noise: Finite | None = Field(
-        None, gt=0, le=1, description="per-axis noise of the clouds, m: alpha then follows the discrepancy principle "
-        "frame by frame, from its default upwards (each frame's result says its alpha); not with alpha; squared loss",
+        None, gt=0, le=1, description="per-axis noise of the clouds, m: alpha then follows the forces' MAP estimate "
+        "frame by frame, sigma^2 / (points x mean force^2), from its default up to 100x it (each frame's result "
+        "says its alpha); not with alpha; squared loss",
     )
     matching: Triangles | None = Field(
         None, description="triangles the points may lie on (default: the whole boundary)"

@@ -56,7 +56,7 @@ def stability_cases(
     for mm in (0.5, 1.0, 2.0):
         c = noisy(base, noise=mm * 1e-3, seed=int(mm * 10))
         out.append((c.with_clouds(c.clouds, f"noise {mm} mm"), {}))
-        if mm >= 1.0:  # the same clouds with their noise given: alpha by the discrepancy principle
+        if mm >= 1.0:  # the same clouds with their noise given: alpha from noise_prior
             out.append((c.with_clouds(c.clouds, f"noise {mm} mm, noise given"), {"noise": mm * 1e-3}))
     # the same 2 mm clouds with the regularisation raised by hand (alpha 100x): the default
     # alpha lets L-BFGS fit the noise with forces (measured: 2.0 against 0.39 mm)

@@ -25,7 +25,7 @@ import numpy as np
 from ..fem.assembly import Assembler
 from ..fem.material import NeoHookean
 from ..mesh import TetMesh
-from .discrepancy import AlphaTracker
+from .noise_prior import AlphaTracker
 from .distance import PointToSurface
 from .engine import SolveOptions, solve_frame
 from .forward import ForwardFailed, ForwardModel, check_support
@@ -68,8 +68,8 @@ class SessionConfig:
     precondition: bool = False  # damped Gauss-Newton from the rest Jacobian where no carried
     # curvature applies (cold starts): for whole-surface clouds (the beam); both methods
     time_budget_ms: float | None = None  # per frame: past it, the best iterate (status time_limit)
-    noise: float | None = None  # per-axis noise of the clouds (m): alpha then follows the
-    # discrepancy principle over the stream, from the default upwards (discrepancy.py); squared loss
+    noise: float | None = None  # per-axis noise of the clouds (m): alpha then follows the forces'
+    # MAP estimate with a prior the stream's frames estimate, from the default up (noise_prior.py)
 
 
 @dataclasses.dataclass
@@ -186,7 +186,7 @@ class Session:
                     self._anchor = sol.g
                 if self.alpha_tracker is not None:
                     before = self.alpha_tracker.alpha
-                    after = self.alpha_tracker.update(sol.objective, sol.converged)
+                    after = self.alpha_tracker.update(sol.g, len(points))
                     if self.curvature is not None:
                         self.curvature.shift(after - before)
             outputs, rms = self._outputs(sol.g)

@@ -126,11 +126,11 @@ def test_a_stiffer_session_solves_the_same_problem_in_scaled_forces(entry, seque
 
 
 @pytest.mark.parametrize("method", ["network", "fem"])
-def test_noise_sets_alpha_by_the_discrepancy_principle(entry, method):
-    """Given the clouds' noise, alpha rises from its default until the fit stops following the
-    noise, and the shapes come out closer to the truth than at the default alpha (195 force
-    unknowns against 100 noisy points: the default fits the noise); a noise level below what
-    the fit leaves anyway keeps the default."""
+def test_noise_sets_alpha_from_the_forces_prior(entry, method):
+    """Given the clouds' noise, alpha rises from its default towards the forces' MAP weight and
+    the shapes come out closer to the truth than at the default alpha (195 force unknowns
+    against 100 noisy points: the default fits the noise); a negligible noise keeps the
+    default (the rule asks for less than it)."""
     mesh = entry.mesh
     tip = entry.region[np.argsort(mesh.nodes[entry.region, 0])[-6:]]
     seq = make_sequence(mesh, entry.fem.material, tip, n_frames=16, peak_force=30.0, n_points=100, seed=3)
