@@ -169,9 +169,10 @@ def main(args: argparse.Namespace) -> int:
             named = {args.liver_model: liver_entry, **{k: e for k, e in entries.items() if k.startswith(args.liver_model + "_")}}
             variants = {_surrogate_label(k, e.manifest["network"]): e.network for k, e in named.items()}
         if args.smoke is not None:
-            sweep = dict(gtols=(1e-2, 1e-4), caps=(5,), points=(50,), fem_gtols=(1e-2,), fem_frames=2)
+            sweep = dict(gtols=(1e-2, 1e-4), caps=(5,), points=(50,), fem_gtols=(1e-2,), fem_frames=2, alphas=(1e-6,))
         elif quick:
-            sweep = dict(gtols=(1e-2, 1e-3, 1e-4, 1e-5), caps=(5, 20), points=(100, 500), fem_gtols=(1e-3, 1e-4), fem_frames=4)
+            sweep = dict(gtols=(1e-2, 1e-3, 1e-4, 1e-5), caps=(5, 20), points=(100, 500), fem_gtols=(1e-3, 1e-4), fem_frames=4,
+                         alphas=(3e-8,))
         else:
             sweep = {}
         rows = pareto_part(liver_entry, case, variants=variants, **sweep)
