@@ -10,6 +10,9 @@ tries the last converged frame's forces and starts from the better of the two (a
 garbage, a kilometre away say, costs one evaluation, not the frames after it), and only
 converged frames teach the carried curvature.
 
+A session told its clouds' noise moves alpha after every frame that did not fail
+(:mod:`.noise_prior`), and shifts the carried curvature by the same amount.
+
 Only the outputs the session asks for are computed: the optimisation itself reads the
 displacement of the matching surface's nodes alone.
 """
@@ -25,10 +28,10 @@ import numpy as np
 from ..fem.assembly import Assembler
 from ..fem.material import NeoHookean
 from ..mesh import TetMesh
-from .noise_prior import AlphaTracker
 from .distance import PointToSurface
 from .engine import SolveOptions, solve_frame
 from .forward import ForwardFailed, ForwardModel, check_support
+from .noise_prior import AlphaTracker
 from .precondition import Curvature
 
 Array = np.ndarray
