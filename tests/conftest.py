@@ -82,3 +82,11 @@ def bar_store(tmp_path_factory, bar):
     report = build(scene, root / "store", workers=0, data_root=root / "data", config=config,
                    command="elastreg train bar.toml", progress=False)
     return root / "store", report
+
+
+@pytest.fixture(scope="session")
+def entry(bar_store):
+    """The bar's trained entry, loaded in the test process."""
+    from service.store import load_entry
+
+    return load_entry(bar_store[0] / "bar")

@@ -118,16 +118,18 @@ class SessionRegistry:
 
     # -- use ---------------------------------------------------------------------------------------
 
+    def _find(self, session_id: str, kind: str | None, instead: str) -> Held:
+        """The held session (under the lock); `instead` tells a caller of the wrong kind what to do."""
+        held = self._held.get(session_id)
+        if held is None:
+            raise SessionNotFound(self._not_found(session_id))
+        if kind is not None and held.kind != kind:
+            raise WrongKind(f"session {session_id!r} belongs to a WebSocket stream: {instead}")
+        return held
+
     def get(self, session_id: str, *, kind: str | None = None, touch: bool = True) -> Held:
         with self._lock:
-            held = self._held.get(session_id)
-            if held is None:
-                raise SessionNotFound(self._not_found(session_id))
-            if kind is not None and held.kind != kind:
-                raise WrongKind(
-                    f"session {session_id!r} belongs to a WebSocket stream: send its frames on that "
-                    "socket, and close the socket to end it"
-                )
+            held = self._find(session_id, kind, "send its frames on that socket, and close the socket to end it")
             if touch:
                 held.touched = self.clock()
             return held
@@ -145,13 +147,7 @@ class SessionRegistry:
 
     def close(self, session_id: str, *, kind: str | None = None, why: str = "closed") -> Held:
         with self._lock:
-            held = self._held.get(session_id)
-            if held is None:
-                raise SessionNotFound(self._not_found(session_id))
-            if kind is not None and held.kind != kind:
-                raise WrongKind(
-                    f"session {session_id!r} belongs to a WebSocket stream: close the socket to end it"
-                )
+            held = self._find(session_id, kind, "close the socket to end it")
             del self._held[session_id]
             self._forget(session_id, why)
             return held

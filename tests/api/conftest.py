@@ -12,7 +12,6 @@ import pytest
 
 from service.api.server import BackgroundServer
 from service.config import Settings
-from service.store import load_entry
 from service.synthetic import sample_surface
 
 MAX_POINTS = 3000
@@ -64,12 +63,6 @@ def small(bar_store):
     server = start(bar_store[0], instance_id="beta", max_sessions=2, session_ttl_s=2.0, sweep_interval_s=0.1)
     yield Live(server)
     server.stop()
-
-
-@pytest.fixture(scope="session")
-def entry(bar_store):
-    """The same model, loaded in the test process (for in-process reference runs)."""
-    return load_entry(bar_store[0] / "bar")
 
 
 @pytest.fixture(scope="session")

@@ -9,15 +9,9 @@ from service.fem.model import FEMModel
 from service.fem.newton import NewtonOptions
 from service.registration.distance import PointToSurface
 from service.registration.engine import Objective, SolveOptions, solve_frame
-from service.store import load_entry
 from service.synthetic import sample_surface
 
 MAT = NeoHookean(4500.0, 0.45)
-
-
-@pytest.fixture(scope="module")
-def entry(bar_store):
-    return load_entry(bar_store[0] / "bar")
 
 
 def tip_support(mesh, region=None):

@@ -6,7 +6,6 @@ import pytest
 
 from service.registration.precondition import Curvature, LowRankPreconditioner
 from service.registration.session import Session, SessionConfig
-from service.store import load_entry
 from service.synthetic import make_sequence
 
 
@@ -26,11 +25,6 @@ def test_low_rank_factor_is_exact():
     assert w @ w == pytest.approx(v @ np.linalg.solve(H, v), rel=1e-10)
     np.testing.assert_allclose(P.to_z(P.to_g(z)), z, rtol=1e-10, atol=1e-12)
     assert P.grad_z(v) @ z * P.value_scale == pytest.approx(v @ P.to_g(z), rel=1e-10)
-
-
-@pytest.fixture(scope="module")
-def entry(bar_store):
-    return load_entry(bar_store[0] / "bar")
 
 
 def test_fem_low_rank_jacobian_is_the_small_load_response(entry):

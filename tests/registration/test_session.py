@@ -7,13 +7,7 @@ import numpy as np
 import pytest
 
 from service.registration.session import Session, SessionConfig
-from service.store import load_entry
 from service.synthetic import make_sequence
-
-
-@pytest.fixture(scope="module")
-def entry(bar_store):
-    return load_entry(bar_store[0] / "bar")
 
 
 @pytest.fixture(scope="module")
