@@ -15,33 +15,23 @@ from __future__ import annotations
 import argparse
 import csv
 import dataclasses
-import time
 from pathlib import Path
 
 import numpy as np
 
-from service.bench.cases import Case, liver_paper_case, noisy
+from service.bench.cases import Case, liver_paper_case, noisy, run_case, summarise
 from service.bench.liver import FEM, FEM_BUDGET_MS, NETWORK, own_sequences
 from service.config import limit_threads
-from service.registration.session import Session
 from service.store import load_entry
 
 
 def stream(model, case: Case, config) -> dict:
-    config = dataclasses.replace(config, support=tuple(map(int, case.support)), outputs=("displacement", "forces"),
-                                 matching=None if case.matching is None else tuple(map(tuple, case.matching.tolist())))
-    session = Session(model, config)
-    tre, fe, ms, alpha = [], [], [], []
-    for k, cloud in enumerate(case.clouds):
-        t0 = time.perf_counter()
-        r = session.frame(cloud)
-        ms.append(1e3 * (time.perf_counter() - t0))
-        tre.append(1e3 * float(np.linalg.norm(case.mesh.nodes + r.outputs["displacement"] - case.positions[k], axis=1).mean()))
-        truth = case.net_forces[k]
-        fe.append(100 * float(np.linalg.norm(r.net_force - truth) / np.linalg.norm(truth)))
-        alpha.append(r.alpha)
-    return {"tre_mm": float(np.mean(tre)), "force_error_pct": float(np.mean(fe)), "ms": float(np.median(ms[1:])),
-            "alpha": float(np.median(alpha[len(alpha) // 4:]))}
+    """One session over the case: mean TRE and force error, median warm ms, and the alpha the
+    later frames ran with."""
+    records = run_case(model, case, config)
+    s = summarise(records)
+    return {"tre_mm": s["tre_mean_mm"], "force_error_pct": s["force_error_mean_pct"], "ms": s["ms_median"],
+            "alpha": float(np.median([r.alpha for r in records[len(records) // 4:]]))}
 
 
 def main() -> None:

@@ -46,9 +46,9 @@ def beam_loads(mesh, max_force: float, n: int, rng: np.random.Generator) -> list
 
 #: the benchmark's setting: from rest, so the stream's carried curvature never applies and the
 #: damped Gauss-Newton preconditioner does (measured at gtol 1e-4 with the earlier surrogate: 43
-#: iterations, all converged, against 133 and 71 % without); gtol 1e-3, the loosest tolerance that matches the paper's error (RMS
-#: 4.6e-5 m against its 6e-5 on the first 30 cases; 3e-4 gives 2.7e-5 for a quarter more
-#: time, and the sweep below shows the rest)
+#: iterations, all converged, against 133 and 71 % without); gtol 1e-3, the loosest tolerance
+#: that matches the paper's error (RMS 4.6e-5 m against its 6e-5 on the first 30 cases; 3e-4
+#: gives 2.7e-5 for a quarter more time, and the sweep below shows the rest)
 CONFIG = SessionConfig(method="network", gtol=1e-3, max_iter=300, warm_start=False, outputs=("displacement",), precondition=True)
 
 

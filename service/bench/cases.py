@@ -64,6 +64,7 @@ class FrameRecord:
     status: str
     converged: bool
     finite: bool  # no NaN or infinity anywhere in the result
+    alpha: float | None = None  # the regularisation weight the frame ran with
 
 
 def liver_paper_case() -> Case:
@@ -137,7 +138,8 @@ def run_case(model, case: Case, config: SessionConfig, method: str | None = None
         tre = float(np.linalg.norm(rest + u - case.positions[k], axis=1).mean() * 1e3) if finite else float("nan")
         true_f = case.net_forces[k]
         fe = float(np.linalg.norm(r.net_force - true_f) / max(np.linalg.norm(true_f), 1e-300) * 100)
-        out.append(FrameRecord(case.name, method or model.method, k, tre, fe, ms, r.iterations, r.evaluations, r.status, r.converged, finite))
+        out.append(FrameRecord(case.name, method or model.method, k, tre, fe, ms, r.iterations, r.evaluations, r.status, r.converged, finite,
+                               r.alpha))
     return out
 
 

@@ -81,7 +81,6 @@ class LowRankPreconditioner(_Whitened):
         self._inv = (Linv - np.eye(len(S)) / self.root).astype(Q.dtype)  # whiten
         self.c = 1.0
 
-
     def whiten(self, v: Array) -> Array:
         """L^-1 v = v / sqrt(lam) + Q (L_S^-1 - I / sqrt(lam)) Q^T v."""
         a = self.Q.T @ v.astype(self.Q.dtype)
@@ -94,7 +93,6 @@ class LowRankPreconditioner(_Whitened):
     def to_z(self, g: Array) -> Array:
         a = self.Q.T @ g.astype(self.Q.dtype)
         return (self.root * g + (self.Q @ (self._fwd @ a)).astype(np.float64)) / self.c
-
 
 
 def gauss_newton(U: Array, Q: Array, faces: Array, bary: Array, normals: Array, alpha: float,
@@ -127,7 +125,6 @@ class Preconditioner(_Whitened):
         self.Linv = sla.solve_triangular(self.L, np.eye(len(H)), lower=True, check_finite=False)
         self.c = 1.0
 
-
     def whiten(self, v: Array) -> Array:
         return self.Linv @ v
 
@@ -136,7 +133,6 @@ class Preconditioner(_Whitened):
 
     def to_z(self, g: Array) -> Array:
         return self.L.T @ g / self.c
-
 
 
 class Curvature:
