@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
-from scipy.linalg.blas import dger
+from scipy.linalg.blas import dger, dtrsv
 
 Array = np.ndarray
 
@@ -119,17 +119,17 @@ class Preconditioner(_Whitened):
     """g = c L^-T z for a dense H = L L^T (the carried curvature)."""
 
     def __init__(self, H: Array) -> None:
-        self.L = sla.cholesky(H, lower=True, check_finite=False)
-        # L^-1 once: every evaluation then whitens with a matrix-vector product instead of
-        # a triangular solve's call overhead (K <= 600, so K^2 floats is small)
-        self.Linv = sla.solve_triangular(self.L, np.eye(len(H)), lower=True, check_finite=False)
+        # Fortran order for BLAS; each evaluation then whitens with one triangular solve (BLAS
+        # trsv: 14 us at K = 180, against 9 us for a product with an explicit L^-1, whose
+        # forming cost 0.64 ms per frame there and grows as K^3)
+        self.L = np.asfortranarray(sla.cholesky(H, lower=True, check_finite=False))
         self.c = 1.0
 
     def whiten(self, v: Array) -> Array:
-        return self.Linv @ v
+        return dtrsv(self.L, v, lower=1)
 
     def to_g(self, z: Array) -> Array:
-        return self.c * (self.Linv.T @ z)
+        return self.c * dtrsv(self.L, z, lower=1, trans=1)
 
     def to_z(self, g: Array) -> Array:
         return self.L.T @ g / self.c
