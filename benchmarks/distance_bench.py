@@ -29,7 +29,7 @@ import numpy as np
 
 from service.mesh import TetMesh
 
-LIVER = Path("/work/shared/meshes/liver_paper")
+LIVER = Path(__file__).resolve().parents[2] / "shared" / "meshes" / "liver_paper"  # ../shared
 SEQUENCE = LIVER / "sequences/neohookean/s1"
 #: The evaluations of one frame, as interpolation parameters between frames k - 1 (0) and k (1):
 #: three probes overshoot by 2-3 times the frame's motion, then the search comes back.

@@ -24,7 +24,7 @@ BACKENDS = [
     "numpy",
     pytest.param("numba", marks=pytest.mark.skipif(not numba_available(), reason="no numba")),
 ]
-LIVER = Path("/work/shared/meshes/liver_paper")
+LIVER = Path(__file__).resolve().parents[3] / "shared" / "meshes" / "liver_paper"  # ../shared
 
 
 # -- references -----------------------------------------------------------------------------------
@@ -271,6 +271,26 @@ def assert_exact_candidates(S, x):
         assert got >= set(np.flatnonzero(D[j] <= limit[j] - slack[j]).tolist())
         assert got <= set(np.flatnonzero(D[j] <= limit[j] + slack[j]).tolist())
     np.testing.assert_array_equal(ix.active[ix.tri], ix.face)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_gradient_lives_on_the_gradient_nodes(backend):
+    """A pullback may read out through gradient_nodes alone: the gradient is zero elsewhere,
+    and the array is the same object while the index lives (the pullback's cache key)."""
+    rng = np.random.default_rng(11)
+    x, faces = blob()
+    S = PointToSurface(faces, backend=backend)
+    assert S.gradient_nodes is None
+    S.bind(cloud_near(x, faces, rng, 40)[:10])  # a few points: most nodes get no gradient
+    _, grad = S(x)
+    rows = S.gradient_nodes
+    assert 0 < rows.size < S.n_nodes and np.all(np.diff(rows) > 0)
+    off = np.setdiff1d(np.arange(S.n_nodes), rows)
+    assert np.all(grad[off] == 0) and np.any(grad[rows] != 0)
+    S(x + 1e-9)  # well within the margin: same index, same object
+    assert S.gradient_nodes is rows
+    S(x + 0.3)  # far: a new index, a new node set
+    assert S.gradient_nodes is not rows
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
