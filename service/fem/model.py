@@ -121,7 +121,7 @@ class FEMOperator:
             asm, solver = self.model.assembler, self._rest_solver()
             nodes, support, mesh = self.nodes, self.support, self.mesh
 
-            def rest_pullback(u_bar: Array) -> Array:
+            def rest_pullback(u_bar: Array, rows: Array | None = None) -> Array:
                 rhs = np.zeros((mesh.n_nodes, 3))
                 np.add.at(rhs, nodes, u_bar)
                 return asm.unpack(solver.solve(asm.pack(rhs)))[support]
@@ -132,7 +132,7 @@ class FEMOperator:
         u = res.u
         nodes, support, mesh = self.nodes, self.support, self.mesh
 
-        def pullback(u_bar: Array) -> Array:
+        def pullback(u_bar: Array, rows: Array | None = None) -> Array:
             rhs = np.zeros((mesh.n_nodes, 3))
             np.add.at(rhs, nodes, u_bar)
             b = asm.pack(rhs)

@@ -646,6 +646,7 @@ class _Index:
     start: Array  # (m + 1,) first pair of each point, then P
     tri: Array  # (P,) the same, as a position in `active`
     active: Array  # (T,) every face that is some point's candidate
+    nodes: Array  # (q,) sorted nodes of those faces: the gradient is zero on every other node
     slot: Array | None = None  # (P,) flat position in an (m, width) table; None if lists are full
     width: int = 0  # length of the longest candidate list
     y: Array | None = None  # (3, P) each pair's point, coordinates first
@@ -814,6 +815,13 @@ class PointToSurface:
     @property
     def n_nodes(self) -> int:
         return int(self.nodes.size)
+
+    @property
+    def gradient_nodes(self) -> Array | None:
+        """The nodes (rows of x) of the last evaluation's candidate triangles: its gradient is
+        zero on every other row, so a model's pullback may read out through these alone. The
+        same array object while the index lives (a cache key). None before an evaluation."""
+        return None if self._index is None else self._index.nodes
 
     @property
     def n_pairs(self) -> int:
@@ -1090,7 +1098,9 @@ class PointToSurface:
         if self._kernels is not None:
             active, tri = np.empty(face.size, np.intp), np.empty(face.size, np.intp)
             n = self._kernels.activate(face, np.empty(len(self.faces), np.intp), active, tri)
-            return _Index(x0=x.copy(), margin=M, face=face, start=start, tri=tri, active=active[:n])
+            active = active[:n]
+            return _Index(x0=x.copy(), margin=M, face=face, start=start, tri=tri, active=active,
+                          nodes=self._nodes_of(active))
         count = np.diff(start)
         rows = np.repeat(np.arange(m), count)
         width = int(count.max())
@@ -1106,10 +1116,16 @@ class PointToSurface:
             start=start,
             tri=tri,
             active=used,
+            nodes=self._nodes_of(used),
             slot=None if full else rows * width + (np.arange(face.size) - start.take(rows)),
             width=width,
             y=self._yt.take(rows, axis=1),
         )
+
+    def _nodes_of(self, active: Array) -> Array:
+        mark = np.zeros(self.n_nodes, bool)
+        mark[self.faces.take(active, axis=0)] = True
+        return np.flatnonzero(mark)
 
     def _candidates_compiled(self, x: Array, h: _Hierarchy, M: float) -> tuple[Array, Array]:
         """Face (P,) and start (m + 1,) of a build, from the hierarchy refitted at x."""

@@ -10,7 +10,10 @@ optimisation needs; the operator may keep warm-start state, so it belongs to one
     u_all = op.displacement(g)         # the full field, once the optimisation is done
 
 The pullback is the vector-Jacobian product (the adjoint): backpropagation for the network, the
-transposed tangent solve for the FEM. It is valid until the operator's next call.
+transposed tangent solve for the FEM. It is valid until the operator's next call. Its optional
+``rows`` (q,) names the only rows of u_bar that may be nonzero (the distance's candidate nodes,
+a fifth of the liver's matching surface); an operator may use the hint to read out through
+those rows alone (the network does) or ignore it (the FEM does).
 :func:`torch_forward` wraps an operator as a torch autograd function.
 """
 
@@ -24,7 +27,7 @@ from ..fem.material import NeoHookean
 from ..mesh import TetMesh
 
 Array = np.ndarray
-Pullback = Callable[[Array], Array]
+Pullback = Callable[..., Array]  # (u_bar, rows=None) -> g_bar
 
 
 class ForwardFailed(RuntimeError):
@@ -41,7 +44,7 @@ class ForwardOperator(Protocol):
     nodes: Array  # (p,) node ids whose displacement __call__ returns
 
     def __call__(self, g: Array) -> tuple[Array, Pullback]:
-        """Shape: g (k, 3) -> u (p, 3), pullback (p, 3) -> (k, 3)."""
+        """Shape: g (k, 3) -> u (p, 3), pullback(u_bar (p, 3), rows=None) -> (k, 3)."""
 
     def displacement(self, g: Array) -> Array:
         """The displacement of every node. Shape: (k, 3) -> (n, 3)."""

@@ -134,6 +134,7 @@ class NetworkOperator:
         layers[0] = (np.ascontiguousarray(W0[:, cols] * x_scale), b0, a0)
         self._layers = layers
         self._jac: tuple[Array, Array] | None = None
+        self._row_cache: list[tuple[Array, Array]] = []  # (rows, the readout's rows), last used first
         self._at_rest: tuple[Array, Callable[[Array], Array]] | None = None
 
     def reset(self) -> None:  # stateless: nothing to forget
@@ -168,16 +169,16 @@ class NetworkOperator:
         u = self._readout @ y if self._readout is not None else y
         k = x.size // 3
 
-        def pullback(u_bar: Array) -> Array:
-            ub = np.asarray(u_bar, np.float32).reshape(-1)
-            if self._readout is not None:
-                # the distance's gradient lives on the closest triangles' nodes only: read out
-                # through those rows when they are fewer than half
-                rows = np.flatnonzero(ub)
-                R = self._readout
-                yb = R[rows].T @ ub[rows] if rows.size < 0.5 * ub.size else R.T @ ub
+        def pullback(u_bar: Array, rows: Array | None = None) -> Array:
+            if self._readout is None:
+                yb = np.asarray(u_bar, np.float32).reshape(-1)
+            elif rows is not None and rows.size < 0.5 * self.nodes.size:
+                # the distance's gradient lives on its candidate triangles' nodes (a fifth of
+                # the liver's matching surface): read out through their rows alone, gathered
+                # once per candidate index, not the whole (memory-bound) readout
+                yb = self._readout_rows(rows).T @ np.asarray(u_bar, np.float32)[rows].reshape(-1)
             else:
-                yb = ub
+                yb = self._readout.T @ np.asarray(u_bar, np.float32).reshape(-1)
             hb = W_last.T @ yb
             xb = self._skip.T @ yb if self._skip is not None else 0.0
             for W, slope in reversed(tape):
@@ -187,6 +188,19 @@ class NetworkOperator:
         u = u.astype(np.float64).reshape(-1, 3)
         u.flags.writeable = False  # shared by every call at rest
         return u, pullback
+
+    def _readout_rows(self, rows: Array) -> Array:
+        """The readout's rows of these nodes only (3q, r), for the few node sets in use
+        (a frame alternates between its indices), keyed by the array object."""
+        for i, (key, RT) in enumerate(self._row_cache):
+            if key is rows:
+                if i:
+                    self._row_cache.insert(0, self._row_cache.pop(i))
+                return RT
+        r = self._readout.shape[1]
+        R = self._readout.reshape(-1, 3, r).take(rows, axis=0).reshape(-1, r)
+        self._row_cache = [(rows, R), *self._row_cache[:3]]
+        return R
 
     def low_rank_jacobian(self) -> tuple[Array, Array] | None:
         """du/dg at g = 0 as U Q^T, Q orthonormal: the reduced network answers in r basis
