@@ -115,3 +115,43 @@ def test_non_finite_load_is_reported(bar):
     res = NewtonSolver(Assembler(bar, NeoHookean(4500.0, 0.49))).solve(g)
     assert not res.converged and res.status == "non_finite"
     assert np.isfinite(res.u).all()
+
+
+def test_tangent_solve_on_a_nearby_factor(bar):
+    """Conjugate gradients preconditioned by the factor of a nearby tangent: the exact solve
+    to the tolerance asked, or None where it cannot be (a far factor and a tight cap, an
+    indefinite matrix), never a wrong answer."""
+    import scipy.sparse.linalg as spla
+
+    asm = Assembler(bar, NeoHookean(4500.0, 0.49))
+    solver = NewtonSolver(asm)
+    u1 = solver.solve(tip_load(bar, [0.0, 0.0, -40.0])).u
+    u2 = solver.solve(tip_load(bar, [0.0, 0.0, -44.0]), u1).u
+    assert solver.factor_at(u1)
+    K2 = asm.tangent(u2)
+    b = np.random.default_rng(0).normal(size=K2.shape[0])
+    exact = spla.spsolve(K2.tocsc(), b)
+    x = solver.solve_tangent(K2, b, 1e-10)
+    np.testing.assert_allclose(x, exact, rtol=1e-8, atol=1e-10 * np.abs(exact).max())
+    far = asm.tangent(solver.solve(tip_load(bar, [0.0, 0.0, -150.0])).u)
+    assert solver.factor_at(u1)
+    assert solver.solve_tangent(far, b, 1e-12, max_iter=2) is None
+    assert solver.solve_tangent(-K2, b, 1e-6) is None  # negative curvature at once
+
+
+def test_warm_solves_mostly_reuse_the_factor_and_agree_with_fresh_ones(bar):
+    """A sequence of nearby loads from the last equilibrium (what a registration asks): fewer
+    factorisations than Newton iterations, and the same equilibria as a fresh solver's."""
+    asm = Assembler(bar, NeoHookean(4500.0, 0.49))
+    solver = NewtonSolver(asm)
+    u, iterations = None, 0
+    for total in np.linspace(-20.0, -60.0, 6):
+        g = tip_load(bar, [0.0, 5.0, total])
+        res = solver.solve(g, u)
+        assert res.converged
+        fresh = NewtonSolver(asm).solve(g)
+        np.testing.assert_allclose(res.u, fresh.u, atol=1e-7 * np.abs(fresh.u).max())
+        u, iterations = res.u, iterations + res.iterations
+        solver.factor_at(u)  # as a registration's adjoint does
+    assert solver.n_cg > 0
+    assert solver.n_factor < iterations

@@ -86,7 +86,9 @@ def test_known_loads_are_recovered(method, entry):
     disp = np.linalg.norm(u_true, axis=1).mean()
     force_err = np.linalg.norm(sol.g.sum(0) - g_true.sum(0)) / np.linalg.norm(g_true.sum(0))
     print(f"{method}: TRE {tre:.2e} m ({tre / disp:.1%} of the mean displacement), force error {force_err:.1%}, {sol.iterations} iterations")
-    assert sol.status in {"converged", "stalled"}
+    # gtol 1e-6 lies below the float32 network's gradient noise: it ends where roundoff stops
+    # progress, as "stalled" or "line_search" by chance (a cloud 1e-12 away flips it)
+    assert sol.status in ({"converged", "stalled"} if method == "fem" else {"converged", "stalled", "line_search"})
     if method == "fem":
         assert tre < 0.01 * disp and force_err < 0.02
     else:
