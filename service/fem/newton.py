@@ -95,8 +95,9 @@ class NewtonSolver:
         self._tau = 1e-4 * self._mean_diag  # last shift that worked: where the next search starts
         self._factor_x: np.ndarray | None = None  # free dofs where the factor is the exact tangent
         self._factored = False  # whether the solver holds any factor (a preconditioner)
-        self.n_factor = 0  # factorisations, and conjugate-gradient solves with the held factor
-        self.n_cg = 0  # as preconditioner instead of one (both only grow)
+        self._cg_skip = self._cg_backoff = 0  # Newton steps to factorise without trying CG first
+        self.n_factor = 0  # factorisations made (only grows)
+        self.n_cg = 0  # linear solves done by conjugate gradients on a held factor instead
 
     # -- one factorisation, shifted if indefinite ----------------------------------------------
 
@@ -172,10 +173,10 @@ class NewtonSolver:
             if rz_new <= stop:
                 self.n_cg += 1
                 return x
-            if k >= 2:  # at the rate so far it would not get there in time: factorise now
-                ratio = rz_new / rz0
-                if ratio >= 1.0 or k * np.log(stop / rz0) / np.log(ratio) > max_iter:
-                    return None
+            # at the rate so far it would not get there in time: factorise now, not later
+            ratio = rz_new / rz0
+            if ratio >= 1.0 or k * np.log(stop / rz0) / np.log(ratio) > max_iter:
+                return None
             p = z + (rz_new / rz) * p
             rz = rz_new
         return None
@@ -216,6 +217,7 @@ class NewtonSolver:
             shifts = self.factor(asm.tangent(u_start))
             self._factor_x = x.copy() if shifts == 0 else None
         s, ds, iterations, steps = 0.0, 1.0, 0, 0
+        self._cg_skip = self._cg_backoff = 0  # per solve, so that u is a function of (g, u0)
         residuals: list[float] = []
         have_factor = True
         status = "converged"
@@ -292,7 +294,14 @@ class NewtonSolver:
             # eta shrinks with the residual (superlinear convergence) but never below what
             # reaching atol needs
             eta = max(min(CG_FORCING, np.sqrt(rn / ref)), 1e-3 * atol / rn)
-            dx = self.solve_tangent(K, -r, eta)
+            dx = None
+            if self._cg_skip > 0:  # they failed lately: the tangent moves fast here
+                self._cg_skip -= 1
+            else:
+                dx = self.solve_tangent(K, -r, eta)
+                # back off after a failure (skip 1, 2, 4, 8 steps), try every step after a success
+                self._cg_backoff = 0 if dx is not None else min(max(2 * self._cg_backoff, 1), 8)
+                self._cg_skip = self._cg_backoff
             if dx is None:
                 n = self.factor(K)
                 self._factor_x = x.copy() if n == 0 else None

@@ -1123,6 +1123,7 @@ class PointToSurface:
         )
 
     def _nodes_of(self, active: Array) -> Array:
+        """The sorted nodes of these faces (the index's gradient nodes)."""
         mark = np.zeros(self.n_nodes, bool)
         mark[self.faces.take(active, axis=0)] = True
         return np.flatnonzero(mark)

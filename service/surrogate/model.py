@@ -192,11 +192,11 @@ class NetworkOperator:
     def _readout_rows(self, rows: Array) -> Array:
         """The readout's rows of these nodes only (3q, r), for the few node sets in use
         (a frame alternates between its indices), keyed by the array object."""
-        for i, (key, RT) in enumerate(self._row_cache):
+        for i, (key, R) in enumerate(self._row_cache):
             if key is rows:
                 if i:
                     self._row_cache.insert(0, self._row_cache.pop(i))
-                return RT
+                return R
         r = self._readout.shape[1]
         R = self._readout.reshape(-1, 3, r).take(rows, axis=0).reshape(-1, r)
         self._row_cache = [(rows, R), *self._row_cache[:3]]
