@@ -110,9 +110,14 @@ class NewtonSolver:
         x = self.asm.pack(u)
         if self._factor_x is not None and np.array_equal(self._factor_x, x):
             return True
-        exact = self.factor(self.asm.tangent(u)) == 0
-        self._factor_x = x.copy() if exact else None
-        return exact
+        return self._factor_tangent(self.asm.tangent(u), x) == 0
+
+    def _factor_tangent(self, K: sp.csr_matrix, x: Array) -> int:
+        """Factorise the tangent K at free dofs x, remembering x when K needed no shift (the
+        factor is then exactly x's tangent); returns the shifts."""
+        shifts = self.factor(K)
+        self._factor_x = x.copy() if shifts == 0 else None
+        return shifts
 
     def factor(self, K: sp.csr_matrix) -> int:
         """Factorise K, adding tau I until it is positive definite; returns how many shifts."""
@@ -214,8 +219,7 @@ class NewtonSolver:
         if self._factor_x is not None and np.array_equal(self._factor_x, x):
             shifts = 0
         else:
-            shifts = self.factor(asm.tangent(u_start))
-            self._factor_x = x.copy() if shifts == 0 else None
+            shifts = self._factor_tangent(asm.tangent(u_start), x)
         s, ds, iterations, steps = 0.0, 1.0, 0, 0
         self._cg_skip = self._cg_backoff = 0  # per solve, so that u is a function of (g, u0)
         residuals: list[float] = []
@@ -303,9 +307,7 @@ class NewtonSolver:
                 self._cg_backoff = 0 if dx is not None else min(max(2 * self._cg_backoff, 1), 8)
                 self._cg_skip = self._cg_backoff
             if dx is None:
-                n = self.factor(K)
-                self._factor_x = x.copy() if n == 0 else None
-                shifts += n
+                shifts += self._factor_tangent(K, x)
                 factored = True
                 dx = -self.solver.solve(r)
             slope = float(r @ dx)  # < 0: descent (K positive definite)
