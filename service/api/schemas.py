@@ -30,6 +30,7 @@ from pydantic import (
 Method = Literal["network", "fem"]
 OutputName = Literal["displacement", "surface_displacement", "forces", "stress"]
 Loss = Literal["squared", "huber", "trimmed"]
+Optimizer = Literal["lbfgsb", "levenberg-marquardt"]
 OUTPUT_NAMES = ("displacement", "surface_displacement", "forces", "stress")
 INT64 = 2**63 - 1
 
@@ -180,6 +181,10 @@ class SessionSettings(_Request):
     precondition: bool | None = Field(
         None, description="Gauss-Newton preconditioning from the rest Jacobian for frames that start cold "
         "(whole-surface clouds; off by default)",
+    )
+    optimizer: Optimizer = Field(
+        "lbfgsb", description="lbfgsb (the default, the paper's), or levenberg-marquardt: Gauss-Newton steps "
+        "through the network's Jacobian, fewer evaluations for whole-surface cold starts; network method, no force_bound",
     )
     skip_stale: bool = Field(
         False,
@@ -352,6 +357,7 @@ class SessionConfigOut(_Reply):
     carry_curvature: bool
     precondition: bool
     noise: float | None
+    optimizer: Optimizer
     skip_stale: bool
 
 

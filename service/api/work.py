@@ -27,7 +27,7 @@ from .sessions import Held, Reservation, SessionRegistry
 
 log = logging.getLogger(__name__)
 
-_FIELDS = ("method", "alpha", "gtol", "max_iter", "force_bound", "time_budget_ms", "warm_start", "E", "loss", "loss_param", "carry_curvature", "precondition", "noise")
+_FIELDS = ("method", "alpha", "gtol", "max_iter", "force_bound", "time_budget_ms", "warm_start", "E", "loss", "loss_param", "carry_curvature", "precondition", "noise", "optimizer")
 
 
 def _ms(t0: float) -> float:

@@ -49,6 +49,7 @@ _LEAF = 8
 #: at every build, and the centroid tree's search is widened by the motion.
 _RELAYOUT_HIERARCHY = 8.0
 _RELAYOUT_TREE = 0.5
+_NO_HINT = np.empty(0, np.intp)
 
 
 # -- one point, one triangle ----------------------------------------------------------------------
@@ -424,18 +425,21 @@ def _box_q(box, node, px, py, pz):
     return dx * dx + dy * dy + dz * dz
 
 
-def _bvh_candidates(x, faces, order, span, box, tri_box, y, reach, face_out, start):
+def _bvh_candidates(x, faces, order, span, box, tri_box, y, reach, hint, face_out, start):
     """Every triangle within d0 + reach of each point, d0 its distance to the surface.
 
     Shape: x (p, 3), faces (f, 3), order (f,), span (n, 2), box (n, 6), tri_box (f, 6)
-    refitted at x, y (m, 3); writes face_out (P,) the triangles of point 0, then point 1, ...,
-    and start (m + 1,) where each point's begin. Returns P, or -1 when face_out is too short
+    refitted at x, y (m, 3); hint (m,) a face per point likely near it (its last closest), or
+    empty; writes face_out (P,) the triangles of point 0, then point 1, ..., and start (m + 1,)
+    where each point's begin. Returns P, or -1 when face_out is too short
     (grow it and call again). Depth first, nearer child first (the stack never holds more than
     depth + 1 nodes). With u the least distance met so far (u >= d0), a node or a triangle
     whose box is farther than u + reach holds no wanted triangle; the triangles met within
     u + reach are filtered again at the final u = d0. A relative 1e-9 of slack covers
     roundoff, so a list is the exact one plus at most triangles within that slack of its
-    limit. Short lists come sorted, nearest first.
+    limit. Short lists come sorted, nearest first. A hint's exact distance is an upper bound
+    on d0 before the descent starts, so far boxes are skipped from the root down (the hint
+    face itself is met again in its leaf, so the lists do not depend on the hints).
     """
     n_internal = (span.shape[0] - 1) // 2
     buf_face = np.empty(order.size, np.intp)
@@ -447,6 +451,15 @@ def _bvh_candidates(x, faces, order, span, box, tri_box, y, reach, face_out, sta
         start[j] = pos
         px, py, pz = y[j, 0], y[j, 1], y[j, 2]
         u, nb = np.inf, 0
+        if hint.size:
+            f = hint[j]
+            i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
+            ax, ay, az = x[i0, 0], x[i0, 1], x[i0, 2]
+            u = np.sqrt(_triangle_q_only(
+                px - ax, py - ay, pz - az,
+                x[i1, 0] - ax, x[i1, 1] - ay, x[i1, 2] - az,
+                x[i2, 0] - ax, x[i2, 1] - ay, x[i2, 2] - az,
+            ))  # fmt: skip
         stack[0], stack_q[0], top = 0, _box_q(box, 0, px, py, pz), 1
         while top > 0:
             top -= 1
@@ -547,7 +560,7 @@ _KERNELS = {
         _bvh_candidates,
         (
             "intp(f8[:, ::1], intp[:, ::1], intp[::1], intp[:, ::1], f8[:, ::1], f8[:, ::1], "
-            "f8[:, ::1], f8, intp[::1], intp[::1])"
+            "f8[:, ::1], f8, intp[::1], intp[::1], intp[::1])"
         ),
     ),
     "activate": (_activate, "intp(intp[::1], intp[::1], intp[::1], intp[::1])"),
@@ -630,6 +643,23 @@ class Closest:
     def rms(self) -> float:
         """Root-mean-square distance over all points (trimmed ones included)."""
         return float(np.sqrt(np.mean(self.distance**2)))
+
+
+@dataclasses.dataclass(frozen=True)
+class Match:
+    """Where each point met the surface at the last evaluation, as the evaluation had it:
+    the Gauss-Newton model's input, at no extra search.
+
+    Shape: x (p, 3) the positions evaluated; face (m,); W (3, m) weights on the face's nodes;
+    r (3, m) closest point minus point; weight (m,) each point's factor in dJ/dc_j = weight r_j
+    (1/m for the squared loss; 0 for points the trimmed loss leaves out).
+    """
+
+    x: Array
+    face: Array
+    W: Array
+    r: Array
+    weight: Array
 
 
 @dataclasses.dataclass(frozen=True)
@@ -806,6 +836,8 @@ class PointToSurface:
         self._footprints: list[tuple[Array, bool]] = []  # x0 of recent indices, with a margin?
         self._spaces: list[_Hierarchy | _CentreTree] = []  # kept across frames, last used first
         self._capacity = 0  # pairs the compiled build's buffer holds
+        self.last_match: Match | None = None  # the last evaluation's (see Match)
+        self._hint = _NO_HINT  # each point's last closest face this frame (compiled builds)
 
     @property
     def _index(self) -> _Index | None:
@@ -844,6 +876,8 @@ class PointToSurface:
         self._yt = np.ascontiguousarray(y.T)  # a read-only view of a message buffer
         self._indices = []
         self._footprints = [(x0, full) for x0, full in self._footprints if full]
+        self.last_match = None
+        self._hint = _NO_HINT
 
     # -- evaluation -------------------------------------------------------------------------------
 
@@ -867,6 +901,7 @@ class PointToSurface:
             J = float(q[kept].sum()) / (2 * n_kept)
             coef = kept / n_kept
         G = r * coef  # (3, m): dJ/dc_j, which bary spreads on the face's nodes
+        self.last_match = Match(x, face, W, r, np.broadcast_to(coef, (m,)))
         grad = np.empty((self.n_nodes, 3))
         if self._kernels is not None:
             self._kernels.spread(self.faces, face, W, G, grad)
@@ -918,6 +953,7 @@ class PointToSurface:
             self._kernels.nearest(
                 x, self.faces, ix.active, ix.tri, ix.start, self.points, T, face, W, r
             )
+            self._hint = face  # the next build's first guesses
             return face, W, r
         face, v, w = self._nearest_numpy(x, ix)
         nodes = self._columns.take(face, axis=1)
@@ -1138,8 +1174,9 @@ class PointToSurface:
         while True:
             face = np.empty(self._capacity, np.intp)
             n = K.candidates(
-                x, self.faces, h.order, h.span, h.box, h.tri_box, self.points, 2 * M, face, start
-            )
+                x, self.faces, h.order, h.span, h.box, h.tri_box, self.points, 2 * M, self._hint,
+                face, start,
+            )  # fmt: skip
             if n >= 0:
                 return face[:n], start
             self._capacity *= 4

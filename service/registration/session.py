@@ -29,7 +29,7 @@ from ..fem.assembly import Assembler
 from ..fem.material import NeoHookean
 from ..mesh import TetMesh
 from .distance import PointToSurface
-from .engine import SolveOptions, solve_frame
+from .engine import OPTIMIZERS, SolveOptions, solve_frame
 from .forward import ForwardFailed, ForwardModel, check_support
 from .noise_prior import AlphaTracker
 from .precondition import Curvature
@@ -73,6 +73,8 @@ class SessionConfig:
     time_budget_ms: float | None = None  # per frame: past it, the best iterate (status time_limit)
     noise: float | None = None  # per-axis noise of the clouds (m): alpha then follows the forces'
     # MAP estimate with a prior the stream's frames estimate, from the default up (noise_prior.py)
+    optimizer: str = "lbfgsb"  # or "levenberg-marquardt": Gauss-Newton steps through the
+    # network's Jacobian (levenberg.py); no force bounds; the reduced network only
 
 
 @dataclasses.dataclass
@@ -133,11 +135,21 @@ class Session:
         self._options = SolveOptions(
             alpha=alpha, gtol=gtol, max_iter=config.max_iter, force_bound=config.force_bound,
             time_budget=None if config.time_budget_ms is None else 1e-3 * config.time_budget_ms,
-            precondition=config.precondition,
+            precondition=config.precondition, optimizer=config.optimizer,
         )
         self._rest = self.mesh.nodes[self.distance.nodes]
+        if config.optimizer not in OPTIMIZERS:
+            raise ValueError(f"optimizer must be one of {list(OPTIMIZERS)}, got {config.optimizer!r}")
+        if config.optimizer == "levenberg-marquardt":
+            if config.force_bound is not None:
+                raise ValueError("levenberg-marquardt takes no force bounds: use optimizer 'lbfgsb'")
         self._lock = threading.Lock()
         self._set_support(support, None)
+        if config.optimizer == "levenberg-marquardt":
+            jacobian = getattr(self.op, "jacobian", None)
+            if jacobian is None or jacobian(self.g) is None:
+                raise ValueError("levenberg-marquardt needs the network method with a reduced surrogate "
+                                 "(a Jacobian in its basis); use optimizer 'lbfgsb'")
         self.frames = 0
         self.converged = 0
         self.failed = 0

@@ -19,6 +19,7 @@ from typing import Callable
 
 import numpy as np
 import torch
+from scipy.linalg.blas import strmm
 
 from ..fem.material import NeoHookean
 from ..mesh import TetMesh
@@ -134,6 +135,8 @@ class NetworkOperator:
         layers[0] = (np.ascontiguousarray(W0[:, cols] * x_scale), b0, a0)
         self._layers = layers
         self._jac: tuple[Array, Array] | None = None
+        self._factors: _GramFactors | None = None  # for jacobian(), made at its first call
+        self._tape_at: tuple[Array, list] | None = None  # the last evaluation's input and tape
         self._row_cache: list[tuple[Array, Array]] = []  # (rows, the readout's rows), last used first
         self._at_rest: tuple[Array, Callable[[Array], Array]] | None = None
 
@@ -162,6 +165,7 @@ class NetworkOperator:
 
     def _evaluate(self, x: Array) -> tuple[Array, Callable[[Array], Array]]:
         h, tape = self._hidden(x)
+        self._tape_at = (x, tape)
         W_last, b_last, _ = self._layers[-1]
         y = W_last @ h + b_last
         if self._skip is not None:
@@ -222,6 +226,21 @@ class NetworkOperator:
             self._jac = (U.astype(np.float32), np.ascontiguousarray(Q, np.float32))
         return self._jac
 
+    def jacobian(self, g: Array) -> "CoefficientJacobian | None":
+        """dc/dg at g, c the basis coefficients (u = readout c): the Levenberg-Marquardt
+        driver's model. None for the paper's layout (no basis). Reuses the last evaluation's
+        slopes when g is where it was."""
+        if self._readout is None:
+            return None
+        x = np.asarray(g, np.float32).reshape(-1)
+        if self._tape_at is not None and np.array_equal(self._tape_at[0], x):
+            tape = self._tape_at[1]
+        else:
+            _, tape = self._hidden(x)
+        if self._factors is None:
+            self._factors = _GramFactors(self._layers[0][0], self._skip)
+        return CoefficientJacobian(self._readout, self._layers[-1][0], tape, self._factors)
+
     def displacement(self, g: Array) -> Array:
         """Every node's displacement (the readout over the whole mesh). Shape: (n, 3)."""
         x = np.asarray(g, np.float32).reshape(-1)
@@ -234,3 +253,85 @@ class NetworkOperator:
             W_all, b_all = self._last_all
             u = W_all @ h + b_all
         return u.astype(np.float64).reshape(-1, 3)
+
+
+class _GramFactors:
+    """The first layer's part of C C^T, once per operator, and the last few products.
+
+    C = R W1 + S (R: the layers above the first, at the current slopes; W1 (h, K) the first
+    layer; S (r, K) the skip path). With W1^T = V T (QR, T upper triangular (h, h)):
+    C C^T = Y Y^T + E, Y = R T^T + Z^T, Z = V^T S^T (h, r), E = S (I - V V^T) S^T, so an
+    iteration costs an (r, h) by (h, h) product and an (r, h) Gram, not products over the K
+    inputs (the beam: 939 of them against h = 256). With one hidden layer, R = W_last diag(s)
+    for the PReLU slopes s, and Y changes only in the units whose slope flipped: Y is kept at
+    a few anchors (the rest state, where cold starts begin, and recent iterates) and corrected
+    from the nearest by those units' rows (the beam's iterates flip a tenth of the units per
+    step, half between rest and the answer).
+    """
+
+    def __init__(self, W1: Array, skip: Array) -> None:
+        V, T = np.linalg.qr(W1.T.astype(np.float64))  # (K, q), (q, h), q = min(K, h)
+        S = skip.astype(np.float64)
+        Z = V.T @ S.T  # (q, r)
+        self.T = np.asfortranarray(T, np.float32)  # for BLAS trmm: half a dense product's work
+        self.Tt = np.ascontiguousarray(T.T, np.float32)  # its rows, for the corrections
+        self.Zt = np.ascontiguousarray(Z.T, np.float32)
+        self.E = S @ S.T - Z.T @ Z  # (r, r), float64
+        self.W1, self.skip = W1, skip
+        self.anchors: list[tuple[Array, Array]] = []  # (slopes, Y), last used first
+
+    def Y(self, R: Array, W_last: Array | None, slope: Array | None) -> Array:
+        """R T^T + Z^T; from an anchor when R = W_last diag(slope) and few slopes differ."""
+        if slope is not None:
+            best, flips = None, slope.size // 4 + 1  # past a quarter, a full product is cheaper
+            for i, (s0, _) in enumerate(self.anchors):
+                F = np.flatnonzero(s0 != slope)
+                if F.size < flips:
+                    best, flips, changed = i, F.size, F
+            if best is not None:
+                s0, Y0 = self.anchors.pop(best)
+                self.anchors.insert(0, (s0, Y0))
+                if not changed.size:
+                    return Y0
+                return Y0 + (W_last[:, changed] * (slope - s0)[changed]) @ self.Tt[changed]
+        if self.T.shape[0] == self.T.shape[1]:
+            Y = strmm(1.0, self.T, R, side=1, lower=0, trans_a=1)  # R T^T
+        else:  # fewer inputs than units (K < h): T is K x h, no triangle to exploit
+            Y = R @ self.Tt
+        Y += self.Zt
+        if slope is not None:
+            self.anchors = [(slope.copy(), Y), *self.anchors[:_ANCHORS - 1]]
+        return Y
+
+
+#: Anchors of C C^T kept per operator (see _GramFactors).
+_ANCHORS = 3
+
+
+class CoefficientJacobian:
+    """dc/dg = C (r, K) of the reduced network at one input, in product form. ``U`` (3p, r)
+    is the readout of the operator's nodes (du/dc, constant), so du/dg = U C."""
+
+    def __init__(self, readout: Array, W_last: Array, tape: list, factors: _GramFactors) -> None:
+        R = W_last
+        for W, slope in reversed(tape[1:]):
+            R = (R * slope) @ W
+        self.R = np.asfortranarray(R * tape[0][1])  # (r, h): dc/d(first layer's output)
+        self.U = readout
+        self._f = factors
+        self._one_layer = (W_last, tape[0][1]) if len(tape) == 1 else (None, None)
+
+    def gram(self) -> Array:
+        """C C^T (r, r), float64."""
+        Y = self._f.Y(self.R, *self._one_layer)
+        return (Y @ Y.T).astype(np.float64) + self._f.E
+
+    def matvec(self, v: Array) -> Array:
+        """C v. Shape: (K,) -> (r,), float64."""
+        x = np.asarray(v, np.float32)
+        return (self.R @ (self._f.W1 @ x) + self._f.skip @ x).astype(np.float64)
+
+    def rmatvec(self, w: Array) -> Array:
+        """C^T w. Shape: (r,) -> (K,), float64."""
+        y = np.asarray(w, np.float32)
+        return (self._f.W1.T @ (self.R.T @ y) + self._f.skip.T @ y).astype(np.float64)

@@ -32,7 +32,7 @@ def test_open_echoes_every_setting(http, entry):
     assert (c["alpha"], c["gtol"], c["max_iter"]) == (DEFAULT_ALPHA, DEFAULT_GTOL["network"], DEFAULTS.max_iter)
     assert c["outputs"] == ["displacement", "forces"] and c["warm_start"] is True and c["skip_stale"] is False
     assert c["E"] == 4500.0 and c["force_bound"] is None and c["loss"] == "squared" and c["time_budget_ms"] is None
-    assert c["precondition"] is False and c["noise"] is None
+    assert c["precondition"] is False and c["noise"] is None and c["optimizer"] == "lbfgsb"
     np.testing.assert_array_equal(c["support"], entry.region)  # the default: the load region
     np.testing.assert_array_equal(c["matching"], entry.mesh.surface_faces)
     assert http.delete(f"/sessions/{body['session']}").status_code == 204
@@ -148,6 +148,23 @@ def test_noise_chooses_alpha_frame_by_frame(http, support, clouds):
     for bad in ({"noise": 0.01, "alpha": 1e-6}, {"noise": 0}, {"noise": -1}):
         r = http.post("/sessions", json={"model": "bar", **bad})
         assert r.status_code == 422 and ("noise" in r.text), r.text
+
+
+def test_levenberg_marquardt_over_the_api(http, support, clouds):
+    """A session may ask for the Levenberg-Marquardt driver: echoed, frames converge, the same
+    numbers as in process; with force bounds, with the FEM or under another name it is a 422
+    that says why."""
+    body = open_session(http, support=support.tolist(), optimizer="levenberg-marquardt", outputs=["forces"])
+    assert body["config"]["optimizer"] == "levenberg-marquardt"
+    sid = body["session"]
+    for cloud in clouds[1:3]:
+        r = http.post(f"/sessions/{sid}/frames", json={"points": cloud.tolist()})
+        assert r.status_code == 200 and r.json()["converged"], r.text
+    http.delete(f"/sessions/{sid}")
+    for bad, why in (({"force_bound": 1.0}, "force bounds"), ({"method": "fem"}, "network method"),
+                     ({"optimizer": "newton"}, "optimizer")):  # fmt: skip
+        r = http.post("/sessions", json={"model": "bar", "optimizer": "levenberg-marquardt", **bad})
+        assert r.status_code == 422 and why in r.text, r.text
 
 
 def test_unknown_session_explains_affinity(http, small, clouds, support):

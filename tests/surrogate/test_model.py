@@ -162,3 +162,56 @@ def test_low_rank_jacobian_is_the_network_jacobian_at_rest(model):
     g0 = torch.zeros(3 * support.size)
     ref = torch.autograd.functional.jacobian(lambda g: torch_reference_at(model, support, g)[torch.as_tensor(np.array(nodes))].reshape(-1), g0)
     np.testing.assert_allclose(U @ Q.T, ref.numpy(), rtol=1e-3, atol=1e-4 * float(ref.abs().max()))
+
+
+def _torch_coefficient_jacobian(model, support, g):
+    """dc/dg of the torch network at g (r, 3k), in the operator's coefficient units."""
+    net = model.net
+    cols = torch.from_numpy(model.region_columns(support))
+
+    def coef(gt):
+        x = torch.zeros(3 * model.region.size, dtype=torch.float32).index_put((cols,), gt * model.stiffness_factor)
+        return net.coefficients(x[None])[0]
+
+    return torch.autograd.functional.jacobian(coef, torch.tensor(g.ravel(), dtype=torch.float32)).numpy().astype(np.float64)
+
+
+@pytest.mark.parametrize("hidden", [[32, 16], [24]])
+def test_coefficient_jacobian_is_torch_jacobian(bar, hidden):
+    """C = dc/dg at a loaded state (slopes flipped from rest) in product form: C C^T, C v and
+    C^T w against torch's Jacobian, U C against torch's du/dg; one hidden layer exercises the
+    anchored C C^T (corrected from the rest state's), two the full product."""
+    region = bar.free_surface_nodes[bar.nodes[bar.free_surface_nodes, 0] > 1.0]
+    rng = np.random.default_rng(0)
+    basis, _ = pod_basis(rng.normal(size=(40, 3 * bar.n_nodes)), 12)
+    n_in = 3 * region.size
+    net = ReducedSurrogate(n_in, torch.from_numpy(basis), hidden, torch.randn(12, n_in), 2.0, torch.full((12,), 0.5))
+    model = NetworkModel(bar, MAT, region, randomised(net, seed=3), E0=MAT.E)
+    support, nodes, g1 = case(model)
+    op = model.restrict(support, nodes)
+    op.jacobian(np.zeros_like(g1)).gram()  # an anchor at rest
+    rest_slope = op._hidden(np.zeros(g1.size, np.float32))[1][0][1]
+    corrected = False
+    for scale in (1.0, 0.1, 0.02):
+        g = scale * g1
+        flips = int(np.count_nonzero(op._hidden(np.asarray(g, np.float32).ravel())[1][0][1] != rest_slope))
+        corrected |= len(hidden) == 1 and 0 < flips <= hidden[0] // 4  # the anchor's correction
+        C = _torch_coefficient_jacobian(model, support, g)
+        jac = op.jacobian(g)
+        np.testing.assert_allclose(jac.gram(), C @ C.T, rtol=1e-4, atol=1e-5 * np.abs(C @ C.T).max())
+        v, w = rng.normal(size=g.size), rng.normal(size=12)
+        np.testing.assert_allclose(jac.matvec(v), C @ v, rtol=1e-4, atol=1e-5 * np.abs(C @ v).max())
+        np.testing.assert_allclose(jac.rmatvec(w), C.T @ w, rtol=1e-4, atol=1e-5 * np.abs(C.T @ w).max())
+    assert corrected or len(hidden) > 1
+    gt = torch.tensor(g1.ravel(), dtype=torch.float32)
+    ref = torch.autograd.functional.jacobian(lambda q: torch_reference_at(model, support, q)[torch.as_tensor(np.array(nodes))].reshape(-1), gt)
+    C = _torch_coefficient_jacobian(model, support, g1)
+    np.testing.assert_allclose(op.jacobian(g1).U.astype(np.float64) @ C, ref.numpy(), rtol=1e-3, atol=1e-4 * float(ref.abs().max()))
+
+
+def test_paper_layout_offers_no_coefficient_jacobian(bar):
+    region = bar.free_surface_nodes[bar.nodes[bar.free_surface_nodes, 0] > 1.0]
+    net = PaperSurrogate(3 * region.size, 3 * bar.n_nodes, depth=3)
+    model = NetworkModel(bar, MAT, region, randomised(net), E0=MAT.E)
+    support, nodes, g = case(model)
+    assert model.restrict(support, nodes).jacobian(g) is None

@@ -1,0 +1,169 @@
+"""Levenberg-Marquardt: its step solves the damped Gauss-Newton system, its rows are the
+distance's derivatives, and it registers as well as L-BFGS-B in fewer evaluations."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+import service.registration.levenberg as lev
+from service.registration.distance import PointToSurface
+from service.registration.engine import SolveOptions, solve_frame
+from service.registration.levenberg import GaussNewtonModel, weighted_rows
+from service.registration.session import Session, SessionConfig
+
+from .test_engine import frame_from_load, tip_support
+
+
+def _explicit(jac, K):
+    """C (r, K) from the product form, column by column."""
+    return np.stack([jac.matvec(e) for e in np.eye(K)], axis=1)
+
+
+@pytest.fixture(scope="module")
+def loaded(entry):
+    """The bar network at a loaded state, its cloud's match there, and the exact gradient."""
+    mesh = entry.mesh
+    support = tip_support(mesh, entry.region)
+    g_true = np.tile([0.0, 0.0, -40.0 / support.size], (support.size, 1))
+    _, pts = frame_from_load(mesh, support, g_true)
+    dist = PointToSurface(mesh.surface_faces)
+    dist.bind(pts)
+    op = entry.network.restrict(support, dist.nodes)
+    g = 0.5 * g_true
+    u, pullback = op(g)
+    J, dJ = dist(mesh.nodes[dist.nodes] + u)
+    grad = pullback(dJ).ravel() + 1e-6 * g.ravel()
+    return op, dist, g, grad
+
+
+def test_step_solves_the_damped_gauss_newton_system(loaded):
+    op, dist, g, grad = loaded
+    jac = op.jacobian(g)
+    model = GaussNewtonModel(jac, dist.last_match, dist.faces, grad, alpha=1e-6)
+    C = _explicit(jac, g.size)
+    H = C.T @ model.A @ C + 1e-6 * np.eye(g.size)
+    for mu in (1e-3 * model.scale, model.scale):
+        d = model.step(mu)
+        np.testing.assert_allclose((H + mu * np.eye(g.size)) @ d, -grad, rtol=1e-4, atol=1e-4 * np.abs(grad).max())  # float32 C
+        # the predicted decrease is the quadratic model's
+        assert model.predicted(d, mu) == pytest.approx(-(grad @ d + 0.5 * d @ H @ d), rel=1e-4)
+        assert model.predicted(d, mu) > 0
+
+
+def test_rows_are_the_distance_derivatives(loaded):
+    """sqrt(w_j) N_j c = the change of point j's distance along a change c of the coefficients
+    (finite differences of the exact distance, closest points held: the envelope theorem),
+    and the compiled rows equal NumPy's."""
+    op, dist, g, _ = loaded
+    jac = op.jacobian(g)
+    match = dist.last_match
+    N = weighted_rows(jac.U, match, dist.faces).astype(np.float64)
+    kernel = lev._rows_kernel
+    try:
+        lev._rows_kernel = lambda: None
+        N_np = weighted_rows(jac.U, match, dist.faces).astype(np.float64)
+    finally:
+        lev._rows_kernel = kernel
+    np.testing.assert_allclose(N, N_np, rtol=1e-5, atol=1e-6 * np.abs(N).max())
+    c = np.random.default_rng(2).normal(size=jac.U.shape[1])
+    dx = (jac.U.astype(np.float64) @ c).reshape(-1, 3)
+    eps = 1e-6 / np.abs(dx).max()
+    d0 = np.sqrt(dist.closest(match.x).sq_distances)
+    d1 = np.sqrt(dist.closest(match.x + eps * dx).sq_distances)
+    off = d0 > 1e-3 * d0.max()  # off the surface, where the distance is differentiable
+    fd = (d1 - d0) / eps * np.sqrt(match.weight)
+    np.testing.assert_allclose((N @ c)[off], fd[off], rtol=1e-2, atol=1e-3 * np.abs(fd).max())
+
+
+def _register(entry, optimizer, pts, support, **kw):
+    dist = PointToSurface(entry.mesh.surface_faces, **kw)
+    dist.bind(pts)
+    op = entry.network.restrict(support, dist.nodes)
+    options = SolveOptions(alpha=1e-6, gtol=1e-4, max_iter=300, optimizer=optimizer)
+    return solve_frame(op, dist, entry.mesh.nodes[dist.nodes], np.zeros((support.size, 3)), options), op
+
+
+@pytest.mark.parametrize("loss", ["squared", "trimmed"])
+def test_registers_as_lbfgsb_does_in_fewer_evaluations(entry, loss):
+    mesh = entry.mesh
+    support = tip_support(mesh, entry.region)
+    g_true = np.tile([0.0, 0.5, -40.0 / support.size], (support.size, 1))
+    u_true, pts = frame_from_load(mesh, support, g_true)
+    kw = {"loss": loss}
+    sol = {opt: _register(entry, opt, pts, support, **kw) for opt in ("lbfgsb", "levenberg-marquardt")}
+    err = {}
+    for opt, (s, op) in sol.items():
+        assert s.status in (("converged",) if opt != "lbfgsb" else ("converged", "stalled")), (opt, s.status, s.message)
+        err[opt] = np.linalg.norm(op.displacement(s.g) - u_true, axis=1).mean()
+    lm, lb = sol["levenberg-marquardt"][0], sol["lbfgsb"][0]
+    print(f"{loss}: L-BFGS-B {lb.evaluations} evaluations, TRE {err['lbfgsb']:.3e}; LM {lm.evaluations}, {err['levenberg-marquardt']:.3e}")
+    assert lm.evaluations < lb.evaluations
+    assert err["levenberg-marquardt"] <= 1.2 * err["lbfgsb"] + 1e-3 * np.linalg.norm(u_true, axis=1).mean()
+    assert lm.value <= lb.value * (1 + 1e-3)
+
+
+def test_limits_and_failures_are_statuses(entry):
+    mesh = entry.mesh
+    support = tip_support(mesh, entry.region)
+    g_true = np.tile([0.0, 0.0, -40.0 / support.size], (support.size, 1))
+    _, pts = frame_from_load(mesh, support, g_true)
+    dist = PointToSurface(mesh.surface_faces)
+    dist.bind(pts)
+    op = entry.network.restrict(support, dist.nodes)
+    rest, g0 = mesh.nodes[dist.nodes], np.zeros((support.size, 3))
+    base = SolveOptions(alpha=1e-6, gtol=1e-9, optimizer="levenberg-marquardt")
+    s = solve_frame(op, dist, rest, g0, dataclasses.replace(base, max_iter=1))
+    assert s.status == "max_iter" and s.iterations == 1 and not s.converged
+    s = solve_frame(op, dist, rest, g0, dataclasses.replace(base, time_budget=1e-9))
+    assert s.status == "time_limit" and np.isfinite(s.g).all()
+
+    class Failing:  # every trial away from rest fails: damping grows, then the frame gives up
+        def __init__(self, op):
+            self.op, self.support, self.nodes = op, op.support, op.nodes
+
+        def __call__(self, g):
+            if np.any(g):
+                from service.registration.forward import ForwardFailed
+
+                raise ForwardFailed("diverged", "test")
+            return self.op(g)
+
+        def jacobian(self, g):
+            return self.op.jacobian(g)
+
+    s = solve_frame(Failing(op), dist, rest, g0, base)
+    assert s.status == "forward_failed" and not np.any(s.g)
+
+
+def test_session_checks_the_optimizer(entry):
+    with pytest.raises(ValueError, match="optimizer must be one of"):
+        Session(entry.network, SessionConfig(optimizer="newton"))
+    with pytest.raises(ValueError, match="no force bounds"):
+        Session(entry.network, SessionConfig(optimizer="levenberg-marquardt", force_bound=1.0))
+    with pytest.raises(ValueError, match="needs the network method"):
+        Session(entry.fem, SessionConfig(method="fem", optimizer="levenberg-marquardt"))
+
+
+def test_a_stream_warm_starts_and_survives_a_bad_frame(entry):
+    """Frames of a slowly growing pull: warm starts take fewer evaluations than the first
+    frame; a cloud a kilometre away returns a result and the next frame is as good as before."""
+    mesh = entry.mesh
+    support = tip_support(mesh, entry.region)
+    s = Session(entry.network, SessionConfig(optimizer="levenberg-marquardt", support=tuple(support), gtol=1e-4,
+                                             outputs=("displacement",)))  # fmt: skip
+    frames = []
+    for k, scale in enumerate((1.0, 1.05, 1.1)):
+        g_true = np.tile([0.0, 0.0, -40.0 * scale / support.size], (support.size, 1))
+        u, pts = frame_from_load(mesh, support, g_true, seed=k)
+        frames.append((u, pts))
+    first = s.frame(frames[0][1])
+    second = s.frame(frames[1][1])
+    assert first.converged and second.converged
+    assert second.evaluations < first.evaluations
+    far = s.frame(frames[1][1] + 1e3)
+    assert np.isfinite(far.outputs["displacement"]).all()
+    third = s.frame(frames[2][1])
+    assert third.converged
+    err = np.linalg.norm(third.outputs["displacement"] - frames[2][0], axis=1).mean()
+    assert err <= 0.1 * np.linalg.norm(frames[2][0], axis=1).mean()
