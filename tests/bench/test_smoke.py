@@ -19,6 +19,9 @@ def test_bench_smoke_writes_the_whole_report(bar_store, tmp_path):
     assert (out / "figures" / "beam_pareto.png").stat().st_size > 1000
     beam = results["parts"]["beam"]["pareto"]  # both methods on the beam's sweep
     assert {r["method"] for r in beam} == {"network", "fem"} and "on the beam" in report
+    summary = results["parts"]["beam"]["summary"]  # Levenberg-Marquardt, and L-BFGS-B beside it
+    assert summary["config"]["optimizer"] == "levenberg-marquardt" and summary["lbfgsb"]["cases"] == summary["cases"]
+    assert "elastreg, L-BFGS-B" in report
     for s in results["parts"]["liver"]["summaries"]:
         assert s["all_finite"]
     net = next(s for s in results["parts"]["liver"]["summaries"] if s["method"] == "network")
