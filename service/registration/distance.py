@@ -836,7 +836,7 @@ class PointToSurface:
         self._footprints: list[tuple[Array, bool]] = []  # x0 of recent indices, with a margin?
         self._spaces: list[_Hierarchy | _CentreTree] = []  # kept across frames, last used first
         self._capacity = 0  # pairs the compiled build's buffer holds
-        self.last_match: Match | None = None  # the last evaluation's (see Match)
+        self._last: tuple | None = None  # the last evaluation's match, as last_match gives it
         self._hint = _NO_HINT  # each point's last closest face this frame (compiled builds)
 
     @property
@@ -854,6 +854,15 @@ class PointToSurface:
         zero on every other row, so a model's pullback may read out through these alone. The
         same array object while the index lives (a cache key). None before an evaluation."""
         return None if self._index is None else self._index.nodes
+
+    @property
+    def last_match(self) -> Match | None:
+        """Where each point met the surface at the last evaluation of this frame (None before
+        one): what a Gauss-Newton model needs, without another search."""
+        if self._last is None:
+            return None
+        x, face, W, r, coef = self._last
+        return Match(x, face, W, r, np.broadcast_to(coef, face.shape))
 
     @property
     def n_pairs(self) -> int:
@@ -876,7 +885,7 @@ class PointToSurface:
         self._yt = np.ascontiguousarray(y.T)  # a read-only view of a message buffer
         self._indices = []
         self._footprints = [(x0, full) for x0, full in self._footprints if full]
-        self.last_match = None
+        self._last = None
         self._hint = _NO_HINT
 
     # -- evaluation -------------------------------------------------------------------------------
@@ -901,7 +910,7 @@ class PointToSurface:
             J = float(q[kept].sum()) / (2 * n_kept)
             coef = kept / n_kept
         G = r * coef  # (3, m): dJ/dc_j, which bary spreads on the face's nodes
-        self.last_match = Match(x, face, W, r, np.broadcast_to(coef, (m,)))
+        self._last = (x, face, W, r, coef)
         grad = np.empty((self.n_nodes, 3))
         if self._kernels is not None:
             self._kernels.spread(self.faces, face, W, G, grad)

@@ -687,3 +687,47 @@ def test_bind_accepts_a_read_only_cloud():
     dist.bind(pts)
     J, grad = dist(np.asarray(sphere.vertices)[dist.nodes])
     assert np.isfinite(J) and J > 0 and np.isfinite(grad).all()
+
+
+@pytest.mark.skipif(not numba_available(), reason="no numba")
+def test_hinted_builds_give_the_same_lists():
+    """A build seeded with each point's last closest face (or a wrong one) lists exactly the
+    triangles an unseeded build lists, in the same order."""
+    rng = np.random.default_rng(21)
+    x, faces = blob(subdivisions=2)
+    S = PointToSurface(faces, backend="numba")
+    S.bind(cloud_near(x, faces, rng, 80))
+    S(x)
+    h = S._spaces[0]
+    K = S._kernels
+    moved = x + 0.02 * rng.normal(size=x.shape)
+    K.refit(moved, S.faces, h.order, h.span, h.box, h.tri_box)
+    m = len(S.points)
+    for reach in (0.0, 0.1):
+        lists = []
+        for hint in (np.empty(0, np.intp), S._hint, rng.integers(len(faces), size=m).astype(np.intp)):
+            face, start = np.empty(64 * m, np.intp), np.empty(m + 1, np.intp)
+            n = K.candidates(moved, S.faces, h.order, h.span, h.box, h.tri_box, S.points, reach, hint, face, start)
+            lists.append((face[:n].copy(), start.copy()))
+        for face, start in lists[1:]:
+            np.testing.assert_array_equal(face, lists[0][0])
+            np.testing.assert_array_equal(start, lists[0][1])
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_last_match_is_the_last_evaluation(backend):
+    """After an evaluation, last_match holds its positions, faces, weights and residuals (what
+    closest() reports) and each point's weight in the gradient; a new cloud clears it."""
+    rng = np.random.default_rng(22)
+    x, faces = blob(subdivisions=2)
+    S = PointToSurface(faces, backend=backend, loss="trimmed", trim=0.2)
+    S.bind(cloud_near(x, faces, rng, 50))
+    assert S.last_match is None
+    S(x)
+    match, c = S.last_match, S.closest(x)
+    np.testing.assert_array_equal(match.face, c.face)
+    np.testing.assert_allclose(match.W.T, c.bary, atol=1e-14)
+    np.testing.assert_allclose(match.r.T, c.points - S.points, atol=1e-14)
+    np.testing.assert_allclose(match.weight, c.kept / c.kept.sum())
+    S.bind(cloud_near(x, faces, rng, 50))
+    assert S.last_match is None

@@ -117,6 +117,9 @@ def test_limits_and_failures_are_statuses(entry):
     assert s.status == "max_iter" and s.iterations == 1 and not s.converged
     s = solve_frame(op, dist, rest, g0, dataclasses.replace(base, time_budget=1e-9))
     assert s.status == "time_limit" and np.isfinite(s.g).all()
+    # below the float32 network's precision no step decreases the objective: a status, soon
+    s = solve_frame(op, dist, rest, g0, dataclasses.replace(base, gtol=1e-14, max_iter=200))
+    assert s.status == "stalled" and s.evaluations < 150, (s.status, s.evaluations)
 
     class Failing:  # every trial away from rest fails: damping grows, then the frame gives up
         def __init__(self, op):
