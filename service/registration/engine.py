@@ -233,6 +233,8 @@ def solve_frame(
             raise _Done()
         begin = _Start(start, v0, grad0, u0)
         if options.optimizer == "levenberg-marquardt":
+            if bounded or getattr(op, "jacobian", None) is None:
+                raise ValueError("levenberg-marquardt needs an unbounded problem and a model with a Jacobian")
             status, message, nit = _levenberg_marquardt(op, distance, evaluate, begin, g_tol, options, max_eval, deadline)
         else:
             status, message, nit = _lbfgsb(op, distance, evaluate, begin, v_rest, g_tol, options, curvature, max_eval, deadline)

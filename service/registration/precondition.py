@@ -22,12 +22,12 @@ liver's partial clouds it does not help the network, so it is opt-in).
 
 from __future__ import annotations
 
-import functools
-
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 from scipy.linalg.blas import dger, dtrsv
+
+from ..jit import compiled
 
 Array = np.ndarray
 
@@ -68,14 +68,7 @@ def _rows_loop(U, faces, bary, normals, out):
                     out[j, k] += c * U[row, k]
 
 
-@functools.cache
-def _rows_kernel():
-    """_rows_loop compiled by numba (cached on disk), or None without numba."""
-    try:
-        import numba
-    except ImportError:  # pragma: no cover - numba is a dependency; this keeps a fallback
-        return None
-    return numba.njit(cache=True, nogil=True)(_rows_loop)
+_rows_kernel = compiled(_rows_loop)  # the loop compiled (numba), or None
 
 
 class _Whitened:
