@@ -29,10 +29,11 @@ def frame_from_load(mesh, support, g, n_points=300, seed=0):
     return u, pts
 
 
-def tip_pull(entry):
-    """A downward pull spread over the tip support, its cloud, and a distance bound to it."""
+def tip_pull(entry, region=None):
+    """A downward pull spread over the tip support (inside `region` if given), its cloud, and a
+    distance bound to it."""
     mesh = entry.mesh
-    support = tip_support(mesh)
+    support = tip_support(mesh, region)
     g_true = np.tile([0.0, 0.0, -40.0 / support.size], (support.size, 1))
     _, pts = frame_from_load(mesh, support, g_true)
     dist = PointToSurface(mesh.surface_faces)

@@ -12,7 +12,7 @@ from service.registration.engine import SolveOptions, solve_frame
 from service.registration.levenberg import GaussNewtonModel, weighted_rows
 from service.registration.session import Session, SessionConfig
 
-from .test_engine import frame_from_load, tip_support
+from .test_engine import frame_from_load, tip_pull, tip_support
 
 
 def _explicit(jac, K):
@@ -23,12 +23,7 @@ def _explicit(jac, K):
 @pytest.fixture(scope="module")
 def loaded(entry):
     """The bar network at a loaded state, its cloud's match there, and the exact gradient."""
-    mesh = entry.mesh
-    support = tip_support(mesh, entry.region)
-    g_true = np.tile([0.0, 0.0, -40.0 / support.size], (support.size, 1))
-    _, pts = frame_from_load(mesh, support, g_true)
-    dist = PointToSurface(mesh.surface_faces)
-    dist.bind(pts)
+    mesh, support, g_true, _, dist = tip_pull(entry, entry.region)
     op = entry.network.restrict(support, dist.nodes)
     g = 0.5 * g_true
     u, pullback = op(g)
@@ -104,12 +99,7 @@ def test_registers_as_lbfgsb_does_in_fewer_evaluations(entry, loss):
 
 
 def test_limits_and_failures_are_statuses(entry):
-    mesh = entry.mesh
-    support = tip_support(mesh, entry.region)
-    g_true = np.tile([0.0, 0.0, -40.0 / support.size], (support.size, 1))
-    _, pts = frame_from_load(mesh, support, g_true)
-    dist = PointToSurface(mesh.surface_faces)
-    dist.bind(pts)
+    mesh, support, _, _, dist = tip_pull(entry, entry.region)
     op = entry.network.restrict(support, dist.nodes)
     rest, g0 = mesh.nodes[dist.nodes], np.zeros((support.size, 3))
     base = SolveOptions(alpha=1e-6, gtol=1e-9, optimizer="levenberg-marquardt")
