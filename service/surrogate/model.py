@@ -215,12 +215,9 @@ class NetworkOperator:
         if self._readout is None:
             return None
         if self._jac is None:
-            k3 = self._layers[0][0].shape[1]
-            _, tape = self._hidden(np.zeros(k3, np.float32))
-            R = self._layers[-1][0].astype(np.float64)
-            for W, slope in reversed(tape):
-                R = (R * slope.astype(np.float64)) @ W.astype(np.float64)
-            C = R + self._skip  # dc/dg (r, 3k)
+            W1 = self._layers[0][0]
+            _, tape = self._hidden(np.zeros(W1.shape[1], np.float32))
+            C = _above_first(self._layers[-1][0], tape, np.float64) @ W1.astype(np.float64) + self._skip  # dc/dg (r, 3k)
             Q, Rt = np.linalg.qr(C.T)  # C = Rt^T Q^T
             U = self._readout.astype(np.float64) @ Rt.T
             self._jac = (U.astype(np.float32), np.ascontiguousarray(Q, np.float32))
@@ -253,6 +250,15 @@ class NetworkOperator:
             W_all, b_all = self._last_all
             u = W_all @ h + b_all
         return u.astype(np.float64).reshape(-1, 3)
+
+
+def _above_first(W_last: Array, tape: list, dtype=np.float32) -> Array:
+    """dc/dz (r, h), z the first layer's pre-activation: reverse mode through the layers above
+    it at the tape's slopes, r rows. dc/dg is this times the first layer, plus the skip path."""
+    R = W_last.astype(dtype, copy=False)
+    for W, slope in reversed(tape[1:]):
+        R = (R * slope.astype(dtype, copy=False)) @ W.astype(dtype, copy=False)
+    return R * tape[0][1].astype(dtype, copy=False)
 
 
 class _GramFactors:
@@ -292,10 +298,7 @@ class CoefficientJacobian:
     is the readout of the operator's nodes (du/dc, constant), so du/dg = U C."""
 
     def __init__(self, readout: Array, W_last: Array, tape: list, factors: _GramFactors) -> None:
-        R = W_last
-        for W, slope in reversed(tape[1:]):
-            R = (R * slope) @ W
-        self.R = np.asfortranarray(R * tape[0][1])  # (r, h): dc/d(first layer's output)
+        self.R = np.asfortranarray(_above_first(W_last, tape))  # (r, h)
         self.U = readout
         self._f = factors
 
