@@ -62,6 +62,28 @@ class SolveOptions:
 
 
 OPTIMIZERS = ("lbfgsb", "levenberg-marquardt")
+_BOUNDED = "levenberg-marquardt takes no force bounds: use optimizer 'lbfgsb'"
+_NO_JACOBIAN = "levenberg-marquardt needs the network method with a reduced surrogate (a Jacobian in its basis); use optimizer 'lbfgsb'"
+
+
+def check_optimizer(op: ForwardOperator, options: SolveOptions) -> None:
+    """Refuse, saying why, an optimizer this operator and these options cannot run (a session
+    checks once, when it opens; solve_frame refuses the same at first use)."""
+    if options.optimizer not in OPTIMIZERS:
+        raise ValueError(f"optimizer must be one of {list(OPTIMIZERS)}, got {options.optimizer!r}")
+    if options.optimizer == "levenberg-marquardt":
+        if options.force_bound is not None:
+            raise ValueError(_BOUNDED)
+        _jacobian(op, np.zeros((len(op.support), 3)))
+
+
+def _jacobian(op, g: Array):
+    """The operator's Jacobian at g (levenberg.py's model input); ValueError if it has none."""
+    jacobian = getattr(op, "jacobian", None)
+    jac = None if jacobian is None else jacobian(g)
+    if jac is None:
+        raise ValueError(_NO_JACOBIAN)
+    return jac
 
 
 @dataclasses.dataclass
@@ -233,8 +255,8 @@ def solve_frame(
             raise _Done()
         begin = _Start(start, v0, grad0, u0)
         if options.optimizer == "levenberg-marquardt":
-            if bounded or getattr(op, "jacobian", None) is None:
-                raise ValueError("levenberg-marquardt needs an unbounded problem and a model with a Jacobian")
+            if bounded:
+                raise ValueError(_BOUNDED)
             status, message, nit = _levenberg_marquardt(op, distance, evaluate, begin, g_tol, options, max_eval, deadline)
         else:
             status, message, nit = _lbfgsb(op, distance, evaluate, begin, v_rest, g_tol, options, curvature, max_eval, deadline)
@@ -366,7 +388,7 @@ def _levenberg_marquardt(op, distance: PointToSurface, evaluate: Objective, begi
     while np.abs(grad).max() > g_tol:
         if nit >= options.max_iter:
             return "max_iter", f"{nit} iterations", nit
-        model = GaussNewtonModel(op.jacobian(g.reshape(k, 3)), match, distance.faces, grad, options.alpha)
+        model = GaussNewtonModel(_jacobian(op, g.reshape(k, 3)), match, distance.faces, grad, options.alpha)
         if mu is None:
             mu = options.damping * model.scale
         for _ in range(_MAX_REJECTIONS + 1):

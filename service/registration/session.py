@@ -29,7 +29,7 @@ from ..fem.assembly import Assembler
 from ..fem.material import NeoHookean
 from ..mesh import TetMesh
 from .distance import PointToSurface
-from .engine import OPTIMIZERS, SolveOptions, solve_frame
+from .engine import SolveOptions, check_optimizer, solve_frame
 from .forward import ForwardFailed, ForwardModel, check_support
 from .noise_prior import AlphaTracker
 from .precondition import Curvature
@@ -138,18 +138,9 @@ class Session:
             precondition=config.precondition, optimizer=config.optimizer,
         )
         self._rest = self.mesh.nodes[self.distance.nodes]
-        if config.optimizer not in OPTIMIZERS:
-            raise ValueError(f"optimizer must be one of {list(OPTIMIZERS)}, got {config.optimizer!r}")
-        if config.optimizer == "levenberg-marquardt":
-            if config.force_bound is not None:
-                raise ValueError("levenberg-marquardt takes no force bounds: use optimizer 'lbfgsb'")
         self._lock = threading.Lock()
         self._set_support(support, None)
-        if config.optimizer == "levenberg-marquardt":
-            jacobian = getattr(self.op, "jacobian", None)
-            if jacobian is None or jacobian(self.g) is None:
-                raise ValueError("levenberg-marquardt needs the network method with a reduced surrogate "
-                                 "(a Jacobian in its basis); use optimizer 'lbfgsb'")
+        check_optimizer(self.op, self._options)
         self.frames = 0
         self.converged = 0
         self.failed = 0

@@ -136,6 +136,10 @@ def test_session_checks_the_optimizer(entry):
         Session(entry.network, SessionConfig(optimizer="levenberg-marquardt", force_bound=1.0))
     with pytest.raises(ValueError, match="needs the network method"):
         Session(entry.fem, SessionConfig(method="fem", optimizer="levenberg-marquardt"))
+    mesh, support, _, _, dist = tip_pull(entry)  # called directly, the engine refuses the same
+    with pytest.raises(ValueError, match="needs the network method"):
+        solve_frame(entry.fem.restrict(support, dist.nodes), dist, mesh.nodes[dist.nodes], np.zeros((support.size, 3)),
+                    SolveOptions(optimizer="levenberg-marquardt"))  # fmt: skip
 
 
 def test_a_stream_warm_starts_and_survives_a_bad_frame(entry):
