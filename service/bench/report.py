@@ -291,21 +291,25 @@ def write_report(results: dict, out: Path) -> None:
         b = parts["beam"]["summary"]
         md.append("\n## The beam experiment\n")
         pm = b["paper"]
-        rows = [
-            {"what": "registration error, RMS cloud-to-surface (m)", "ours": f"{b['rms_distance_m'][0]:.2e} ± {b['rms_distance_m'][1]:.2e}", "paper": f"{pm['error'][0]:.0e} ± {pm['error'][1]:.2e}"},
-            {"what": "mean nodal error, TRE (m)", "ours": f"{b['tre_m'][0]:.2e} ± {b['tre_m'][1]:.2e}", "paper": "-"},
-            {"what": "time (ms)", "ours": f"{b['ms'][0]:.1f} ± {b['ms'][1]:.1f}", "paper": f"{pm['ms'][0]:.0f} ± {pm['ms'][1]:.0f}"},
-            {"what": "iterations", "ours": f"{b['iterations'][0]:.1f} ± {b['iterations'][1]:.1f}", "paper": f"{pm['iterations'][0]:.0f} ± {pm['iterations'][1]:.0f}"},
+        lb = b.get("lbfgsb")  # the same cases with the paper's optimizer, if another ran
+
+        def cell(summary: dict, key: str) -> str:
+            v = summary[key]
+            if key == "ms_median":
+                return f"{v:.1f}"
+            return f"{v[0]:.2e} ± {v[1]:.2e}" if key.endswith("_m") else f"{v[0]:.1f} ± {v[1]:.1f}"
+
+        lines = [
+            ("registration error, RMS cloud-to-surface (m)", "rms_distance_m", f"{pm['error'][0]:.0e} ± {pm['error'][1]:.2e}"),
+            ("mean nodal error, TRE (m)", "tre_m", "-"),
+            ("time (ms)", "ms", f"{pm['ms'][0]:.0f} ± {pm['ms'][1]:.0f}"),
+            ("time, median (ms)", "ms_median", "-"),
+            ("iterations", "iterations", f"{pm['iterations'][0]:.0f} ± {pm['iterations'][1]:.0f}"),
         ]  # fmt: skip
-        if "ms_median" in b:
-            rows.insert(3, {"what": "time, median (ms)", "ours": f"{b['ms_median']:.1f}", "paper": "-"})
+        rows = [{"what": what, "ours": cell(b, key), "paper": paper, **({"lbfgsb": cell(lb, key)} if lb else {})}
+                for what, key, paper in lines if key in b]  # fmt: skip
         cols = [("what", ""), ("ours", "elastreg (2 CPU cores)"), ("paper", "paper (GPU)")]
-        lb = b.get("lbfgsb")
-        if lb:  # the same cases with the paper's optimizer
-            keys = ["rms_distance_m", "tre_m", "ms", "ms_median", "iterations"]
-            for row, key in zip(rows, keys if "ms_median" in b else keys[:3] + keys[4:]):
-                v = lb[key]
-                row["lbfgsb"] = f"{v:.1f}" if key == "ms_median" else (f"{v[0]:.2e} ± {v[1]:.2e}" if key.endswith("_m") else f"{v[0]:.1f} ± {v[1]:.1f}")
+        if lb:
             cols.insert(2, ("lbfgsb", "elastreg, L-BFGS-B"))
         optimizer = b.get("config", {}).get("optimizer", "lbfgsb")
         md.append(f"{b['cases']} deformations (bending, torsion, both; largest displacement "
