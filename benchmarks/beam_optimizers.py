@@ -1,7 +1,8 @@
 """Levenberg-Marquardt against L-BFGS-B on the beam's cold starts, clean and degraded.
 
 The beam benchmark's cases (FEM deformations from known tip loads, whole-surface clouds),
-registered from rest by each optimizer under noise, outliers (with the robust losses), a cloud
+registered from rest by each optimizer under noise and outliers (service.synthetic.perturb, as
+the stability suite makes them; the outliers with the robust losses), a cloud
 far away, few points and a stiffer session. Prints one row per (condition, optimizer): median
 ms, mean TRE, whether every field stayed finite, the statuses, mean evaluations.
 
@@ -21,21 +22,7 @@ from service.bench.beam import CONFIG, LBFGSB, beam_cases
 from service.config import limit_threads
 from service.registration.session import Session
 from service.store import load_entry
-
-
-def noise(sigma: float, rng):
-    return lambda p: p + rng.normal(scale=sigma, size=p.shape)
-
-
-def outliers(fraction: float, rng, sigma: float = 0.01):
-    def f(p):
-        p = p.copy()
-        k = int(fraction * len(p))
-        idx = rng.choice(len(p), k, replace=False)
-        p[idx] += rng.normal(scale=sigma, size=(k, 3))
-        return p
-
-    return f
+from service.synthetic import perturb
 
 
 def main() -> None:
@@ -47,12 +34,16 @@ def main() -> None:
     entry = load_entry(Path(args.store) / "beam")
     cases = beam_cases(entry, args.cases, 500)
     rng = np.random.default_rng(5)
+
+    def outliers(p):  # the stability suite's: uniform within 2 cm of the cloud's bounding box
+        return perturb(p, rng, outliers=0.1, spread=0.02)
+
     conditions = [
         ("clean", lambda p: p, {}),
-        ("noise 0.5 mm", noise(5e-4, rng), {}),
-        ("noise 1 mm", noise(1e-3, rng), {}),
-        ("10 % outliers (1 cm), trimmed 0.1", outliers(0.1, rng), {"loss": "trimmed", "loss_param": 0.1}),
-        ("10 % outliers (1 cm), huber 1 mm", outliers(0.1, rng), {"loss": "huber", "loss_param": 1e-3}),
+        ("noise 0.5 mm", lambda p: perturb(p, rng, noise=5e-4), {}),
+        ("noise 1 mm", lambda p: perturb(p, rng, noise=1e-3), {}),
+        ("10 % outliers, trimmed 0.1", outliers, {"loss": "trimmed", "loss_param": 0.1}),
+        ("10 % outliers, huber 1 mm", outliers, {"loss": "huber", "loss_param": 1e-3}),
         ("cloud 1 km away", lambda p: p + 1e3, {}),
         ("50 points", lambda p: p[:50], {}),
         ("E x 10", lambda p: p, {"E": 10 * float(entry.network.material.E)}),
