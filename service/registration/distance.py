@@ -24,6 +24,7 @@ import dataclasses
 import functools
 import itertools
 import logging
+import math
 import types
 from typing import Literal
 
@@ -682,6 +683,12 @@ class _Index:
     y: Array | None = None  # (3, P) each pair's point, coordinates first
 
     @property
+    def last_rms(self) -> float:
+        """The RMS distance of all points (trimmed ones too) at the last evaluation of this
+        frame (NaN before one): a frame's report at its best iterate, without another search."""
+        return math.nan if self._last is None else math.sqrt(self._last[5] / self._last[1].size)
+
+    @property
     def n_pairs(self) -> int:
         return int(self.face.size)
 
@@ -861,8 +868,14 @@ class PointToSurface:
         one): what a Gauss-Newton model needs, without another search."""
         if self._last is None:
             return None
-        x, face, W, r, coef = self._last
+        x, face, W, r, coef, _ = self._last
         return Match(x, face, W, r, np.broadcast_to(coef, face.shape))
+
+    @property
+    def last_rms(self) -> float:
+        """The RMS distance of all points (trimmed ones too) at the last evaluation of this
+        frame (NaN before one): a frame's report at its best iterate, without another search."""
+        return math.nan if self._last is None else math.sqrt(self._last[5] / self._last[1].size)
 
     @property
     def n_pairs(self) -> int:
@@ -895,9 +908,9 @@ class PointToSurface:
         x = self._check(x)
         face, W, r = self._nearest(x)
         q = r[0] * r[0] + r[1] * r[1] + r[2] * r[2]
-        m = q.size
+        m, total = q.size, float(q.sum())
         if self.loss == "squared":
-            J = float(q.sum()) / (2 * m)
+            J = total / (2 * m)
             coef = 1.0 / m
         elif self.loss == "huber":
             d = np.sqrt(q)
@@ -910,7 +923,7 @@ class PointToSurface:
             J = float(q[kept].sum()) / (2 * n_kept)
             coef = kept / n_kept
         G = r * coef  # (3, m): dJ/dc_j, which bary spreads on the face's nodes
-        self._last = (x, face, W, r, coef)
+        self._last = (x, face, W, r, coef, total)
         grad = np.empty((self.n_nodes, 3))
         if self._kernels is not None:
             self._kernels.spread(self.faces, face, W, G, grad)

@@ -106,6 +106,7 @@ class FrameSolution:
     g: Array
     objective: float  # J at g (m^2), without the regularisation
     value: float  # J + alpha/2 |g|^2
+    rms: float  # RMS distance of all the cloud's points to the surface at g (m)
     converged: bool
     status: str  # converged | max_iter | time_limit | line_search | forward_failed | non_finite | stalled
     iterations: int
@@ -132,6 +133,7 @@ class Objective:
         self.timing = timing or Timing()
         self.evaluations = 0
         self.best_value, self.best_g, self.best_J = math.inf, None, math.inf
+        self.best_rms = self.rest_rms = math.nan  # at the best iterate, and at g = 0
         self.last_u: Array | None = None  # displacement of op.nodes at the last evaluation
         self.rest_u: Array | None = None  # ... and at g = 0
 
@@ -147,20 +149,23 @@ class Objective:
             raise _Stop("forward_failed", str(exc)) from None
         t1 = time.perf_counter()
         self.last_u = u
-        if not np.any(g):
-            self.rest_u = u
         J, dJ_dx = self.distance(self.rest + u)
+        flat = g.ravel()
+        g2 = float(flat @ flat)  # |g|^2: one BLAS call, where np.sum(g * g) or np.any(g) cost 15 us
+        if g2 == 0.0:
+            self.rest_u, self.rest_rms = u, self.distance.last_rms
         t2 = time.perf_counter()
         grad = pullback(dJ_dx, rows=self.distance.gradient_nodes) + self.alpha * g
         t3 = time.perf_counter()
         self.timing.forward += t1 - t0
         self.timing.distance += t2 - t1
         self.timing.gradient += t3 - t2
-        value = J + 0.5 * self.alpha * float(np.sum(g * g))
+        value = J + 0.5 * self.alpha * g2
         if not (math.isfinite(value) and np.isfinite(grad).all()):
             raise _Stop("non_finite", "the objective or its gradient is not finite")
         if value < self.best_value:
             self.best_value, self.best_g, self.best_J = value, np.array(g, np.float64), J
+            self.best_rms = self.distance.last_rms
         return value, grad, J
 
 
@@ -263,6 +268,7 @@ def solve_frame(
     except _Done:
         status, message = "converged", "the cloud lies on the rest surface: no force needed"
         evaluate.best_g, evaluate.best_value, evaluate.best_J = np.zeros((k, 3)), v_rest, v_rest
+        evaluate.best_rms = evaluate.rest_rms
     except _Stop as stop:
         status, message = stop.status, stop.message
 
@@ -271,6 +277,7 @@ def solve_frame(
         g=evaluate.best_g,
         objective=float(evaluate.best_J),
         value=float(evaluate.best_value),
+        rms=float(evaluate.best_rms),
         converged=status == "converged",
         status=status,
         iterations=nit,

@@ -195,7 +195,7 @@ class Session:
                     after = self.alpha_tracker.update(sol.g, len(points))
                     if self.curvature is not None:
                         self.curvature.shift(after - before)
-            outputs, rms = self._outputs(sol.g)
+            outputs, rms = self._outputs(sol.g, sol.rms)
             timing = sol.timing.as_ms()
             timing["outputs"] = 1e3 * (time.perf_counter() - t1)
             timing["total"] = 1e3 * (time.perf_counter() - t0)
@@ -218,21 +218,24 @@ class Session:
                 message=sol.message,
             )
 
-    def _outputs(self, g: Array) -> tuple[dict[str, Array], float]:
-        """The requested fields at the frame's forces, and the RMS point-to-surface distance."""
+    def _outputs(self, g: Array, rms: float) -> tuple[dict[str, Array], float]:
+        """The requested fields at the frame's forces, and the RMS point-to-surface distance
+        (the solve's at g, or searched for if it has none: the best iterate was never evaluated)."""
         want = set(self.config.outputs)
         out: dict[str, Array] = {}
-        u_all = None
+        u_all = u_nodes = None
         try:
             if want & {"displacement", "surface_displacement", "stress"}:
                 u_all = self.op.displacement(g)
                 u_nodes = u_all[self.distance.nodes]
-            else:
+            elif not np.isfinite(rms):
                 u_nodes, _ = self.op(g)
         except ForwardFailed:  # the best iterate's field could not be recomputed: no NaN
-            u_all = None
-            u_nodes = np.zeros((self.distance.nodes.size, 3))
-        rms = float(np.sqrt(np.mean(self.distance.closest(self._rest + u_nodes).sq_distances)))
+            u_all = u_nodes = None
+        if not np.isfinite(rms):
+            if u_nodes is None:
+                u_nodes = np.zeros((self.distance.nodes.size, 3))
+            rms = float(np.sqrt(np.mean(self.distance.closest(self._rest + u_nodes).sq_distances)))
         if u_all is not None:
             if "displacement" in want:
                 out["displacement"] = u_all

@@ -99,6 +99,27 @@ def test_forces_stay_on_the_support_and_outputs_are_only_those_asked(entry, sequ
     assert np.allclose(u, rf.outputs["displacement"], atol=1e-9 * max(1.0, np.abs(u).max()))
 
 
+@pytest.mark.parametrize("loss, outputs", [("squared", ("forces",)), ("trimmed", ("displacement",)), ("huber", ("forces",))])
+def test_the_reported_rms_is_at_the_returned_forces(entry, sequence, loss, outputs):
+    """The frame's RMS distance comes from the solve's own evaluation of its best iterate (no
+    search after it): it must be the RMS of every point, trimmed ones too, against the surface
+    the returned forces make, whatever outputs the session asked for."""
+    from service.registration.distance import PointToSurface
+
+    tool, seq = sequence
+    config = SessionConfig(support=_support(entry, tool), outputs=outputs, loss=loss, loss_param=1e-3 if loss == "huber" else None)
+    s = Session(entry.network, config)
+    cloud = seq.clouds[-1].copy()
+    cloud[:10] += 0.02  # a few outliers, for the robust losses to leave out
+    for _ in range(2):  # cold, then warm
+        r = s.frame(cloud)
+        u = entry.network.restrict(s.support).displacement(s.g)
+        ref = PointToSurface(entry.mesh.surface_faces, backend="numpy")
+        ref.bind(cloud)
+        expected = ref.closest((entry.mesh.nodes + u)[ref.nodes]).rms
+        assert r.distance_rms == pytest.approx(expected, rel=1e-5)
+
+
 
 @pytest.mark.parametrize("method", ["network", "fem"])
 def test_a_stiffer_session_solves_the_same_problem_in_scaled_forces(entry, sequence, method):
