@@ -43,21 +43,23 @@ class GaussNewtonModel:
     def __init__(self, jac, match: Match, faces: Array, grad: Array, alpha: float) -> None:
         Nw = weighted_rows(jac.U, match, faces)  # (m, r): sqrt(w_j) N_j
         A = (Nw.T @ Nw).astype(np.float64)
-        self.CCA = jac.gram() @ A  # (r, r)
+        # C C^T A in Fortran order, as LAPACK takes it (A C C^T transposed: both symmetric)
+        self.CCA = (A @ jac.gram()).T  # (r, r)
         self.A = A
         self.jac = jac
         self.v = -np.asarray(grad, np.float64).ravel()
         self.Cv = jac.matvec(self.v)
         self.alpha = float(alpha)
-        self.scale = max(float(np.trace(self.CCA)) / len(A), 0.0)  # mean curvature seen
-        self._eye = np.eye(len(A))
+        self._diagonal = slice(None, None, len(A) + 1)  # of a flattened (r, r)
+        self.scale = max(float(self.CCA.T.ravel()[self._diagonal].sum()) / len(A), 0.0)  # mean curvature seen
 
     def step(self, mu: float) -> Array:
         """d with (C^T A C + (alpha + mu) I) d = -grad. Shape: (K,)."""
         lam = self.alpha + mu
-        M = self.CCA + lam * self._eye
-        _, _, z, info = dgesv(M, self.Cv, overwrite_a=1)  # LAPACK directly: a third of
-        if info != 0:  # np.linalg.solve's time at r = 64; singular only at lam = 0
+        M = self.CCA.copy(order="F")
+        M.T.ravel()[self._diagonal] += lam  # a view: M.T is C-ordered
+        _, _, z, info = dgesv(M, self.Cv, overwrite_a=1)  # LAPACK directly, in place: a
+        if info != 0:  # third of np.linalg.solve's time at r = 64; singular only at lam = 0
             raise np.linalg.LinAlgError("singular Levenberg-Marquardt system")
         return (self.v - self.jac.rmatvec(self.A @ z)) / lam
 
