@@ -166,10 +166,9 @@ class NetworkOperator:
             h = z * slope
         return h, tape, skip
 
-
     def __call__(self, g: Array) -> tuple[Array, Callable[[Array], Array]]:
         x = np.asarray(g, np.float32).reshape(-1)
-        if x @ x == 0:  # one BLAS call; x.any() costs 5 us more
+        if not x.any():
             # the rest state, which the engine evaluates every frame: the same answer each time
             if self._at_rest is None:
                 self._at_rest = self._evaluate(x)
