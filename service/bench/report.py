@@ -138,11 +138,12 @@ def main(args: argparse.Namespace) -> int:
 
     if "liver" in parts:
         from .cases import rest_baseline, run_case, summarise
-        from .liver import FEM, NETWORK, liver_part
+        from .liver import FEM, LM_LABEL, NETWORK, NETWORK_LM, liver_part
 
         if args.smoke is not None:
-            recs = rest_baseline(base) + run_case(entry.network, base, NETWORK) + run_case(entry.fem, base, FEM)
-            summaries = [summarise([r for r in recs if r.method == m]) for m in ("none (rest shape)", "network", "fem")]
+            recs = (rest_baseline(base) + run_case(entry.network, base, NETWORK) + run_case(entry.network, base, NETWORK_LM, LM_LABEL)
+                    + run_case(entry.fem, base, FEM))  # fmt: skip
+            summaries = [summarise([r for r in recs if r.method == m]) for m in ("none (rest shape)", "network", LM_LABEL, "fem")]
             results["parts"]["liver"] = {"records": recs, "summaries": summaries}
         else:
             results["parts"]["liver"] = liver_part(liver_entry, frames=15 if quick else None,
@@ -153,7 +154,8 @@ def main(args: argparse.Namespace) -> int:
         from .pareto import plot
 
         n = 4 if args.smoke is not None else (15 if quick else 60)
-        sweep = dict(gtols=(1e-2,), caps=(5,), points=(50,), fem_gtols=(1e-2,), fem_cases=1) if args.smoke is not None else None
+        sweep = (dict(gtols=(1e-2,), caps=(5,), points=(50,), fem_gtols=(1e-2,), fem_cases=1, lbfgsb_gtols=(1e-2,))
+                 if args.smoke is not None else None)  # fmt: skip
         results["parts"]["beam"] = beam_part(beam_entry, n_cases=n, n_points=150 if args.smoke else 500, sweep=sweep)
         plot(results["parts"]["beam"]["pareto"], out / "figures" / "beam_pareto.png", "error against run time: the beam")
 
@@ -169,10 +171,11 @@ def main(args: argparse.Namespace) -> int:
             named = {args.liver_model: liver_entry, **{k: e for k, e in entries.items() if k.startswith(args.liver_model + "_")}}
             variants = {_surrogate_label(k, e.manifest["network"]): e.network for k, e in named.items()}
         if args.smoke is not None:
-            sweep = dict(gtols=(1e-2, 1e-4), caps=(5,), points=(50,), fem_gtols=(1e-2,), fem_frames=2, alphas=(1e-6,))
+            sweep = dict(gtols=(1e-2, 1e-4), caps=(5,), points=(50,), fem_gtols=(1e-2,), fem_frames=2, alphas=(1e-6,),
+                         lm_gtols=(1e-3,))
         elif quick:
             sweep = dict(gtols=(1e-2, 1e-3, 1e-4, 1e-5), caps=(5, 20), points=(100, 500), fem_gtols=(1e-3, 1e-4), fem_frames=4,
-                         alphas=(3e-8,))
+                         alphas=(3e-8,), lm_gtols=(1e-3, 1e-4))
         else:
             sweep = {}
         rows = pareto_part(liver_entry, case, variants=variants, **sweep)
@@ -341,8 +344,10 @@ def write_report(results: dict, out: Path) -> None:
         md.append(_table(rows, [("method", "method"), ("knob", "knob"), ("value", "value"), ("tre_mm", "mean TRE (mm)"),
                                 ("force_error_pct", "force error (%)"), ("ms", "ms / frame"), ("iterations", "iterations"),
                                 ("converged", "converged")]))  # fmt: skip
-        front = pareto_front([r for r in rows if r["method"] == "network"])
-        md.append("\nNetwork Pareto front (TRE): " + ", ".join(f"{r['knob']}={r['value']}: {r['tre_mm']:.3f} mm @ {r['ms']:.1f} ms" for r in front) + "\n")
+        for method in dict.fromkeys(r["method"] for r in rows if r["method"] != "fem"):
+            front = pareto_front([r for r in rows if r["method"] == method])
+            md.append(f"\nPareto front (TRE), {method}: "
+                      + ", ".join(f"{r['knob']}={r['value']}: {r['tre_mm']:.3f} mm @ {r['ms']:.1f} ms" for r in front) + "\n")  # fmt: skip
         _write_csv(out / "pareto.csv", rows)
     if "stability" in parts:
         rows = parts["stability"]["rows"]
@@ -373,7 +378,8 @@ def _plot_frames(records, path: Path) -> None:
     cases = list(dict.fromkeys(r.case for r in records))
     fig, axes = plt.subplots(2, len(cases), figsize=(4.2 * len(cases), 6), squeeze=False)
     for j, case in enumerate(cases):
-        for method, colour in (("none (rest shape)", "grey"), ("network", "tab:blue"), ("fem", "tab:red")):
+        for method, colour in (("none (rest shape)", "grey"), ("network", "tab:blue"), ("network, levenberg-marquardt", "tab:green"),
+                               ("fem", "tab:red")):  # fmt: skip
             rs = [r for r in records if r.case == case and r.method == method]
             if not rs:
                 continue

@@ -1,6 +1,7 @@
-"""Numerical stability on stiff and extreme cases: for each, the converged fraction, TRE, force
-error, time, and whether anything produced a NaN or an exception. A failing case is reported
-as such, never hidden.
+"""Numerical stability on stiff and extreme cases: for each, and for each method (the network
+with L-BFGS-B and with Levenberg-Marquardt, and the Newton method), the converged fraction,
+TRE, force error, time, and whether anything produced a NaN or an exception. A failing case is
+reported as such, never hidden.
 
 Each Newton frame has the issue's 10 s budget (``time_budget_ms``): on a noisy cloud the gradient
 test cannot be met (the noise sets a floor under the objective) and an unbounded frame ran 55 s;
@@ -19,7 +20,7 @@ from ..fem.material import NeoHookean
 from ..fem.model import FEMModel
 from ..registration.session import SessionConfig
 from .cases import Case, noisy, run_case, summarise, synthetic_case
-from .liver import FEM, FEM_BUDGET_MS, NETWORK, _region_patch
+from .liver import FEM, FEM_BUDGET_MS, LM_LABEL, NETWORK, NETWORK_LM, _region_patch
 
 log = logging.getLogger(__name__)
 
@@ -85,7 +86,7 @@ def stability_part(entry, base: Case, frames: int = 10, fem: bool = True, fem_bu
     fem_cfg = dataclasses.replace(FEM, time_budget_ms=fem_budget_ms)
     for case, overrides in stability_cases(base, entry.region, entry.fem.material, frames, **case_options):
         material = overrides.pop("material", None)
-        for name, base_cfg, model in (("network", NETWORK, entry.network), ("fem", fem_cfg, entry.fem)):
+        for name, base_cfg, model in (("network", NETWORK, entry.network), (LM_LABEL, NETWORK_LM, entry.network), ("fem", fem_cfg, entry.fem)):
             if name == "fem" and not fem:
                 continue
             if material is not None and name == "fem":  # the FEM takes any material; the

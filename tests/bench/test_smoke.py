@@ -17,8 +17,10 @@ def test_bench_smoke_writes_the_whole_report(bar_store, tmp_path):
     assert (out / "figures" / "pareto.png").stat().st_size > 1000
     assert (out / "figures" / "liver_frames.png").stat().st_size > 1000
     assert (out / "figures" / "beam_pareto.png").stat().st_size > 1000
-    beam = results["parts"]["beam"]["pareto"]  # both methods on the beam's sweep
-    assert {r["method"] for r in beam} == {"network", "fem"} and "on the beam" in report
+    beam = results["parts"]["beam"]["pareto"]  # both methods, and both optimizers, on the beam's sweep
+    assert {r["method"] for r in beam} == {"network, levenberg-marquardt", "network", "fem"} and "on the beam" in report
+    liver = results["parts"]["pareto"]
+    assert {r["method"] for r in liver} == {"network", "network, levenberg-marquardt", "fem"}
     summary = results["parts"]["beam"]["summary"]  # Levenberg-Marquardt, and L-BFGS-B beside it
     assert summary["config"]["optimizer"] == "levenberg-marquardt" and summary["lbfgsb"]["cases"] == summary["cases"]
     assert "elastreg, L-BFGS-B" in report
@@ -27,5 +29,7 @@ def test_bench_smoke_writes_the_whole_report(bar_store, tmp_path):
     net = next(s for s in results["parts"]["liver"]["summaries"] if s["method"] == "network")
     rest = next(s for s in results["parts"]["liver"]["summaries"] if s["method"] == "none (rest shape)")
     assert net["tre_mean_mm"] < rest["tre_mean_mm"]  # registration beats doing nothing
+    lm = next(s for s in results["parts"]["liver"]["summaries"] if s["method"] == "network, levenberg-marquardt")
+    assert lm["frames"] == net["frames"] and lm["tre_mean_mm"] < rest["tre_mean_mm"]
     assert not any(r.get("crashed") for r in results["parts"]["stability"]["rows"])
     assert results["parts"]["fem"]["backends"]  # at least one solver ran
