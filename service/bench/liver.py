@@ -65,7 +65,8 @@ def liver_part(entry, *, frames: int | None = None, own_frames: int = 20, fem: b
     cases = [paper] + own_sequences(paper, entry.region, entry.fem.material, own_frames)
     records, summaries = [], []
     for case in cases:
-        runs = [rest_baseline(case), run_case(entry.network, case, NETWORK), run_case(entry.network, case, NETWORK_LM, LM_LABEL)]
+        runs = [rest_baseline(case), run_case(entry.network, case, NETWORK),
+                run_case(entry.network, case, NETWORK_LM, LM_LABEL)]
         if fem:
             runs.append(run_case(entry.fem, case, FEM))
         for recs in runs:

@@ -86,7 +86,8 @@ def stability_part(entry, base: Case, frames: int = 10, fem: bool = True, fem_bu
     fem_cfg = dataclasses.replace(FEM, time_budget_ms=fem_budget_ms)
     for case, overrides in stability_cases(base, entry.region, entry.fem.material, frames, **case_options):
         material = overrides.pop("material", None)
-        for name, base_cfg, model in (("network", NETWORK, entry.network), (LM_LABEL, NETWORK_LM, entry.network), ("fem", fem_cfg, entry.fem)):
+        methods = (("network", NETWORK, entry.network), (LM_LABEL, NETWORK_LM, entry.network), ("fem", fem_cfg, entry.fem))
+        for name, base_cfg, model in methods:
             if name == "fem" and not fem:
                 continue
             if material is not None and name == "fem":  # the FEM takes any material; the

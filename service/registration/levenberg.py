@@ -51,7 +51,8 @@ class GaussNewtonModel:
         self.Cv = jac.matvec(self.v)
         self.alpha = float(alpha)
         self._diagonal = slice(None, None, len(A) + 1)  # of a flattened (r, r)
-        self.scale = max(float(self.CCA.T.ravel()[self._diagonal].sum()) / len(A), 0.0)  # mean curvature seen
+        trace = float(self.CCA.T.ravel()[self._diagonal].sum())
+        self.scale = max(trace / len(A), 0.0)  # the mean curvature the model sees
 
     def step(self, mu: float) -> Array:
         """d with (C^T A C + (alpha + mu) I) d = -grad. Shape: (K,)."""
