@@ -146,6 +146,7 @@ class NetworkOperator:
         self._jac: tuple[Array, Array] | None = None
         self._factors: _GramFactors | None = None  # for jacobian(), made at its first call
         self._rest_jacobian: CoefficientJacobian | None = None  # jacobian(0), kept
+        self._anchored: _AnchoredGram | None = None  # jacobian()'s R and C C^T, kept and corrected
         self._tape_at: tuple[Array, list] | None = None  # the last evaluation's input and tape
         self._row_cache: list[tuple[Array, Array]] = []  # (rows, the readout's rows), last used first
         self._at_rest: tuple[Array, Callable[[Array], Array]] | None = None
@@ -251,7 +252,17 @@ class NetworkOperator:
             _, tape, _ = self._hidden(x)
         if self._factors is None:
             self._factors = _GramFactors(self._layers[0][0], self._skip)
-        jac = CoefficientJacobian(self._readout, self._layers[-1][0], tape, self._factors, self._input)
+        W_last = self._layers[-1][0]
+        if _AnchoredGram.applies(tape):
+            if self._anchored is None:
+                self._anchored = _AnchoredGram(W_last, tape, self._factors)
+            R, G = self._anchored.at(tape)
+        else:  # three or more hidden layers: in full
+            R = np.asfortranarray(_above_first(W_last, tape))
+            Y = self._factors.Y(R)
+            G = (Y @ Y.T).astype(np.float64) + self._factors.E
+            G.flags.writeable = False
+        jac = CoefficientJacobian(self._readout, R, G, self._input)
         if at_rest:
             self._rest_jacobian = jac
         return jac
@@ -286,9 +297,8 @@ class _GramFactors:
     layer; S (r, K) the skip path). With W1^T = V T (QR, T upper triangular (h, h)):
     C C^T = Y Y^T + E, Y = R T^T + Z^T, Z = V^T S^T (h, r), E = S (I - V V^T) S^T, so an
     iteration costs an (r, h) by (h, h) triangular product and an (r, h) Gram, not products
-    over the K inputs (the beam: 939 of them against h = 128; 63 us). Keeping Y at recent
-    slopes and correcting it by the units that flipped was measured and dropped: 155 -> 57 us
-    at h = 256, no gain at 128.
+    over the K inputs (the beam: 939 of them against h = 128; 63 us). :class:`_AnchoredGram`
+    keeps Y at recent slopes and corrects it by the units that flipped.
     """
 
     def __init__(self, W1: Array, skip: Array) -> None:
@@ -310,23 +320,100 @@ class _GramFactors:
         return Y
 
 
+class _AnchoredGram:
+    """R = dc/dz (z the first layer's pre-activation) and C C^T at the slopes last seen,
+    corrected by the PReLU units whose slope changed since, for networks of one or two hidden
+    layers.
+
+    With P the layers above the first hidden layer's activation (W_last for one hidden layer,
+    (W_last D2) W2 for two, D the slopes), R = P D1 and Y = R T^T + Z^T (_GramFactors), so
+    C C^T = Y Y^T + E. A step that flips k units changes P by W_last[:, F2] dD2 W2[F2] and R
+    by that times D1 plus P[:, F1] dD1: Y changes by a rank-k product L N and Y Y^T by
+    Y N^T L^T + L N Y^T + L (N N^T) L^T, about k h (h + 3 r) products against the full
+    r h (h + h2 + r). Warm-started frames on the paper's liver flip one or two of its 512 top
+    units per step (median; 49 at most): the Jacobian and its Gram there cost 3.5 ms a step in
+    full. Refreshed in full when the correction would cost a quarter of that or more, and
+    after _REFRESH corrections (float32 drift).
+    """
+
+    _REFRESH = 16
+
+    def __init__(self, W_last: Array, tape: list, factors: _GramFactors) -> None:
+        self.W_last, self._f = W_last, factors
+        self.W_top = tape[1][0] if len(tape) == 2 else None  # the second hidden layer's weights
+        r, h = W_last.shape[0], tape[0][0].shape[0]
+        h2 = 0 if self.W_top is None else self.W_top.shape[0]
+        self._full_cost = r * h * (h + h2 + r)
+        self._unit_cost = h * (h + 3 * r)
+        self._state: tuple | None = None  # (slopes, P, Y, Y Y^T, corrections so far)
+
+    @staticmethod
+    def applies(tape: list) -> bool:
+        return 1 <= len(tape) <= 2
+
+    def at(self, tape: list) -> tuple[Array, Array]:
+        """(R (r, h) Fortran-ordered float32, C C^T (r, r) float64 read-only) at the tape's slopes."""
+        s1 = tape[0][1]
+        s2 = tape[1][1] if self.W_top is not None else None
+        st = self._state
+        if st is not None and st[4] < self._REFRESH:
+            (s1_old, s2_old), P, Y, YY, n = st
+            F1 = np.flatnonzero(s1 != s1_old)
+            F2 = np.flatnonzero(s2 != s2_old) if s2 is not None else F1[:0]
+            k = F1.size + F2.size
+            if k * self._unit_cost < 0.25 * self._full_cost:
+                if k:
+                    P, Y, YY = self._correct(P, Y, YY, s1, s1_old, F1, s2, s2_old, F2)
+                self._state = ((s1, s2), P, Y, YY, n + (k > 0))
+                return self._result(P, s1, YY)
+        P = np.asfortranarray(self.W_last if self.W_top is None else (self.W_last * s2) @ self.W_top)
+        Y = self._f.Y(P * s1)  # P Fortran-ordered, so is the product: BLAS trmm takes it as is
+        YY = (Y @ Y.T).astype(np.float64)
+        self._state = ((s1, s2), P, Y, YY, 0)
+        return self._result(P, s1, YY)
+
+    def _correct(self, P, Y, YY, s1, s1_old, F1, s2, s2_old, F2):
+        """P, Y and Y Y^T after the units F1 (first layer) and F2 (second) changed slopes."""
+        Tt = self._f.Tt  # T^T (h, q)
+        parts_L, parts_N = [], []
+        if F2.size:
+            L2 = self.W_last[:, F2] * (s2 - s2_old)[F2]  # (r, f2)
+            M2 = self.W_top[F2]  # (f2, h)
+            parts_L.append(L2)
+            parts_N.append((M2 * s1) @ Tt)
+        if F1.size:
+            parts_L.append(P[:, F1] * (s1 - s1_old)[F1])
+            parts_N.append(Tt[F1])
+        L = np.hstack(parts_L) if len(parts_L) > 1 else parts_L[0]  # (r, k)
+        N = np.vstack(parts_N) if len(parts_N) > 1 else parts_N[0]  # (k, q)
+        if F2.size:
+            P = P.copy(order="F")
+            P += L2 @ M2
+        A = (Y @ N.T).astype(np.float64)  # Y N^T with the Y before the change
+        B = L.astype(np.float64)
+        BA = B @ A.T
+        YY = YY + BA + BA.T + B @ (N.astype(np.float64) @ N.T.astype(np.float64)) @ B.T
+        return P, Y + L @ N, YY
+
+    def _result(self, P, s1, YY) -> tuple[Array, Array]:
+        G = YY + self._f.E
+        G.flags.writeable = False
+        return P * s1, G
+
+
 class CoefficientJacobian:
-    """dc/dg = C (r, K) of the reduced network at one input, in product form. ``U`` (3p, r)
+    """dc/dg = C (r, K) of the reduced network at one input, in product form: C = R W1 + S with
+    R = dc/dz (r, h) the layers above the first (see :class:`_AnchoredGram`). ``U`` (3p, r)
     is the readout of the operator's nodes (du/dc, constant), so du/dg = U C."""
 
-    def __init__(self, readout: Array, W_last: Array, tape: list, factors: _GramFactors, stacked: Array) -> None:
-        self.R = np.asfortranarray(_above_first(W_last, tape))  # (r, h)
+    def __init__(self, readout: Array, R: Array, gram: Array, stacked: Array) -> None:
+        self.R = R  # (r, h)
         self.U = readout
-        self._f = factors
         self._P = stacked  # [W1; S] (h + r, K): C = [R, I] P
-        self._gram: Array | None = None
+        self._gram = gram
 
     def gram(self) -> Array:
-        """C C^T (r, r), float64. Computed once (read-only)."""
-        if self._gram is None:
-            Y = self._f.Y(self.R)
-            self._gram = (Y @ Y.T).astype(np.float64) + self._f.E
-            self._gram.flags.writeable = False
+        """C C^T (r, r), float64, read-only."""
         return self._gram
 
     def matvec(self, v: Array) -> Array:

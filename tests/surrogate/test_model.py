@@ -204,6 +204,39 @@ def test_coefficient_jacobian_is_torch_jacobian(bar, hidden):
     np.testing.assert_allclose(op.jacobian(g1).U.astype(np.float64) @ C, ref.numpy(), rtol=1e-3, atol=1e-4 * float(ref.abs().max()))
 
 
+@pytest.mark.parametrize("hidden", [[48, 40], [40], [24, 20, 16]])
+def test_coefficient_jacobian_along_a_path_is_the_fresh_one(bar, hidden):
+    """Levenberg-Marquardt asks one operator for the Jacobian at point after point: its R and
+    C C^T are kept and corrected by the PReLU units that flipped since the last call, refreshed
+    in full every so often. Along a path of small steps each must equal a fresh operator's
+    full computation, the corrections must actually run (up to two hidden layers), and three
+    hidden layers take the full computation."""
+    region = bar.free_surface_nodes[bar.nodes[bar.free_surface_nodes, 0] > 1.0]
+    rng = np.random.default_rng(1)
+    basis, _ = pod_basis(rng.normal(size=(40, 3 * bar.n_nodes)), 12)
+    n_in = 3 * region.size
+    net = ReducedSurrogate(n_in, torch.from_numpy(basis), hidden, torch.randn(12, n_in), 2.0, torch.full((12,), 0.5))
+    model = NetworkModel(bar, MAT, region, randomised(net, seed=5), E0=MAT.E)
+    support, nodes, g1 = case(model)
+    op = model.restrict(support, nodes)
+    corrected = 0
+    for t in np.linspace(0.05, 1.5, 60):
+        g = t * g1
+        jac = op.jacobian(g)
+        if op._anchored is not None:
+            corrected += op._anchored._state[4] > 0
+        fresh = model.restrict(support, nodes).jacobian(g)
+        G = fresh.gram()
+        np.testing.assert_allclose(jac.gram(), G, rtol=1e-4, atol=1e-5 * np.abs(G).max())
+        np.testing.assert_allclose(jac.R, fresh.R, rtol=1e-4, atol=1e-5 * np.abs(fresh.R).max())
+        v = rng.normal(size=g.size)
+        np.testing.assert_allclose(jac.matvec(v), fresh.matvec(v), rtol=1e-4, atol=1e-5 * np.abs(fresh.matvec(v)).max())
+    if len(hidden) <= 2:
+        assert corrected >= 10
+    else:
+        assert op._anchored is None
+
+
 def test_paper_layout_offers_no_coefficient_jacobian(bar):
     region = bar.free_surface_nodes[bar.nodes[bar.free_surface_nodes, 0] > 1.0]
     net = PaperSurrogate(3 * region.size, 3 * bar.n_nodes, depth=3)
