@@ -252,16 +252,9 @@ class NetworkOperator:
             _, tape, _ = self._hidden(x)
         if self._factors is None:
             self._factors = _GramFactors(self._layers[0][0], self._skip)
-        W_last = self._layers[-1][0]
-        if _AnchoredGram.applies(tape):
-            if self._anchored is None:
-                self._anchored = _AnchoredGram(W_last, tape, self._factors)
-            R, G = self._anchored.at(tape)
-        else:  # three or more hidden layers: in full
-            R = np.asfortranarray(_above_first(W_last, tape))
-            Y = self._factors.Y(R)
-            G = (Y @ Y.T).astype(np.float64) + self._factors.E
-            G.flags.writeable = False
+        if self._anchored is None:
+            self._anchored = _AnchoredGram(self._layers[-1][0], tape, self._factors)
+        R, G = self._anchored.at(tape)
         jac = CoefficientJacobian(self._readout, R, G, self._input)
         if at_rest:
             self._rest_jacobian = jac
@@ -323,7 +316,7 @@ class _GramFactors:
 class _AnchoredGram:
     """R = dc/dz (z the first layer's pre-activation) and C C^T at the slopes last seen,
     corrected by the PReLU units whose slope changed since, for networks of one or two hidden
-    layers.
+    layers (deeper ones: in full at every call).
 
     With P the layers above the first hidden layer's activation (W_last for one hidden layer,
     (W_last D2) W2 for two, D the slopes), R = P D1 and Y = R T^T + Z^T (_GramFactors), so
@@ -340,6 +333,7 @@ class _AnchoredGram:
 
     def __init__(self, W_last: Array, tape: list, factors: _GramFactors) -> None:
         self.W_last, self._f = W_last, factors
+        self._deep = len(tape) > 2
         self.W_top = tape[1][0] if len(tape) == 2 else None  # the second hidden layer's weights
         r, h = W_last.shape[0], tape[0][0].shape[0]
         h2 = 0 if self.W_top is None else self.W_top.shape[0]
@@ -347,12 +341,12 @@ class _AnchoredGram:
         self._unit_cost = h * (h + 3 * r)
         self._state: tuple | None = None  # (slopes, P, Y, Y Y^T, corrections so far)
 
-    @staticmethod
-    def applies(tape: list) -> bool:
-        return 1 <= len(tape) <= 2
-
     def at(self, tape: list) -> tuple[Array, Array]:
         """(R (r, h) Fortran-ordered float32, C C^T (r, r) float64 read-only) at the tape's slopes."""
+        if self._deep:
+            R = np.asfortranarray(_above_first(self.W_last, tape))
+            Y = self._f.Y(R)
+            return R, self._gram((Y @ Y.T).astype(np.float64))
         s1 = tape[0][1]
         s2 = tape[1][1] if self.W_top is not None else None
         st = self._state
@@ -396,9 +390,12 @@ class _AnchoredGram:
         return P, Y + L @ N, YY
 
     def _result(self, P, s1, YY) -> tuple[Array, Array]:
+        return P * s1, self._gram(YY)
+
+    def _gram(self, YY: Array) -> Array:
         G = YY + self._f.E
         G.flags.writeable = False
-        return P * s1, G
+        return G
 
 
 class CoefficientJacobian:
