@@ -683,12 +683,6 @@ class _Index:
     y: Array | None = None  # (3, P) each pair's point, coordinates first
 
     @property
-    def last_rms(self) -> float:
-        """The RMS distance of all points (trimmed ones too) at the last evaluation of this
-        frame (NaN before one): a frame's report at its best iterate, without another search."""
-        return math.nan if self._last is None else math.sqrt(self._last[5] / self._last[1].size)
-
-    @property
     def n_pairs(self) -> int:
         return int(self.face.size)
 
