@@ -176,16 +176,21 @@ def _torch_coefficient_jacobian(model, support, g):
     return torch.autograd.functional.jacobian(coef, torch.tensor(g.ravel(), dtype=torch.float32)).numpy().astype(np.float64)
 
 
+def _random_reduced(bar, hidden, rng, seed):
+    """A randomised reduced surrogate (12 modes) on the bar's far-end free surface."""
+    region = bar.free_surface_nodes[bar.nodes[bar.free_surface_nodes, 0] > 1.0]
+    basis, _ = pod_basis(rng.normal(size=(40, 3 * bar.n_nodes)), 12)
+    n_in = 3 * region.size
+    net = ReducedSurrogate(n_in, torch.from_numpy(basis), hidden, torch.randn(12, n_in), 2.0, torch.full((12,), 0.5))
+    return NetworkModel(bar, MAT, region, randomised(net, seed=seed), E0=MAT.E)
+
+
 @pytest.mark.parametrize("hidden", [[32, 16], [24]])
 def test_coefficient_jacobian_is_torch_jacobian(bar, hidden):
     """C = dc/dg at loaded states (slopes flipped from rest) in product form: C C^T, C v and
     C^T w against torch's Jacobian, U C against torch's du/dg, for one and two hidden layers."""
-    region = bar.free_surface_nodes[bar.nodes[bar.free_surface_nodes, 0] > 1.0]
     rng = np.random.default_rng(0)
-    basis, _ = pod_basis(rng.normal(size=(40, 3 * bar.n_nodes)), 12)
-    n_in = 3 * region.size
-    net = ReducedSurrogate(n_in, torch.from_numpy(basis), hidden, torch.randn(12, n_in), 2.0, torch.full((12,), 0.5))
-    model = NetworkModel(bar, MAT, region, randomised(net, seed=3), E0=MAT.E)
+    model = _random_reduced(bar, hidden, rng, seed=3)
     support, nodes, g1 = case(model)
     op = model.restrict(support, nodes)
     rest_slope = op._hidden(np.zeros(g1.size, np.float32))[1][0][1]
@@ -211,12 +216,8 @@ def test_coefficient_jacobian_along_a_path_is_the_fresh_one(bar, hidden):
     in full every so often. Along a path of small steps each must equal a fresh operator's
     full computation, the corrections must actually run (up to two hidden layers), and three
     hidden layers take the full computation."""
-    region = bar.free_surface_nodes[bar.nodes[bar.free_surface_nodes, 0] > 1.0]
     rng = np.random.default_rng(1)
-    basis, _ = pod_basis(rng.normal(size=(40, 3 * bar.n_nodes)), 12)
-    n_in = 3 * region.size
-    net = ReducedSurrogate(n_in, torch.from_numpy(basis), hidden, torch.randn(12, n_in), 2.0, torch.full((12,), 0.5))
-    model = NetworkModel(bar, MAT, region, randomised(net, seed=5), E0=MAT.E)
+    model = _random_reduced(bar, hidden, rng, seed=5)
     support, nodes, g1 = case(model)
     op = model.restrict(support, nodes)
     corrected = 0
