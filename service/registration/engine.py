@@ -260,8 +260,7 @@ def solve_frame(
             raise _Done()
         begin = _Start(start, v0, grad0, u0)
         if options.optimizer == "levenberg-marquardt":
-            if bounded:
-                raise ValueError(_BOUNDED)
+            check_optimizer(op, options)  # bounds, a Jacobian: what a session checked when it opened
             status, message, nit = _levenberg_marquardt(op, distance, evaluate, begin, g_tol, options, max_eval, deadline)
         else:
             status, message, nit = _lbfgsb(op, distance, evaluate, begin, v_rest, g_tol, options, curvature, max_eval, deadline)
