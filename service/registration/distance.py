@@ -282,11 +282,16 @@ def _triangle_q_only(apx, apy, apz, e0x, e0y, e0z, e1x, e1y, e1z):
     three clamped edge projections (as the numpy backend's evaluation); thin triangles, where
     the inside test is unreliable, go through :func:`_triangle_q`.
     """
-    d1 = e0x * apx + e0y * apy + e0z * apz
-    d2 = e1x * apx + e1y * apy + e1z * apz
     g00 = e0x * e0x + e0y * e0y + e0z * e0z
     g01 = e0x * e1x + e0y * e1y + e0z * e1z
     g11 = e1x * e1x + e1y * e1y + e1z * e1z
+    return _triangle_q_gram(apx, apy, apz, e0x, e0y, e0z, e1x, e1y, e1z, g00, g01, g11)
+
+
+def _triangle_q_gram(apx, apy, apz, e0x, e0y, e0z, e1x, e1y, e1z, g00, g01, g11):
+    """:func:`_triangle_q_only` given the edges' Gram entries (a build's table holds them)."""
+    d1 = e0x * apx + e0y * apy + e0z * apz
+    d2 = e1x * apx + e1y * apy + e1z * apz
     det = g00 * g11 - g01 * g01
     if det <= _THIN * (g00 + g11) * (g00 + g11):
         q, _, _ = _triangle_q(apx, apy, apz, e0x, e0y, e0z, e1x, e1y, e1z)
@@ -390,10 +395,16 @@ def _max_motion(x, x0):
     return top
 
 
-def _bvh_refit(x, faces, order, span, box, tri_box):
-    """Every triangle's and node's box at positions x, leaves first, then upwards.
+#: Columns of a triangle in a hierarchy's table: its box (low corner, high corner), a, e0 = b - a,
+#: e1 = c - a and the Gram entries e0.e0, e0.e1, e1.e1, so that a build's distance tests read
+#: one row instead of gathering three vertices and forming the edges each time.
+_TRI = 18
 
-    Shape: x (p, 3), faces (f, 3), order (f,), span (n, 2); writes tri_box (f, 6), row k for
+
+def _bvh_refit(x, faces, order, span, box, tri):
+    """Every triangle's row and every node's box at positions x, leaves first, then upwards.
+
+    Shape: x (p, 3), faces (f, 3), order (f,), span (n, 2); writes tri (f, _TRI), row k for
     triangle order[k], and box (n, 6): low corner, then high corner. An empty leaf gets an
     empty box (+inf low, -inf high), never visited.
     """
@@ -408,9 +419,14 @@ def _bvh_refit(x, faces, order, span, box, tri_box):
             for a in range(3):
                 c0, c1, c2 = x[i0, a], x[i1, a], x[i2, a]
                 low, high = min(c0, min(c1, c2)), max(c0, max(c1, c2))
-                tri_box[k, a], tri_box[k, a + 3] = low, high
+                tri[k, a], tri[k, a + 3] = low, high
+                tri[k, 6 + a], tri[k, 9 + a], tri[k, 12 + a] = c0, c1 - c0, c2 - c0
                 box[node, a] = min(box[node, a], low)
                 box[node, a + 3] = max(box[node, a + 3], high)
+            e0x, e0y, e0z, e1x, e1y, e1z = tri[k, 9], tri[k, 10], tri[k, 11], tri[k, 12], tri[k, 13], tri[k, 14]
+            tri[k, 15] = e0x * e0x + e0y * e0y + e0z * e0z
+            tri[k, 16] = e0x * e1x + e0y * e1y + e0z * e1z
+            tri[k, 17] = e1x * e1x + e1y * e1y + e1z * e1z
     for node in range(n_internal - 1, -1, -1):
         left, right = 2 * node + 1, 2 * node + 2
         for a in range(3):
@@ -426,21 +442,24 @@ def _box_q(box, node, px, py, pz):
     return dx * dx + dy * dy + dz * dz
 
 
-def _bvh_candidates(x, faces, order, span, box, tri_box, y, reach, hint, face_out, start):
+def _bvh_candidates(x, faces, order, span, box, tri, y, reach, hint, face_out, start):
     """Every triangle within d0 + reach of each point, d0 its distance to the surface.
 
-    Shape: x (p, 3), faces (f, 3), order (f,), span (n, 2), box (n, 6), tri_box (f, 6)
+    Shape: x (p, 3), faces (f, 3), order (f,), span (n, 2), box (n, 6), tri (f, _TRI)
     refitted at x, y (m, 3); hint (m,) a face per point likely near it (its last closest), or
     empty; writes face_out (P,) the triangles of point 0, then point 1, ..., and start (m + 1,)
     where each point's begin. Returns P, or -1 when face_out is too short
     (grow it and call again). Depth first, nearer child first (the stack never holds more than
     depth + 1 nodes). With u the least distance met so far (u >= d0), a node or a triangle
-    whose box is farther than u + reach holds no wanted triangle; the triangles met within
-    u + reach are filtered again at the final u = d0. A relative 1e-9 of slack covers
-    roundoff, so a list is the exact one plus at most triangles within that slack of its
-    limit. Short lists come sorted, nearest first. A hint's exact distance is an upper bound
-    on d0 before the descent starts, so far boxes are skipped from the root down (the hint
-    face itself is met again in its leaf, so the lists do not depend on the hints).
+    whose box is farther than r = u + reach holds no wanted triangle (tested when a child is
+    pushed and again when it is visited: u only shrinks); the triangles met within r are
+    filtered again at the final u = d0. A relative 1e-9 of slack covers roundoff, so a list is the exact one plus at
+    most triangles within that slack of its limit. Short lists come sorted, nearest first. A
+    hint's exact distance is an upper bound on d0 before the descent starts, so far boxes are
+    skipped from the root down (the hint face itself is met again in its leaf, so the lists do
+    not depend on the hints). Squared distances are compared first (a hair looser than r, so
+    only the square root decides what is kept), and a triangle's square root is taken only
+    when it may be kept.
     """
     n_internal = (span.shape[0] - 1) // 2
     buf_face = np.empty(order.size, np.intp)
@@ -461,46 +480,48 @@ def _bvh_candidates(x, faces, order, span, box, tri_box, y, reach, hint, face_ou
                 x[i1, 0] - ax, x[i1, 1] - ay, x[i1, 2] - az,
                 x[i2, 0] - ax, x[i2, 1] - ay, x[i2, 2] - az,
             ))  # fmt: skip
+        r = u + reach
+        r += 1e-9 * r
+        rr = r * r * (1.0 + 1e-12)  # the squares' test: never drops what r keeps
         stack[0], stack_q[0], top = 0, _box_q(box, 0, px, py, pz), 1
         while top > 0:
             top -= 1
-            node = stack[top]
-            r = u + reach
-            r += 1e-9 * r
-            if stack_q[top] > r * r:
+            if stack_q[top] > rr:  # u may have shrunk since the push
                 continue
+            node = stack[top]
             if node >= n_internal:
                 for k in range(span[node, 0], span[node, 1]):
-                    if _box_q(tri_box, k, px, py, pz) > r * r:
+                    if _box_q(tri, k, px, py, pz) > rr:
                         continue
-                    f = order[k]
-                    i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
-                    ax, ay, az = x[i0, 0], x[i0, 1], x[i0, 2]
-                    q = _triangle_q_only(
-                        px - ax, py - ay, pz - az,
-                        x[i1, 0] - ax, x[i1, 1] - ay, x[i1, 2] - az,
-                        x[i2, 0] - ax, x[i2, 1] - ay, x[i2, 2] - az,
+                    q = _triangle_q_gram(
+                        px - tri[k, 6], py - tri[k, 7], pz - tri[k, 8],
+                        tri[k, 9], tri[k, 10], tri[k, 11], tri[k, 12], tri[k, 13], tri[k, 14],
+                        tri[k, 15], tri[k, 16], tri[k, 17],
                     )  # fmt: skip
+                    if q > rr:
+                        continue
                     d = np.sqrt(q)
                     if d < u:
                         u = d
                         r = u + reach
                         r += 1e-9 * r
+                        rr = r * r * (1.0 + 1e-12)
                     if d <= r:
-                        buf_face[nb], buf_d[nb] = f, d
+                        buf_face[nb], buf_d[nb] = order[k], d
                         nb += 1
-            else:
+            else:  # push the children within reach, the nearer last, so visited first
                 left, right = 2 * node + 1, 2 * node + 2
                 q_left, q_right = _box_q(box, left, px, py, pz), _box_q(box, right, px, py, pz)
-                if q_left <= q_right:  # the nearer is pushed last, so visited first
-                    stack[top], stack_q[top] = right, q_right
-                    stack[top + 1], stack_q[top + 1] = left, q_left
+                if q_left <= q_right:
+                    near, q_near, far, q_far = left, q_left, right, q_right
                 else:
-                    stack[top], stack_q[top] = left, q_left
-                    stack[top + 1], stack_q[top + 1] = right, q_right
-                top += 2
-        r = u + reach
-        r += 1e-9 * r
+                    near, q_near, far, q_far = right, q_right, left, q_left
+                if q_far <= rr:
+                    stack[top], stack_q[top] = far, q_far
+                    top += 1
+                if q_near <= rr:
+                    stack[top], stack_q[top] = near, q_near
+                    top += 1
         n_kept = 0
         for k in range(nb):  # keep those within d0 + reach
             if buf_d[k] <= r:
@@ -539,7 +560,7 @@ def _activate(face, mark, active, tri):
 
 
 #: The scalar helpers, each after those it calls.
-_HELPERS = (_triangle_q, _triangle_q_only, _triangle_row, _box_q)
+_HELPERS = (_triangle_q, _triangle_q_gram, _triangle_q_only, _triangle_row, _box_q)
 
 
 #: The kernels, each with its one signature: float64 and intp arrays, all C-contiguous.
@@ -701,7 +722,7 @@ class _Hierarchy:
     order: Array  # (f,) triangles, leaf by leaf
     span: Array  # (n, 2) each node's range of order
     box: Array  # (n, 6) each node's box, refitted in place
-    tri_box: Array  # (f, 6) each triangle's box, in order, refitted with them
+    tri: Array  # (f, _TRI) each triangle's box and edges, in order, refitted with them
 
 
 @dataclasses.dataclass(frozen=True)
@@ -1183,14 +1204,14 @@ class PointToSurface:
     def _candidates_compiled(self, x: Array, h: _Hierarchy, M: float) -> tuple[Array, Array]:
         """Face (P,) and start (m + 1,) of a build, from the hierarchy refitted at x."""
         K = self._kernels
-        K.refit(x, self.faces, h.order, h.span, h.box, h.tri_box)
+        K.refit(x, self.faces, h.order, h.span, h.box, h.tri)
         m = len(self.points)
         start = np.empty(m + 1, np.intp)
         self._capacity = max(self._capacity, 16 * m)
         while True:
             face = np.empty(self._capacity, np.intp)
             n = K.candidates(
-                x, self.faces, h.order, h.span, h.box, h.tri_box, self.points, 2 * M, self._hint,
+                x, self.faces, h.order, h.span, h.box, h.tri, self.points, 2 * M, self._hint,
                 face, start,
             )  # fmt: skip
             if n >= 0:
@@ -1209,7 +1230,7 @@ class PointToSurface:
             order=order,
             span=span,
             box=np.empty((len(span), 6)),
-            tri_box=np.empty((f, 6)),
+            tri=np.empty((f, _TRI)),
         )
 
     def _candidates_numpy(self, x: Array, tree: _CentreTree, M: float) -> tuple[Array, Array]:

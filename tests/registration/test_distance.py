@@ -701,13 +701,13 @@ def test_hinted_builds_give_the_same_lists():
     h = S._spaces[0]
     K = S._kernels
     moved = x + 0.02 * rng.normal(size=x.shape)
-    K.refit(moved, S.faces, h.order, h.span, h.box, h.tri_box)
+    K.refit(moved, S.faces, h.order, h.span, h.box, h.tri)
     m = len(S.points)
     for reach in (0.0, 0.1):
         lists = []
         for hint in (np.empty(0, np.intp), S._hint, rng.integers(len(faces), size=m).astype(np.intp)):
             face, start = np.empty(64 * m, np.intp), np.empty(m + 1, np.intp)
-            n = K.candidates(moved, S.faces, h.order, h.span, h.box, h.tri_box, S.points, reach, hint, face, start)
+            n = K.candidates(moved, S.faces, h.order, h.span, h.box, h.tri, S.points, reach, hint, face, start)
             lists.append((face[:n].copy(), start.copy()))
         for face, start in lists[1:]:
             np.testing.assert_array_equal(face, lists[0][0])
