@@ -119,15 +119,18 @@ def _rows_loop(U, x, faces, face, W, r, weight, out):
             s = 1.0 / s if s > 0 else 0.0
             nx, ny, nz = nx * s, ny * s, nz * s
         root = np.sqrt(weight[j])
-        for k in range(k_r):
-            out[j, k] = 0.0
-        for v in range(3):
-            node = faces[f, v]
-            for a in range(3):
-                c = U.dtype.type(root * W[v, j] * (nx if a == 0 else (ny if a == 1 else nz)))
-                row = 3 * node + a
-                for k in range(k_r):  # an explicit loop: a slice here allocates per pass
-                    out[j, k] += c * U[row, k]
+        t = U.dtype.type
+        w0, w1, w2 = root * W[0, j], root * W[1, j], root * W[2, j]
+        c00, c01, c02 = t(w0 * nx), t(w0 * ny), t(w0 * nz)
+        c10, c11, c12 = t(w1 * nx), t(w1 * ny), t(w1 * nz)
+        c20, c21, c22 = t(w2 * nx), t(w2 * ny), t(w2 * nz)
+        r0, r1, r2 = 3 * i0, 3 * i1, 3 * i2
+        for k in range(k_r):  # each entry written once, its nine terms summed in one order
+            out[j, k] = (
+                c00 * U[r0, k] + c01 * U[r0 + 1, k] + c02 * U[r0 + 2, k]
+                + c10 * U[r1, k] + c11 * U[r1 + 1, k] + c12 * U[r1 + 2, k]
+                + c20 * U[r2, k] + c21 * U[r2 + 1, k] + c22 * U[r2 + 2, k]
+            )
 
 
 _rows_kernel = compiled(_rows_loop)  # the loop compiled (numba), or None
