@@ -184,7 +184,8 @@ class SessionSettings(_Request):
     )
     optimizer: Optimizer = Field(
         "lbfgsb", description="lbfgsb (the default, the paper's), or levenberg-marquardt: Gauss-Newton steps "
-        "through the network's Jacobian, fewer evaluations for whole-surface cold starts; network method, no force_bound",
+        "through the model's Jacobian, fewer evaluations (whole-surface cold starts with the network; the fem "
+        "method on supports up to 500 nodes, 3 solves a node a step); no force_bound",
     )
     skip_stale: bool = Field(
         False,

@@ -74,7 +74,8 @@ class SessionConfig:
     noise: float | None = None  # per-axis noise of the clouds (m): alpha then follows the forces'
     # MAP estimate with a prior the stream's frames estimate, from the default up (noise_prior.py)
     optimizer: str = "lbfgsb"  # or "levenberg-marquardt": Gauss-Newton steps through the
-    # network's Jacobian (levenberg.py); no force bounds; the reduced network only
+    # model's Jacobian (levenberg.py); no force bounds; the FEM (supports up to 500 nodes) or
+    # the reduced network
 
 
 @dataclasses.dataclass

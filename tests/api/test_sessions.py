@@ -151,9 +151,8 @@ def test_noise_chooses_alpha_frame_by_frame(http, support, clouds):
 
 
 def test_levenberg_marquardt_over_the_api(http, support, clouds):
-    """A session may ask for the Levenberg-Marquardt driver: echoed, frames converge, the same
-    numbers as in process; with force bounds, with the FEM or under another name it is a 422
-    that says why."""
+    """A session may ask for the Levenberg-Marquardt driver, with either method: echoed, frames
+    converge; with force bounds or under another name it is a 422 that says why."""
     body = open_session(http, support=support.tolist(), optimizer="levenberg-marquardt", outputs=["forces"])
     assert body["config"]["optimizer"] == "levenberg-marquardt"
     sid = body["session"]
@@ -161,8 +160,12 @@ def test_levenberg_marquardt_over_the_api(http, support, clouds):
         r = http.post(f"/sessions/{sid}/frames", json={"points": cloud.tolist()})
         assert r.status_code == 200 and r.json()["converged"], r.text
     http.delete(f"/sessions/{sid}")
-    for bad, why in (({"force_bound": 1.0}, "force bounds"), ({"method": "fem"}, "network method"),
-                     ({"optimizer": "newton"}, "optimizer")):  # fmt: skip
+    body = open_session(http, method="fem", support=support.tolist(), optimizer="levenberg-marquardt", outputs=["forces"])
+    assert body["config"]["optimizer"] == "levenberg-marquardt" and body["config"]["method"] == "fem"
+    r = http.post(f"/sessions/{body['session']}/frames", json={"points": clouds[1].tolist()})
+    assert r.status_code == 200 and r.json()["converged"], r.text
+    http.delete(f"/sessions/{body['session']}")
+    for bad, why in (({"force_bound": 1.0}, "force bounds"), ({"optimizer": "newton"}, "optimizer")):
         r = http.post("/sessions", json={"model": "bar", "optimizer": "levenberg-marquardt", **bad})
         assert r.status_code == 422 and why in r.text, r.text
 
