@@ -26,6 +26,8 @@ NETWORK_ALPHA = (1e-8, 3e-8, 3e-7, 1e-6)
 TUNED = {"gtol": 2e-4, "alpha": 3e-8}
 NETWORK_MAX_ITER = (3, 5, 10, 20, 40, 80)
 FEM_GTOL = (1e-3, 1e-4, 3e-5, 1e-5)
+#: the Newton method's tolerance with Levenberg-Marquardt (liver_part's second Newton row)
+FEM_LM_GTOL = FEM_GTOL
 #: the network's tolerance with Levenberg-Marquardt (liver_part's second network row)
 LM_GTOL = (1e-2, 3e-3, 1e-3, 3e-4, 1e-4, 3e-5)
 POINTS = (50, 100, 250, 500)
@@ -39,14 +41,15 @@ Score = Callable[[object, SessionConfig, "int | None", bool], dict]
 
 def sweep(score: Score, network_model, fem_model, network: SessionConfig, fem: SessionConfig, *, gtols, caps,
           points, max_points: int, fem_gtols, alphas=(), variants: dict | None = None,
-          tuned: dict | None = None, other_optimizer_gtols=()) -> list[dict]:
+          tuned: dict | None = None, other_optimizer_gtols=(), fem_other_optimizer_gtols=()) -> list[dict]:
     """One row per knob setting, the same knobs for every scene: the gradient tolerance, the
     iteration cap and the regularisation weight (network), the cloud's size (up to
     `max_points`), the surrogate (each of `variants`, a name to another trained network; again
     at the `tuned` settings if given), the Newton method's tolerance, and the network's
     tolerance with the other optimizer (`other_optimizer_gtols`: L-BFGS-B and
-    Levenberg-Marquardt, whichever `network` does not use). A row's method names its optimizer
-    where it is not L-BFGS-B (the paper's)."""
+    Levenberg-Marquardt, whichever `network` does not use; `fem_other_optimizer_gtols` the same
+    for the Newton method). A row's method names its optimizer where it is not L-BFGS-B (the
+    paper's)."""
     rows = []
 
     def row(knob, value, model, config, n=None, short=False):
@@ -70,10 +73,16 @@ def sweep(score: Score, network_model, fem_model, network: SessionConfig, fem: S
             row(knob, name, model, dataclasses.replace(network, **tuned))
     for gtol in fem_gtols:
         row("gtol", gtol, fem_model, dataclasses.replace(fem, gtol=gtol), short=True)
-    other = dataclasses.replace(network, optimizer="lbfgsb" if network.optimizer != "lbfgsb" else "levenberg-marquardt")
+    other = dataclasses.replace(network, optimizer=_other(network.optimizer))
     for gtol in other_optimizer_gtols:
         row("gtol", gtol, network_model, dataclasses.replace(other, gtol=gtol, max_iter=max(network.max_iter, 500)))
+    for gtol in fem_other_optimizer_gtols:
+        row("gtol", gtol, fem_model, dataclasses.replace(fem, optimizer=_other(fem.optimizer), gtol=gtol), short=True)
     return rows
+
+
+def _other(optimizer: str) -> str:
+    return "lbfgsb" if optimizer != "lbfgsb" else "levenberg-marquardt"
 
 
 def method_label(config: SessionConfig) -> str:
@@ -94,6 +103,7 @@ def pareto_part(
     alphas=NETWORK_ALPHA,
     tuned: dict | None = TUNED,
     lm_gtols=LM_GTOL,
+    fem_lm_gtols=FEM_LM_GTOL,
 ) -> list[dict]:
     """The liver's sweep over one recorded sequence (the Newton method on its first
     `fem_frames` frames)."""
@@ -107,7 +117,7 @@ def pareto_part(
 
     return sweep(score, entry.network, entry.fem, NETWORK, FEM, gtols=gtols, caps=caps, points=points,
                  max_points=min(len(c) for c in case.clouds), fem_gtols=fem_gtols, alphas=alphas, variants=variants,
-                 tuned=tuned, other_optimizer_gtols=lm_gtols)  # fmt: skip
+                 tuned=tuned, other_optimizer_gtols=lm_gtols, fem_other_optimizer_gtols=fem_lm_gtols)  # fmt: skip
 
 
 def pareto_front(rows: list[dict], error: str = "tre_mm") -> list[dict]:
@@ -129,7 +139,8 @@ def plot(rows: list[dict], path, title: str) -> None:
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
     markers = {"gtol": "o", "max_iter": "s", "points": "^", "surrogate": "D", "alpha": "v"}
-    colours = {"network": "tab:blue", "network, levenberg-marquardt": "tab:green", "fem": "tab:red"}
+    colours = {"network": "tab:blue", "network, levenberg-marquardt": "tab:green", "fem": "tab:red",
+               "fem, levenberg-marquardt": "tab:purple"}
     for ax, key, label in ((axes[0], "tre_mm", "mean TRE (mm)"), (axes[1], "force_error_pct", "resultant-force error (%)")):
         for r in rows:
             marker = "*" if str(r["knob"]).startswith("surrogate @") else markers.get(r["knob"], "o")

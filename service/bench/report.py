@@ -138,12 +138,13 @@ def main(args: argparse.Namespace) -> int:
 
     if "liver" in parts:
         from .cases import rest_baseline, run_case, summarise
-        from .liver import FEM, LM_LABEL, NETWORK, NETWORK_LM, liver_part
+        from .liver import FEM, FEM_LM, FEM_LM_LABEL, LM_LABEL, NETWORK, NETWORK_LM, liver_part
 
         if args.smoke is not None:
             recs = (rest_baseline(base) + run_case(entry.network, base, NETWORK) + run_case(entry.network, base, NETWORK_LM, LM_LABEL)
-                    + run_case(entry.fem, base, FEM))  # fmt: skip
-            summaries = [summarise([r for r in recs if r.method == m]) for m in ("none (rest shape)", "network", LM_LABEL, "fem")]
+                    + run_case(entry.fem, base, FEM) + run_case(entry.fem, base, FEM_LM, FEM_LM_LABEL))  # fmt: skip
+            methods = ("none (rest shape)", "network", LM_LABEL, "fem", FEM_LM_LABEL)
+            summaries = [summarise([r for r in recs if r.method == m]) for m in methods]
             results["parts"]["liver"] = {"records": recs, "summaries": summaries}
         else:
             results["parts"]["liver"] = liver_part(liver_entry, frames=15 if quick else None,
@@ -172,10 +173,10 @@ def main(args: argparse.Namespace) -> int:
             variants = {_surrogate_label(k, e.manifest["network"]): e.network for k, e in named.items()}
         if args.smoke is not None:
             sweep = dict(gtols=(1e-2, 1e-4), caps=(5,), points=(50,), fem_gtols=(1e-2,), fem_frames=2, alphas=(1e-6,),
-                         lm_gtols=(1e-3,))
+                         lm_gtols=(1e-3,), fem_lm_gtols=(1e-2,))
         elif quick:
             sweep = dict(gtols=(1e-2, 1e-3, 1e-4, 1e-5), caps=(5, 20), points=(100, 500), fem_gtols=(1e-3, 1e-4), fem_frames=4,
-                         alphas=(3e-8,), lm_gtols=(1e-3, 1e-4))
+                         alphas=(3e-8,), lm_gtols=(1e-3, 1e-4), fem_lm_gtols=(1e-3, 1e-4))
         else:
             sweep = {}
         rows = pareto_part(liver_entry, case, variants=variants, **sweep)
@@ -344,7 +345,7 @@ def write_report(results: dict, out: Path) -> None:
         md.append(_table(rows, [("method", "method"), ("knob", "knob"), ("value", "value"), ("tre_mm", "mean TRE (mm)"),
                                 ("force_error_pct", "force error (%)"), ("ms", "ms / frame"), ("iterations", "iterations"),
                                 ("converged", "converged")]))  # fmt: skip
-        for method in dict.fromkeys(r["method"] for r in rows if r["method"] != "fem"):
+        for method in dict.fromkeys(r["method"] for r in rows if not r["method"].startswith("fem")):
             front = pareto_front([r for r in rows if r["method"] == method])
             md.append(f"\nPareto front (TRE), {method}: "
                       + ", ".join(f"{r['knob']}={r['value']}: {r['tre_mm']:.3f} mm @ {r['ms']:.1f} ms" for r in front) + "\n")  # fmt: skip
@@ -379,7 +380,7 @@ def _plot_frames(records, path: Path) -> None:
     fig, axes = plt.subplots(2, len(cases), figsize=(4.2 * len(cases), 6), squeeze=False)
     for j, case in enumerate(cases):
         for method, colour in (("none (rest shape)", "grey"), ("network", "tab:blue"), ("network, levenberg-marquardt", "tab:green"),
-                               ("fem", "tab:red")):  # fmt: skip
+                               ("fem", "tab:red"), ("fem, levenberg-marquardt", "tab:purple")):  # fmt: skip
             rs = [r for r in records if r.case == case and r.method == method]
             if not rs:
                 continue

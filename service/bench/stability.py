@@ -1,5 +1,5 @@
 """Numerical stability on stiff and extreme cases: for each, and for each method (the network
-with L-BFGS-B and with Levenberg-Marquardt, and the Newton method), the converged fraction,
+and the Newton method, each with L-BFGS-B and with Levenberg-Marquardt), the converged fraction,
 TRE, force error, time, and whether anything produced a NaN or an exception. A failing case is
 reported as such, never hidden.
 
@@ -20,7 +20,7 @@ from ..fem.material import NeoHookean
 from ..fem.model import FEMModel
 from ..registration.session import SessionConfig
 from .cases import Case, noisy, run_case, summarise, synthetic_case
-from .liver import FEM, FEM_BUDGET_MS, LM_LABEL, NETWORK, NETWORK_LM, _region_patch
+from .liver import FEM, FEM_BUDGET_MS, FEM_LM, FEM_LM_LABEL, LM_LABEL, NETWORK, NETWORK_LM, _region_patch
 
 log = logging.getLogger(__name__)
 
@@ -84,13 +84,15 @@ def stability_cases(
 def stability_part(entry, base: Case, frames: int = 10, fem: bool = True, fem_budget_ms: float = FEM_BUDGET_MS, **case_options) -> dict:
     rows, records = [], []
     fem_cfg = dataclasses.replace(FEM, time_budget_ms=fem_budget_ms)
+    fem_lm_cfg = dataclasses.replace(FEM_LM, time_budget_ms=fem_budget_ms)
     for case, overrides in stability_cases(base, entry.region, entry.fem.material, frames, **case_options):
         material = overrides.pop("material", None)
-        methods = (("network", NETWORK, entry.network), (LM_LABEL, NETWORK_LM, entry.network), ("fem", fem_cfg, entry.fem))
+        methods = (("network", NETWORK, entry.network), (LM_LABEL, NETWORK_LM, entry.network), ("fem", fem_cfg, entry.fem),
+                   (FEM_LM_LABEL, fem_lm_cfg, entry.fem))  # fmt: skip
         for name, base_cfg, model in methods:
-            if name == "fem" and not fem:
+            if base_cfg.method == "fem" and not fem:
                 continue
-            if material is not None and name == "fem":  # the FEM takes any material; the
+            if material is not None and base_cfg.method == "fem":  # the FEM takes any material; the
                 model = FEMModel(entry.mesh, material)  # network keeps its own (a mismatch)
             cfg = dataclasses.replace(base_cfg, **overrides)
             try:

@@ -20,7 +20,7 @@ def test_bench_smoke_writes_the_whole_report(bar_store, tmp_path):
     beam = results["parts"]["beam"]["pareto"]  # both methods, and both optimizers, on the beam's sweep
     assert {r["method"] for r in beam} == {"network, levenberg-marquardt", "network", "fem"} and "on the beam" in report
     liver = results["parts"]["pareto"]
-    assert {r["method"] for r in liver} == {"network", "network, levenberg-marquardt", "fem"}
+    assert {r["method"] for r in liver} == {"network", "network, levenberg-marquardt", "fem", "fem, levenberg-marquardt"}
     summary = results["parts"]["beam"]["summary"]  # Levenberg-Marquardt, and L-BFGS-B beside it
     assert summary["config"]["optimizer"] == "levenberg-marquardt" and summary["lbfgsb"]["cases"] == summary["cases"]
     assert "elastreg, L-BFGS-B" in report
@@ -31,5 +31,8 @@ def test_bench_smoke_writes_the_whole_report(bar_store, tmp_path):
     assert net["tre_mean_mm"] < rest["tre_mean_mm"]  # registration beats doing nothing
     lm = next(s for s in results["parts"]["liver"]["summaries"] if s["method"] == "network, levenberg-marquardt")
     assert lm["frames"] == net["frames"] and lm["tre_mean_mm"] < rest["tre_mean_mm"]
+    fem_lm = next(s for s in results["parts"]["liver"]["summaries"] if s["method"] == "fem, levenberg-marquardt")
+    assert fem_lm["frames"] == net["frames"] and fem_lm["tre_mean_mm"] < rest["tre_mean_mm"]
+    assert {r["method"] for r in results["parts"]["stability"]["rows"]} >= {"fem", "fem, levenberg-marquardt"}
     assert not any(r.get("crashed") for r in results["parts"]["stability"]["rows"])
     assert results["parts"]["fem"]["backends"]  # at least one solver ran
