@@ -99,9 +99,11 @@ def register(model, cases: list[dict], config: SessionConfig, points: int | None
 
 
 def beam_pareto(entry, cases: list[dict], *, gtols=(1e-2, 1e-3, 3e-4, 1e-4, 1e-5), caps=(5, 10, 20, 40), points=(50, 150),
-                fem_gtols=(1e-3, 1e-4), fem_cases: int = 6, lbfgsb_gtols=(1e-2, 1e-3, 1e-4)) -> list[dict]:
+                fem_gtols=(1e-3, 1e-4), fem_cases: int = 6, lbfgsb_gtols=(1e-2, 1e-3, 1e-4),
+                fem_lm_gtols=(1e-3, 1e-4)) -> list[dict]:
     """The beam's sweep: the liver's knobs over these cases (the Newton method on the first
-    `fem_cases`, 10 s per registration at most), and the tolerance with L-BFGS-B."""
+    `fem_cases`, 10 s per registration at most, with L-BFGS-B and with Levenberg-Marquardt),
+    and the network's tolerance with L-BFGS-B."""
 
     def score(model, config, n, short):
         rs = register(model, cases[:fem_cases] if short else cases, config, n)
@@ -114,7 +116,7 @@ def beam_pareto(entry, cases: list[dict], *, gtols=(1e-2, 1e-3, 3e-4, 1e-4, 1e-5
     fem = dataclasses.replace(LBFGSB, method="fem", time_budget_ms=FEM_BUDGET_MS)
     return sweep(score, entry.network, entry.fem, CONFIG, fem, gtols=gtols, caps=caps, points=points,
                  max_points=min(len(c["points"]) for c in cases) - 1, fem_gtols=fem_gtols,
-                 other_optimizer_gtols=lbfgsb_gtols)  # fmt: skip
+                 other_optimizer_gtols=lbfgsb_gtols, fem_other_optimizer_gtols=fem_lm_gtols)  # fmt: skip
 
 
 def beam_part(entry, n_cases: int = 60, n_points: int = 500, seed: int = 0, config: SessionConfig | None = None,

@@ -155,7 +155,8 @@ def main(args: argparse.Namespace) -> int:
         from .pareto import plot
 
         n = 4 if args.smoke is not None else (15 if quick else 60)
-        sweep = (dict(gtols=(1e-2,), caps=(5,), points=(50,), fem_gtols=(1e-2,), fem_cases=1, lbfgsb_gtols=(1e-2,))
+        sweep = (dict(gtols=(1e-2,), caps=(5,), points=(50,), fem_gtols=(1e-2,), fem_cases=1, lbfgsb_gtols=(1e-2,),
+                      fem_lm_gtols=(1e-2,))
                  if args.smoke is not None else None)  # fmt: skip
         results["parts"]["beam"] = beam_part(beam_entry, n_cases=n, n_points=150 if args.smoke else 500, sweep=sweep)
         plot(results["parts"]["beam"]["pareto"], out / "figures" / "beam_pareto.png", "error against run time: the beam")

@@ -394,7 +394,11 @@ def _levenberg_marquardt(op, distance: PointToSurface, evaluate: Objective, begi
     while np.abs(grad).max() > g_tol:
         if nit >= options.max_iter:
             return "max_iter", f"{nit} iterations", nit
-        model = GaussNewtonModel(_jacobian(op, g.reshape(k, 3)), match, distance.faces, grad, options.alpha)
+        try:  # the FEM solves again only where g was not its last evaluation
+            jac = _jacobian(op, g.reshape(k, 3))
+        except ForwardFailed as exc:
+            raise _Stop("forward_failed", str(exc)) from None
+        model = GaussNewtonModel(jac, match, distance.faces, grad, options.alpha)
         if mu is None:
             mu = options.damping * model.scale
         for _ in range(_MAX_REJECTIONS + 1):
