@@ -118,6 +118,7 @@ class FrameSolution:
 class _Stop(Exception):
     def __init__(self, status: str, message: str) -> None:
         self.status, self.message = status, message
+        self.iterations: int | None = None  # the optimiser's, where it knows them
 
 
 class _Done(Exception):
@@ -270,6 +271,7 @@ def solve_frame(
         evaluate.best_rms = evaluate.rest_rms
     except _Stop as stop:
         status, message = stop.status, stop.message
+        nit = stop.iterations if stop.iterations is not None else nit
 
     timing.total = time.perf_counter() - t_start
     return FrameSolution(
@@ -367,10 +369,14 @@ def _lbfgsb(op, distance: PointToSurface, evaluate: Objective, begin: _Start, v_
     if bounded:
         b = P.to_z(np.full(3 * k, float(options.force_bound)))
         bounds = list(zip(-b, b))
-    res = minimize(
-        fun, z0, jac=True, method="L-BFGS-B", bounds=bounds, callback=converged,
-        options={"maxiter": options.max_iter, "gtol": 0.0, "ftol": 1e-15, "maxcor": 20, "maxls": 30},
-    )  # fmt: skip
+    try:
+        res = minimize(
+            fun, z0, jac=True, method="L-BFGS-B", bounds=bounds, callback=converged,
+            options={"maxiter": options.max_iter, "gtol": 0.0, "ftol": 1e-15, "maxcor": 20, "maxls": 30},
+        )  # fmt: skip
+    except _Stop as stop:  # a limit or a failure between iterations: the accepted ones so far
+        stop.iterations = len(path_g) - 1
+        raise
     nit, message, status = int(res.nit), str(res.message), _status(res)
     if curvature is not None and not bounded and status == "converged":
         curvature.update(path_g, path_grad)  # only converged frames teach the carried curvature
@@ -397,7 +403,9 @@ def _levenberg_marquardt(op, distance: PointToSurface, evaluate: Objective, begi
         try:  # the FEM solves again only where g was not its last evaluation
             jac = _jacobian(op, g.reshape(k, 3))
         except ForwardFailed as exc:
-            raise _Stop("forward_failed", str(exc)) from None
+            stop = _Stop("forward_failed", str(exc))
+            stop.iterations = nit
+            raise stop from None
         model = GaussNewtonModel(jac, match, distance.faces, grad, options.alpha)
         if mu is None:
             mu = options.damping * model.scale
@@ -413,6 +421,7 @@ def _levenberg_marquardt(op, distance: PointToSurface, evaluate: Objective, begi
                 fn, gn, _ = evaluate((g + d).reshape(k, 3))
             except _Stop as stop:
                 if stop.status != "forward_failed" or len(failures) >= options.max_failures:
+                    stop.iterations = nit
                     raise
                 failures.append(stop.message)  # a trial the model cannot reach: damp harder
                 mu, nu = mu * nu, 2.0 * nu

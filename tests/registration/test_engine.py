@@ -137,3 +137,14 @@ def test_time_budget_returns_the_best_iterate(entry):
     assert cut.value <= objective_for(entry.fem, mesh, support, pts, alpha=1e-9)(start)[0]
     full = solve_frame(op, dist, rest, start, SolveOptions(alpha=1e-9))
     assert full.converged and full.evaluations > cut.evaluations
+
+
+def test_a_frame_stopped_by_a_limit_reports_its_iterations(entry):
+    """L-BFGS-B stopped by its evaluation budget mid-search still says how many iterations it
+    accepted (not 0), for each method."""
+    mesh, support, g_true, pts, dist = tip_pull(entry, entry.region)
+    for model in (entry.network, entry.fem):
+        op = model.restrict(support, dist.nodes)
+        sol = solve_frame(op, dist, mesh.nodes[dist.nodes], np.zeros_like(g_true),
+                          SolveOptions(alpha=1e-9, gtol=1e-12, max_evaluations=8))  # fmt: skip
+        assert sol.status == "max_iter" and 1 <= sol.iterations < sol.evaluations, (model.method, sol.status, sol.iterations)

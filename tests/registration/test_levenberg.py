@@ -163,6 +163,20 @@ def test_limits_and_failures_are_statuses(entry):
     s = solve_frame(Failing(op), dist, rest, g0, base)
     assert s.status == "forward_failed" and not np.any(s.g)
 
+    class FailingJacobian(Failing):  # the FEM's Jacobian solves again where g was not its last
+        def __call__(self, g):
+            return self.op(g)
+
+        def jacobian(self, g):
+            if np.any(g):
+                from service.registration.forward import ForwardFailed
+
+                raise ForwardFailed("diverged", "test")
+            return self.op.jacobian(g)
+
+    s = solve_frame(FailingJacobian(op), dist, rest, g0, base)  # the frame reports the step it took
+    assert s.status == "forward_failed" and s.iterations == 1 and np.any(s.g) and np.isfinite(s.g).all()
+
 
 def test_session_checks_the_optimizer(entry):
     with pytest.raises(ValueError, match="optimizer must be one of"):
