@@ -400,6 +400,8 @@ def _levenberg_marquardt(op, distance: PointToSurface, evaluate: Objective, begi
     while np.abs(grad).max() > g_tol:
         if nit >= options.max_iter:
             return "max_iter", f"{nit} iterations", nit
+        if deadline is not None and time.perf_counter() > deadline:  # before the FEM's 3k solves
+            return "time_limit", f"time budget of {1e3 * options.time_budget:g} ms spent", nit
         try:  # the FEM solves again only where g was not its last evaluation
             jac = _jacobian(op, g.reshape(k, 3))
         except ForwardFailed as exc:
