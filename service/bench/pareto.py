@@ -86,7 +86,8 @@ def _other(optimizer: str) -> str:
 
 
 def method_label(config: SessionConfig) -> str:
-    """'network', 'fem', or 'network, levenberg-marquardt' (the optimizer where not L-BFGS-B)."""
+    """The method, with the optimizer where it is not L-BFGS-B: 'network', 'fem',
+    'network, levenberg-marquardt', 'fem, levenberg-marquardt'."""
     return config.method if config.optimizer == "lbfgsb" else f"{config.method}, {config.optimizer}"
 
 
