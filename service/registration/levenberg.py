@@ -37,7 +37,8 @@ Array = np.ndarray
 class GaussNewtonModel:
     """The damped Gauss-Newton model of Phi at one accepted point.
 
-    `jac` offers U (3p, r), gram() = C C^T, matvec (C v) and rmatvec (C^T w); `match` is the
+    `jac` offers U (3p, r), gram_product(A) = C C^T A for a symmetric A (r, r), Fortran-ordered,
+    matvec (C v) and rmatvec (C^T w); `match` is the
     distance's at this point, `faces` (f, 3) the distance's local faces; grad (K,) the exact
     gradient there (the step's right-hand side: the model's Hessian only approximates).
     """
@@ -45,9 +46,7 @@ class GaussNewtonModel:
     def __init__(self, jac, match: Match, faces: Array, grad: Array, alpha: float) -> None:
         Nw = weighted_rows(jac.U, match, faces)  # (m, r): sqrt(w_j) N_j
         A = (Nw.T @ Nw).astype(np.float64, copy=False)
-        # C C^T A in Fortran order, as LAPACK takes it (A C C^T transposed: both symmetric);
-        # A itself where C is the identity (the FEM's K x K: no product with I)
-        self.CCA = A.T if isinstance(jac, DenseJacobian) else (A @ jac.gram()).T  # (r, r)
+        self.CCA = jac.gram_product(A)  # (r, r), Fortran-ordered as LAPACK takes it
         self.A = A
         self.jac = jac
         self.v = -np.asarray(grad, np.float64).ravel()
@@ -78,12 +77,10 @@ class DenseJacobian:
 
     def __init__(self, U: Array) -> None:
         self.U = np.ascontiguousarray(U, np.float64)
-        self._eye = np.eye(self.U.shape[1])
-        self._eye.flags.writeable = False
 
-    def gram(self) -> Array:
-        """C C^T = I (K, K), read-only."""
-        return self._eye
+    def gram_product(self, A: Array) -> Array:
+        """C C^T A = A, Fortran-ordered (A symmetric): no product with the identity."""
+        return A.T
 
     def matvec(self, v: Array) -> Array:
         return np.asarray(v, np.float64).ravel()

@@ -413,6 +413,11 @@ class CoefficientJacobian:
         """C C^T (r, r), float64, read-only."""
         return self._gram
 
+    def gram_product(self, A: Array) -> Array:
+        """C C^T A (r, r) for a symmetric A, in Fortran order as LAPACK takes it: (A C C^T)^T,
+        both symmetric."""
+        return (A @ self._gram).T
+
     def matvec(self, v: Array) -> Array:
         """C v. Shape: (K,) -> (r,), float64."""
         h = self.R.shape[1]
