@@ -453,11 +453,11 @@ def _bvh_candidates(x, faces, order, span, box, tri, y, reach, hint, face_out, s
     depth + 1 nodes). With u the least distance met so far (u >= d0), a node or a triangle
     whose box is farther than r = u + reach holds no wanted triangle (tested when a child is
     pushed and again when it is visited: u only shrinks); the triangles met within r are
-    filtered again at the final u = d0. A relative 1e-9 of slack covers roundoff, so a list is the exact one plus at
-    most triangles within that slack of its limit. Short lists come sorted, nearest first. A
-    hint's exact distance is an upper bound on d0 before the descent starts, so far boxes are
-    skipped from the root down (the hint face itself is met again in its leaf, so the lists do
-    not depend on the hints). Squared distances are compared first (a hair looser than r, so
+    filtered again at the final u = d0. A relative 1e-9 of slack covers roundoff, so a list is
+    the exact one plus at most triangles within that slack of its limit. Short lists come
+    sorted, nearest first. A hint's exact distance is an upper bound on d0 before the descent
+    starts, so far boxes are skipped from the root down (the hint face itself is met again in
+    its leaf, so the lists do not depend on the hints). Squared distances are compared first (a hair looser than r, so
     only the square root decides what is kept), and a triangle's square root is taken only
     when it may be kept.
     """
