@@ -331,7 +331,7 @@ def _lbfgsb(op, distance: PointToSurface, evaluate: Objective, begin: _Start, v_
         if evaluate.evaluations >= max_eval:
             raise _Stop("max_iter", "evaluation budget spent")
         if deadline is not None and time.perf_counter() > deadline:
-            raise _Stop("time_limit", f"time budget of {1e3 * options.time_budget:g} ms spent")
+            raise _Stop("time_limit", _spent(options))
         g = P.to_g(z)
         try:
             value, grad, _ = evaluate(g.reshape(k, 3))
@@ -401,7 +401,7 @@ def _levenberg_marquardt(op, distance: PointToSurface, evaluate: Objective, begi
         if nit >= options.max_iter:
             return "max_iter", f"{nit} iterations", nit
         if deadline is not None and time.perf_counter() > deadline:  # before the FEM's 3k solves
-            return "time_limit", f"time budget of {1e3 * options.time_budget:g} ms spent", nit
+            return "time_limit", _spent(options), nit
         try:  # the FEM solves again only where g was not its last evaluation
             jac = _jacobian(op, g.reshape(k, 3))
         except ForwardFailed as exc:
@@ -415,7 +415,7 @@ def _levenberg_marquardt(op, distance: PointToSurface, evaluate: Objective, begi
             if evaluate.evaluations >= max_eval:
                 return "max_iter", "evaluation budget spent", nit
             if deadline is not None and time.perf_counter() > deadline:
-                return "time_limit", f"time budget of {1e3 * options.time_budget:g} ms spent", nit
+                return "time_limit", _spent(options), nit
             d = model.step(mu)
             if not np.abs(d).max() > 1e-12 * max(float(np.abs(g).max()), _TINY):
                 return "stalled", "the damped step vanished before the gradient test", nit
@@ -438,6 +438,11 @@ def _levenberg_marquardt(op, distance: PointToSurface, evaluate: Objective, begi
         else:
             return "stalled", f"no decrease in {_MAX_REJECTIONS + 1} damped steps: the objective's precision", nit
     return "converged", "projected gradient below gtol", nit
+
+
+def _spent(options: SolveOptions) -> str:
+    """The message of a frame stopped by its time budget."""
+    return f"time budget of {1e3 * options.time_budget:g} ms spent"
 
 
 #: Rejected steps in a row before Levenberg-Marquardt stops: the damping has then grown 2^28
