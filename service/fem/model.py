@@ -8,6 +8,7 @@ previous equilibrium, so successive L-BFGS evaluations cost a couple of Newton s
 from __future__ import annotations
 
 import dataclasses
+import time
 from functools import cached_property
 
 import numpy as np
@@ -82,6 +83,9 @@ class FEMOperator:
         self._rest_jacobian: DenseJacobian | None = None
         self._last_jacobian: tuple[Array, DenseJacobian] | None = None  # (g, du/dg at g)
         self.last: NewtonResult | None = None
+        #: a time.perf_counter() value past which solves give up (ForwardFailed "time_limit"):
+        #: the engine sets it for the length of a frame with a time budget
+        self.deadline: float | None = None
 
     def reset(self) -> None:
         self._u = self._g = None
@@ -90,8 +94,10 @@ class FEMOperator:
     def _solve(self, g: Array) -> NewtonResult:
         G = np.zeros((self.mesh.n_nodes, 3))
         G[self.support] = g
-        res = self._newton.solve(G, self._u)
+        res = self._newton.solve(G, self._u, self.deadline)
         self.last = res
+        if res.status == "time_limit":
+            raise ForwardFailed(res.status, f"time budget spent in a Newton solve, after {res.iterations} iterations")
         if not res.converged:
             raise ForwardFailed(res.status, f"Newton residual {res.residual:.2e} after {res.iterations} iterations")
         self._u, self._g = res.u, np.array(g, np.float64)
@@ -147,14 +153,15 @@ class FEMOperator:
         else:  # an unstable equilibrium: refine on the shifted factor
             K = self.model.assembler.tangent(u)
             solve = lambda B: _refined_solve(K, newton.solver.solve, B)  # noqa: E731
-        jac = DenseJacobian(self._support_response(solve))
+        jac = DenseJacobian(self._support_response(solve, self.deadline))
         self._last_jacobian = (g.copy(), jac)
         return jac
 
-    def _support_response(self, solve, block: int = 256) -> Array:
+    def _support_response(self, solve, deadline: float | None = None, block: int = 256) -> Array:
         """K^-1 applied to each unit force on the support, read at the operator's nodes, in
         blocks of `block` right-hand sides (a block's solution is 3n x block; the whole would be
-        3n x 3k). Shape: (3p, 3k)."""
+        3n x 3k); past `deadline`, ForwardFailed between blocks (the rest responses, made once
+        per operator, take none). Shape: (3p, 3k)."""
         mesh, k = self.mesh, self.support.size
         free = mesh.free_dofs
         pos = np.full(3 * mesh.n_nodes, -1, np.int64)
@@ -164,6 +171,8 @@ class FEMOperator:
         read = pos[rows]  # (3p,) -1 on fixed dofs (they never move)
         J = np.zeros((rows.size, 3 * k))
         for lo in range(0, 3 * k, block):
+            if lo and deadline is not None and time.perf_counter() > deadline:
+                raise ForwardFailed("time_limit", f"time budget spent forming the Jacobian, after {lo} of {3 * k} solves")
             hi = min(lo + block, 3 * k)
             rhs = np.zeros((free.size, hi - lo))
             rhs[cols[lo:hi], np.arange(hi - lo)] = 1.0

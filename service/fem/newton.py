@@ -66,7 +66,7 @@ class NewtonResult:
 
     u: Array
     converged: bool
-    status: str  # converged | max_iter | load_step_too_small | line_search | non_finite
+    status: str  # converged | max_iter | load_step_too_small | line_search | non_finite | time_limit
     iterations: int
     load_steps: int
     residuals: list[float]
@@ -188,9 +188,12 @@ class NewtonSolver:
 
     # -- the solve ----------------------------------------------------------------------------
 
-    def solve(self, g: Array, u0: Array | None = None) -> NewtonResult:
+    def solve(self, g: Array, u0: Array | None = None, deadline: float | None = None) -> NewtonResult:
         """Equilibrium under nodal forces g (forces on fixed nodes are ignored).
 
+        `deadline` (a time.perf_counter() value): past it the solve stops before its next
+        Newton iteration, unconverged with status time_limit, so a frame's time budget holds
+        inside a hard solve (seconds on the liver), not only between solves.
         Shape: g (n, 3), u0 (n, 3) or None (rest) -> result.u (n, 3).
         """
         t0 = time.perf_counter()
@@ -242,7 +245,7 @@ class NewtonSolver:
                     x_try = x_pred
             tol = opt.rtol if s_try == 1.0 else max(opt.rtol, opt.step_rtol)
             budget = min(opt.max_step_iter, opt.max_iter - iterations)
-            x_new, ok, its, hist, nshift, factored, why = self._newton(x_try, load, tol * ref, ref, budget)
+            x_new, ok, its, hist, nshift, factored, why = self._newton(x_try, load, tol * ref, ref, budget, deadline)
             iterations += its
             shifts += nshift
             residuals += hist
@@ -252,6 +255,9 @@ class NewtonSolver:
                 if its <= 4:
                     ds = min(2.0 * ds, 1.0)
                 continue
+            if why == "time_limit":
+                status = why
+                break
             if iterations >= opt.max_iter:
                 status = "max_iter"
                 x = x_new if _is_better(hist) else x
@@ -269,9 +275,9 @@ class NewtonSolver:
         res.shifted = shifts
         return res
 
-    def _newton(self, x: Array, load: Array, atol: float, ref: float, budget: int):
-        """Newton iterations at a fixed load. Returns (x, ok, iterations, history, shifts,
-        factored, reason)."""
+    def _newton(self, x: Array, load: Array, atol: float, ref: float, budget: int, deadline: float | None = None):
+        """Newton iterations at a fixed load, until `deadline` at most. Returns (x, ok,
+        iterations, history, shifts, factored, reason)."""
         asm, opt = self.asm, self.options
         hist: list[float] = []
         shifts = 0
@@ -292,6 +298,8 @@ class NewtonSolver:
                 return x, True, it, hist, shifts, factored, "converged"
             if it == budget:
                 break
+            if deadline is not None and time.perf_counter() > deadline:
+                return x, False, it, hist, shifts, factored, "time_limit"
             K = asm.tangent(u)
             # inexact Newton: the step to a relative accuracy eta, by conjugate gradients on
             # the held factor when they get there quickly, else from a new factorisation.

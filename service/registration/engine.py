@@ -121,6 +121,12 @@ class _Stop(Exception):
         self.iterations: int | None = None  # the optimiser's, where it knows them
 
 
+def _forward_stop(exc: ForwardFailed) -> _Stop:
+    """The frame's stop for a forward model's failure: time_limit where a solve gave up at the
+    frame's deadline (the FEM's, see solve_frame), else forward_failed."""
+    return _Stop("time_limit" if exc.status == "time_limit" else "forward_failed", str(exc))
+
+
 class _Done(Exception):
     """Nothing to optimise: the rest state is the answer."""
 
@@ -147,7 +153,7 @@ class Objective:
             u, pullback = self.op(g)
         except ForwardFailed as exc:
             self.timing.forward += time.perf_counter() - t0
-            raise _Stop("forward_failed", str(exc)) from None
+            raise _forward_stop(exc) from None
         t1 = time.perf_counter()
         self.last_u = u
         J, dJ_dx = self.distance(self.rest + u)
@@ -232,8 +238,12 @@ def solve_frame(
     bounded = options.force_bound is not None
     deadline = None if options.time_budget is None else t_start + options.time_budget
 
+    # an operator with slow solves (the FEM) stops inside one at the deadline, not after it
+    timed_op = deadline is not None and hasattr(op, "deadline")
     status, message, nit = "converged", "", 0
     try:
+        if timed_op:
+            op.deadline = deadline
         # the rest state: the objective's scale, the gradient reference, the trivial answer
         zero = np.zeros((k, 3))
         v_rest, grad_rest, _ = evaluate(zero)
@@ -272,6 +282,9 @@ def solve_frame(
     except _Stop as stop:
         status, message = stop.status, stop.message
         nit = stop.iterations if stop.iterations is not None else nit
+    finally:
+        if timed_op:
+            op.deadline = None  # the session's outputs are computed after the frame, in full
 
     timing.total = time.perf_counter() - t_start
     return FrameSolution(
@@ -405,7 +418,7 @@ def _levenberg_marquardt(op, distance: PointToSurface, evaluate: Objective, begi
         try:  # the FEM solves again only where g was not its last evaluation
             jac = _jacobian(op, g.reshape(k, 3))
         except ForwardFailed as exc:
-            stop = _Stop("forward_failed", str(exc))
+            stop = _forward_stop(exc)
             stop.iterations = nit
             raise stop from None
         model = GaussNewtonModel(jac, match, distance.faces, grad, options.alpha)

@@ -14,6 +14,10 @@ transposed tangent solve for the FEM. It is valid until the operator's next call
 ``rows`` (q,) names the only rows of u_bar that may be nonzero (the distance's candidate nodes,
 a fifth of the liver's matching surface); an operator may use the hint to read out through
 those rows alone (the network does) or ignore it (the FEM does).
+An operator with slow solves (the FEM) may also have a settable ``deadline`` (a
+``time.perf_counter()`` value or None): the engine sets it for the length of a frame with a
+time budget, and a solve past it gives up with ``ForwardFailed("time_limit")``, so the budget
+holds inside a solve of seconds, not only between solves.
 :func:`torch_forward` wraps an operator as a torch autograd function.
 """
 

@@ -1,5 +1,7 @@
 """The FEM forward model: its adjoint against finite differences, torch autograd, stiffness."""
 
+import time
+
 import numpy as np
 import pytest
 import torch
@@ -71,6 +73,36 @@ def test_failed_solve_raises_forward_failed(bar):
     with pytest.raises(ForwardFailed) as info:
         model.restrict(support)(10 * g)
     assert info.value.status in {"max_iter", "load_step_too_small"}
+
+
+def test_an_operator_past_its_deadline_fails_with_time_limit_and_keeps_its_state(model):
+    """Past the deadline a solve raises ForwardFailed('time_limit') without a Newton iteration;
+    the warm start it keeps is the last equilibrium, so the next solve without a deadline
+    matches a fresh operator's."""
+    support, g = support_and_load(model.mesh)
+    op = model.restrict(support)
+    u1, _ = op(0.5 * g)
+    op.deadline = time.perf_counter()
+    with pytest.raises(ForwardFailed, match="time budget") as info:
+        op(g)
+    assert info.value.status == "time_limit" and op.last.iterations == 0
+    op.deadline = None
+    u2, _ = op(g)
+    np.testing.assert_allclose(u2, model.restrict(support)(g)[0], atol=1e-8)
+    assert not np.allclose(u1, u2)
+
+
+def test_a_jacobian_past_its_deadline_stops_between_blocks_of_solves(model):
+    """The Levenberg-Marquardt Jacobian (3 solves per support node, in blocks) gives up between
+    blocks once the deadline has passed; the first block is always made."""
+    support, g = support_and_load(model.mesh)
+    op = model.restrict(support)
+    solve = op._rest_solver().solve
+    with pytest.raises(ForwardFailed, match="after 3 of") as info:
+        op._support_response(solve, deadline=time.perf_counter(), block=3)
+    assert info.value.status == "time_limit"
+    full = op._support_response(solve, deadline=time.perf_counter() + 3600.0, block=3)
+    np.testing.assert_allclose(full, op._support_response(solve), atol=1e-12)
 
 
 def test_support_is_validated(model):

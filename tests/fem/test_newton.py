@@ -1,5 +1,7 @@
 """Newton's method: exact answers, the linear limit, scaling, hard cases, failure as a result."""
 
+import time
+
 import numpy as np
 import pytest
 
@@ -108,6 +110,20 @@ def test_iteration_cap_is_reported_not_raised(bar):
     assert not res.converged
     assert res.status in {"max_iter", "load_step_too_small"}
     assert np.isfinite(res.u).all()
+
+
+def test_a_solve_past_its_deadline_stops_before_its_next_iteration(bar):
+    """A deadline already past: no Newton iteration is taken, the start comes back with status
+    time_limit, and the same solver then converges to a fresh solver's answer (nothing left
+    half-done)."""
+    solver = NewtonSolver(Assembler(bar, NeoHookean(4500.0, 0.49)))
+    g = tip_load(bar, [0.0, 0.0, -80.0])
+    cut = solver.solve(g, deadline=time.perf_counter())
+    assert not cut.converged and cut.status == "time_limit" and cut.iterations == 0
+    assert not cut.u.any()
+    full = solver.solve(g, deadline=time.perf_counter() + 3600.0)
+    assert full.converged and full.iterations > 0
+    np.testing.assert_allclose(full.u, NewtonSolver(Assembler(bar, NeoHookean(4500.0, 0.49))).solve(g).u, atol=1e-10)
 
 
 def test_non_finite_load_is_reported(bar):

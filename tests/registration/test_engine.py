@@ -1,6 +1,9 @@
 """The registration engine: the full objective's gradient for both forward models, recovery of
 known loads, bounds, and failure reporting."""
 
+import dataclasses
+import time
+
 import numpy as np
 import pytest
 
@@ -137,6 +140,47 @@ def test_time_budget_returns_the_best_iterate(entry):
     assert cut.value <= objective_for(entry.fem, mesh, support, pts, alpha=1e-9)(start)[0]
     full = solve_frame(op, dist, rest, start, SolveOptions(alpha=1e-9))
     assert full.converged and full.evaluations > cut.evaluations
+
+
+class LateSolves:
+    """A real FEM operator on a machine too busy to start a loaded solve before the frame's
+    deadline: it waits the deadline out first, so the deadline passes inside the Newton solve."""
+
+    def __init__(self, op) -> None:
+        self.op, self.support, self.nodes = op, op.support, op.nodes
+
+    deadline = property(lambda self: self.op.deadline, lambda self, t: setattr(self.op, "deadline", t))
+
+    def __call__(self, g):
+        if np.any(g) and self.op.deadline is not None:
+            time.sleep(max(0.0, self.op.deadline - time.perf_counter()) + 1e-3)
+        return self.op(g)
+
+    def jacobian(self, g):
+        return self.op.jacobian(g)
+
+    def displacement(self, g):
+        return self.op.displacement(g)
+
+    def reset(self) -> None:
+        self.op.reset()
+
+
+@pytest.mark.parametrize("optimizer", ["lbfgsb", "levenberg-marquardt"])
+def test_a_deadline_inside_a_newton_solve_stops_the_frame(entry, optimizer):
+    """The engine hands the frame's deadline to the FEM, whose Newton solve stops at it (no
+    iteration past it): the frame ends time_limit with its best iterate; afterwards the
+    operator holds no deadline and its next frame converges."""
+    mesh, support, g_true, pts, dist = tip_pull(entry)
+    late = LateSolves(entry.fem.restrict(support, dist.nodes))
+    rest, start = mesh.nodes[dist.nodes], np.zeros_like(g_true)
+    options = SolveOptions(alpha=1e-9, optimizer=optimizer)
+    cut = solve_frame(late, dist, rest, start, dataclasses.replace(options, time_budget=0.3))
+    assert cut.status == "time_limit" and not cut.converged and "Newton solve" in cut.message
+    assert late.op.last.status == "time_limit" and late.op.last.iterations == 0
+    assert cut.iterations == 0 and cut.evaluations == 2 and not cut.g.any()
+    assert late.op.deadline is None
+    assert solve_frame(late.op, dist, rest, start, options).converged
 
 
 def test_a_frame_stopped_by_a_limit_reports_its_iterations(entry):
