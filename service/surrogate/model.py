@@ -313,6 +313,20 @@ class _GramFactors:
         return Y
 
 
+@dataclasses.dataclass(frozen=True)
+class _Anchor:
+    """What :class:`_AnchoredGram` corrects from: the slopes it was made at (s2 None for one
+    hidden layer), P, Y and Y Y^T there, and how many corrections it has taken since a full
+    refresh."""
+
+    s1: Array
+    s2: Array | None
+    P: Array
+    Y: Array
+    YY: Array
+    corrections: int
+
+
 class _AnchoredGram:
     """R = dc/dz (z the first layer's pre-activation) and C C^T at the slopes last seen,
     corrected by the PReLU units whose slope changed since, for networks of one or two hidden
@@ -339,7 +353,7 @@ class _AnchoredGram:
         h2 = 0 if self.W_top is None else self.W_top.shape[0]
         self._full_cost = r * h * (h + h2 + r)
         self._unit_cost = h * (h + 3 * r)
-        self._state: tuple | None = None  # (slopes, P, Y, Y Y^T, corrections so far)
+        self._anchor: _Anchor | None = None
 
     def at(self, tape: list) -> tuple[Array, Array]:
         """(R (r, h) Fortran-ordered float32, C C^T (r, r) float64 read-only) at the tape's slopes."""
@@ -349,34 +363,34 @@ class _AnchoredGram:
             return R, self._gram((Y @ Y.T).astype(np.float64))
         s1 = tape[0][1]
         s2 = tape[1][1] if self.W_top is not None else None
-        st = self._state
-        if st is not None and st[4] < self._REFRESH:
-            (s1_old, s2_old), P, Y, YY, n = st
-            F1 = np.flatnonzero(s1 != s1_old)
-            F2 = np.flatnonzero(s2 != s2_old) if s2 is not None else F1[:0]
+        a = self._anchor
+        if a is not None and a.corrections < self._REFRESH:
+            F1 = np.flatnonzero(s1 != a.s1)
+            F2 = np.flatnonzero(s2 != a.s2) if s2 is not None else F1[:0]
             k = F1.size + F2.size
             if k * self._unit_cost < 0.25 * self._full_cost:
-                if k:
-                    P, Y, YY = self._correct(P, Y, YY, s1, s1_old, F1, s2, s2_old, F2)
-                self._state = ((s1, s2), P, Y, YY, n + (k > 0))
+                P, Y, YY = self._correct(a, s1, F1, s2, F2) if k else (a.P, a.Y, a.YY)
+                self._anchor = _Anchor(s1, s2, P, Y, YY, a.corrections + (k > 0))
                 return self._result(P, s1, YY)
         P = np.asfortranarray(self.W_last if self.W_top is None else (self.W_last * s2) @ self.W_top)
         Y = self._f.Y(P * s1)  # P Fortran-ordered, so is the product: BLAS trmm takes it as is
         YY = (Y @ Y.T).astype(np.float64)
-        self._state = ((s1, s2), P, Y, YY, 0)
+        self._anchor = _Anchor(s1, s2, P, Y, YY, 0)
         return self._result(P, s1, YY)
 
-    def _correct(self, P, Y, YY, s1, s1_old, F1, s2, s2_old, F2):
-        """P, Y and Y Y^T after the units F1 (first layer) and F2 (second) changed slopes."""
+    def _correct(self, a: _Anchor, s1: Array, F1: Array, s2: Array | None, F2: Array):
+        """P, Y and Y Y^T after the units F1 (first layer) and F2 (second) changed slopes from
+        the anchor's to s1 and s2."""
         Tt = self._f.Tt  # T^T (h, q)
+        P, Y, YY = a.P, a.Y, a.YY
         parts_L, parts_N = [], []
         if F2.size:
-            L2 = self.W_last[:, F2] * (s2 - s2_old)[F2]  # (r, f2)
+            L2 = self.W_last[:, F2] * (s2 - a.s2)[F2]  # (r, f2)
             M2 = self.W_top[F2]  # (f2, h)
             parts_L.append(L2)
             parts_N.append((M2 * s1) @ Tt)
         if F1.size:
-            parts_L.append(P[:, F1] * (s1 - s1_old)[F1])
+            parts_L.append(P[:, F1] * (s1 - a.s1)[F1])
             parts_N.append(Tt[F1])
         L = np.hstack(parts_L) if len(parts_L) > 1 else parts_L[0]  # (r, k)
         N = np.vstack(parts_N) if len(parts_N) > 1 else parts_N[0]  # (k, q)

@@ -224,8 +224,8 @@ def test_coefficient_jacobian_along_a_path_is_the_fresh_one(bar, hidden):
     for t in np.linspace(0.05, 1.5, 60):
         g = t * g1
         jac = op.jacobian(g)
-        if op._anchored._state is not None:
-            corrected += op._anchored._state[4] > 0
+        if op._anchored._anchor is not None:
+            corrected += op._anchored._anchor.corrections > 0
         fresh = model.restrict(support, nodes).jacobian(g)
         G = fresh.gram()
         np.testing.assert_allclose(jac.gram(), G, rtol=1e-4, atol=1e-5 * np.abs(G).max())
@@ -235,7 +235,7 @@ def test_coefficient_jacobian_along_a_path_is_the_fresh_one(bar, hidden):
     if len(hidden) <= 2:
         assert corrected >= 10
     else:
-        assert op._anchored._state is None
+        assert op._anchored._anchor is None
 
 
 def test_paper_layout_offers_no_coefficient_jacobian(bar):
