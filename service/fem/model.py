@@ -60,6 +60,11 @@ class FEMModel:
 #: surface would take about 8 s and 100 MB a step)
 MAX_JACOBIAN_SUPPORT = 500
 
+#: Equilibria an operator keeps by their forces, the latest first: a frame's outputs are taken
+#: at its best iterate, which need not be its last evaluation (a frame cut short by its budget
+#: mid line search), and solving for it again would be a Newton solve past the budget
+KEPT_EQUILIBRIA = 8
+
 
 class FEMOperator:
     """Forces on a support -> displacement of some nodes, with the adjoint as pullback.
@@ -80,6 +85,7 @@ class FEMOperator:
         self._rest = None
         self._low_rank: tuple[Array, Array] | None = None
         self._g: Array | None = None  # the forces of self._u
+        self._kept: list[tuple[Array, Array]] = []  # (g, u) of recent equilibria, latest first
         self._rest_jacobian: DenseJacobian | None = None
         self._last_jacobian: tuple[Array, DenseJacobian] | None = None  # (g, du/dg at g)
         self.last: NewtonResult | None = None
@@ -90,6 +96,7 @@ class FEMOperator:
     def reset(self) -> None:
         self._u = self._g = None
         self._last_jacobian = None
+        self._kept = []
 
     def _solve(self, g: Array) -> NewtonResult:
         G = np.zeros((self.mesh.n_nodes, 3))
@@ -101,10 +108,18 @@ class FEMOperator:
         if not res.converged:
             raise ForwardFailed(res.status, f"Newton residual {res.residual:.2e} after {res.iterations} iterations")
         self._u, self._g = res.u, np.array(g, np.float64)
+        self._kept = [(self._g, self._u), *self._kept[: KEPT_EQUILIBRIA - 1]]
         return res
 
     def displacement(self, g: Array) -> Array:
-        return self._solve(np.asarray(g, np.float64)).u
+        """The equilibrium under g: a kept one if g was solved lately (the state the optimiser
+        scored, at no cost), else a Newton solve. The next solve starts from it either way."""
+        g = np.asarray(g, np.float64)
+        for g_kept, u_kept in self._kept:
+            if np.array_equal(g_kept, g):
+                self._u, self._g = u_kept, g_kept
+                return u_kept.copy()  # the caller's to change
+        return self._solve(g).u.copy()
 
     def _rest_solver(self):
         """Factorisation of the rest stiffness, made on first use (the rest state's adjoint)."""

@@ -60,6 +60,26 @@ def test_displacement_equals_solve(model):
     np.testing.assert_allclose(full, model.solve(g, support).u, atol=1e-10)
 
 
+def test_displacement_at_a_recent_equilibrium_takes_no_newton_solve(model):
+    """The field at forces the operator solved lately (a frame's best iterate, before its last
+    evaluation) comes from the kept equilibrium: no Newton iteration, the same field as a fresh
+    solve, a copy the caller may change; the next solve starts from it."""
+    support, g = support_and_load(model.mesh)
+    op = model.restrict(support)
+    op(0.5 * g)
+    op(g)
+    last = op.last
+    u = op.displacement(0.5 * g)
+    assert op.last is last  # no solve ran
+    np.testing.assert_allclose(u, model.solve(0.5 * g, support).u, atol=1e-8)
+    u[:] = 0.0
+    assert np.abs(op.displacement(0.5 * g)).max() > 0.0
+    op(0.5 * g)
+    assert op.last.iterations == 0  # warm-started from the kept equilibrium
+    op.displacement(0.7 * g)  # never solved: a Newton solve
+    assert op.last is not last and op.last.converged
+
+
 def test_with_stiffness_scales_the_response(model):
     support, g = support_and_load(model.mesh)
     stiff = model.with_stiffness(4 * model.material.E)
