@@ -62,8 +62,10 @@ MAX_JACOBIAN_SUPPORT = 500
 
 #: Equilibria an operator keeps by their forces, the latest first: a frame's outputs are taken
 #: at its best iterate, which need not be its last evaluation (a frame cut short by its budget
-#: mid line search), and solving for it again would be a Newton solve past the budget
-KEPT_EQUILIBRIA = 8
+#: mid line search), and solving for it again would be a Newton solve past the budget. 32
+#: covers a whole L-BFGS-B line search (30 trials at most) or Levenberg-Marquardt's 7 rejected
+#: steps after the best; on the paper's liver they hold 2.3 MB
+KEPT_EQUILIBRIA = 32
 
 
 class FEMOperator:
