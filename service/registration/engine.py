@@ -409,7 +409,7 @@ def _levenberg_marquardt(op, distance: PointToSurface, evaluate: Objective, begi
     if match is None or not np.array_equal(match.x, x):  # the start was not the last evaluation
         distance(x)
         match = distance.last_match
-    mu, nu, nit, failures = None, 2.0, 0, []
+    mu, mu_min, nu, nit, failures = None, 0.0, 2.0, 0, []
     while np.abs(grad).max() > g_tol:
         if nit >= options.max_iter:
             return "max_iter", f"{nit} iterations", nit
@@ -424,6 +424,7 @@ def _levenberg_marquardt(op, distance: PointToSurface, evaluate: Objective, begi
         model = GaussNewtonModel(jac, match, distance.faces, grad, options.alpha)
         if mu is None:
             mu = options.damping * model.scale
+            mu_min = _MIN_DAMPING * model.scale
         for _ in range(_MAX_REJECTIONS + 1):
             if evaluate.evaluations >= max_eval:
                 return "max_iter", "evaluation budget spent", nit
@@ -444,7 +445,7 @@ def _levenberg_marquardt(op, distance: PointToSurface, evaluate: Objective, begi
             if fn < f:
                 rho = min((f - fn) / max(model.predicted(d, mu), _TINY), 1.0)
                 g, f, grad, match = g + d, fn, gn.ravel(), distance.last_match
-                mu *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+                mu = max(mu * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), mu_min)
                 nu, nit = 2.0, nit + 1
                 break
             mu, nu = mu * nu, 2.0 * nu
@@ -462,6 +463,14 @@ def _spent(options: SolveOptions) -> str:
 #: times, and what is left to gain is below the float32 network's noise (at gtol 1e-6 on the
 #: beam, the uncapped search spent 2.3 ms an iteration on rejections)
 _MAX_REJECTIONS = 6
+
+#: The least damping, in units of the frame's first Gauss-Newton model's mean curvature. Below
+#: it the float32 network's steps are rejected in turn (the beam's torsion cases from rest, whose
+#: twist the distance hardly sees), and it keeps such weakly seen directions from drifting on
+#: noise. Measured on the beam's 60 cases: 6.92 -> 6.33 evaluations a registration, TRE 0.099 ->
+#: 0.089 mm, force error 8.5 -> 7.5 %; the liver's streams, network and Newton alike, took the
+#: same steps to the same errors
+_MIN_DAMPING = 3e-4
 
 
 _TINY = np.finfo(np.float64).tiny

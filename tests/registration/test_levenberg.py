@@ -102,6 +102,29 @@ def test_registers_as_lbfgsb_does_in_fewer_evaluations(entry, method, loss):
     assert lm.value <= lb.value * (1 + 1e-3)
 
 
+def test_the_damping_never_falls_below_its_floor(entry, monkeypatch):
+    """Each good step cuts the damping (by 3 at most), but never below _MIN_DAMPING times the
+    frame's first model's mean curvature; a tolerance the float32 network cannot reach makes
+    the frame take enough steps to reach the floor."""
+    import service.registration.engine as engine
+
+    mesh = entry.mesh
+    support = tip_support(mesh, entry.region)
+    _, pts = frame_from_load(mesh, support, np.tile([0.0, 0.5, -40.0 / support.size], (support.size, 1)))
+    seen = []  # (mu, the model's mean curvature) of every step taken
+    step = GaussNewtonModel.step
+    monkeypatch.setattr(GaussNewtonModel, "step", lambda self, mu: seen.append((mu, self.scale)) or step(self, mu))
+    dist = PointToSurface(mesh.surface_faces)
+    dist.bind(pts)
+    op = entry.network.restrict(support, dist.nodes)
+    options = SolveOptions(alpha=1e-6, gtol=1e-12, max_iter=40, optimizer="levenberg-marquardt")
+    solve_frame(op, dist, mesh.nodes[dist.nodes], np.zeros((support.size, 3)), options)
+    mu = np.array([m for m, _ in seen])
+    floor = engine._MIN_DAMPING * seen[0][1]
+    assert len(seen) >= 10 and mu.min() >= floor * (1 - 1e-12)
+    assert np.isclose(mu, floor, rtol=1e-9, atol=0.0).any()  # it got there
+
+
 @pytest.mark.parametrize("at", ["rest", "loaded"])
 def test_fem_jacobian_matches_finite_differences(entry, at):
     """The FEM's du/dg on the operator's nodes, at rest and at a loaded equilibrium, against
