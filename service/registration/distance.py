@@ -457,9 +457,9 @@ def _bvh_candidates(x, faces, order, span, box, tri, y, reach, hint, face_out, s
     the exact one plus at most triangles within that slack of its limit. Short lists come
     sorted, nearest first. A hint's exact distance is an upper bound on d0 before the descent
     starts, so far boxes are skipped from the root down (the hint face itself is met again in
-    its leaf, so the lists do not depend on the hints). Squared distances are compared first (a hair looser than r, so
-    only the square root decides what is kept), and a triangle's square root is taken only
-    when it may be kept.
+    its leaf, so the lists do not depend on the hints). Squared distances are compared first (a
+    hair looser than r, so only the square root decides what is kept), and a triangle's square
+    root is taken only when it may be kept.
     """
     n_internal = (span.shape[0] - 1) // 2
     buf_face = np.empty(order.size, np.intp)

@@ -16,10 +16,10 @@ support is small (the paper's liver: 60 nodes, 180 solves with the Newton factor
 
 Why this, not L-BFGS-B, for whole-surface cold starts: L-BFGS-B learns the curvature from
 gradients, about one direction per iteration, and the rest Jacobian that preconditions it
-misleads as the shape moves; Gauss-Newton re-linearises at every accepted step. Measured on
-the beam (60 cases from rest, gtol 1e-3, means): 5.3 iterations and 6.3 evaluations against
-18.0 and 20.3, TRE 0.089 against 0.120 mm. It does not take bounds, and it needs the model's Jacobian, so L-BFGS-B stays
-the default (and the paper's method).
+misleads as the shape moves; Gauss-Newton re-linearises at every accepted step. Measured on the
+beam (60 cases from rest, gtol 1e-3, means): 5.3 iterations and 6.3 evaluations against 18.0 and
+20.3, TRE 0.089 against 0.120 mm. It does not take bounds, and it needs the model's Jacobian, so
+L-BFGS-B stays the default (and the paper's method).
 """
 
 from __future__ import annotations
@@ -38,9 +38,9 @@ class GaussNewtonModel:
     """The damped Gauss-Newton model of Phi at one accepted point.
 
     `jac` offers U (3p, r), gram_product(A) = C C^T A for a symmetric A (r, r), Fortran-ordered,
-    matvec (C v) and rmatvec (C^T w); `match` is the
-    distance's at this point, `faces` (f, 3) the distance's local faces; grad (K,) the exact
-    gradient there (the step's right-hand side: the model's Hessian only approximates).
+    matvec (C v) and rmatvec (C^T w); `match` is the distance's at this point, `faces` (f, 3)
+    the distance's local faces; grad (K,) the exact gradient there (the step's right-hand side:
+    the model's Hessian only approximates).
     """
 
     def __init__(self, jac, match: Match, faces: Array, grad: Array, alpha: float) -> None:
