@@ -83,11 +83,10 @@ class FEMOperator:
         self.support = check_support(model.mesh, support)
         self.nodes = np.arange(model.mesh.n_nodes) if nodes is None else np.asarray(nodes, np.int64)
         self._newton = model.newton()
-        self._u: Array | None = None  # last equilibrium: the next solve's start
         self._rest = None
         self._low_rank: tuple[Array, Array] | None = None
-        self._g: Array | None = None  # the forces of self._u
-        self._kept: list[tuple[Array, Array]] = []  # (g, u) of recent equilibria, latest first
+        # (g, u) of recent equilibria, latest first; the first is the next solve's start
+        self._kept: list[tuple[Array, Array]] = []
         self._rest_jacobian: DenseJacobian | None = None
         self._last_jacobian: tuple[Array, DenseJacobian] | None = None  # (g, du/dg at g)
         self.last: NewtonResult | None = None
@@ -96,30 +95,38 @@ class FEMOperator:
         self.deadline: float | None = None
 
     def reset(self) -> None:
-        self._u = self._g = None
-        self._last_jacobian = None
         self._kept = []
+        self._last_jacobian = None
+
+    @property
+    def _last_g(self) -> Array | None:
+        """The forces of the latest equilibrium, None before the first."""
+        return self._kept[0][0] if self._kept else None
+
+    @property
+    def _last_u(self) -> Array | None:
+        """The latest equilibrium (the next solve's start), None before the first."""
+        return self._kept[0][1] if self._kept else None
 
     def _solve(self, g: Array) -> NewtonResult:
         G = np.zeros((self.mesh.n_nodes, 3))
         G[self.support] = g
-        res = self._newton.solve(G, self._u, self.deadline)
+        res = self._newton.solve(G, self._last_u, self.deadline)
         self.last = res
         if res.status == "time_limit":
             raise ForwardFailed(res.status, f"time budget spent in a Newton solve, after {res.iterations} iterations")
         if not res.converged:
             raise ForwardFailed(res.status, f"Newton residual {res.residual:.2e} after {res.iterations} iterations")
-        self._u, self._g = res.u, np.array(g, np.float64)
-        self._kept = [(self._g, self._u), *self._kept[: KEPT_EQUILIBRIA - 1]]
+        self._kept = [(np.array(g, np.float64), res.u), *self._kept[: KEPT_EQUILIBRIA - 1]]
         return res
 
     def displacement(self, g: Array) -> Array:
         """The equilibrium under g: a kept one if g was solved lately (the state the optimiser
         scored, at no cost), else a Newton solve. The next solve starts from it either way."""
         g = np.asarray(g, np.float64)
-        for g_kept, u_kept in self._kept:
+        for i, (g_kept, u_kept) in enumerate(self._kept):
             if np.array_equal(g_kept, g):
-                self._u, self._g = u_kept, g_kept
+                self._kept.insert(0, self._kept.pop(i))  # the latest now
                 return u_kept.copy()  # the caller's to change
         return self._solve(g).u.copy()
 
@@ -162,9 +169,9 @@ class FEMOperator:
             return self._rest_jacobian
         if self._last_jacobian is not None and np.array_equal(self._last_jacobian[0], g):
             return self._last_jacobian[1]
-        if self._g is None or not np.array_equal(self._g, g):
+        if self._last_g is None or not np.array_equal(self._last_g, g):
             self._solve(g)
-        newton, u = self._newton, self._u
+        newton, u = self._newton, self._last_u
         if newton.factor_at(u):
             solve = newton.solver.solve
         else:  # an unstable equilibrium: refine on the shifted factor
