@@ -400,8 +400,9 @@ def _lbfgsb(op, distance: PointToSurface, evaluate: Objective, begin: _Start, v_
 
 def _levenberg_marquardt(op, distance: PointToSurface, evaluate: Objective, begin: _Start, g_tol: float,
                          options: SolveOptions, max_eval: int, deadline: float | None) -> tuple[str, str, int]:
-    """Damped Gauss-Newton steps (levenberg.py) from `begin`, Nielsen's damping update; the
-    objective only decreases, so the current point is the best. (status, message, iterations)."""
+    """Damped Gauss-Newton steps (levenberg.py) from `begin`, Nielsen's damping update (faster
+    from rest, see _COLD_SHRINK); the objective only decreases, so the current point is the
+    best. (status, message, iterations)."""
     k = len(op.support)
     g, f, grad = begin.g.ravel(), begin.value, begin.grad.ravel()
     x = evaluate.rest + begin.u
@@ -410,6 +411,7 @@ def _levenberg_marquardt(op, distance: PointToSurface, evaluate: Objective, begi
         distance(x)
         match = distance.last_match
     mu, mu_min, nu, nit, failures = None, 0.0, 2.0, 0, []
+    cold = not np.any(g)  # a start from rest: far from the optimum, where the model is trusted
     while np.abs(grad).max() > g_tol:
         if nit >= options.max_iter:
             return "max_iter", f"{nit} iterations", nit
@@ -445,7 +447,10 @@ def _levenberg_marquardt(op, distance: PointToSurface, evaluate: Objective, begi
             if fn < f:
                 rho = min((f - fn) / max(model.predicted(d, mu), _TINY), 1.0)
                 g, f, grad, match = g + d, fn, gn.ravel(), distance.last_match
-                mu = max(mu * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), mu_min)
+                shrink = max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+                if cold and rho > _TRUSTED_GAIN:
+                    shrink = _COLD_SHRINK
+                mu = max(mu * shrink, mu_min)
                 nu, nit = 2.0, nit + 1
                 break
             mu, nu = mu * nu, 2.0 * nu
@@ -471,6 +476,19 @@ _MAX_REJECTIONS = 6
 #: 0.089 mm, force error 8.5 -> 7.5 %, median time the same within noise; the liver's streams,
 #: network and Newton alike, took the same steps (the paper's sequence: 0.1635 -> 0.1636 mm)
 _MIN_DAMPING = 3e-4
+
+#: From rest, a step whose gain ratio exceeds _TRUSTED_GAIN cuts the damping by _COLD_SHRINK
+#: instead of Nielsen's 1/3 at most. On the beam's cold starts every step had a gain ratio
+#: near 1, and the 1/3 cap kept the weakly seen torsion damped for 6-8 steps. Measured on its
+#: 60 cases: 5.33 -> 4.87 iterations a registration, TRE 0.089 -> 0.079 mm, force error 7.5
+#: -> 7.3 %. A cut of 1/10 took 4.72 iterations at 0.090 mm and 8.0 %, and 1/20 landed
+#: torsion cases in the wrong twist (0.121 mm). Warm starts keep Nielsen's rule: there the
+#: same faster cut took more steps (our own liver sequences: 4.20 -> 4.55 on the first), as
+#: the float32 network's noise rejects steps at low damping. The liver's streams, which start
+#: cold only at their first frame, took 1.50 -> 1.48, 4.20 -> 4.05, 3.00 -> 2.95 and 3.10 ->
+#: 3.05 iterations a frame, errors the same to 0.3 %.
+_TRUSTED_GAIN = 0.9
+_COLD_SHRINK = 0.2
 
 
 _TINY = np.finfo(np.float64).tiny

@@ -125,6 +125,30 @@ def test_the_damping_never_falls_below_its_floor(entry, monkeypatch):
     assert np.isclose(mu, floor, rtol=1e-9, atol=0.0).any()  # it got there
 
 
+def test_from_rest_trusted_steps_cut_the_damping_faster(entry, monkeypatch):
+    """From rest, a step the model predicted well (gain ratio above _TRUSTED_GAIN) cuts the
+    damping by _COLD_SHRINK; from a warm start no step cuts it by more than Nielsen's 1/3."""
+    mesh = entry.mesh
+    support = tip_support(mesh, entry.region)
+    g_true = np.tile([0.0, 0.5, -40.0 / support.size], (support.size, 1))
+    _, pts = frame_from_load(mesh, support, g_true)
+    seen = []
+    step = GaussNewtonModel.step
+    monkeypatch.setattr(GaussNewtonModel, "step", lambda self, mu: seen.append(mu) or step(self, mu))
+    dist = PointToSurface(mesh.surface_faces)
+    dist.bind(pts)
+    op = entry.network.restrict(support, dist.nodes)
+    options = SolveOptions(alpha=1e-6, gtol=1e-6, max_iter=40, optimizer="levenberg-marquardt")
+    ratios = {}
+    for start, g0 in (("cold", np.zeros_like(g_true)), ("warm", 0.5 * g_true)):
+        seen.clear()
+        s = solve_frame(op, dist, mesh.nodes[dist.nodes], g0, options)
+        assert s.iterations >= 3
+        ratios[start] = np.array(seen[1:]) / np.array(seen[:-1])
+    assert np.isclose(ratios["cold"], engine._COLD_SHRINK, rtol=1e-12).sum() >= 2
+    assert ratios["warm"].min() >= 1.0 / 3.0 * (1 - 1e-12)
+
+
 @pytest.mark.parametrize("at", ["rest", "loaded"])
 def test_fem_jacobian_matches_finite_differences(entry, at):
     """The FEM's du/dg on the operator's nodes, at rest and at a loaded equilibrium, against
