@@ -479,14 +479,14 @@ _MIN_DAMPING = 3e-4
 
 #: From rest, a step whose gain ratio exceeds _TRUSTED_GAIN cuts the damping by _COLD_SHRINK
 #: instead of Nielsen's 1/3 at most. On the beam's cold starts every step had a gain ratio
-#: near 1, and the 1/3 cap kept the weakly seen torsion damped for 6-8 steps. Measured on its
-#: 60 cases: 5.33 -> 4.87 iterations a registration, TRE 0.089 -> 0.079 mm, force error 7.5
-#: -> 7.3 %. A cut of 1/10 took 4.72 iterations at 0.090 mm and 8.0 %, and 1/20 landed
-#: torsion cases in the wrong twist (0.121 mm). Warm starts keep Nielsen's rule: there the
-#: same faster cut took more steps (our own liver sequences: 4.20 -> 4.55 on the first), as
-#: the float32 network's noise rejects steps at low damping. The liver's streams, which start
-#: cold only at their first frame, took 1.50 -> 1.48, 4.20 -> 4.05, 3.00 -> 2.95 and 3.10 ->
-#: 3.05 iterations a frame, errors the same to 0.3 %.
+#: near 1, so the damping fell by exactly 3 a step, and the torsion cases took 6-8 steps
+#: (bending 3-4). Measured on its 60 cases: 5.33 -> 4.87 iterations a registration, TRE
+#: 0.089 -> 0.079 mm, force error 7.5 -> 7.3 %. A cut of 1/10 took 4.72 iterations at
+#: 0.090 mm and 8.0 %, and 1/20 took 4.88 at 0.121 mm and 12.6 %. Warm starts keep Nielsen's
+#: rule: there the same faster cut took more steps (our own liver sequences: 4.20 -> 4.55 a
+#: frame on the first). The liver's streams, which start cold only at their first frame, took
+#: 1.50 -> 1.48, 4.20 -> 4.05, 3.00 -> 2.95 and 3.10 -> 3.05 iterations a frame (network),
+#: errors the same to 0.3 %; the Newton method's the same steps.
 _TRUSTED_GAIN = 0.9
 _COLD_SHRINK = 0.2
 
