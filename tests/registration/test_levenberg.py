@@ -104,21 +104,36 @@ def test_registers_as_lbfgsb_does_in_fewer_evaluations(entry, method, loss):
     assert lm.value <= lb.value * (1 + 1e-3)
 
 
-def test_the_damping_never_falls_below_its_floor(entry, monkeypatch):
-    """Each good step cuts the damping (by 3 at most), but never below _MIN_DAMPING times the
-    frame's first model's mean curvature; a tolerance the float32 network cannot reach makes
-    the frame take enough steps to reach the floor."""
+def damping_trace(entry, monkeypatch):
+    """A tip pull's cloud to register with the network, and a record of each step's damping.
+
+    Returns (g_true, run, seen): run(g0, options) clears seen and registers the cloud from g0;
+    seen then holds (mu, the model's mean curvature) of every step taken.
+    """
     mesh = entry.mesh
     support = tip_support(mesh, entry.region)
-    _, pts = frame_from_load(mesh, support, np.tile([0.0, 0.5, -40.0 / support.size], (support.size, 1)))
-    seen = []  # (mu, the model's mean curvature) of every step taken
+    g_true = np.tile([0.0, 0.5, -40.0 / support.size], (support.size, 1))
+    _, pts = frame_from_load(mesh, support, g_true)
+    seen = []
     step = GaussNewtonModel.step
     monkeypatch.setattr(GaussNewtonModel, "step", lambda self, mu: seen.append((mu, self.scale)) or step(self, mu))
     dist = PointToSurface(mesh.surface_faces)
     dist.bind(pts)
     op = entry.network.restrict(support, dist.nodes)
-    options = SolveOptions(alpha=1e-6, gtol=1e-12, max_iter=40, optimizer="levenberg-marquardt")
-    solve_frame(op, dist, mesh.nodes[dist.nodes], np.zeros((support.size, 3)), options)
+
+    def run(g0, options):
+        seen.clear()
+        return solve_frame(op, dist, mesh.nodes[dist.nodes], g0, options)
+
+    return g_true, run, seen
+
+
+def test_the_damping_never_falls_below_its_floor(entry, monkeypatch):
+    """Each good step cuts the damping (by 3 at most), but never below _MIN_DAMPING times the
+    frame's first model's mean curvature; a tolerance the float32 network cannot reach makes
+    the frame take enough steps to reach the floor."""
+    g_true, run, seen = damping_trace(entry, monkeypatch)
+    run(np.zeros_like(g_true), SolveOptions(alpha=1e-6, gtol=1e-12, max_iter=40, optimizer="levenberg-marquardt"))
     mu = np.array([m for m, _ in seen])
     floor = engine._MIN_DAMPING * seen[0][1]
     assert len(seen) >= 10 and mu.min() >= floor * (1 - 1e-12)
@@ -128,23 +143,14 @@ def test_the_damping_never_falls_below_its_floor(entry, monkeypatch):
 def test_from_rest_trusted_steps_cut_the_damping_faster(entry, monkeypatch):
     """From rest, a step the model predicted well (gain ratio above _TRUSTED_GAIN) cuts the
     damping by _COLD_SHRINK; from a warm start no step cuts it by more than Nielsen's 1/3."""
-    mesh = entry.mesh
-    support = tip_support(mesh, entry.region)
-    g_true = np.tile([0.0, 0.5, -40.0 / support.size], (support.size, 1))
-    _, pts = frame_from_load(mesh, support, g_true)
-    seen = []
-    step = GaussNewtonModel.step
-    monkeypatch.setattr(GaussNewtonModel, "step", lambda self, mu: seen.append(mu) or step(self, mu))
-    dist = PointToSurface(mesh.surface_faces)
-    dist.bind(pts)
-    op = entry.network.restrict(support, dist.nodes)
+    g_true, run, seen = damping_trace(entry, monkeypatch)
     options = SolveOptions(alpha=1e-6, gtol=1e-6, max_iter=40, optimizer="levenberg-marquardt")
     ratios = {}
     for start, g0 in (("cold", np.zeros_like(g_true)), ("warm", 0.5 * g_true)):
-        seen.clear()
-        s = solve_frame(op, dist, mesh.nodes[dist.nodes], g0, options)
+        s = run(g0, options)
         assert s.iterations >= 3
-        ratios[start] = np.array(seen[1:]) / np.array(seen[:-1])
+        mu = np.array([m for m, _ in seen])
+        ratios[start] = mu[1:] / mu[:-1]
     assert np.isclose(ratios["cold"], engine._COLD_SHRINK, rtol=1e-12).sum() >= 2
     assert ratios["warm"].min() >= 1.0 / 3.0 * (1 - 1e-12)
 
