@@ -489,8 +489,8 @@ _MIN_DAMPING = 3e-4
 #: errors the same to 0.3 %; the Newton method's the same steps. Not every registration gains:
 #: of the beam's 60, 22 moved nearer by over 0.02 mm TRE and 5 farther (at most 0.07 mm), and
 #: the Newton method from rest on its first 6 went 0.029 -> 0.037 mm at gtol 1e-3 (one case
-#: 0.035 -> 0.105 mm, one 0.021 -> 0.027, four the same or nearer) and 0.017 -> 0.024 mm at 1e-4 (force
-#: error 4.8 -> 4.4 %).
+#: 0.035 -> 0.105 mm, one 0.021 -> 0.027, four the same or nearer) and 0.017 -> 0.024 mm at
+#: 1e-4 (force error 4.8 -> 4.4 %).
 _TRUSTED_GAIN = 0.9
 _COLD_SHRINK = 0.2
 
