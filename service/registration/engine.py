@@ -311,6 +311,11 @@ class _Start:
     grad: Array
     u: Array
 
+    @property
+    def cold(self) -> bool:
+        """Whether the frame starts at rest (g = 0): far from its optimum, as no stream led it."""
+        return not np.any(self.g)
+
 
 def _lbfgsb(op, distance: PointToSurface, evaluate: Objective, begin: _Start, v_rest: float, g_tol: float,
             options: SolveOptions, curvature: Curvature | None, max_eval: int, deadline: float | None) -> tuple[str, str, int]:
@@ -319,7 +324,7 @@ def _lbfgsb(op, distance: PointToSurface, evaluate: Objective, begin: _Start, v_
     k = len(op.support)
     bounded = options.force_bound is not None
     P = None
-    if curvature is not None and not bounded and np.any(begin.g):
+    if curvature is not None and not bounded and not begin.cold:
         # the carried curvature models the Hessian near the last frames' optima: from the
         # rest state it misleads (cold starts on the paper's liver: 12 % converged with
         # it, 100 % without)
@@ -411,7 +416,6 @@ def _levenberg_marquardt(op, distance: PointToSurface, evaluate: Objective, begi
         distance(x)
         match = distance.last_match
     mu, mu_min, nu, nit, failures = None, 0.0, 2.0, 0, []
-    cold = not np.any(g)  # a start from rest: far from the optimum, where the model is trusted
     while np.abs(grad).max() > g_tol:
         if nit >= options.max_iter:
             return "max_iter", f"{nit} iterations", nit
@@ -448,7 +452,7 @@ def _levenberg_marquardt(op, distance: PointToSurface, evaluate: Objective, begi
                 rho = min((f - fn) / max(model.predicted(d, mu), _TINY), 1.0)
                 g, f, grad, match = g + d, fn, gn.ravel(), distance.last_match
                 shrink = max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
-                if cold and rho > _TRUSTED_GAIN:
+                if begin.cold and rho > _TRUSTED_GAIN:  # far from the optimum: trust the model
                     shrink = _COLD_SHRINK
                 mu = max(mu * shrink, mu_min)
                 nu, nit = 2.0, nit + 1
