@@ -25,6 +25,10 @@ def test_bench_smoke_writes_the_whole_report(bar_store, tmp_path):
     summary = results["parts"]["beam"]["summary"]  # Levenberg-Marquardt, and L-BFGS-B beside it
     assert summary["config"]["optimizer"] == "levenberg-marquardt" and summary["lbfgsb"]["cases"] == summary["cases"]
     assert "elastreg, L-BFGS-B" in report
+    # three passes over the same cases, for each optimizer: the time is their median, each kept
+    assert len(summary["ms_median_passes"]) == 3 and len(summary["lbfgsb"]["ms_median_passes"]) == 3
+    assert all(len(r["ms_passes"]) == 3 for r in results["parts"]["beam"]["rows"])
+    assert "median of each pass" in report
     for s in results["parts"]["liver"]["summaries"]:
         assert s["all_finite"]
     net = next(s for s in results["parts"]["liver"]["summaries"] if s["method"] == "network")
