@@ -217,7 +217,7 @@ def _merge_previous(results: dict, out: Path) -> dict:
     remembers the run that made it."""
     from .cases import FrameRecord
 
-    stamp = {"started": results["started"], "commit": results["machine"]["commit"]}
+    stamp = {"started": results["started"], "commit": results["machine"]["commit"], "cpu": results["machine"]["cpu"]}
     results["made_by"] = {part: stamp for part in results["parts"]}
     path = out / "results.json"
     if not path.exists():
@@ -226,14 +226,16 @@ def _merge_previous(results: dict, out: Path) -> dict:
         prior = json.loads(path.read_text())
     except (OSError, ValueError):
         return results
-    old_stamp = {"started": prior.get("started"), "commit": prior.get("machine", {}).get("commit")}
+    machine = prior.get("machine", {})
+    old_stamp = {"started": prior.get("started"), "commit": machine.get("commit"), "cpu": machine.get("cpu")}
     for part, value in prior.get("parts", {}).items():
         if part in results["parts"] or part not in PARTS:
             continue
         if isinstance(value, dict) and "records" in value:  # per-frame records: back to objects
             value["records"] = [FrameRecord(**r) for r in value["records"]]
         results["parts"][part] = value
-        results["made_by"][part] = prior.get("made_by", {}).get(part, old_stamp)
+        # a stamp from before stamps named the CPU: taken to be the prior run's machine
+        results["made_by"][part] = {"cpu": machine.get("cpu"), **prior.get("made_by", {}).get(part, old_stamp)}
     return results
 
 
@@ -265,8 +267,9 @@ def write_report(results: dict, out: Path) -> None:
               f"(the first frame of a stream is a cold start).\n")  # fmt: skip
     runs = {(v["started"], v["commit"]) for v in results.get("made_by", {}).values()}
     if len(runs) > 1:
-        md.append("Parts come from more than one run: " + "; ".join(
-            f"{part} ({v['started']}, {v['commit']})" for part, v in results["made_by"].items()) + ".\n")
+        md.append("Parts come from more than one run (and machine: compare times within a part, not across "
+                  "machines): " + "; ".join(f"{part} ({v['started']}, {v['commit']}, {v.get('cpu') or 'CPU not recorded'})"
+                                           for part, v in results["made_by"].items()) + ".\n")  # fmt: skip
     if "fem" in parts:
         f = parts["fem"]
         md.append("## FEM (Newton) on the liver\n")

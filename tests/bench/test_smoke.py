@@ -41,3 +41,19 @@ def test_bench_smoke_writes_the_whole_report(bar_store, tmp_path):
     assert {r["method"] for r in results["parts"]["stability"]["rows"]} >= {"fem", "fem, levenberg-marquardt"}
     assert not any(r.get("crashed") for r in results["parts"]["stability"]["rows"])
     assert results["parts"]["fem"]["backends"]  # at least one solver ran
+
+
+def test_merged_parts_say_which_machine_made_them(tmp_path):
+    """A part kept from an earlier run keeps that run's CPU in its stamp (read from the run's
+    machine where its stamp predates CPUs)."""
+    from service.bench.report import _merge_previous
+
+    prior = {"started": "then", "machine": {"commit": "abc", "cpu": "AMD EPYC"},
+             "parts": {"fem": {"backends": []}, "pareto": []},
+             "made_by": {"fem": {"started": "then", "commit": "abc"}}}  # fmt: skip
+    (tmp_path / "results.json").write_text(json.dumps(prior))
+    now = {"started": "now", "machine": {"commit": "def", "cpu": "Intel Xeon"}, "parts": {"beam": {}}}
+    merged = _merge_previous(now, tmp_path)
+    assert merged["made_by"]["beam"] == {"started": "now", "commit": "def", "cpu": "Intel Xeon"}
+    assert merged["made_by"]["fem"] == {"started": "then", "commit": "abc", "cpu": "AMD EPYC"}
+    assert merged["made_by"]["pareto"]["cpu"] == "AMD EPYC"  # no stamp at all: the run's own
