@@ -38,9 +38,11 @@ class GaussNewtonModel:
     """The damped Gauss-Newton model of Phi at one accepted point.
 
     `jac` offers U (3p, r), gram_product(A) = C C^T A for a symmetric A (r, r), Fortran-ordered,
-    matvec (C v) and rmatvec (C^T w); `match` is the distance's at this point, `faces` (f, 3)
-    the distance's local faces; grad (K,) the exact gradient there (the step's right-hand side:
-    the model's Hessian only approximates).
+    matvec (C v) and rmatvec (C^T w), and may offer gradient_image(alpha): C grad for the
+    gradient the operator's last evaluation gave at jac's point (None if it does not know it);
+    `match` is the distance's at this point, `faces` (f, 3) the distance's local faces; grad
+    (K,) the exact gradient there (the step's right-hand side: the model's Hessian only
+    approximates), the one the operator's last evaluation gave if it was at this point.
     """
 
     def __init__(self, jac, match: Match, faces: Array, grad: Array, alpha: float) -> None:
@@ -50,7 +52,9 @@ class GaussNewtonModel:
         self.A = A
         self.jac = jac
         self.v = -np.asarray(grad, np.float64).ravel()
-        self.Cv = jac.matvec(self.v)
+        image = getattr(jac, "gradient_image", None)  # C grad without a product over K
+        Cgrad = image(alpha) if image is not None else None
+        self.Cv = jac.matvec(self.v) if Cgrad is None else -Cgrad
         self.alpha = float(alpha)
         self._diagonal = slice(None, None, len(A) + 1)  # of a flattened (r, r)
         trace = float(self.CCA.T.ravel()[self._diagonal].sum())

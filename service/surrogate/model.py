@@ -148,37 +148,47 @@ class NetworkOperator:
         self._rest_jacobian: CoefficientJacobian | None = None  # jacobian(0), kept
         self._anchored: _AnchoredGram | None = None  # jacobian()'s R and C C^T, kept and corrected
         self._tape_at: tuple[Array, list] | None = None  # the last evaluation's input and tape
+        self._last_x: Array | None = None  # the input of the last evaluation (the object)
+        self._pulled: tuple[Array, Array, Array] | None = None  # its input, U^T u_bar, P x
         self._row_cache: list[tuple[Array, Array]] = []  # (rows, the readout's rows), last used first
         self._at_rest: tuple[Array, Callable[[Array], Array]] | None = None
 
     def reset(self) -> None:  # stateless: nothing to forget
         pass
 
-    def _hidden(self, x: Array) -> tuple[Array, list[tuple[Array, Array | None]], Array | None]:
+    def _hidden(self, x: Array) -> tuple[Array, list[tuple[Array, Array | None]], Array]:
         """Forward through all but the last layer; keeps what the backward pass needs. Also
-        returns the skip path's S x (None without one)."""
+        returns P x, the stacked input product (the first layer's W1 x, then the skip path's
+        S x where there is one)."""
         tape = []
         px = self._input @ x
-        h, skip = px[: self._n_first], (px[self._n_first :] if self._skip is not None else None)
+        h = px[: self._n_first]
         for i, (W, b, a) in enumerate(self._layers[:-1]):
             z = (W @ h if i else h) + b
             slope = np.where(z > 0, np.float32(1.0), a)
             tape.append((W, slope))
             h = z * slope
-        return h, tape, skip
+        return h, tape, px
+
+    def _skip_of(self, px: Array) -> Array | None:
+        """The skip path's S x within P x (None without a skip path)."""
+        return px[self._n_first :] if self._skip is not None else None
 
     def __call__(self, g: Array) -> tuple[Array, Callable[[Array], Array]]:
         x = np.asarray(g, np.float32).reshape(-1)
         if not x.any():
             # the rest state, which the engine evaluates every frame: the same answer each time
             if self._at_rest is None:
-                self._at_rest = self._evaluate(x)
-            return self._at_rest
+                self._at_rest = (self._evaluate(x), x)
+            (u, pullback), self._last_x = self._at_rest
+            return u, pullback
         return self._evaluate(x)
 
     def _evaluate(self, x: Array) -> tuple[Array, Callable[[Array], Array]]:
-        h, tape, skip = self._hidden(x)
+        h, tape, px = self._hidden(x)
+        skip = self._skip_of(px)
         self._tape_at = (x, tape)
+        self._last_x = x
         W_last, b_last, _ = self._layers[-1]
         y = W_last @ h + b_last
         if skip is not None:
@@ -196,6 +206,8 @@ class NetworkOperator:
                 yb = self._readout_rows(rows).T @ np.asarray(u_bar, np.float32)[rows].reshape(-1)
             else:
                 yb = self._readout.T @ np.asarray(u_bar, np.float32).reshape(-1)
+            if x is self._last_x:  # the latest evaluation's: C grad = C C^T yb + alpha C g
+                self._pulled = (x, yb, px)
             hb = W_last.T @ yb
             xb = self._skip.T @ yb if self._skip is not None else 0.0
             for W, slope in reversed(tape):
@@ -245,25 +257,32 @@ class NetworkOperator:
         x = np.asarray(g, np.float32).reshape(-1)
         at_rest = not x.any()
         if at_rest and self._rest_jacobian is not None:  # every cold frame starts here
-            return self._rest_jacobian
-        if self._tape_at is not None and np.array_equal(self._tape_at[0], x):
-            tape = self._tape_at[1]
+            jac = self._rest_jacobian
         else:
-            _, tape, _ = self._hidden(x)
-        if self._factors is None:
-            self._factors = _GramFactors(self._layers[0][0], self._skip)
-        if self._anchored is None:
-            self._anchored = _AnchoredGram(self._layers[-1][0], tape, self._factors)
-        R, G = self._anchored.at(tape)
-        jac = CoefficientJacobian(self._readout, R, G, self._input)
-        if at_rest:
-            self._rest_jacobian = jac
+            if self._tape_at is not None and np.array_equal(self._tape_at[0], x):
+                tape = self._tape_at[1]
+            else:
+                _, tape, _ = self._hidden(x)
+            if self._factors is None:
+                self._factors = _GramFactors(self._layers[0][0], self._skip)
+            if self._anchored is None:
+                self._anchored = _AnchoredGram(self._layers[-1][0], tape, self._factors)
+            R, G = self._anchored.at(tape)
+            jac = CoefficientJacobian(self._readout, R, G, self._input)
+            if at_rest:
+                self._rest_jacobian = jac
+        pulled = self._pulled
+        if pulled is not None and pulled[0] is self._last_x and np.array_equal(pulled[0], x):
+            # g is the last evaluation's point and its pullback ran: the gradient's image is
+            # known without a product over the K inputs (a fresh object: the rest one is kept)
+            jac = jac.with_gradient(pulled[1], pulled[2])
         return jac
 
     def displacement(self, g: Array) -> Array:
         """Every node's displacement (the readout over the whole mesh). Shape: (n, 3)."""
         x = np.asarray(g, np.float32).reshape(-1)
-        h, _, skip = self._hidden(x)
+        h, _, px = self._hidden(x)
+        skip = self._skip_of(px)
         if self._readout is not None:
             W_last, b_last, _ = self._layers[-1]
             y = W_last @ h + b_last + skip
@@ -417,11 +436,31 @@ class CoefficientJacobian:
     R = dc/dz (r, h) the layers above the first (see :class:`_AnchoredGram`). ``U`` (3p, r)
     is the readout of the operator's nodes (du/dc, constant), so du/dg = U C."""
 
-    def __init__(self, readout: Array, R: Array, gram: Array, stacked: Array) -> None:
+    def __init__(self, readout: Array, R: Array, gram: Array, stacked: Array,
+                 pulled: tuple[Array, Array] | None = None) -> None:
         self.R = R  # (r, h)
         self.U = readout
         self._P = stacked  # [W1; S] (h + r, K): C = [R, I] P
         self._gram = gram
+        self._pulled = pulled  # (U^T u_bar, P g) of the operator's last evaluation, at this g
+
+    def with_gradient(self, coef_bar: Array, projected: Array) -> "CoefficientJacobian":
+        """This Jacobian, also knowing the last evaluation's pullback at its point: the
+        coefficients' adjoint U^T u_bar (r,) and the stacked input product P g (h + r,)."""
+        return CoefficientJacobian(self.U, self.R, self._gram, self._P, (coef_bar, projected))
+
+    def gradient_image(self, alpha: float) -> Array | None:
+        """C grad for the gradient the last evaluation gave at this point, grad = C^T U^T u_bar
+        + alpha g, as C C^T (U^T u_bar) + alpha (R W1 g + S g): small products with the Gram
+        and P g, not a product over the K inputs (the beam: 939). None when unknown. (r,)"""
+        if self._pulled is None:
+            return None
+        coef_bar, px = self._pulled
+        h = self.R.shape[1]
+        Cg = (self.R @ px[:h]).astype(np.float64)
+        if px.size > h:
+            Cg += px[h:]
+        return self._gram @ coef_bar.astype(np.float64) + alpha * Cg
 
     def gram(self) -> Array:
         """C C^T (r, r), float64, read-only."""

@@ -238,6 +238,31 @@ def test_coefficient_jacobian_along_a_path_is_the_fresh_one(bar, hidden):
         assert op._anchored._anchor is None
 
 
+@pytest.mark.parametrize("hidden", [[32, 16], [24]])
+def test_gradient_image_is_the_jacobian_times_the_last_gradient(bar, hidden):
+    """Levenberg-Marquardt's right-hand side C grad, from the Gram and the last evaluation's
+    pullback (no product over the K inputs), equals C (pullback + alpha g) at rest and loaded,
+    with a sparse cotangent read out through its rows; it is unknown (None) for a point that
+    was not the last evaluated, and for one whose pullback has not run."""
+    rng = np.random.default_rng(2)
+    model = _random_reduced(bar, hidden, rng, seed=4)
+    support, nodes, g1 = case(model)
+    op = model.restrict(support, nodes)
+    alpha = 0.3
+    for g in (np.zeros_like(g1), g1, 0.5 * g1, np.zeros_like(g1)):  # rest twice: its cached forward
+        u, pullback = op(g)
+        assert op.jacobian(g).gradient_image(alpha) is None  # the pullback has not run yet
+        u_bar = np.zeros_like(u)
+        rows = np.arange(0, len(nodes), 3)
+        u_bar[rows] = rng.normal(size=(rows.size, 3))
+        grad = pullback(u_bar, rows=rows) + alpha * g
+        jac = op.jacobian(g)
+        ref = jac.matvec(grad.ravel())
+        np.testing.assert_allclose(jac.gradient_image(alpha), ref, rtol=1e-4, atol=1e-5 * np.abs(ref).max())
+    op(0.25 * g1)  # a newer evaluation: the image at g1 is no longer known
+    assert op.jacobian(g1).gradient_image(alpha) is None
+
+
 def test_paper_layout_offers_no_coefficient_jacobian(bar):
     region = bar.free_surface_nodes[bar.nodes[bar.free_surface_nodes, 0] > 1.0]
     net = PaperSurrogate(3 * region.size, 3 * bar.n_nodes, depth=3)
