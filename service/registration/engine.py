@@ -32,7 +32,7 @@ from scipy.optimize import minimize
 
 from .distance import PointToSurface
 from .forward import ForwardFailed, ForwardOperator
-from .levenberg import GaussNewtonModel
+from .levenberg import GaussNewtonModel, prepare
 from .precondition import Curvature, gauss_newton
 
 log = logging.getLogger(__name__)
@@ -68,13 +68,15 @@ _NO_JACOBIAN = "levenberg-marquardt needs a forward model with a Jacobian: the f
 
 def check_optimizer(op: ForwardOperator, options: SolveOptions) -> None:
     """Refuse, saying why, an optimizer this operator and these options cannot run (a session
-    checks once, when it opens; solve_frame refuses the same at first use)."""
+    checks once, when it opens; solve_frame refuses the same at first use), and ready what it
+    will run (Levenberg-Marquardt's compiled kernel), so that no frame's clock pays for it."""
     if options.optimizer not in OPTIMIZERS:
         raise ValueError(f"optimizer must be one of {list(OPTIMIZERS)}, got {options.optimizer!r}")
     if options.optimizer == "levenberg-marquardt":
         if options.force_bound is not None:
             raise ValueError(_BOUNDED)
         _jacobian(op, np.zeros((len(op.support), 3)))
+        prepare()  # its compiled kernel, before any frame's clock runs
 
 
 def _jacobian(op, g: Array):

@@ -24,6 +24,8 @@ L-BFGS-B stays the default (and the paper's method).
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from scipy.linalg.lapack import dgesv
 
@@ -158,3 +160,16 @@ def _rows_loop(U, x, faces, face, W, r, weight, out):
 
 
 _rows_kernel = compiled(_rows_loop)  # the loop compiled (numba), or None
+
+
+@functools.cache
+def prepare() -> None:
+    """Compile (or load from numba's disk cache) the rows kernel for both Jacobians' dtypes
+    (the network's float32, the FEM's float64), once per process: a session using
+    Levenberg-Marquardt calls this when it opens, so its first frame does not pay 0.3 s (a
+    cached compile) to seconds (a fresh one) inside its time budget."""
+    x = np.zeros((3, 3))
+    match = Match(x, np.zeros(1, np.intp), np.full((3, 1), 1.0 / 3.0), np.ones((3, 1)), np.ones(1))
+    faces = np.array([[0, 1, 2]], np.intp)
+    for dtype in (np.float32, np.float64):
+        weighted_rows(np.zeros((9, 1), dtype), match, faces)

@@ -11,7 +11,7 @@ from service.fem.material import NeoHookean
 from service.fem.model import FEMModel
 from service.fem.newton import NewtonOptions
 from service.registration.distance import PointToSurface
-from service.registration.engine import Objective, SolveOptions, solve_frame
+from service.registration.engine import Objective, SolveOptions, check_optimizer, solve_frame
 from service.synthetic import sample_surface
 
 MAT = NeoHookean(4500.0, 0.45)
@@ -176,6 +176,7 @@ def test_a_deadline_inside_a_newton_solve_stops_the_frame(entry, optimizer):
     rest, start = mesh.nodes[dist.nodes], np.zeros_like(g_true)
     late.op(start), late.op.jacobian(start)  # the rest factor and Jacobian, as a session opening makes them
     options = SolveOptions(alpha=1e-9, optimizer=optimizer)
+    check_optimizer(late, options)  # and its compiled kernels, as a session opening readies them
     cut = solve_frame(late, dist, rest, start, dataclasses.replace(options, time_budget=0.5))
     assert cut.status == "time_limit" and not cut.converged and "Newton solve" in cut.message
     assert late.op.last.status == "time_limit" and late.op.last.iterations == 0

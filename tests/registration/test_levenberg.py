@@ -218,6 +218,23 @@ def test_limits_and_failures_are_statuses(entry):
     assert s.status == "forward_failed" and s.iterations == 1 and np.any(s.g) and np.isfinite(s.g).all()
 
 
+@pytest.mark.parametrize("method", ["network", "fem"])
+def test_a_session_readies_the_compiled_rows_when_it_opens(entry, method):
+    """Opening a Levenberg-Marquardt session compiles the rows kernel for the types its
+    frames use, so a frame compiles nothing (a first frame used to pay 0.3 s to seconds inside
+    its time budget)."""
+    kernel = lev._rows_kernel()
+    if kernel is None:
+        pytest.skip("numba is not importable")
+    mesh, support, g_true, pts, dist = tip_pull(entry)
+    model = entry.network if method == "network" else entry.fem
+    session = Session(model, SessionConfig(method=method, optimizer="levenberg-marquardt", support=tuple(support)))
+    compiled = set(kernel.signatures)
+    assert {sig[0].dtype.name for sig in compiled} >= {"float32", "float64"}  # both Jacobians'
+    assert session.frame(pts).iterations > 0
+    assert set(kernel.signatures) == compiled
+
+
 def test_session_checks_the_optimizer(entry):
     with pytest.raises(ValueError, match="optimizer must be one of"):
         Session(entry.network, SessionConfig(optimizer="newton"))
