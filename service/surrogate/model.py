@@ -151,7 +151,7 @@ class NetworkOperator:
         self._last_x: Array | None = None  # the input of the last evaluation (the object)
         self._pulled: tuple[Array, Array, Array] | None = None  # its input, U^T u_bar, P x
         self._row_cache: list[tuple[Array, Array]] = []  # (rows, the readout's rows), last used first
-        self._at_rest: tuple[Array, Callable[[Array], Array]] | None = None
+        self._at_rest: tuple[tuple[Array, Callable[[Array], Array]], Array] | None = None  # (u, pullback), x
 
     def reset(self) -> None:  # stateless: nothing to forget
         pass
@@ -444,7 +444,7 @@ class CoefficientJacobian:
         self._gram = gram
         self._pulled = pulled  # (U^T u_bar, P g) of the operator's last evaluation, at this g
 
-    def with_gradient(self, coef_bar: Array, projected: Array) -> "CoefficientJacobian":
+    def with_gradient(self, coef_bar: Array, projected: Array) -> CoefficientJacobian:
         """This Jacobian, also knowing the last evaluation's pullback at its point: the
         coefficients' adjoint U^T u_bar (r,) and the stacked input product P g (h + r,)."""
         return CoefficientJacobian(self.U, self.R, self._gram, self._P, (coef_bar, projected))

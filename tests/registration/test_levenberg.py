@@ -226,7 +226,7 @@ def test_a_session_readies_the_compiled_rows_when_it_opens(entry, method):
     kernel = lev._rows_kernel()
     if kernel is None:
         pytest.skip("numba is not importable")
-    mesh, support, g_true, pts, dist = tip_pull(entry)
+    _, support, _, pts, _ = tip_pull(entry)
     model = entry.network if method == "network" else entry.fem
     session = Session(model, SessionConfig(method=method, optimizer="levenberg-marquardt", support=tuple(support)))
     compiled = set(kernel.signatures)
