@@ -112,7 +112,7 @@ def main(args: argparse.Namespace) -> int:
     unknown = set(args.parts) - set(PARTS)
     if unknown:
         raise SystemExit(f"error: unknown parts {sorted(unknown)}; choose from {list(PARTS)}")
-    liver_hint = "elastreg train benchmarks/scenes/liver_paper.toml --epochs 400 (see the README)"
+    liver_hint = "elastreg train benchmarks/scenes/liver_paper.toml (see the README)"
     t_all = time.perf_counter()
 
     if args.smoke is not None:
