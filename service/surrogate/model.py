@@ -181,6 +181,7 @@ class NetworkOperator:
             if self._at_rest is None:
                 self._at_rest = (self._evaluate(x), x)
             (u, pullback), self._last_x = self._at_rest
+            self._pulled = None  # a new evaluation: its pullback has not run
             return u, pullback
         return self._evaluate(x)
 
@@ -188,7 +189,7 @@ class NetworkOperator:
         h, tape, px = self._hidden(x)
         skip = self._skip_of(px)
         self._tape_at = (x, tape)
-        self._last_x = x
+        self._last_x, self._pulled = x, None  # a new evaluation: its pullback has not run
         W_last, b_last, _ = self._layers[-1]
         y = W_last @ h + b_last
         if skip is not None:
@@ -271,8 +272,8 @@ class NetworkOperator:
             jac = CoefficientJacobian(self._readout, R, G, self._input)
             if at_rest:
                 self._rest_jacobian = jac
-        pulled = self._pulled
-        if pulled is not None and pulled[0] is self._last_x and np.array_equal(pulled[0], x):
+        pulled = self._pulled  # only ever the last evaluation's, after its pullback
+        if pulled is not None and np.array_equal(pulled[0], x):
             # g is the last evaluation's point and its pullback ran: the gradient's image is
             # known without a product over the K inputs (a fresh object: the rest one is kept)
             jac = jac.with_gradient(pulled[1], pulled[2])

@@ -261,6 +261,9 @@ def test_gradient_image_is_the_jacobian_times_the_last_gradient(bar, hidden):
         np.testing.assert_allclose(jac.gradient_image(alpha), ref, rtol=1e-4, atol=1e-5 * np.abs(ref).max())
     op(0.25 * g1)  # a newer evaluation: the image at g1 is no longer known
     assert op.jacobian(g1).gradient_image(alpha) is None
+    op(np.zeros_like(g1))[1](u_bar, rows=rows)
+    op(np.zeros_like(g1))  # the rest state again (its cached forward), its pullback not yet run
+    assert op.jacobian(np.zeros_like(g1)).gradient_image(alpha) is None
 
 
 def test_paper_layout_offers_no_coefficient_jacobian(bar):
