@@ -158,7 +158,8 @@ def beam_part(entry, n_cases: int = 60, n_points: int = 500, seed: int = 0, conf
 
 
 def _summarise(rows: list[dict]) -> dict:
-    """Mean and spread of each figure over the cases, the median time, the converged share."""
+    """Mean and spread of each figure over the cases (rows of repeated()), the median time and
+    each pass's, the converged share."""
 
     def ms_(key):
         v = np.array([row[key] for row in rows], float)
@@ -171,7 +172,7 @@ def _summarise(rows: list[dict]) -> dict:
         "force_error_pct": ms_("force_error_pct"),
         "ms": ms_("ms"),
         "ms_median": float(np.median([row["ms"] for row in rows])) if rows else float("nan"),
-        "ms_median_passes": [float(np.median(ms)) for ms in zip(*(row.get("ms_passes", [row["ms"]]) for row in rows))],
+        "ms_median_passes": [float(np.median(ms)) for ms in zip(*(row["ms_passes"] for row in rows))],
         "iterations": ms_("iterations"),
         "evaluations": ms_("evaluations"),
         "max_displacement_m": ms_("max_displacement_m"),
