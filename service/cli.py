@@ -26,6 +26,7 @@ def _train(args: argparse.Namespace) -> int:
         layout=args.layout,
         hidden=tuple(args.hidden),
         rank=args.rank,
+        members=args.members,
         physics_skip=args.physics_skip,
         epochs=args.epochs,
         seed=args.seed,
@@ -101,6 +102,8 @@ def parser() -> argparse.ArgumentParser:
     t.add_argument("--layout", choices=["reduced", "paper"], default="reduced")
     t.add_argument("--hidden", type=int, nargs="+", default=[512, 512], help="hidden layer widths (reduced layout)")
     t.add_argument("--rank", type=int, default=128, help="POD modes (reduced layout)")
+    t.add_argument("--members", type=int, default=1,
+                   help="an ensemble of this many independently trained MLPs over one basis (reduced layout)")
     t.add_argument("--physics-skip", action="store_true", help="add the linear small-strain response as a skip path")
     t.add_argument("--epochs", type=int, default=200)
     t.add_argument("--seed", type=int, default=0)

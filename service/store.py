@@ -105,7 +105,8 @@ def network_from_manifest(spec: dict, state: dict[str, torch.Tensor]) -> torch.n
     layout = spec.get("layout")
     if layout == "reduced":
         basis = state["basis"]
-        net = ReducedSurrogate(int(spec["n_in"]), basis, [int(h) for h in spec["hidden"]])
+        net = ReducedSurrogate(int(spec["n_in"]), basis, [int(h) for h in spec["hidden"]],
+                               members=int(spec.get("members", 1)))
     elif layout == "paper":
         net = PaperSurrogate(int(spec["n_in"]), int(spec["n_out"]), depth=len(spec["hidden"]) + 1)
     else:

@@ -110,6 +110,7 @@ def build(
         "n_in": 3 * len(region),
         "n_out": 3 * mesh.n_nodes,
         "rank": int(net.basis.shape[1]) if hasattr(net, "basis") else None,
+        "members": int(getattr(net, "members", 1)),
         "physics_skip": bool(config.physics_skip) if config.layout == "reduced" else False,
     }
     entry = write_entry(

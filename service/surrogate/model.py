@@ -24,7 +24,7 @@ from scipy.linalg.blas import strmm
 from ..fem.material import NeoHookean
 from ..mesh import TetMesh
 from ..registration.forward import check_support
-from .network import PaperSurrogate, ReducedSurrogate
+from .network import Ensemble, PaperSurrogate, ReducedSurrogate
 
 Array = np.ndarray
 
@@ -82,9 +82,9 @@ class NetworkModel:
         return u.reshape(len(forces), -1, 3).astype(np.float64)
 
 
-def _layers(net: torch.nn.Module) -> list[tuple[Array, Array, Array | None]]:
-    """(W, b, PReLU slopes or None) per layer of the MLP, as float32 arrays."""
-    mods = list(net.net)
+def _mlp_layers(mlp: torch.nn.Sequential) -> list[tuple[Array, Array, Array | None]]:
+    """(W, b, PReLU slopes or None) per layer of one MLP, as float32 arrays."""
+    mods = list(mlp)
     out = []
     for i, m in enumerate(mods):
         if isinstance(m, torch.nn.Linear):
@@ -95,6 +95,80 @@ def _layers(net: torch.nn.Module) -> list[tuple[Array, Array, Array | None]]:
                 a = np.broadcast_to(a, (m.out_features,)).copy()
             out.append((m.weight.detach().numpy().astype(np.float32), m.bias.detach().numpy().astype(np.float32), a))
     return out
+
+
+def _layers(net: torch.nn.Module) -> list:
+    """(W, b, PReLU slopes or None) per layer of the network's MLP. An ensemble's members
+    become one MLP whose hidden units are all the members' side by side: the first layer
+    stacked, the layers between block-diagonal (kept as blocks), the last side by side and
+    divided by their number (their mean)."""
+    if not isinstance(net.net, Ensemble):
+        return _mlp_layers(net.net)
+    each = [_mlp_layers(m) for m in net.net.members]
+    k = len(each)
+    out = []
+    for i, parts in enumerate(zip(*each)):
+        Ws, bs, slopes = zip(*parts)
+        if i == 0:
+            W = np.vstack(Ws)
+        elif i < len(each[0]) - 1:
+            W = BlockDiagonal(np.stack(Ws))
+        else:
+            W = np.hstack(Ws) / np.float32(k)
+        last = i == len(each[0]) - 1
+        b = (np.sum(bs, axis=0) / np.float32(k)).astype(np.float32) if last else np.concatenate(bs)
+        a = None if slopes[0] is None else np.concatenate(slopes)
+        out.append((W, b, a))
+    return out
+
+
+class BlockDiagonal:
+    """A block-diagonal matrix kept as its blocks (q, m, n): an ensemble's layers between the
+    first and the last. Products cost the blocks' q m n, not the dense (q m)(q n) (3 members
+    of 512: 0.12 ms against 0.37 ms a product). NumPy defers ``A @ self`` to it."""
+
+    __array_ufunc__ = None  # ndarray @ BlockDiagonal -> BlockDiagonal.__rmatmul__
+
+    def __init__(self, blocks: Array, transposed: "BlockDiagonal | None" = None) -> None:
+        self.blocks = np.ascontiguousarray(blocks)
+        q, m, n = blocks.shape
+        self.shape = (q * m, q * n)
+        self.dtype = blocks.dtype
+        self._T = transposed
+
+    @property
+    def T(self) -> "BlockDiagonal":
+        """Made once, contiguous (the pullback's products read it every evaluation)."""
+        if self._T is None:
+            self._T = BlockDiagonal(self.blocks.transpose(0, 2, 1), transposed=self)
+        return self._T
+
+    def astype(self, dtype, copy: bool = True) -> "BlockDiagonal":
+        if not copy and self.dtype == dtype:
+            return self
+        return BlockDiagonal(self.blocks.astype(dtype))
+
+    def __matmul__(self, x: Array) -> Array:
+        """self @ x for x (q n,) or (q n, c)."""
+        q, _, n = self.blocks.shape
+        y = np.matmul(self.blocks, x.reshape(q, n, -1))  # (q, m, c)
+        return y.reshape(-1) if x.ndim == 1 else y.reshape(-1, x.shape[1])
+
+    def __rmatmul__(self, A: Array) -> Array:
+        """A @ self for A (c, q m)."""
+        q, m, n = self.blocks.shape
+        y = np.matmul(A.reshape(-1, q, m).transpose(1, 0, 2), self.blocks)  # (q, c, n)
+        return np.ascontiguousarray(y.transpose(1, 0, 2)).reshape(A.shape[0], q * n)
+
+    def __getitem__(self, rows: Array) -> Array:
+        """Dense rows (len(rows), q n): zeros outside each row's block."""
+        q, m, n = self.blocks.shape
+        rows = np.asarray(rows)
+        out = np.zeros((rows.size, q * n), self.dtype)
+        blk, r = np.divmod(rows, m)
+        cols = blk[:, None] * n + np.arange(n)
+        out[np.arange(rows.size)[:, None], cols] = self.blocks[blk, r]
+        return out
 
 
 class NetworkOperator:

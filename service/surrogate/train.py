@@ -25,6 +25,7 @@ class TrainConfig:
     layout: str = "reduced"  # "reduced" or "paper"
     hidden: tuple[int, ...] = (512, 512)
     rank: int = 128  # POD modes (reduced layout)
+    members: int = 1  # independently trained MLPs over one basis, averaged (reduced layout)
     physics_skip: bool = False  # linear small-strain skip path: measured no better on held-out
     # paths and 2x worse on the paper's frames (see the README's surrogate section)
     epochs: int = 200
@@ -90,6 +91,8 @@ def build_model(config: TrainConfig, asm: Assembler, region: Array, F: Array, U:
     n_in = 3 * len(region)
     force_scale = float(np.sqrt((F.reshape(len(F), -1) ** 2).sum(1).mean() / n_in)) or 1.0
     if config.layout == "paper":
+        if config.members != 1:
+            raise ValueError("ensembles (members > 1) need the reduced layout")
         u_scale = float(np.sqrt((U.reshape(len(U), -1) ** 2).mean())) or 1.0
         return PaperSurrogate(n_in, U.shape[1] * U.shape[2], depth=max(2, len(config.hidden) + 1),
                               force_scale=force_scale, u_scale=u_scale)
@@ -101,7 +104,8 @@ def build_model(config: TrainConfig, asm: Assembler, region: Array, F: Array, U:
     skip = None
     if config.physics_skip:
         skip = torch.from_numpy(basis.T @ linear_response(asm, region))  # (r, 3R)
-    return ReducedSurrogate(n_in, torch.from_numpy(basis), list(config.hidden), skip, force_scale, coef_scale)
+    return ReducedSurrogate(n_in, torch.from_numpy(basis), list(config.hidden), skip, force_scale, coef_scale,
+                            members=config.members)
 
 
 def targets(model: torch.nn.Module, U: Array) -> Array:
@@ -142,7 +146,9 @@ def train(
     reduced = isinstance(model, ReducedSurrogate)
 
     def predict(x):
-        return model.coefficients(x) if reduced else model(x)
+        """(members, B, out): each member fits the targets on its own (an ensemble trained on
+        the loss of its mean would be one wide network, without the members' independence)."""
+        return model.member_coefficients(x) if reduced else model(x)[None]
 
     opt = torch.optim.Adam(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=config.epochs, eta_min=config.lr * 1e-2)
@@ -156,7 +162,7 @@ def train(
         total = 0.0
         for i in range(0, len(order), config.batch):
             idx = order[i : i + config.batch]
-            loss = ((predict(Xtr[idx]) - Ytr[idx]) ** 2).sum(1).mean() / y_norm
+            loss = ((predict(Xtr[idx]) - Ytr[idx]) ** 2).sum(-1).mean() / y_norm
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()

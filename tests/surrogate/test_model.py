@@ -7,8 +7,8 @@ import torch
 from service.fem.assembly import Assembler
 from service.fem.material import NeoHookean
 from service.surrogate.basis import linear_response, pod_basis
-from service.surrogate.model import NetworkModel
-from service.surrogate.network import PaperSurrogate, ReducedSurrogate
+from service.surrogate.model import BlockDiagonal, NetworkModel
+from service.surrogate.network import Ensemble, PaperSurrogate, ReducedSurrogate
 
 MAT = NeoHookean(4500.0, 0.45)
 
@@ -22,15 +22,15 @@ def randomised(net: torch.nn.Module, seed: int = 0) -> torch.nn.Module:
     return net.eval()
 
 
-@pytest.fixture(scope="module", params=["reduced", "paper"])
+@pytest.fixture(scope="module", params=["reduced", "ensemble", "paper"])
 def model(request, bar):
     region = bar.free_surface_nodes[bar.nodes[bar.free_surface_nodes, 0] > 1.0]
     n_in = 3 * region.size
-    if request.param == "reduced":
+    if request.param in ("reduced", "ensemble"):
         rng = np.random.default_rng(0)
         basis, _ = pod_basis(rng.normal(size=(40, 3 * bar.n_nodes)), 12)
         net = ReducedSurrogate(n_in, torch.from_numpy(basis), [32, 16], torch.randn(12, n_in), 2.0,
-                               torch.full((12,), 0.5))
+                               torch.full((12,), 0.5), members=3 if request.param == "ensemble" else 1)
     else:
         net = PaperSurrogate(n_in, 3 * bar.n_nodes, depth=3, force_scale=2.0, u_scale=0.1)
     return NetworkModel(bar, MAT, region, randomised(net), E0=MAT.E)
@@ -176,21 +176,23 @@ def _torch_coefficient_jacobian(model, support, g):
     return torch.autograd.functional.jacobian(coef, torch.tensor(g.ravel(), dtype=torch.float32)).numpy().astype(np.float64)
 
 
-def _random_reduced(bar, hidden, rng, seed):
+def _random_reduced(bar, hidden, rng, seed, members=1):
     """A randomised reduced surrogate (12 modes) on the bar's far-end free surface."""
     region = bar.free_surface_nodes[bar.nodes[bar.free_surface_nodes, 0] > 1.0]
     basis, _ = pod_basis(rng.normal(size=(40, 3 * bar.n_nodes)), 12)
     n_in = 3 * region.size
-    net = ReducedSurrogate(n_in, torch.from_numpy(basis), hidden, torch.randn(12, n_in), 2.0, torch.full((12,), 0.5))
+    net = ReducedSurrogate(n_in, torch.from_numpy(basis), hidden, torch.randn(12, n_in), 2.0, torch.full((12,), 0.5),
+                           members=members)
     return NetworkModel(bar, MAT, region, randomised(net, seed=seed), E0=MAT.E)
 
 
-@pytest.mark.parametrize("hidden", [[32, 16], [24]])
-def test_coefficient_jacobian_is_torch_jacobian(bar, hidden):
+@pytest.mark.parametrize("hidden,members", [([32, 16], 1), ([24], 1), ([32, 16], 3), ([24], 2)])
+def test_coefficient_jacobian_is_torch_jacobian(bar, hidden, members):
     """C = dc/dg at loaded states (slopes flipped from rest) in product form: C C^T, C v and
-    C^T w against torch's Jacobian, U C against torch's du/dg, for one and two hidden layers."""
+    C^T w against torch's Jacobian, U C against torch's du/dg, for one and two hidden layers,
+    one network or an ensemble."""
     rng = np.random.default_rng(0)
-    model = _random_reduced(bar, hidden, rng, seed=3)
+    model = _random_reduced(bar, hidden, rng, seed=3, members=members)
     support, nodes, g1 = case(model)
     op = model.restrict(support, nodes)
     rest_slope = op._hidden(np.zeros(g1.size, np.float32))[1][0][1]
@@ -209,15 +211,15 @@ def test_coefficient_jacobian_is_torch_jacobian(bar, hidden):
     np.testing.assert_allclose(op.jacobian(g1).U.astype(np.float64) @ C, ref.numpy(), rtol=1e-3, atol=1e-4 * float(ref.abs().max()))
 
 
-@pytest.mark.parametrize("hidden", [[48, 40], [40], [24, 20, 16]])
-def test_coefficient_jacobian_along_a_path_is_the_fresh_one(bar, hidden):
+@pytest.mark.parametrize("hidden,members", [([48, 40], 1), ([40], 1), ([24, 20, 16], 1), ([48, 40], 3), ([24, 20, 16], 2)])
+def test_coefficient_jacobian_along_a_path_is_the_fresh_one(bar, hidden, members):
     """Levenberg-Marquardt asks one operator for the Jacobian at point after point: its R and
     C C^T are kept and corrected by the PReLU units that flipped since the last call, refreshed
     in full every so often. Along a path of small steps each must equal a fresh operator's
     full computation, the corrections must actually run (up to two hidden layers), and three
-    hidden layers take the full computation."""
+    hidden layers take the full computation; an ensemble's block-diagonal layers too."""
     rng = np.random.default_rng(1)
-    model = _random_reduced(bar, hidden, rng, seed=5)
+    model = _random_reduced(bar, hidden, rng, seed=5, members=members)
     support, nodes, g1 = case(model)
     op = model.restrict(support, nodes)
     corrected = 0
@@ -238,14 +240,14 @@ def test_coefficient_jacobian_along_a_path_is_the_fresh_one(bar, hidden):
         assert op._anchored._anchor is None
 
 
-@pytest.mark.parametrize("hidden", [[32, 16], [24]])
-def test_gradient_image_is_the_jacobian_times_the_last_gradient(bar, hidden):
+@pytest.mark.parametrize("hidden,members", [([32, 16], 1), ([24], 1), ([32, 16], 3)])
+def test_gradient_image_is_the_jacobian_times_the_last_gradient(bar, hidden, members):
     """Levenberg-Marquardt's right-hand side C grad, from the Gram and the last evaluation's
     pullback (no product over the K inputs), equals C (pullback + alpha g) at rest and loaded,
     with a sparse cotangent read out through its rows; it is unknown (None) for a point that
     was not the last evaluated, and for one whose pullback has not run."""
     rng = np.random.default_rng(2)
-    model = _random_reduced(bar, hidden, rng, seed=4)
+    model = _random_reduced(bar, hidden, rng, seed=4, members=members)
     support, nodes, g1 = case(model)
     op = model.restrict(support, nodes)
     alpha = 0.3
@@ -272,3 +274,41 @@ def test_paper_layout_offers_no_coefficient_jacobian(bar):
     model = NetworkModel(bar, MAT, region, randomised(net), E0=MAT.E)
     support, nodes, g = case(model)
     assert model.restrict(support, nodes).jacobian(g) is None
+
+
+def test_block_diagonal_is_its_dense_matrix():
+    """Products from either side, the transpose, rows and a float64 copy all equal those of
+    the dense block-diagonal matrix (3 blocks of 5 x 4)."""
+    rng = np.random.default_rng(6)
+    blocks = rng.normal(size=(3, 5, 4)).astype(np.float32)
+    D = np.zeros((15, 12), np.float32)
+    for i, b in enumerate(blocks):
+        D[5 * i : 5 * i + 5, 4 * i : 4 * i + 4] = b
+    B = BlockDiagonal(blocks)
+    x, X, A = rng.normal(size=12), rng.normal(size=(12, 2)), rng.normal(size=(7, 15))
+    np.testing.assert_allclose(B @ x.astype(np.float32), D @ x, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(B @ X.astype(np.float32), D @ X, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(A.astype(np.float32) @ B, A @ D, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(B.T @ A[0].astype(np.float32), D.T @ A[0], rtol=1e-5, atol=1e-5)
+    rows = np.array([0, 7, 14, 6])
+    np.testing.assert_array_equal(B[rows], D[rows])
+    assert B.shape == D.shape and B.astype(np.float64).dtype == np.float64
+    assert B.astype(np.float32, copy=False) is B
+
+
+def test_an_ensemble_answers_the_mean_of_its_members(bar):
+    """The network is its members' mean, and fresh members start apart (each its own
+    initialisation: their hidden layers; the last layers start at zero)."""
+    fresh = ReducedSurrogate(6, torch.eye(6, 2, dtype=torch.float64), [4], members=2).net.members
+    assert (fresh[0][0].weight - fresh[1][0].weight).abs().max() > 1e-3
+    rng = np.random.default_rng(3)
+    model = _random_reduced(bar, [16, 8], rng, seed=2, members=3)
+    net = model.net
+    assert isinstance(net.net, Ensemble) and net.members == 3
+    x = torch.randn(4, net.skip.in_features)
+    each = net.member_coefficients(x)
+    assert each.shape == (3, 4, 12)
+    assert (each[0] - each[1]).abs().max() > 1e-3
+    torch.testing.assert_close(net.coefficients(x), each.mean(0))
+    with pytest.raises(ValueError, match="at least 1"):
+        ReducedSurrogate(6, torch.eye(6, 2, dtype=torch.float64), [4], members=0)
