@@ -129,7 +129,7 @@ class BlockDiagonal:
 
     __array_ufunc__ = None  # ndarray @ BlockDiagonal -> BlockDiagonal.__rmatmul__
 
-    def __init__(self, blocks: Array, transposed: "BlockDiagonal | None" = None) -> None:
+    def __init__(self, blocks: Array, transposed: BlockDiagonal | None = None) -> None:
         self.blocks = np.ascontiguousarray(blocks)
         q, m, n = blocks.shape
         self.shape = (q * m, q * n)
@@ -137,13 +137,13 @@ class BlockDiagonal:
         self._T = transposed
 
     @property
-    def T(self) -> "BlockDiagonal":
+    def T(self) -> BlockDiagonal:
         """Made once, contiguous (the pullback's products read it every evaluation)."""
         if self._T is None:
             self._T = BlockDiagonal(self.blocks.transpose(0, 2, 1), transposed=self)
         return self._T
 
-    def astype(self, dtype, copy: bool = True) -> "BlockDiagonal":
+    def astype(self, dtype, copy: bool = True) -> BlockDiagonal:
         if not copy and self.dtype == dtype:
             return self
         return BlockDiagonal(self.blocks.astype(dtype))
