@@ -11,6 +11,17 @@ import sys
 from pathlib import Path
 
 
+def _at_least_one(text: str) -> int:
+    """An argparse type: refused at parse time, not after an hour of data generation."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a whole number >= 1, got {text!r}")
+    return value
+
+
 def _train(args: argparse.Namespace) -> int:
     from .scene import SceneError, resolve_scene
     from .store import default_store
@@ -102,8 +113,9 @@ def parser() -> argparse.ArgumentParser:
     t.add_argument("--layout", choices=["reduced", "paper"], default="reduced")
     t.add_argument("--hidden", type=int, nargs="+", default=[512, 512], help="hidden layer widths (reduced layout)")
     t.add_argument("--rank", type=int, default=128, help="POD modes (reduced layout)")
-    t.add_argument("--members", type=int, default=1,
-                   help="an ensemble of this many independently trained MLPs over one basis (reduced layout)")
+    t.add_argument("--members", type=_at_least_one, default=None,
+                   help="an ensemble of this many independently trained MLPs over one basis, averaged "
+                        "(reduced layout; default: the scene's [training] members, else 1)")
     t.add_argument("--physics-skip", action="store_true", help="add the linear small-strain response as a skip path")
     t.add_argument("--epochs", type=int, default=200)
     t.add_argument("--seed", type=int, default=0)

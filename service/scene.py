@@ -16,7 +16,9 @@ Keys beyond SCENES.md (all optional):
   ``multi_patch`` (0.2: fraction of samples loaded on two patches), ``normal_fraction`` (0.5: how
   much of a load is along the surface normal rather than tangential, on average),
   ``pull_fraction`` (2/3: how often the normal part pulls outwards, as a grasper does),
-  ``twist_fraction`` (0: how often a patch carries a torque instead of a single direction).
+  ``twist_fraction`` (0: how often a patch carries a torque instead of a single direction),
+  ``members`` (1: the surrogate's ensemble size, see :mod:`service.surrogate.network`;
+  ``elastreg train --members`` overrides it).
 - ``[registration]``: read by the benchmark and the trainer, permissive (other keys are kept in
   ``model_extra``): ``support`` or ``support_file`` (node ids where registration may put
   forces), ``matching_file`` (a .npy (f, 3) array of the boundary triangles point clouds lie on).
@@ -176,6 +178,7 @@ class TrainingSpec(_Table):
     normal_fraction: Fraction = 0.5
     pull_fraction: Fraction = 2.0 / 3.0
     twist_fraction: Fraction = 0.0
+    members: Count = 1
 
     @field_validator("patch_nodes")
     @classmethod

@@ -84,7 +84,7 @@ def test_good_scene_loads_with_relative_paths_and_defaults(folder):
     assert scene.mesh.path == (folder / "meshes" / "block.vtu").resolve()
     assert scene.origin.endswith("scene.toml")
     t = scene.training
-    assert (t.seed, t.load_steps, t.multi_patch, t.normal_fraction) == (0, 5, 0.2, 0.5)
+    assert (t.seed, t.load_steps, t.multi_patch, t.normal_fraction, t.members) == (0, 5, 0.2, 0.5, 1)
     assert scene.training.patch_nodes == (2, 6)
     mesh, loaded = scene.build_mesh()
     assert mesh.n_nodes == 45 and not loaded.tetrahedralised
@@ -228,6 +228,7 @@ def test_training_options(folder):
     assert "[training] multi_patch: must be <= 1.0, got 1.5" in msg
     msg = error_of(folder, training="region_sphere = {centre = [0, 0, 0], radius = 0}")
     assert "[training] region_sphere.radius: must be > 0.0, got 0" in msg
+    assert "[training] members: must be >= 1, got 0" in error_of(folder, training="members = 0")
     with pytest.raises(SceneError, match="builtins: beam, phantom"):
         resolve_scene("kidney")
 

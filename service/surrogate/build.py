@@ -92,6 +92,8 @@ def build(
         pass
     data_seconds = time.perf_counter() - t0
     F, U, P = load_dataset(data_dir, list(range(n_paths)))
+    if config.members is None:
+        config = dataclasses.replace(config, members=scene.training.members)
     result = train(F, U, P, Assembler(mesh, material), region, config, progress=progress)
     net = result.model
     training = {

@@ -25,7 +25,8 @@ class TrainConfig:
     layout: str = "reduced"  # "reduced" or "paper"
     hidden: tuple[int, ...] = (512, 512)
     rank: int = 128  # POD modes (reduced layout)
-    members: int = 1  # independently trained MLPs over one basis, averaged (reduced layout)
+    members: int | None = None  # independently trained MLPs over one basis, averaged (reduced
+    # layout); None: the scene's [training] members when built from a scene, else 1
     physics_skip: bool = False  # linear small-strain skip path: measured no better on held-out
     # paths and 2x worse on the paper's frames (see the README's surrogate section)
     epochs: int = 200
@@ -91,7 +92,7 @@ def build_model(config: TrainConfig, asm: Assembler, region: Array, F: Array, U:
     n_in = 3 * len(region)
     force_scale = float(np.sqrt((F.reshape(len(F), -1) ** 2).sum(1).mean() / n_in)) or 1.0
     if config.layout == "paper":
-        if config.members != 1:
+        if (config.members or 1) != 1:
             raise ValueError("ensembles (members > 1) need the reduced layout")
         u_scale = float(np.sqrt((U.reshape(len(U), -1) ** 2).mean())) or 1.0
         return PaperSurrogate(n_in, U.shape[1] * U.shape[2], depth=max(2, len(config.hidden) + 1),
@@ -105,7 +106,7 @@ def build_model(config: TrainConfig, asm: Assembler, region: Array, F: Array, U:
     if config.physics_skip:
         skip = torch.from_numpy(basis.T @ linear_response(asm, region))  # (r, 3R)
     return ReducedSurrogate(n_in, torch.from_numpy(basis), list(config.hidden), skip, force_scale, coef_scale,
-                            members=config.members)
+                            members=config.members or 1)
 
 
 def targets(model: torch.nn.Module, U: Array) -> Array:

@@ -89,8 +89,8 @@ def _edit_manifest(path, **changes):
 
 
 def test_an_ensemble_trains_and_round_trips_through_the_store(bar_store, tmp_path):
-    """`--members 2`: the manifest records it, the store rebuilds the ensemble, its members
-    learnt apart, and the NumPy operator (block-diagonal layers) is the torch ensemble."""
+    """A scene's `members = 2`: the manifest records it, the store rebuilds the ensemble, its
+    members learnt apart, and the NumPy operator (block-diagonal layers) is the torch ensemble."""
     import torch
 
     from service.scene import load_scene
@@ -100,9 +100,10 @@ def test_an_ensemble_trains_and_round_trips_through_the_store(bar_store, tmp_pat
 
     root = bar_store[0].parent
     scene = load_scene(next((root / "scene").glob("*.toml")))
-    config = TrainConfig(hidden=(32, 32), rank=24, epochs=30, batch=32, lr=3e-3, physics_skip=True, members=2)
+    scene = scene.model_copy(update={"training": scene.training.model_copy(update={"members": 2})})
+    config = TrainConfig(hidden=(32, 32), rank=24, epochs=30, batch=32, lr=3e-3, physics_skip=True)
     report = build(scene, tmp_path / "store", workers=0, data_root=root / "data", config=config,
-                   command="elastreg train bar.toml --members 2", progress=False)
+                   command="elastreg train bar.toml", progress=False)
     entry = load_entry(tmp_path / "store" / "bar")
     assert entry.manifest["network"]["members"] == 2
     assert entry.manifest["training"]["config"]["members"] == 2
@@ -118,3 +119,12 @@ def test_an_ensemble_trains_and_round_trips_through_the_store(bar_store, tmp_pat
     u_torch = entry.network.predict(g, support)
     u_op = np.stack([entry.network.restrict(support).displacement(gi) for gi in g])
     np.testing.assert_allclose(u_op, u_torch, rtol=1e-4, atol=1e-5 * np.abs(u_torch).max())
+
+
+def test_a_bad_ensemble_size_is_refused_before_any_work(capsys):
+    from service.cli import main
+
+    with pytest.raises(SystemExit) as exit_:
+        main(["train", "beam", "--members", "0"])
+    assert exit_.value.code == 2
+    assert "--members: must be a whole number >= 1, got '0'" in capsys.readouterr().err
