@@ -28,6 +28,9 @@ def _train(args: argparse.Namespace) -> int:
     from .surrogate.build import build
     from .surrogate.train import TrainConfig
 
+    if args.layout != "reduced" and (args.members or 1) > 1:
+        print("error: --members needs the reduced layout (an ensemble shares one POD basis)", file=sys.stderr)
+        return 2
     try:
         scene = resolve_scene(args.scene)
     except SceneError as exc:

@@ -92,8 +92,8 @@ def build(
         pass
     data_seconds = time.perf_counter() - t0
     F, U, P = load_dataset(data_dir, list(range(n_paths)))
-    if config.members is None:
-        config = dataclasses.replace(config, members=scene.training.members)
+    if config.members is None:  # the scene's ensemble is the reduced layout's; the paper's has none
+        config = dataclasses.replace(config, members=scene.training.members if config.layout == "reduced" else 1)
     result = train(F, U, P, Assembler(mesh, material), region, config, progress=progress)
     net = result.model
     training = {

@@ -128,3 +128,21 @@ def test_a_bad_ensemble_size_is_refused_before_any_work(capsys):
         main(["train", "beam", "--members", "0"])
     assert exit_.value.code == 2
     assert "--members: must be a whole number >= 1, got '0'" in capsys.readouterr().err
+    assert main(["train", "beam", "--layout", "paper", "--members", "2"]) == 2
+    assert "--members needs the reduced layout" in capsys.readouterr().err
+
+
+def test_the_papers_layout_leaves_a_scenes_ensemble_out(bar_store, tmp_path):
+    """The scene's members belong to the reduced layout (one POD basis); a paper-layout build
+    of that scene trains its one network instead of failing after the data."""
+    from service.scene import load_scene
+    from service.surrogate.build import build
+    from service.surrogate.train import TrainConfig
+
+    root = bar_store[0].parent
+    scene = load_scene(next((root / "scene").glob("*.toml")))
+    scene = scene.model_copy(update={"training": scene.training.model_copy(update={"members": 2})})
+    build(scene, tmp_path / "store", workers=0, data_root=root / "data",
+          config=TrainConfig(layout="paper", hidden=(16,), epochs=2, batch=32), progress=False)
+    entry = load_entry(tmp_path / "store" / "bar")
+    assert entry.manifest["network"]["layout"] == "paper" and entry.manifest["network"]["members"] == 1
