@@ -105,18 +105,15 @@ def _layers(net: torch.nn.Module) -> list:
     if not isinstance(net.net, Ensemble):
         return _mlp_layers(net.net)
     each = [_mlp_layers(m) for m in net.net.members]
-    k = len(each)
+    k, depth = len(each), len(each[0])
     out = []
     for i, parts in enumerate(zip(*each)):
         Ws, bs, slopes = zip(*parts)
-        if i == 0:
-            W = np.vstack(Ws)
-        elif i < len(each[0]) - 1:
-            W = BlockDiagonal(np.stack(Ws))
+        if i == depth - 1:  # the last: the members' mean
+            W, b = np.hstack(Ws) / np.float32(k), np.sum(bs, axis=0) / np.float32(k)
         else:
-            W = np.hstack(Ws) / np.float32(k)
-        last = i == len(each[0]) - 1
-        b = (np.sum(bs, axis=0) / np.float32(k)).astype(np.float32) if last else np.concatenate(bs)
+            W = np.vstack(Ws) if i == 0 else BlockDiagonal(np.stack(Ws))
+            b = np.concatenate(bs)
         a = None if slopes[0] is None else np.concatenate(slopes)
         out.append((W, b, a))
     return out

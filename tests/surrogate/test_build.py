@@ -88,19 +88,25 @@ def _edit_manifest(path, **changes):
     (path / "manifest.json").write_text(json.dumps(m))
 
 
+def _bar_scene_with_members(bar_store, members: int):
+    """The bar fixture's scene asking for an ensemble, and the folder its data sits under."""
+    from service.scene import load_scene
+
+    root = bar_store[0].parent
+    scene = load_scene(next((root / "scene").glob("*.toml")))
+    return root, scene.model_copy(update={"training": scene.training.model_copy(update={"members": members})})
+
+
 def test_an_ensemble_trains_and_round_trips_through_the_store(bar_store, tmp_path):
     """A scene's `members = 2`: the manifest records it, the store rebuilds the ensemble, its
     members learnt apart, and the NumPy operator (block-diagonal layers) is the torch ensemble."""
     import torch
 
-    from service.scene import load_scene
     from service.surrogate.build import build
     from service.surrogate.network import Ensemble
     from service.surrogate.train import TrainConfig
 
-    root = bar_store[0].parent
-    scene = load_scene(next((root / "scene").glob("*.toml")))
-    scene = scene.model_copy(update={"training": scene.training.model_copy(update={"members": 2})})
+    root, scene = _bar_scene_with_members(bar_store, 2)
     config = TrainConfig(hidden=(32, 32), rank=24, epochs=30, batch=32, lr=3e-3, physics_skip=True)
     report = build(scene, tmp_path / "store", workers=0, data_root=root / "data", config=config,
                    command="elastreg train bar.toml", progress=False)
@@ -135,13 +141,10 @@ def test_a_bad_ensemble_size_is_refused_before_any_work(capsys):
 def test_the_papers_layout_leaves_a_scenes_ensemble_out(bar_store, tmp_path):
     """The scene's members belong to the reduced layout (one POD basis); a paper-layout build
     of that scene trains its one network instead of failing after the data."""
-    from service.scene import load_scene
     from service.surrogate.build import build
     from service.surrogate.train import TrainConfig
 
-    root = bar_store[0].parent
-    scene = load_scene(next((root / "scene").glob("*.toml")))
-    scene = scene.model_copy(update={"training": scene.training.model_copy(update={"members": 2})})
+    root, scene = _bar_scene_with_members(bar_store, 2)
     build(scene, tmp_path / "store", workers=0, data_root=root / "data",
           config=TrainConfig(layout="paper", hidden=(16,), epochs=2, batch=32), progress=False)
     entry = load_entry(tmp_path / "store" / "bar")
