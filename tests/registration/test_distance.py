@@ -692,7 +692,7 @@ def test_bind_accepts_a_read_only_cloud():
 @pytest.mark.skipif(not numba_available(), reason="no numba")
 def test_hinted_builds_give_the_same_lists():
     """A build seeded with each point's last closest face (or a wrong one) lists exactly the
-    triangles an unseeded build lists, in the same order."""
+    triangles an unseeded build lists, in the same order, short lists and long ones."""
     rng = np.random.default_rng(21)
     x, faces = blob(subdivisions=2)
     S = PointToSurface(faces, backend="numba")
@@ -703,12 +703,14 @@ def test_hinted_builds_give_the_same_lists():
     moved = x + 0.02 * rng.normal(size=x.shape)
     K.refit(moved, S.faces, h.order, h.span, h.box, h.tri)
     m = len(S.points)
-    for reach in (0.0, 0.1):
+    for reach in (0.0, 0.1, 1.0):
         lists = []
         for hint in (np.empty(0, np.intp), S._hint, rng.integers(len(faces), size=m).astype(np.intp)):
-            face, start = np.empty(64 * m, np.intp), np.empty(m + 1, np.intp)
-            n = K.candidates(moved, S.faces, h.order, h.span, h.box, h.tri, S.points, reach, hint, face, start)
+            face, start = np.empty(len(faces) * m, np.intp), np.empty(m + 1, np.intp)
+            n = K.candidates(moved, S.faces, h.order, h.span, h.box, h.tri, S.points, reach, hint, h.leaf, face, start)
+            assert n > 0
             lists.append((face[:n].copy(), start.copy()))
+        assert reach < 1.0 or np.diff(lists[0][1]).max() > 32  # long lists' order is tested too
         for face, start in lists[1:]:
             np.testing.assert_array_equal(face, lists[0][0])
             np.testing.assert_array_equal(start, lists[0][1])

@@ -47,9 +47,12 @@ def test_cold_start_with_gauss_newton_registers_as_well(entry, method):
     tip = entry.region[np.argsort(mesh.nodes[entry.region, 0])[-6:]]
     seq = make_sequence(mesh, entry.fem.material, tip, n_frames=6, peak_force=30.0, n_points=300, seed=4)
     model = entry.network if method == "network" else entry.fem
+    # the float32 network's objective is precise to about 1e-7 of its value: a tolerance of
+    # 1e-5 lies at that limit, where a stall (no relative decrease left) is luck's choice
+    gtol = 1e-4 if method == "network" else 1e-5
     out = {}
     for pc in (False, True):
-        s = Session(model, SessionConfig(method=method, warm_start=False, precondition=pc, gtol=1e-5, outputs=("displacement",)))
+        s = Session(model, SessionConfig(method=method, warm_start=False, precondition=pc, gtol=gtol, outputs=("displacement",)))
         assert s.config.precondition is pc
         out[pc] = [s.frame(c) for c in seq.clouds[1::2]]
     for plain, gn, truth in zip(out[False], out[True], seq.positions[1::2]):
