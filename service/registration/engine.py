@@ -280,7 +280,8 @@ def solve_frame(
             raise _Done()
         begin = _Start(start, v0, grad0, u0)
         if options.optimizer == "levenberg-marquardt":
-            check_optimizer(op, options)  # bounds, a Jacobian: what a session checked when it opened
+            if bounded:  # what a session checked when it opened; the Jacobian, at its first use
+                raise ValueError(_BOUNDED)
             status, message, nit = _levenberg_marquardt(op, distance, evaluate, begin, g_tol, options, max_eval, deadline)
         else:
             status, message, nit = _lbfgsb(op, distance, evaluate, begin, v_rest, g_tol, options, curvature, max_eval, deadline)

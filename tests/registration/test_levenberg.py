@@ -253,6 +253,9 @@ def test_session_checks_the_optimizer(entry):
     op = NoJacobian(entry.network.restrict(support, dist.nodes))  # called directly, the engine refuses
     with pytest.raises(ValueError, match="needs a forward model with a Jacobian"):
         solve_frame(op, dist, mesh.nodes[dist.nodes], np.zeros((support.size, 3)), SolveOptions(optimizer="levenberg-marquardt"))
+    with pytest.raises(ValueError, match="no force bounds"):  # nor bounds, called directly
+        solve_frame(op.op, dist, mesh.nodes[dist.nodes], np.zeros((support.size, 3)),
+                    SolveOptions(optimizer="levenberg-marquardt", force_bound=1.0))  # fmt: skip
 
 
 def test_fem_refuses_a_support_too_large_for_its_jacobian(entry, monkeypatch):
