@@ -218,7 +218,8 @@ class NetworkOperator:
         self._factors: _GramFactors | None = None  # for jacobian(), made at its first call
         self._rest_jacobian: CoefficientJacobian | None = None  # jacobian(0), kept
         self._anchored: _AnchoredGram | None = None  # jacobian()'s R and C C^T, kept and corrected
-        self._tape_at: tuple[Array, list] | None = None  # the last evaluation's input and tape
+        self._tape_at: tuple[Array, list, Array, Array] | None = None  # the last evaluation's
+        # input, tape, last hidden layer and P x
         self._last_x: Array | None = None  # the input of the last evaluation (the object)
         self._pulled: tuple[Array, Array, Array] | None = None  # its input, U^T u_bar, P x
         self._row_cache: list[tuple[Array, Array]] = []  # (rows, the readout's rows), last used first
@@ -259,7 +260,7 @@ class NetworkOperator:
     def _evaluate(self, x: Array) -> tuple[Array, Callable[[Array], Array]]:
         h, tape, px = self._hidden(x)
         skip = self._skip_of(px)
-        self._tape_at = (x, tape)
+        self._tape_at = (x, tape, h, px)
         self._last_x, self._pulled = x, None  # a new evaluation: its pullback has not run
         W_last, b_last, _ = self._layers[-1]
         y = W_last @ h + b_last
@@ -353,7 +354,10 @@ class NetworkOperator:
     def displacement(self, g: Array) -> Array:
         """Every node's displacement (the readout over the whole mesh). Shape: (n, 3)."""
         x = np.asarray(g, np.float32).reshape(-1)
-        h, _, px = self._hidden(x)
+        if self._tape_at is not None and np.array_equal(self._tape_at[0], x):
+            _, _, h, px = self._tape_at  # a frame's answer is usually its last evaluation
+        else:
+            h, _, px = self._hidden(x)
         skip = self._skip_of(px)
         if self._readout is not None:
             W_last, b_last, _ = self._layers[-1]

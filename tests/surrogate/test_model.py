@@ -65,6 +65,24 @@ def test_operator_matches_the_torch_network(model):
     np.testing.assert_allclose(full, ref.detach().numpy(), rtol=1e-4, atol=1e-5 * np.abs(full).max())
 
 
+def test_displacement_after_an_evaluation_is_the_same_to_the_bit(model):
+    """A frame's full answer reuses its last evaluation's hidden layers when g is that point:
+    the same numbers as computed afresh, and a fresh computation elsewhere."""
+    support, nodes, g = case(model)
+    fresh = model.restrict(support, nodes).displacement(g)
+    op = model.restrict(support, nodes)
+    op(g)
+    calls = []
+    hidden = op._hidden
+    op._hidden = lambda x: calls.append(x) or hidden(x)
+    reused = op.displacement(g)
+    np.testing.assert_array_equal(reused, fresh)
+    assert not calls  # reused
+    elsewhere = op.displacement(0.5 * g)  # not the last evaluation: computed
+    assert len(calls) == 1
+    np.testing.assert_array_equal(elsewhere, model.restrict(support, nodes).displacement(0.5 * g))
+
+
 def test_pullback_is_torch_backpropagation(model):
     support, nodes, g = case(model)
     _, pullback = model.restrict(support, nodes)(g)
