@@ -242,6 +242,13 @@ class NetworkOperator:
             h = z * slope
         return h, tape, px
 
+    def _hidden_at(self, x: Array) -> tuple[Array, list[tuple[Array, Array | None]], Array]:
+        """:meth:`_hidden` at x, the last evaluation's own when x is its input."""
+        if self._tape_at is not None and np.array_equal(self._tape_at[0], x):
+            _, tape, h, px = self._tape_at
+            return h, tape, px
+        return self._hidden(x)
+
     def _skip_of(self, px: Array) -> Array | None:
         """The skip path's S x within P x (None without a skip path)."""
         return px[self._n_first :] if self._skip is not None else None
@@ -332,10 +339,7 @@ class NetworkOperator:
         if at_rest and self._rest_jacobian is not None:  # every cold frame starts here
             jac = self._rest_jacobian
         else:
-            if self._tape_at is not None and np.array_equal(self._tape_at[0], x):
-                tape = self._tape_at[1]
-            else:
-                _, tape, _ = self._hidden(x)
+            _, tape, _ = self._hidden_at(x)
             if self._factors is None:
                 self._factors = _GramFactors(self._layers[0][0], self._skip)
             if self._anchored is None:
@@ -354,10 +358,7 @@ class NetworkOperator:
     def displacement(self, g: Array) -> Array:
         """Every node's displacement (the readout over the whole mesh). Shape: (n, 3)."""
         x = np.asarray(g, np.float32).reshape(-1)
-        if self._tape_at is not None and np.array_equal(self._tape_at[0], x):
-            _, _, h, px = self._tape_at  # a frame's answer is usually its last evaluation
-        else:
-            h, _, px = self._hidden(x)
+        h, _, px = self._hidden_at(x)  # a frame's answer is usually its last evaluation
         skip = self._skip_of(px)
         if self._readout is not None:
             W_last, b_last, _ = self._layers[-1]
