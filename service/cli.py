@@ -23,28 +23,25 @@ def _at_least_one(text: str) -> int:
 
 
 def _train(args: argparse.Namespace) -> int:
-    from .scene import SceneError, resolve_scene
+    from .scene import resolve_scene
     from .store import default_store
     from .surrogate.build import build
     from .surrogate.train import TrainConfig
 
-    if args.layout != "reduced" and (args.members or 1) > 1:
-        print("error: --members needs the reduced layout (an ensemble shares one POD basis)", file=sys.stderr)
-        return 2
-    try:
+    try:  # the config first: a bad combination of flags fails before the scene and any data
+        config = TrainConfig(
+            layout=args.layout,
+            hidden=tuple(args.hidden),
+            rank=args.rank,
+            members=args.members,
+            physics_skip=args.physics_skip,
+            epochs=args.epochs,
+            seed=args.seed,
+        )
         scene = resolve_scene(args.scene)
-    except SceneError as exc:
+    except ValueError as exc:  # a SceneError is one
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    config = TrainConfig(
-        layout=args.layout,
-        hidden=tuple(args.hidden),
-        rank=args.rank,
-        members=args.members,
-        physics_skip=args.physics_skip,
-        epochs=args.epochs,
-        seed=args.seed,
-    )
     command = "elastreg " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     report = build(
         scene,

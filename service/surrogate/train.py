@@ -39,6 +39,15 @@ class TrainConfig:
     device: str | None = None  # "cuda" when there is one, else "cpu"
     threads: int | None = None  # torch CPU threads (default: torch's)
 
+    def __post_init__(self) -> None:
+        # refused here, where the config is made, so a command line fails before any data
+        if self.layout not in ("reduced", "paper"):
+            raise ValueError(f"unknown layout {self.layout!r}: 'reduced' or 'paper'")
+        if self.members is not None and self.members < 1:
+            raise ValueError(f"members must be a whole number >= 1, got {self.members}")
+        if self.layout != "reduced" and (self.members or 1) > 1:
+            raise ValueError("members > 1 (an ensemble) needs the reduced layout: its members share one POD basis")
+
 
 @dataclasses.dataclass
 class TrainResult:
@@ -91,14 +100,10 @@ def build_model(config: TrainConfig, asm: Assembler, region: Array, F: Array, U:
     """The untrained network, with its basis and physics prior computed from the training set."""
     n_in = 3 * len(region)
     force_scale = float(np.sqrt((F.reshape(len(F), -1) ** 2).sum(1).mean() / n_in)) or 1.0
-    if config.layout == "paper":
-        if (config.members or 1) != 1:
-            raise ValueError("ensembles (members > 1) need the reduced layout")
+    if config.layout == "paper":  # TrainConfig holds a paper layout to one member
         u_scale = float(np.sqrt((U.reshape(len(U), -1) ** 2).mean())) or 1.0
         return PaperSurrogate(n_in, U.shape[1] * U.shape[2], depth=max(2, len(config.hidden) + 1),
                               force_scale=force_scale, u_scale=u_scale)
-    if config.layout != "reduced":
-        raise ValueError(f"unknown layout {config.layout!r}")
     basis, _ = pod_basis(U.reshape(len(U), -1), config.rank, config.seed)
     coefs = U.reshape(len(U), -1) @ basis
     coef_scale = torch.full((basis.shape[1],), float(np.sqrt((coefs**2).mean())) or 1.0)

@@ -135,7 +135,22 @@ def test_a_bad_ensemble_size_is_refused_before_any_work(capsys):
     assert exit_.value.code == 2
     assert "--members: must be a whole number >= 1, got '0'" in capsys.readouterr().err
     assert main(["train", "beam", "--layout", "paper", "--members", "2"]) == 2
-    assert "--members needs the reduced layout" in capsys.readouterr().err
+    assert "members > 1 (an ensemble) needs the reduced layout" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [({"layout": "paper", "members": 3}, "needs the reduced layout"),
+     ({"members": 0}, "members must be a whole number >= 1"),
+     ({"layout": "dense"}, "unknown layout 'dense'")],
+)
+def test_train_config_refuses_what_no_build_can_take(kwargs, message):
+    """One place holds the rule, so the library, the CLI and a scene build refuse alike."""
+    from service.surrogate.train import TrainConfig
+
+    with pytest.raises(ValueError, match=message):
+        TrainConfig(**kwargs)
+    TrainConfig(layout="paper", members=1)  # one member is no ensemble: taken
 
 
 def test_the_papers_layout_leaves_a_scenes_ensemble_out(bar_store, tmp_path):
