@@ -127,7 +127,8 @@ class BlockDiagonal:
     __array_ufunc__ = None  # ndarray @ BlockDiagonal -> BlockDiagonal.__rmatmul__
 
     def __init__(self, blocks: Array, transposed: BlockDiagonal | None = None) -> None:
-        self.blocks = np.ascontiguousarray(blocks)
+        # a transpose reads its original's memory (a view: BLAS takes each block transposed)
+        self.blocks = blocks if transposed is not None else np.ascontiguousarray(blocks)
         q, m, n = blocks.shape
         self.shape = (q * m, q * n)
         self.dtype = blocks.dtype
@@ -135,7 +136,8 @@ class BlockDiagonal:
 
     @property
     def T(self) -> BlockDiagonal:
-        """Made once, contiguous (the pullback's products read it every evaluation)."""
+        """Made once, a view of the same blocks: the pullback's products then read the
+        weights the forward pass just read, not a second copy."""
         if self._T is None:
             self._T = BlockDiagonal(self.blocks.transpose(0, 2, 1), transposed=self)
         return self._T

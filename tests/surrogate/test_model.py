@@ -308,6 +308,11 @@ def test_block_diagonal_is_its_dense_matrix():
     np.testing.assert_allclose(B @ X.astype(np.float32), D @ X, rtol=1e-5, atol=1e-5)
     np.testing.assert_allclose(A.astype(np.float32) @ B, A @ D, rtol=1e-5, atol=1e-5)
     np.testing.assert_allclose(B.T @ A[0].astype(np.float32), D.T @ A[0], rtol=1e-5, atol=1e-5)
+    # the transpose is a view of the same weights (the pullback reads what the forward read)
+    assert np.shares_memory(B.T.blocks, B.blocks) and B.T.T is B
+    np.testing.assert_allclose(B.T @ A[:2].T.astype(np.float32), D.T @ A[:2].T, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(X.T.astype(np.float32) @ B.T, X.T @ D.T, rtol=1e-5, atol=1e-5)
+    np.testing.assert_array_equal(B.T[np.array([0, 11, 5])], D.T[[0, 11, 5]])
     rows = np.array([0, 7, 14, 6])
     np.testing.assert_array_equal(B[rows], D[rows])
     assert B.shape == D.shape and B.astype(np.float64).dtype == np.float64
