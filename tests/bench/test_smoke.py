@@ -2,6 +2,8 @@
 
 import json
 
+import pytest
+
 from service.cli import main
 
 
@@ -22,6 +24,8 @@ def test_bench_smoke_writes_the_whole_report(bar_store, tmp_path):
     assert "on the beam" in report
     liver = results["parts"]["pareto"]
     assert {r["method"] for r in liver} == {"network", "network, levenberg-marquardt", "fem", "fem, levenberg-marquardt"}
+    # each point timed over passes (two in the smoke run), each pass's median kept beside it
+    assert all(len(r["ms_passes"]) == 2 for r in liver) and "each pass (ms)" in report
     summary = results["parts"]["beam"]["summary"]  # Levenberg-Marquardt, and L-BFGS-B beside it
     assert summary["config"]["optimizer"] == "levenberg-marquardt" and summary["lbfgsb"]["cases"] == summary["cases"]
     assert "elastreg, L-BFGS-B" in report
@@ -41,6 +45,13 @@ def test_bench_smoke_writes_the_whole_report(bar_store, tmp_path):
     assert {r["method"] for r in results["parts"]["stability"]["rows"]} >= {"fem", "fem, levenberg-marquardt"}
     assert not any(r.get("crashed") for r in results["parts"]["stability"]["rows"])
     assert results["parts"]["fem"]["backends"]  # at least one solver ran
+
+
+def test_the_liver_sweep_needs_a_pass():
+    from service.bench.pareto import pareto_part
+
+    with pytest.raises(ValueError, match="passes must be at least 1"):
+        pareto_part(None, None, passes=0)
 
 
 def test_merged_parts_say_which_machine_made_them(tmp_path):
