@@ -143,6 +143,20 @@ def run_case(model, case: Case, config: SessionConfig, method: str | None = None
     return out
 
 
+def run_passes(model, case: Case, config: SessionConfig, passes: int, method: str | None = None) -> tuple[list[FrameRecord], list[float]]:
+    """run_case() `passes` times: the first pass's records, each frame's time its median over
+    the passes, and each pass's median warm-frame time. The passes must take the same steps;
+    what differs between them is the machine (a shared one moves single passes by up to 2x)."""
+    if passes < 1:
+        raise ValueError(f"passes must be at least 1, got {passes}")
+    runs = [run_case(model, case, config, method) for _ in range(passes)]
+    for run in runs[1:]:
+        if [r.iterations for r in run] != [r.iterations for r in runs[0]]:
+            raise RuntimeError(f"{case.name}: the passes took different steps: registration is not deterministic")
+    records = [dataclasses.replace(r, ms=float(np.median([run[i].ms for run in runs]))) for i, r in enumerate(runs[0])]
+    return records, [summarise(run)["ms_median"] for run in runs]
+
+
 def rest_baseline(case: Case) -> list[FrameRecord]:
     """No registration: the rest shape and no force."""
     out = []

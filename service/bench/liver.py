@@ -11,7 +11,15 @@ import logging
 import numpy as np
 
 from ..registration.session import SessionConfig
-from .cases import Case, liver_paper_case, rest_baseline, run_case, summarise, synthetic_case
+from .cases import (
+    Case,
+    liver_paper_case,
+    rest_baseline,
+    run_case,
+    run_passes,
+    summarise,
+    synthetic_case,
+)
 
 log = logging.getLogger(__name__)
 
@@ -59,9 +67,11 @@ def _region_patch(mesh, centre: int, k: int, in_region: np.ndarray) -> np.ndarra
     return patch[in_region[patch]][:k]
 
 
-def liver_part(entry, *, frames: int | None = None, own_frames: int = 20, fem: bool = True) -> dict:
+def liver_part(entry, *, frames: int | None = None, own_frames: int = 20, fem: bool = True, passes: int = 3) -> dict:
     """Records and summaries for every case and method. `frames` cuts the paper's sequence
-    (quick runs)."""
+    (quick runs). The network's rows are timed over `passes` passes (run_passes: each frame's
+    median, each pass's median in ``ms_median_passes``); the Newton method's, whose frames take
+    seconds, over one."""
     paper = liver_paper_case()
     if frames is not None:
         paper = dataclasses.replace(paper, clouds=paper.clouds[:frames], positions=paper.positions[:frames],
@@ -69,12 +79,12 @@ def liver_part(entry, *, frames: int | None = None, own_frames: int = 20, fem: b
     cases = [paper] + own_sequences(paper, entry.region, entry.fem.material, own_frames)
     records, summaries = [], []
     for case in cases:
-        runs = [rest_baseline(case), run_case(entry.network, case, NETWORK),
-                run_case(entry.network, case, NETWORK_LM, LM_LABEL)]
+        runs = [(rest_baseline(case), None), run_passes(entry.network, case, NETWORK, passes),
+                run_passes(entry.network, case, NETWORK_LM, passes, LM_LABEL)]
         if fem:
-            runs += [run_case(entry.fem, case, FEM), run_case(entry.fem, case, FEM_LM, FEM_LM_LABEL)]
-        for recs in runs:
+            runs += [(run_case(entry.fem, case, FEM), None), (run_case(entry.fem, case, FEM_LM, FEM_LM_LABEL), None)]
+        for recs, each in runs:
             records += recs
-            summaries.append(summarise(recs))
+            summaries.append(summarise(recs) | ({"ms_median_passes": each} if each is not None else {}))
             log.info("%s / %s: %s", case.name, recs[0].method, summaries[-1])
     return {"records": records, "summaries": summaries}

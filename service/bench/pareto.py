@@ -15,7 +15,7 @@ from typing import Callable
 import numpy as np
 
 from ..registration.session import SessionConfig
-from .cases import Case, noisy, run_case, summarise
+from .cases import Case, noisy, run_passes, summarise
 from .liver import FEM, NETWORK
 
 log = logging.getLogger(__name__)
@@ -111,20 +111,14 @@ def pareto_part(
 ) -> list[dict]:
     """The liver's sweep over one recorded sequence (the Newton method on its first
     `fem_frames` frames), each point timed over `passes` passes."""
-    if passes < 1:
-        raise ValueError(f"passes must be at least 1, got {passes}")
     short = dataclasses.replace(case, clouds=case.clouds[:fem_frames], positions=case.positions[:fem_frames],
                                 net_forces=case.net_forces[:fem_frames])  # fmt: skip
 
     def score(model, config, n, is_short):
-        frames = short if is_short else (noisy(case, points=n) if n else case)
-        runs = [run_case(model, frames, config) for _ in range(passes)]
-        each = [summarise(run) for run in runs]
-        s = summarise([dataclasses.replace(r, ms=float(np.median([run[i].ms for run in runs])))
-                       for i, r in enumerate(runs[0])])  # fmt: skip
+        records, each = run_passes(model, short if is_short else (noisy(case, points=n) if n else case), config, passes)
+        s = summarise(records)
         return {"tre_mm": s["tre_mean_mm"], "force_error_pct": s["force_error_mean_pct"], "ms": s["ms_median"],
-                "iterations": s["iterations_mean"], "converged": s["converged_fraction"],
-                "ms_passes": [e["ms_median"] for e in each]}  # fmt: skip
+                "iterations": s["iterations_mean"], "converged": s["converged_fraction"], "ms_passes": each}  # fmt: skip
 
     return sweep(score, entry.network, entry.fem, NETWORK, FEM, gtols=gtols, caps=caps, points=points,
                  max_points=min(len(c) for c in case.clouds), fem_gtols=fem_gtols, alphas=alphas, variants=variants,

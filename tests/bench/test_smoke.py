@@ -47,11 +47,22 @@ def test_bench_smoke_writes_the_whole_report(bar_store, tmp_path):
     assert results["parts"]["fem"]["backends"]  # at least one solver ran
 
 
-def test_the_liver_sweep_needs_a_pass():
-    from service.bench.pareto import pareto_part
+def test_passes_take_the_same_steps_and_time_each_frame_by_its_median(entry):
+    """run_passes: a pass's records with each frame's time its median over the passes (one
+    run's steps: the passes are the same registration), and each pass's median time."""
+    from service.bench.cases import run_case, run_passes
+    from service.bench.liver import NETWORK
+    from service.bench.report import _smoke_case
 
+    case = _smoke_case(entry)
+    records, each = run_passes(entry.network, case, NETWORK, 3)
+    single = run_case(entry.network, case, NETWORK)
+    assert len(each) == 3 and len(records) == case.frames == len(single)
+    assert [r.iterations for r in records] == [r.iterations for r in single]
+    assert [r.tre_mm for r in records] == [r.tre_mm for r in single]
+    assert all(r.ms > 0 for r in records)
     with pytest.raises(ValueError, match="passes must be at least 1"):
-        pareto_part(None, None, passes=0)
+        run_passes(entry.network, case, NETWORK, 0)
 
 
 def test_merged_parts_say_which_machine_made_them(tmp_path):
