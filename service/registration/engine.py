@@ -72,11 +72,17 @@ def check_optimizer(op: ForwardOperator, options: SolveOptions) -> None:
     will run (Levenberg-Marquardt's compiled kernel), so that no frame's clock pays for it."""
     if options.optimizer not in OPTIMIZERS:
         raise ValueError(f"optimizer must be one of {list(OPTIMIZERS)}, got {options.optimizer!r}")
+    _refuse_bounds(options)
     if options.optimizer == "levenberg-marquardt":
-        if options.force_bound is not None:
-            raise ValueError(_BOUNDED)
         _jacobian(op, np.zeros((len(op.support), 3)))
         prepare()  # its compiled kernel, before any frame's clock runs
+
+
+def _refuse_bounds(options: SolveOptions) -> None:
+    """Levenberg-Marquardt takes no force bounds: refused by a session when it opens and by
+    solve_frame before any evaluation."""
+    if options.optimizer == "levenberg-marquardt" and options.force_bound is not None:
+        raise ValueError(_BOUNDED)
 
 
 def _jacobian(op, g: Array):
@@ -238,6 +244,7 @@ def solve_frame(
     each (a stream's last converged forces); the frame starts from the lowest objective among
     them, g0 and zero.
     """
+    _refuse_bounds(options)  # the Jacobian, Levenberg-Marquardt's other need, at its first use
     t_start = time.perf_counter()
     timing = Timing()
     k = len(op.support)
@@ -280,8 +287,6 @@ def solve_frame(
             raise _Done()
         begin = _Start(start, v0, grad0, u0)
         if options.optimizer == "levenberg-marquardt":
-            if bounded:  # what a session checked when it opened; the Jacobian, at its first use
-                raise ValueError(_BOUNDED)
             status, message, nit = _levenberg_marquardt(op, distance, evaluate, begin, g_tol, options, max_eval, deadline)
         else:
             status, message, nit = _lbfgsb(op, distance, evaluate, begin, v_rest, g_tol, options, curvature, max_eval, deadline)
