@@ -15,6 +15,7 @@ import numpy as np
 
 from ..registration.session import Session, SessionConfig, default_support
 from ..synthetic import sample_surface
+from .cases import same_steps
 from .liver import FEM_BUDGET_MS
 from .pareto import sweep
 
@@ -99,12 +100,9 @@ def register(model, cases: list[dict], config: SessionConfig, points: int | None
 
 
 def repeated(model, cases: list[dict], config: SessionConfig, passes: int) -> list[dict]:
-    """register() `passes` times; the first pass's rows, each with its time the median over the
-    passes (``ms``) and every pass's (``ms_passes``). The passes must take the same steps."""
-    runs = [register(model, cases, config) for _ in range(max(1, passes))]
-    for run in runs[1:]:
-        if [r["iterations"] for r in run] != [r["iterations"] for r in runs[0]]:
-            raise RuntimeError("the beam's passes took different steps: registration is not deterministic")
+    """register() `passes` times (same_steps): the first pass's rows, each with its time the
+    median over the passes (``ms``) and every pass's (``ms_passes``)."""
+    runs = same_steps(lambda: register(model, cases, config), passes, lambda r: r["iterations"], "the beam")
     for i, row in enumerate(runs[0]):
         row["ms_passes"] = [run[i]["ms"] for run in runs]
         row["ms"] = float(np.median(row["ms_passes"]))

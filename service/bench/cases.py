@@ -13,6 +13,7 @@ import dataclasses
 import logging
 import time
 from pathlib import Path
+from typing import Any, Callable
 
 import numpy as np
 
@@ -143,16 +144,24 @@ def run_case(model, case: Case, config: SessionConfig, method: str | None = None
     return out
 
 
-def run_passes(model, case: Case, config: SessionConfig, passes: int, method: str | None = None) -> tuple[list[FrameRecord], list[float]]:
-    """run_case() `passes` times: the first pass's records, each frame's time its median over
-    the passes, and each pass's median warm-frame time. The passes must take the same steps;
-    what differs between them is the machine (a shared one moves single passes by up to 2x)."""
+def same_steps(run: Callable[[], list], passes: int, steps: Callable[[Any], int], what: str) -> list[list]:
+    """`run()` `passes` times, refused unless every pass took the first one's steps (``steps``
+    of each record): timing over passes only means something if the work was the same, and
+    what differs between them is then the machine (a shared one moves single passes by up to
+    2x)."""
     if passes < 1:
         raise ValueError(f"passes must be at least 1, got {passes}")
-    runs = [run_case(model, case, config, method) for _ in range(passes)]
-    for run in runs[1:]:
-        if [r.iterations for r in run] != [r.iterations for r in runs[0]]:
-            raise RuntimeError(f"{case.name}: the passes took different steps: registration is not deterministic")
+    runs = [run() for _ in range(passes)]
+    first = [steps(r) for r in runs[0]]
+    if any([steps(r) for r in other] != first for other in runs[1:]):
+        raise RuntimeError(f"{what}: the passes took different steps: registration is not deterministic")
+    return runs
+
+
+def run_passes(model, case: Case, config: SessionConfig, passes: int, method: str | None = None) -> tuple[list[FrameRecord], list[float]]:
+    """run_case() `passes` times (same_steps): the first pass's records, each frame's time its
+    median over the passes, and each pass's median warm-frame time."""
+    runs = same_steps(lambda: run_case(model, case, config, method), passes, lambda r: r.iterations, case.name)
     records = [dataclasses.replace(r, ms=float(np.median([run[i].ms for run in runs]))) for i, r in enumerate(runs[0])]
     return records, [summarise(run)["ms_median"] for run in runs]
 

@@ -65,6 +65,18 @@ def test_passes_take_the_same_steps_and_time_each_frame_by_its_median(entry):
         run_passes(entry.network, case, NETWORK, 0)
 
 
+def test_passes_that_take_other_steps_are_refused():
+    """same_steps: timing over passes is refused when a pass took other steps than the first
+    (a registration that is not deterministic would mix two different works' times)."""
+    from service.bench.cases import same_steps
+
+    counts = iter([[3, 4], [3, 4], [3, 5]])
+    with pytest.raises(RuntimeError, match="took different steps"):
+        same_steps(lambda: next(counts), 3, lambda r: r, "a case")
+    runs = same_steps(lambda: [3, 4], 2, lambda r: r, "a case")
+    assert runs == [[3, 4], [3, 4]]
+
+
 def test_merged_parts_say_which_machine_made_them(tmp_path):
     """A part kept from an earlier run keeps that run's CPU in its stamp (read from the run's
     machine where its stamp predates CPUs)."""
