@@ -13,7 +13,8 @@ import dataclasses
 import logging
 import time
 from pathlib import Path
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
