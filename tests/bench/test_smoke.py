@@ -91,3 +91,17 @@ def test_merged_parts_say_which_machine_made_them(tmp_path):
     assert merged["made_by"]["beam"] == {"started": "now", "commit": "def", "cpu": "Intel Xeon"}
     assert merged["made_by"]["fem"] == {"started": "then", "commit": "abc", "cpu": "AMD EPYC"}
     assert merged["made_by"]["pareto"]["cpu"] == "AMD EPYC"  # no stamp at all: the run's own
+
+
+def test_the_cpu_is_named_with_its_generation():
+    """A VM may name only the vendor's line ("AMD EPYC"): the report's CPU also gives its family,
+    model and cache where the system tells them, so two generations of one name differ."""
+    from pathlib import Path
+
+    from service.bench.machine import _cpu_model
+
+    name = _cpu_model()
+    assert name
+    info = Path("/proc/cpuinfo")
+    if info.exists() and "cpu family" in info.read_text():
+        assert "family" in name and "model" in name
