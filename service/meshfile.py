@@ -47,7 +47,7 @@ TETGEN_OPTIONS: Mapping[str, object] = MappingProxyType(dict(
 #: A tet whose smallest dihedral angle is below this many degrees counts as a sliver.
 SLIVER_DEG = 5.0
 
-_EDGE_PAIRS = np.array([(k, l) for k in range(4) for l in range(k + 1, 4)])
+_EDGE_PAIRS = np.array([(i, j) for i in range(4) for j in range(i + 1, 4)])
 
 
 @dataclasses.dataclass(frozen=True)

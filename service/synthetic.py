@@ -15,8 +15,8 @@ import numpy as np
 
 from .fem.material import NeoHookean
 from .fem.model import FEMModel
-from .registration.forward import ForwardFailed
 from .mesh import TetMesh
+from .registration.forward import ForwardFailed
 
 Array = np.ndarray
 

@@ -50,8 +50,8 @@ def solver_comparison(asm: Assembler, u: np.ndarray, repeats: int = 3) -> list[d
         t0 = time.perf_counter()
         solver = make_solver(K, name)
         setup = time.perf_counter() - t0
-        factor, _ = _median_time(lambda: solver.factor(K), repeats)
-        solve, x = _median_time(lambda: solver.solve(b), repeats)
+        factor, _ = _median_time(lambda solver=solver: solver.factor(K), repeats)
+        solve, x = _median_time(lambda solver=solver: solver.solve(b), repeats)
         rows.append({
             "backend": name,
             "analysis_ms": 1e3 * setup,
@@ -75,7 +75,7 @@ def newton_benchmark(case: Case, material: NeoHookean, tool: np.ndarray, repeats
     out = {"backends": {}}
     for name in available_backends():
         solver = NewtonSolver(asm, NewtonOptions(backend=name))
-        cold, res = _median_time(lambda: solver.solve(g_seq[largest]), repeats)
+        cold, res = _median_time(lambda solver=solver: solver.solve(g_seq[largest]), repeats)
         per_it = cold / max(res.iterations, 1)
         patches = []
         for g in extra:

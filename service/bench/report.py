@@ -164,9 +164,9 @@ def main(args: argparse.Namespace) -> int:
         plot(results["parts"]["beam"]["pareto"], out / "figures" / "beam_pareto.png", "error against run time: the beam")
 
     if "pareto" in parts:
+        from ..store import open_store
         from .cases import liver_paper_case
         from .pareto import pareto_part, plot
-        from ..store import open_store
 
         case = base if args.smoke is not None else _first(liver_paper_case(), 12 if quick else 50)
         variants = {}

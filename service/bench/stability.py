@@ -18,9 +18,17 @@ import numpy as np
 
 from ..fem.material import NeoHookean
 from ..fem.model import FEMModel
-from ..registration.session import SessionConfig
 from .cases import Case, noisy, run_case, summarise, synthetic_case
-from .liver import FEM, FEM_BUDGET_MS, FEM_LM, FEM_LM_LABEL, LM_LABEL, NETWORK, NETWORK_LM, _region_patch
+from .liver import (
+    FEM,
+    FEM_BUDGET_MS,
+    FEM_LM,
+    FEM_LM_LABEL,
+    LM_LABEL,
+    NETWORK,
+    NETWORK_LM,
+    _region_patch,
+)
 
 log = logging.getLogger(__name__)
 

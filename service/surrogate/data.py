@@ -23,9 +23,9 @@ from typing import Iterator
 
 import numpy as np
 
+from ..fem.assembly import Assembler
 from ..fem.material import NeoHookean
 from ..fem.newton import NewtonOptions, NewtonSolver
-from ..fem.assembly import Assembler
 from ..mesh import TetMesh
 
 log = logging.getLogger(__name__)

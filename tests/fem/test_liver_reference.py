@@ -2,7 +2,6 @@
 law, is reproduced to solver precision from its true forces (PROVENANCE.md's conditions)."""
 
 import numpy as np
-import pytest
 
 from service.fem.material import NeoHookean
 from service.fem.model import FEMModel

@@ -17,9 +17,9 @@ def random_F(n: int, scale: float = 0.3, seed: int = 0) -> np.ndarray:
 
 
 def test_rest_state_is_stress_free():
-    I = np.eye(3)[None]
-    assert MAT.energy(I)[0] == 0.0
-    np.testing.assert_allclose(MAT.stress(I)[0], 0.0, atol=1e-12)
+    eye = np.eye(3)[None]
+    assert MAT.energy(eye)[0] == 0.0
+    np.testing.assert_allclose(MAT.stress(eye)[0], 0.0, atol=1e-12)
 
 
 def test_stress_is_energy_gradient():

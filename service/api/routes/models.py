@@ -5,7 +5,16 @@ from __future__ import annotations
 from fastapi import APIRouter, Request
 
 from .. import work
-from ..deps import ALT_MSGPACK, EntryDep, ModelsDep, PoolDep, ReplyKind, SimulateBody, reply, request_body
+from ..deps import (
+    ALT_MSGPACK,
+    EntryDep,
+    ModelsDep,
+    PoolDep,
+    ReplyKind,
+    SimulateBody,
+    reply,
+    request_body,
+)
 from ..schemas import ErrorOut, MeshOut, ModelSummary, SimulateIn, SimulateOut
 
 router = APIRouter(prefix="/models", tags=["models"])
