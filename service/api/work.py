@@ -54,10 +54,8 @@ class SolvePool:
 
 def build_session(entry, create: SessionCreate, reservation: Reservation) -> Held:
     """The engine's Session for a validated config, wrapped for the registry (in the pool)."""
-    from ..registration.session import (  # the engine: loaded by the app already
-        Session,
-        SessionConfig,
-    )
+    # the engine: loaded by the app already
+    from ..registration.session import Session, SessionConfig
 
     given = {k: getattr(create, k) for k in _FIELDS if getattr(create, k) is not None}
     if create.support is not None:
