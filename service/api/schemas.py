@@ -27,7 +27,8 @@ from pydantic import (
     model_validator,
 )
 
-Method = Literal["network", "fem"]
+Method = Literal["network", "fem"]  # a forward model
+SessionMethod = Literal["network", "fem", "auto"]  # auto: the network, corrected by the FEM past max_error
 OutputName = Literal["displacement", "surface_displacement", "forces", "stress"]
 Loss = Literal["squared", "huber", "trimmed"]
 Optimizer = Literal["lbfgsb", "levenberg-marquardt"]
@@ -147,7 +148,13 @@ class _Request(BaseModel):
 class SessionSettings(_Request):
     """A stream's settings; unset ones take the engine's defaults (echoed back when it opens)."""
 
-    method: Method = Field("network", description="forward model: the trained network or the FEM (Newton adjoint)")
+    method: SessionMethod = Field(
+        "network", description="forward model: the trained network, the FEM (Newton adjoint), or auto: the network, "
+        "with a frame whose error_estimate exceeds max_error registered again by the FEM (method_used says which)",
+    )
+    max_error: Finite | None = Field(
+        None, gt=0, le=1, description="auto only: the error estimate (m) past which the FEM corrects a frame"
+    )
     support: NodeIds | None = Field(
         None, description="node ids where forces may act (default: the model's load region)"
     )
@@ -342,7 +349,8 @@ class SimulateOut(_Reply):
 
 class SessionConfigOut(_Reply):
     model: str
-    method: Method
+    method: SessionMethod
+    max_error: float | None
     support: list[int]
     alpha: float
     gtol: float
@@ -398,6 +406,11 @@ class FrameResult(_Reply):
     evaluations: int
     net_force: Vec3
     alpha: float | None = Field(None, description="the regularisation weight the frame ran with")
+    error_estimate: float | None = Field(
+        None, description="estimated mean nodal error of the displacement, m, without ground truth: the "
+        "forward model's residual error plus the misfit the declared noise does not explain (null: none could be made)",
+    )
+    method_used: Literal["network", "fem"] | None = Field(None, description="the forward model that produced this frame")
     displacement: list[Vec3] | None = None
     surface_displacement: list[Vec3] | None = Field(None, description="in the order of the mesh's surface_nodes")
     forces: list[Vec3] | None = Field(None, description="(k, 3) aligned with `support`")

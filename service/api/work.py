@@ -27,7 +27,7 @@ from .sessions import Held, Reservation, SessionRegistry
 
 log = logging.getLogger(__name__)
 
-_FIELDS = ("method", "alpha", "gtol", "max_iter", "force_bound", "time_budget_ms", "warm_start", "E", "loss", "loss_param", "carry_curvature", "precondition", "noise", "optimizer")
+_FIELDS = ("method", "alpha", "gtol", "max_iter", "force_bound", "time_budget_ms", "warm_start", "E", "loss", "loss_param", "carry_curvature", "precondition", "noise", "optimizer", "max_error")
 
 
 def _ms(t0: float) -> float:
@@ -64,7 +64,10 @@ def build_session(entry, create: SessionCreate, reservation: Reservation) -> Hel
         given["matching"] = tuple(map(tuple, create.matching.tolist()))
     given["outputs"] = tuple(create.outputs)
     try:
-        session = Session(entry.model(create.method), SessionConfig(**given))
+        if create.method == "auto":
+            session = Session(entry.network, SessionConfig(**given), corrector=entry.fem)
+        else:
+            session = Session(entry.model(create.method), SessionConfig(**given))
     except ValueError as exc:
         raise unprocessable(str(exc)) from None
     c = session.config
@@ -128,6 +131,8 @@ def frame_payload(result) -> dict:
         "evaluations": int(result.evaluations),
         "net_force": result.net_force,
         "alpha": float(result.alpha),
+        "error_estimate": float(result.error_estimate) if np.isfinite(result.error_estimate) else None,
+        "method_used": result.method_used,
     }
     out.update(result.outputs)
     if "forces" in result.outputs:

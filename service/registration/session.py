@@ -28,9 +28,10 @@ import numpy as np
 from ..fem.assembly import Assembler
 from ..fem.material import NeoHookean
 from ..mesh import TetMesh
+from .confidence import error_estimate, estimator_for
 from .distance import PointToSurface
 from .engine import SolveOptions, check_optimizer, solve_frame
-from .forward import ForwardFailed, ForwardModel, check_support
+from .forward import ForwardFailed, ForwardModel, ForwardOperator, check_support
 from .noise_prior import AlphaTracker
 from .precondition import Curvature
 
@@ -50,13 +51,14 @@ DEFAULT_GTOL = {"network": 3e-4, "fem": 1e-4}
 #: the forces 100x harder: 48 % force error and 0.56 mm on the liver, against 12 % and 0.12 mm)
 DEFAULT_ALPHA = 1e-7
 FAILED = ("forward_failed", "non_finite")
+METHODS = ("network", "fem", "auto")  # auto: the network, corrected by the FEM past max_error
 
 
 @dataclasses.dataclass(frozen=True)
 class SessionConfig:
     """Every setting of a stream, defaults filled in (what the API echoes back)."""
 
-    method: str = "network"
+    method: str = "network"  # one of METHODS
     support: tuple[int, ...] | None = None  # default: every node the model can load
     alpha: float | None = None  # default: DEFAULT_ALPHA, scaled to the session's stiffness
     gtol: float | None = None  # default: DEFAULT_GTOL of the method
@@ -77,6 +79,8 @@ class SessionConfig:
     optimizer: str = "lbfgsb"  # or "levenberg-marquardt": Gauss-Newton steps through the
     # model's Jacobian (levenberg.py); no force bounds; the FEM (supports up to 500 nodes) or
     # the reduced network
+    max_error: float | None = None  # auto: a frame whose error_estimate exceeds it (m) is
+    # registered again by the FEM, starting from the network's forces
 
 
 @dataclasses.dataclass
@@ -93,6 +97,8 @@ class FrameResult:
     support: Array  # (k,) the node ids the forces are aligned with
     outputs: dict[str, Array]  # only the requested ones
     alpha: float  # the regularisation weight this frame ran with
+    error_estimate: float  # m, estimated mean nodal error of the displacement (confidence.py)
+    method_used: str  # "network" or "fem": which forward model produced this frame
     message: str = ""
 
 
@@ -112,10 +118,24 @@ def von_mises(mesh: TetMesh, material: NeoHookean, u: Array) -> Array:
 class Session:
     """Frames of one stream, in order. Thread-safe: frames of one session never interleave."""
 
-    def __init__(self, model: ForwardModel, config: SessionConfig) -> None:
+    def __init__(self, model: ForwardModel, config: SessionConfig, corrector: ForwardModel | None = None) -> None:
+        """`model` answers the frames; `corrector` (the FEM, for method "auto") re-registers
+        a frame whose error estimate exceeds the config's max_error."""
+        if config.method not in METHODS:
+            raise ValueError(f"unknown method {config.method!r}; choose from {list(METHODS)}")
+        if config.method == "auto":
+            if config.max_error is None:
+                raise ValueError("method 'auto' needs max_error (m): the estimate past which the FEM corrects a frame")
+            if corrector is None:
+                raise ValueError("method 'auto' needs the FEM to correct with")
+        elif config.max_error is not None:
+            raise ValueError("max_error applies to method 'auto' only")
         E_model = float(model.material.E)
         if config.E is not None:
             model = model.with_stiffness(config.E)
+            corrector = None if corrector is None else corrector.with_stiffness(config.E)
+        self.corrector = corrector
+        self._corrector_op: ForwardOperator | None = None
         unknown = set(config.outputs) - set(OUTPUTS)
         if unknown:
             raise ValueError(f"unknown outputs {sorted(unknown)}; choose from {list(OUTPUTS)}")
@@ -134,6 +154,7 @@ class Session:
                 raise ValueError(f"noise chooses alpha for the squared loss only, not {config.loss!r}")
             self.alpha_tracker = AlphaTracker(alpha, config.noise)  # starts at the default
         self.config = dataclasses.replace(config, E=float(model.material.E), gtol=gtol, alpha=alpha)
+        self._noise = config.noise
         self._options = SolveOptions(
             alpha=alpha, gtol=gtol, max_iter=config.max_iter, force_bound=config.force_bound,
             time_budget=None if config.time_budget_ms is None else 1e-3 * config.time_budget_ms,
@@ -152,6 +173,7 @@ class Session:
 
     def _set_support(self, support: Array, g_old: Array | None) -> None:
         self.op = self.model.restrict(support, self.distance.nodes)
+        self._corrector_op = None  # restricted again to the new support when next needed
         g = np.zeros((support.size, 3))
         if g_old is not None:
             old = {int(n): i for i, n in enumerate(self.support)}
@@ -182,24 +204,23 @@ class Session:
             if self.alpha_tracker is not None:
                 options = dataclasses.replace(options, alpha=self.alpha_tracker.alpha)
             sol = solve_frame(self.op, self.distance, self._rest, g0, options, self.curvature, fallbacks)
+            self._commit(sol, len(points), learn=True)
             t1 = time.perf_counter()
-            if sol.status in FAILED:
-                self.op.reset()
-                if self.curvature is not None:
-                    self.curvature.reset()
-                self.failed += 1
-            else:
-                self.g = sol.g
-                if sol.converged:
-                    self._anchor = sol.g
-                if self.alpha_tracker is not None:
-                    before = self.alpha_tracker.alpha
-                    after = self.alpha_tracker.update(sol.g, len(points))
-                    if self.curvature is not None:
-                        self.curvature.shift(after - before)
-            outputs, rms = self._outputs(sol.g, sol.rms)
+            outputs, rms, estimate = self._outputs(self.op, self.model, sol.g, sol.rms)
             timing = sol.timing.as_ms()
             timing["outputs"] = 1e3 * (time.perf_counter() - t1)
+            method_used, iterations, evaluations = self.model.method, sol.iterations, sol.evaluations
+            if self.config.method == "auto" and not estimate <= self.config.max_error:
+                t2 = time.perf_counter()
+                fem = self._correct(sol, options, fallbacks)
+                timing["correction"] = 1e3 * (time.perf_counter() - t2)
+                if fem.status in FAILED:  # the network's frame stands; its estimate says how far
+                    self._corrector_op.reset()
+                else:
+                    self._commit(fem, len(points), learn=False)
+                    sol, method_used = fem, self.corrector.method
+                    iterations, evaluations = iterations + fem.iterations, evaluations + fem.evaluations
+                    outputs, rms, estimate = self._outputs(self._corrector_op, self.corrector, fem.g, fem.rms)
             timing["total"] = 1e3 * (time.perf_counter() - t0)
             self.frames += 1
             self.converged += int(sol.converged)
@@ -210,44 +231,71 @@ class Session:
                 status=sol.status,
                 objective=sol.objective,
                 distance_rms=rms,
-                iterations=sol.iterations,
-                evaluations=sol.evaluations,
+                iterations=iterations,
+                evaluations=evaluations,
                 net_force=sol.g.sum(axis=0),
                 timing_ms=timing,
                 support=self.support,
                 outputs=outputs,
                 alpha=options.alpha,
+                error_estimate=estimate,
+                method_used=method_used,
                 message=sol.message,
             )
 
-    def _outputs(self, g: Array, rms: float) -> tuple[dict[str, Array], float]:
-        """The requested fields at the frame's forces, and the RMS point-to-surface distance
-        (the solve's at g, or searched for if it has none: the best iterate was never evaluated)."""
+    def _commit(self, sol, n_points: int, learn: bool) -> None:
+        """Move the warm start to a frame's answer (a failed one leaves it as it was)."""
+        if sol.status in FAILED:
+            self.op.reset()
+            if self.curvature is not None:
+                self.curvature.reset()
+            self.failed += int(learn)
+            return
+        self.g = sol.g
+        if sol.converged:
+            self._anchor = sol.g
+        if learn and self.alpha_tracker is not None:
+            before = self.alpha_tracker.alpha
+            after = self.alpha_tracker.update(sol.g, n_points)
+            if self.curvature is not None:
+                self.curvature.shift(after - before)
+
+    def _correct(self, sol, options: SolveOptions, fallbacks: tuple):
+        """The FEM's registration of the bound cloud, from the network's answer (or its start)."""
+        if self._corrector_op is None:
+            self._corrector_op = self.corrector.restrict(self.support, self.distance.nodes)
+        # L-BFGS-B from a warm start: Levenberg-Marquardt would form the FEM's Jacobian first
+        fem_options = dataclasses.replace(options, gtol=DEFAULT_GTOL[self.corrector.method],
+                                          optimizer="lbfgsb", precondition=False)
+        start = self.g if sol.status in FAILED else sol.g
+        return solve_frame(self._corrector_op, self.distance, self._rest, start, fem_options, None, fallbacks)
+
+    def _outputs(self, op: ForwardOperator, model: ForwardModel, g: Array, rms: float) -> tuple[dict[str, Array], float, float]:
+        """The requested fields at the frame's forces, the RMS point-to-surface distance (the
+        solve's at g, or searched for if it has none: the best iterate was never evaluated), and
+        the error estimate (the whole field is read for it, requested or not)."""
         want = set(self.config.outputs)
         out: dict[str, Array] = {}
-        u_all = u_nodes = None
         try:
-            if want & {"displacement", "surface_displacement", "stress"}:
-                u_all = self.op.displacement(g)
-                u_nodes = u_all[self.distance.nodes]
-            elif not np.isfinite(rms):
-                u_nodes, _ = self.op(g)
+            u_all = op.displacement(g)
         except ForwardFailed:  # the best iterate's field could not be recomputed: no NaN
-            u_all = u_nodes = None
+            u_all = None
         if not np.isfinite(rms):
-            if u_nodes is None:
-                u_nodes = np.zeros((self.distance.nodes.size, 3))
+            u_nodes = np.zeros((self.distance.nodes.size, 3)) if u_all is None else u_all[self.distance.nodes]
             rms = float(np.sqrt(np.mean(self.distance.closest(self._rest + u_nodes).sq_distances)))
-        if u_all is not None:
+        estimate = float("inf")
+        if u_all is not None and np.isfinite(u_all).all():
+            forward = estimator_for(model).forward_error(u_all, g, self.support)
+            estimate = error_estimate(forward, rms, self._noise)
             if "displacement" in want:
                 out["displacement"] = u_all
             if "surface_displacement" in want:
                 out["surface_displacement"] = u_all[self.mesh.surface_nodes]
             if "stress" in want:
-                out["stress"] = von_mises(self.mesh, self.model.material, u_all)
+                out["stress"] = von_mises(self.mesh, model.material, u_all)
         if "forces" in want:
             out["forces"] = g
-        return out, rms
+        return out, rms, estimate
 
     def summary(self) -> dict:
         return {

@@ -220,3 +220,28 @@ def test_stream_session_visible_but_not_addressable_over_http(live, http, clouds
         assert info["kind"] == "stream" and info["expires_in_s"] is None
         assert http.post(f"/sessions/{sid}/frames", json={"points": clouds[0].tolist()}).status_code == 409
         assert http.delete(f"/sessions/{sid}").status_code == 409
+
+
+def test_auto_sessions_correct_frames_past_max_error_and_say_so(http, entry, support, clouds):
+    """Every frame carries error_estimate and method_used; with method auto and a max_error
+    below the network's estimates, the FEM answers, as an in-process auto session does."""
+    plain = open_session(http, support=support.tolist())["session"]
+    first = http.post(f"/sessions/{plain}/frames", json={"points": clouds[2].tolist()}).json()
+    assert first["method_used"] == "network" and first["error_estimate"] > 0
+    threshold = 0.5 * first["error_estimate"]
+    opened = open_session(http, method="auto", max_error=threshold, support=support.tolist())
+    assert opened["config"]["method"] == "auto" and opened["config"]["max_error"] == threshold
+    ref = Session(entry.network, SessionConfig(method="auto", max_error=threshold, support=tuple(support.tolist())),
+                  corrector=entry.fem)
+    want = ref.frame(clouds[2])
+    got = FrameResult.model_validate(http.post(f"/sessions/{opened['session']}/frames",
+                                               json={"points": clouds[2].tolist()}).json())
+    assert got.method_used == want.method_used == "fem"
+    assert got.error_estimate == pytest.approx(want.error_estimate, rel=1e-6)
+    np.testing.assert_allclose(np.asarray(got.forces), want.outputs["forces"], rtol=1e-6, atol=1e-12)
+
+
+@pytest.mark.parametrize("config", [{"method": "auto"}, {"max_error": 1e-3}, {"method": "auto", "max_error": -1.0}])
+def test_auto_settings_are_checked(http, config):
+    r = http.post("/sessions", json={"model": "bar", **config})
+    assert r.status_code == 422, r.text

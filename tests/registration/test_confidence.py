@@ -1,0 +1,117 @@
+"""The per-frame error estimate (confidence.py) and method "auto" (session.py)."""
+
+import numpy as np
+import pytest
+
+from service.registration.confidence import ResidualEstimator, error_estimate, estimator_for
+from service.registration.session import Session, SessionConfig
+from service.synthetic import make_sequence
+
+
+def _tip(entry, k=6):
+    return entry.region[np.argsort(entry.mesh.nodes[entry.region, 0])[-k:]]
+
+
+def _support(entry, tool, k=14):
+    mesh = entry.mesh
+    near = entry.region[np.argsort(np.linalg.norm(mesh.nodes[entry.region] - mesh.nodes[tool].mean(0), axis=1))]
+    return tuple(int(i) for i in np.sort(near[:k]))
+
+
+def test_an_equilibrium_has_no_forward_error(entry):
+    tool = _tip(entry)
+    g = np.tile([0.0, 0.0, 5.0 / tool.size], (tool.size, 1))
+    u = entry.fem.restrict(tool).displacement(g)
+    est = ResidualEstimator(entry.mesh, entry.fem.material)
+    assert est.forward_error(u, g, tool) < 1e-6 * np.linalg.norm(u, axis=1).mean()
+
+
+def test_a_known_error_is_measured_in_the_linear_range(entry):
+    """Small loads: the rest stiffness is the tangent, so K0^-1 r gives back the error put in."""
+    tool = _tip(entry)
+    g = np.tile([0.0, 0.0, 0.05 / tool.size], (tool.size, 1))
+    u = entry.fem.restrict(tool).displacement(g)
+    mesh = entry.mesh
+    x = (mesh.nodes - mesh.nodes.min(0)) / np.ptp(mesh.nodes, axis=0)
+    delta = 1e-4 * np.ptp(mesh.nodes) * np.stack([np.sin(3 * x[:, 0]), x[:, 1] * x[:, 0], np.cos(2 * x[:, 2])], axis=1)
+    delta[~mesh.free_mask] = 0.0
+    est = ResidualEstimator(mesh, entry.fem.material)
+    d = est.correction(u + delta, g, tool)
+    true = np.linalg.norm(delta, axis=1).mean()
+    assert abs(est.forward_error(u + delta, g, tool) - true) < 0.05 * true
+    assert np.corrcoef(d.ravel(), delta.ravel())[0, 1] > 0.98  # the field itself, not only its size
+
+
+def test_the_estimate_adds_only_the_misfit_beyond_the_noise():
+    assert error_estimate(1e-4, 5e-4, 5e-4) == pytest.approx(1e-4)
+    assert error_estimate(1e-4, 8e-4, 5e-4) == pytest.approx(4e-4)
+    assert error_estimate(1e-4, 8e-4, None) == pytest.approx(9e-4)
+    assert error_estimate(float("nan"), 1e-3, None) == float("inf")
+
+
+def test_the_estimator_is_made_once_per_model(entry):
+    assert estimator_for(entry.network) is estimator_for(entry.network)
+    assert estimator_for(entry.fem) is not estimator_for(entry.network)
+
+
+@pytest.fixture(scope="module")
+def hard_sequence(entry):
+    """A pull well past what the bar's small training set covers: the network errs."""
+    tool = _tip(entry)
+    return tool, make_sequence(entry.mesh, entry.fem.material, tool, n_frames=4, peak_force=60.0, n_points=300, seed=5)
+
+
+def _errors(entry, session, seq):
+    out = []
+    for t, cloud in enumerate(seq.clouds):
+        r = session.frame(cloud, frame_id=t)
+        true = np.linalg.norm(r.outputs["displacement"] - seq.displacements[t], axis=1).mean()
+        out.append((r, true))
+    return out
+
+
+def test_every_frame_says_how_far_to_trust_it(entry, hard_sequence):
+    tool, seq = hard_sequence
+    net = _errors(entry, Session(entry.network, SessionConfig(support=_support(entry, tool))), seq)
+    fem = _errors(entry, Session(entry.fem, SessionConfig(method="fem", support=_support(entry, tool))), seq)
+    for (rn, en), (rf, ef) in zip(net, fem):
+        assert rn.method_used == "network" and rf.method_used == "fem"
+        assert np.isfinite(rn.error_estimate) and np.isfinite(rf.error_estimate)
+        # the network's frames are worse here, and their estimates say so
+        assert en > ef and rn.error_estimate > 2 * rf.error_estimate
+        # never small where the true error is large: the network's residual covers its error
+        assert rn.error_estimate >= en
+        # the FEM's error is the partial view's, which the misfit sees only in part (a known
+        # weakness, docs/performance.md): the same order of size, not a bound
+        assert 0.2 * ef <= rf.error_estimate <= 5 * ef
+
+
+def test_auto_corrects_the_frames_past_max_error(entry, hard_sequence):
+    tool, seq = hard_sequence
+    support = _support(entry, tool)
+    net = _errors(entry, Session(entry.network, SessionConfig(support=support)), seq)
+    threshold = float(np.median([r.error_estimate for r, _ in net]))
+    auto = Session(entry.network, SessionConfig(method="auto", max_error=threshold, support=support), corrector=entry.fem)
+    done = _errors(entry, auto, seq)
+    used = [r.method_used for r, _ in done]
+    assert "fem" in used
+    for (r, e), (rn, en) in zip(done, net):
+        if r.method_used == "fem":
+            assert "correction" in r.timing_ms
+            assert e < 0.5 * en  # the physics' frame is the better one
+        assert r.method_used == "fem" or r.error_estimate <= threshold
+    assert auto.config.method == "auto" and auto.config.max_error == threshold
+
+
+@pytest.mark.parametrize(
+    "config, corrector, message",
+    [
+        (SessionConfig(method="auto"), "fem", "needs max_error"),
+        (SessionConfig(method="auto", max_error=1e-3), None, "needs the FEM"),
+        (SessionConfig(max_error=1e-3), None, "applies to method 'auto' only"),
+        (SessionConfig(method="newton"), None, "unknown method"),
+    ],
+)
+def test_auto_is_refused_without_what_it_needs(entry, config, corrector, message):
+    with pytest.raises(ValueError, match=message):
+        Session(entry.network, config, corrector=entry.fem if corrector else None)
