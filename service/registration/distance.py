@@ -31,10 +31,11 @@ from typing import Literal
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .settings import Loss
+
 log = logging.getLogger(__name__)
 
 Array = np.ndarray
-Loss = Literal["squared", "huber", "trimmed"]
 Backend = Literal["auto", "numba", "numpy"]
 
 #: A triangle is thin when det G <= _THIN (tr G)^2, G = [[ab.ab, ab.ac], [ab.ac, ac.ac]] its Gram
