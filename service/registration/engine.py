@@ -31,7 +31,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 from .distance import PointToSurface
-from .forward import ForwardFailed, ForwardOperator
+from ..forward import ForwardFailed, ForwardOperator
 from .levenberg import GaussNewtonModel, prepare
 from .precondition import Curvature, gauss_newton
 from .settings import DEFAULT_ALPHA, DEFAULT_GTOL, NAMES, OPTIMIZERS, Optimizer, SessionConfig

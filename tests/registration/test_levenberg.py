@@ -11,7 +11,7 @@ import service.registration.engine as engine
 import service.registration.levenberg as lev
 from service.registration.distance import PointToSurface
 from service.registration.engine import SolveOptions, solve_frame
-from service.registration.forward import ForwardFailed
+from service.forward import ForwardFailed
 from service.registration.levenberg import GaussNewtonModel, weighted_rows
 from service.registration.session import Session, SessionConfig
 
