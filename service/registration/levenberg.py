@@ -29,7 +29,7 @@ import functools
 import numpy as np
 from scipy.linalg.lapack import dgesv
 
-from ..jit import compiled
+from ..jit import kernels
 from .distance import Match
 from .precondition import residual_rows
 
@@ -81,7 +81,8 @@ def weighted_rows(U: Array, match: Match, faces: Array) -> Array:
     """sqrt(w_j) N_j for every point (see the module docstring), U's dtype. Shape: U (3p, r) ->
     (m, r). One compiled pass where numba imports (about 75 us on the beam's 500 points, against
     about 350 us for the same in NumPy calls), else NumPy."""
-    kernel = _rows_kernel()
+    K = _compiled()
+    kernel = None if K is None else K._rows_loop
     m, r = match.face.size, U.shape[1]
     if kernel is not None:
         out = np.empty((m, r), U.dtype)
@@ -141,7 +142,7 @@ def _rows_loop(U, x, faces, face, W, r, weight, out):
             )
 
 
-_rows_kernel = compiled(_rows_loop)  # the loop compiled (numba), or None
+_compiled = kernels(_rows_loop)  # the loop compiled (numba), or None
 
 
 @functools.cache
