@@ -9,7 +9,8 @@
    the median of (round trip - the server's own solve time) over paired frames, which is the
    overhead free of solve-time noise, and median round trip - median in-process time.
 2. Throughput: 1, 4 and 16 concurrent WebSocket streams (MessagePack) replaying frames:
-   frames per second over all streams and latency percentiles (clients/loadtest.py).
+   frames per second over all streams and latency percentiles (clients/loadtest.py,
+   its frames from service/loadtest.py).
 3. Memory: the server's RSS after warm-up, every 2,000 of 10,000 frames, and every 200 of 1,000
    sessions opened and dropped (half HTTP, closed with DELETE; half WebSocket, the socket dropped).
 
@@ -36,7 +37,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from clients.client import AsyncClient, Client  # noqa: E402
-from clients.loadtest import make_frames, run_load  # noqa: E402
+from clients.loadtest import run_load  # noqa: E402
+from service.loadtest import make_frames  # noqa: E402
 
 
 def free_port() -> int:

@@ -1,5 +1,6 @@
-"""Clients of the elastreg API: :mod:`.client` (sync and async, HTTP and WebSocket), the demo
-(:mod:`.demo`, ``elastreg demo``) and a local load test (:mod:`.loadtest`)."""
+"""Clients of the elastreg API: :mod:`.client` (sync and async, HTTP and WebSocket), the client
+side of ``elastreg demo`` (:mod:`.demo`) and a local load test (:mod:`.loadtest`). Nothing here
+imports the service: a client needs only this package."""
 
 from .client import (
     ApiError,

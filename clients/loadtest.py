@@ -1,6 +1,8 @@
 """A local load test: N concurrent WebSocket streams replay frames for T seconds.
 
-    python -m clients.loadtest --url http://127.0.0.1:8000 --model phantom --streams 4 --seconds 10
+    python -m service.loadtest --url http://127.0.0.1:8000 --model phantom --streams 4 --seconds 10
+
+(``service/loadtest.py`` makes the frames from the served model's mesh and runs :func:`run_load`.)
 
 Each stream keeps one frame in flight (send, wait for the result, send the next), as an AR
 display does; the report gives frames per second over all streams, latency percentiles (client
@@ -11,11 +13,9 @@ loading someone else's server).
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import dataclasses
 import ipaddress
-import sys
 import time
 from urllib.parse import urlsplit
 
@@ -81,40 +81,16 @@ class LoadReport:
                 f"(server solve p50 {d['solve_p50_ms']} ms); errors {d['errors']}")
 
 
-async def make_frames(api: AsyncClient, model: str, *, n_frames: int = 8, n_points: int = 1000,
-                      seed: int = 0) -> tuple[list[np.ndarray], np.ndarray]:
-    """Clouds to replay, and the support to register them with: the network's displacement
-    under a growing pull on a patch (``/simulate``), sampled on the deformed surface."""
-    from service.mesh import TetMesh
-    from service.synthetic import sample_surface
-
-    from .demo import PEAK_FRACTION, _patches
-
-    m = await api.mesh(model)
-    summary = await api.model(model)
-    mesh = TetMesh(m["nodes"], m["tets"], m["fixed_nodes"])
-    tool, support = _patches(mesh, m["region_nodes"])
-    peak = PEAK_FRACTION * float(summary["training"].get("load_distribution", {}).get("max_force", 1.0))
-    normal = mesh.vertex_normals[tool].sum(axis=0)
-    normal /= np.linalg.norm(normal)
-    rng = np.random.default_rng(seed)
-    clouds = []
-    for t in range(n_frames):
-        g = np.tile(normal * peak * (t + 1) / n_frames / tool.size, (tool.size, 1))
-        u = (await api.simulate(model, tool, g, method="network"))["displacement"]
-        pts, _, _ = sample_surface(mesh.nodes + u, mesh.surface_faces, n_points, rng)
-        clouds.append(pts)
-    return clouds, support
-
-
-async def run_load(url: str, model: str = "phantom", *, streams: int = 4, seconds: float = 10.0,
-                   encoding: str = "msgpack", method: str = "network", frames: list[np.ndarray] | None = None,
-                   support: np.ndarray | None = None, n_points: int = 1000, warmup: int = 1) -> LoadReport:
-    """Run the load test (bounded: see :func:`check_target`) and return its report."""
+async def run_load(url: str, model: str = "phantom", *, frames: list[np.ndarray], support: np.ndarray | None = None,
+                   streams: int = 4, seconds: float = 10.0, encoding: str = "msgpack", method: str = "network",
+                   warmup: int = 1) -> LoadReport:
+    """Replay `frames` (clouds, (m, 3) each) over `streams` streams for `seconds`, bounded (see
+    :func:`check_target`), and return the report. ``service/loadtest.py`` makes frames for a
+    served model and runs this from the command line."""
+    if not frames:
+        raise ValueError("the load test needs frames to replay")
     check_target(url, streams, seconds)
     async with AsyncClient(url, encoding=encoding) as api:
-        if frames is None:
-            frames, support = await make_frames(api, model, n_points=n_points)
         config = {"method": method}
         if support is not None:
             config["support"] = support
@@ -154,28 +130,3 @@ async def run_load(url: str, model: str = "phantom", *, streams: int = 4, second
         solve_ms=np.concatenate([np.asarray(x) for x in solve]),
         per_stream=[len(x) for x in latency],
     )
-
-
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m clients.loadtest", description=__doc__.split("\n\n")[0])
-    p.add_argument("--url", default="http://127.0.0.1:8000", help="a loopback server (default %(default)s)")
-    p.add_argument("--model", default="phantom")
-    p.add_argument("--streams", type=int, default=4, help=f"concurrent streams (1..{MAX_STREAMS})")
-    p.add_argument("--seconds", type=float, default=10.0, help=f"duration (at most {MAX_SECONDS:g})")
-    p.add_argument("--encoding", choices=["msgpack", "json"], default="msgpack")
-    p.add_argument("--method", choices=["network", "fem"], default="network")
-    p.add_argument("--points", type=int, default=1000, help="points per frame")
-    args = p.parse_args(argv)
-    try:
-        check_target(args.url, args.streams, args.seconds)
-    except ValueError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    report = asyncio.run(run_load(args.url, args.model, streams=args.streams, seconds=args.seconds,
-                                  encoding=args.encoding, method=args.method, n_points=args.points))
-    print(report.text())
-    return 0 if report.errors == 0 else 1
-
-
-if __name__ == "__main__":
-    sys.exit(main())

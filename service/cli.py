@@ -24,8 +24,8 @@ def _at_least_one(text: str) -> int:
 
 def _train(args: argparse.Namespace) -> int:
     from .scene import resolve_scene
-    from .store import default_store
-    from .surrogate.build import build
+    from .config import default_store
+    from .build import build
     from .surrogate.train import TrainConfig
 
     try:  # the config first: a bad combination of flags fails before the scene and any data
@@ -71,7 +71,7 @@ def _serve(args: argparse.Namespace) -> int:
 
 
 def _demo(args: argparse.Namespace) -> int:
-    from clients.demo import run
+    from .demo import run
 
     return run(model=args.model, frames=args.frames, method=args.method, encoding=args.encoding, store=args.store)
 

@@ -43,10 +43,10 @@ def limit_threads(n: int) -> None:
     torch.set_num_threads(n)
 
 
-def _default_store() -> Path:
-    from .store import default_store  # the store module loads torch: only when needed
-
-    return default_store()
+def default_store() -> Path:
+    """ELASTREG_STORE, else the project's own model_store/ beside the package."""
+    env = os.environ.get("ELASTREG_STORE")
+    return Path(env) if env else Path(__file__).resolve().parents[1] / "model_store"
 
 
 def _instance_id() -> str:
@@ -59,7 +59,7 @@ class Settings(BaseSettings):
 
     model_config = SettingsConfigDict(env_prefix="ELASTREG_", extra="ignore", frozen=True)
 
-    store: Path = Field(default_factory=_default_store, description="the model store folder")
+    store: Path = Field(default_factory=default_store, description="the model store folder")
     max_points: int = Field(100_000, ge=1, le=10_000_000, description="points per frame (413 over it)")
     max_sessions: int = Field(64, ge=1, le=100_000, description="open sessions and streams (503 over it)")
     session_ttl_s: float = Field(600.0, gt=0, le=7 * 24 * 3600, description="idle seconds before a session expires")

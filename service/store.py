@@ -47,12 +47,6 @@ class StoreError(RuntimeError):
     """An entry that cannot be used, and why."""
 
 
-def default_store() -> Path:
-    """ELASTREG_STORE, else the project's own model_store/ beside the package."""
-    env = os.environ.get("ELASTREG_STORE")
-    return Path(env) if env else Path(__file__).resolve().parents[1] / "model_store"
-
-
 def sha256(path: Path) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as f:

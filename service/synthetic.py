@@ -16,7 +16,7 @@ import numpy as np
 from .fem.material import NeoHookean
 from .fem.model import FEMModel
 from .mesh import TetMesh
-from .registration.forward import ForwardFailed
+from .forward import ForwardFailed
 
 Array = np.ndarray
 

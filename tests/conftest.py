@@ -71,7 +71,7 @@ def write_bar_scene(folder: Path, bar: TetMesh, name: str = "bar", samples: int 
 def bar_store(tmp_path_factory, bar):
     """A model store with one small trained entry ("bar"), built by the real trainer."""
     from service.scene import load_scene
-    from service.surrogate.build import build
+    from service.build import build
     from service.surrogate.train import TrainConfig
 
     root = tmp_path_factory.mktemp("bar_store")

@@ -13,7 +13,9 @@ large displacement field does not pass through pydantic.
 
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal
+import dataclasses
+import types
+from typing import Annotated, Any, Literal, Union, get_args, get_origin, get_type_hints
 
 import numpy as np
 from pydantic import (
@@ -23,16 +25,22 @@ from pydantic import (
     PlainValidator,
     ValidationError,
     WithJsonSchema,
+    create_model,
     field_validator,
     model_validator,
 )
 
-Method = Literal["network", "fem"]  # a forward model
-SessionMethod = Literal["network", "fem", "auto"]  # auto: the network, corrected by the FEM past max_error
-OutputName = Literal["displacement", "surface_displacement", "forces", "stress"]
-Loss = Literal["squared", "huber", "trimmed"]
-Optimizer = Literal["lbfgsb", "levenberg-marquardt"]
-OUTPUT_NAMES = ("displacement", "surface_displacement", "forces", "stress")
+from ..registration.settings import (
+    OUTPUT_NAMES,  # noqa: F401 (the API's name for them)
+    SETTINGS,
+    FaceList,
+    ForwardMethod,
+    NodeList,
+    OutputName,
+    Outputs,
+    SessionConfig,
+)
+
 INT64 = 2**63 - 1
 
 
@@ -145,55 +153,44 @@ class _Request(BaseModel):
 # -- requests ------------------------------------------------------------------------------------
 
 
-class SessionSettings(_Request):
-    """A stream's settings; unset ones take the engine's defaults (echoed back when it opens)."""
+def _request_field(f: dataclasses.Field, hint: Any) -> tuple[Any, Any]:
+    """A setting as a request field: its API type, nullable for numbers and switches (null: the
+    default), its bounds and documentation from the setting."""
+    meta = f.metadata
+    base = _API_TYPES.get(_strip_none(hint), hint)
+    choice = get_origin(base) is Literal or base is _API_TYPES[Outputs]
+    kind = base if choice else base | None
+    kw = dict(meta["bounds"], description=meta["doc"])
+    if f.name == "outputs":
+        return kind, Field(default_factory=lambda: list(f.default), **kw)
+    return kind, Field(f.default, **kw)
 
-    method: SessionMethod = Field(
-        "network", description="forward model: the trained network, the FEM (Newton adjoint), or auto: the network, "
-        "with a frame whose error_estimate exceeds max_error registered again by the FEM (method_used says which)",
-    )
-    max_error: Finite | None = Field(
-        None, gt=0, le=1, description="auto only: the error estimate (m) past which the FEM corrects a frame"
-    )
-    support: NodeIds | None = Field(
-        None, description="node ids where forces may act (default: the model's load region)"
-    )
-    alpha: Finite | None = Field(
-        None, gt=0, description="regularisation weight on |g|^2 (default: 1e-7 at the model's E, x (E_model / E)^2 at another E)"
-    )
-    gtol: Finite | None = Field(None, gt=0, le=1, description="relative tolerance on the projected gradient (default: 3e-4 for the network, 1e-4 for the FEM)")
-    max_iter: int | None = Field(None, ge=1, le=10_000, description="L-BFGS-B iterations per frame")
-    force_bound: Finite | None = Field(None, gt=0, description="bound on each force component, N (none by default)")
-    time_budget_ms: Finite | None = Field(
-        None, gt=0, le=3_600_000, description="per frame: past it the frame returns its best iterate with status time_limit"
-    )
-    noise: Finite | None = Field(
-        None, gt=0, le=1, description="per-axis noise of the clouds, m: alpha then follows the forces' MAP estimate "
-        "frame by frame, sigma^2 / (points x mean force^2), from its default up to 100x it (each frame's result "
-        "says its alpha); not with alpha; squared loss",
-    )
-    matching: Triangles | None = Field(
-        None, description="triangles the points may lie on (default: the whole boundary)"
-    )
-    outputs: list[OutputName] = Field(
-        default_factory=lambda: ["displacement", "forces"], max_length=4, description="fields each frame result carries"
-    )
-    warm_start: bool = Field(True, description="start each frame from the previous frame's forces")
-    E: Finite | None = Field(None, gt=0, description="Young's modulus for this session, Pa (default: the model's)")
-    loss: Loss = Field("squared", description="point-to-surface loss")
-    loss_param: Finite | None = Field(None, gt=0, description="huber: threshold (length); trimmed: fraction ignored")
-    carry_curvature: bool | None = Field(
-        None, description="precondition each frame with the curvature the previous frames measured (unbounded solves)"
-    )
-    precondition: bool | None = Field(
-        None, description="Gauss-Newton preconditioning from the rest Jacobian for frames that start cold "
-        "(whole-surface clouds; off by default)",
-    )
-    optimizer: Optimizer = Field(
-        "lbfgsb", description="lbfgsb (the default, the paper's), or levenberg-marquardt: Gauss-Newton steps "
-        "through the model's Jacobian, fewer evaluations (whole-surface cold starts with the network; the fem "
-        "method on supports up to 500 nodes, 3 solves a node a step); no force_bound",
-    )
+
+def _reply_field(f: dataclasses.Field, hint: Any) -> Any:
+    """A setting as the echo gives it: its effective value (per-model defaults filled in)."""
+    base = _strip_none(hint) if f.metadata["per_model"] else hint
+    return _REPLY_TYPES.get(base, base)
+
+
+def _strip_none(hint: Any) -> Any:
+    args = [a for a in get_args(hint) if a is not type(None)]
+    return args[0] if get_origin(hint) in (Union, types.UnionType) and len(args) == 1 else hint
+
+
+_HINTS = get_type_hints(SessionConfig)
+_API_TYPES = {float: Finite, NodeList: NodeIds, FaceList: Triangles, Outputs: list[OutputName]}
+
+_SessionSettingsBase = create_model(
+    "_SessionSettingsBase",
+    __base__=_Request,
+    **{f.name: _request_field(f, _HINTS[f.name]) for f in SETTINGS},
+)
+
+
+class SessionSettings(_SessionSettingsBase):
+    """A stream's settings (service/registration/settings.py); unset ones take the engine's
+    defaults (echoed back when it opens)."""
+
     skip_stale: bool = Field(
         False,
         description="WebSocket only: when frames queue up behind a solve, solve only the newest and say how "
@@ -243,7 +240,7 @@ class SimulateIn(_Request):
     """The forward problem: displacement under given nodal forces."""
 
     forces: ForcesIn
-    method: Method = "network"
+    method: ForwardMethod = "network"
     E: Finite | None = Field(None, gt=0, description="Young's modulus, Pa (default: the model's)")
 
 
@@ -321,7 +318,7 @@ class ModelSummary(_Reply):
     n_tets: int
     n_surface_nodes: int
     material: Material
-    methods: list[Method]
+    methods: list[ForwardMethod]
     training: dict[str, Any]
     network: dict[str, Any] = {}
     mesh_renumbered: bool = False
@@ -339,7 +336,7 @@ class MeshOut(_Reply):
 class SimulateOut(_Reply):
     displacement: list[Vec3]
     net_force: Vec3
-    method: Method
+    method: ForwardMethod
     converged: bool
     status: str
     iterations: int
@@ -347,27 +344,16 @@ class SimulateOut(_Reply):
     timing_ms: dict[str, float]
 
 
-class SessionConfigOut(_Reply):
-    model: str
-    method: SessionMethod
-    max_error: float | None
-    support: list[int]
-    alpha: float
-    gtol: float
-    max_iter: int
-    force_bound: float | None
-    time_budget_ms: float | None
-    matching: list[Tri]
-    outputs: list[OutputName]
-    warm_start: bool
-    E: float
-    loss: Loss
-    loss_param: float | None
-    carry_curvature: bool
-    precondition: bool
-    noise: float | None
-    optimizer: Optimizer
-    skip_stale: bool
+_REPLY_TYPES = {NodeList: list[int], FaceList: list[Tri], Outputs: list[OutputName]}
+
+SessionConfigOut = create_model(
+    "SessionConfigOut",
+    __base__=_Reply,
+    __doc__="The effective settings of a session (every default filled in).",
+    model=(str, ...),
+    **{f.name: (_reply_field(f, _HINTS[f.name]), ...) for f in SETTINGS},
+    skip_stale=(bool, ...),
+)
 
 
 class SessionOpened(_Reply):
@@ -410,7 +396,7 @@ class FrameResult(_Reply):
         None, description="estimated mean nodal error of the displacement, m, without ground truth: the "
         "forward model's residual error plus the misfit the declared noise does not explain (null: none could be made)",
     )
-    method_used: Literal["network", "fem"] | None = Field(None, description="the forward model that produced this frame")
+    method_used: ForwardMethod | None = Field(None, description="the forward model that produced this frame")
     displacement: list[Vec3] | None = None
     surface_displacement: list[Vec3] | None = Field(None, description="in the order of the mesh's surface_nodes")
     forces: list[Vec3] | None = Field(None, description="(k, 3) aligned with `support`")

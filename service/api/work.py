@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from ..registration.settings import NAMES
 from . import codec
 from .errors import ApiError, unprocessable
 from .schemas import FrameIn, SessionCreate, SimulateIn
@@ -27,7 +28,8 @@ from .sessions import Held, Reservation, SessionRegistry
 
 log = logging.getLogger(__name__)
 
-_FIELDS = ("method", "alpha", "gtol", "max_iter", "force_bound", "time_budget_ms", "warm_start", "E", "loss", "loss_param", "carry_curvature", "precondition", "noise", "optimizer", "max_error")
+#: the settings handed over as they are (support, matching and outputs change form on the way)
+_FIELDS = tuple(n for n in NAMES if n not in ("support", "matching", "outputs"))
 
 
 def _ms(t0: float) -> float:

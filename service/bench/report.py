@@ -98,7 +98,7 @@ def _smoke_case(entry):
 
 def main(args: argparse.Namespace) -> int:
     from ..config import Settings, limit_threads
-    from ..store import default_store
+    from ..config import default_store
     from . import machine
 
     blas_threads = Settings().blas_threads

@@ -15,6 +15,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..mesh import TetMesh
+from .kernels import compiled as _kernels
 from .material import NeoHookean, det3, inv_transpose
 
 Array = np.ndarray
@@ -54,15 +55,6 @@ def generic_element_stiffness(A: Array, grads: Array, vol: Array) -> Array:
     """K_e[t,a,i,b,k] = vol sum_JL A[t,i,J,k,L] gN[t,a,J] gN[t,b,L] for any law's tangent A."""
     tmp = np.einsum("tiJkL,tbL->tiJbk", A, grads)
     return np.einsum("taJ,tiJbk->taibk", grads, tmp) * vol[:, None, None, None, None]
-
-
-def _kernels():
-    """The compiled kernels, or None where numba is missing (the NumPy path then runs)."""
-    try:
-        from . import kernels
-    except ImportError:  # pragma: no cover - numba is a dependency; this keeps a fallback
-        return None
-    return kernels
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

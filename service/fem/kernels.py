@@ -3,19 +3,19 @@
 The NumPy assembly in :mod:`.assembly` is the reference; these compute the same numbers in one
 loop per tet that never materialises the (t, 144) element-matrix array, which is what makes the
 vectorised version memory-bound (about 22 ms for the liver's tangent against about 3 ms here).
-Tests check both paths agree. Importing this module compiles nothing: numba compiles on the
-first call and caches the machine code on disk.
+Tests check both paths agree. Plain functions, compiled by :func:`service.jit.kernels` (numba
+on first use, machine code cached on disk): ``compiled()`` gives them, or None without numba.
 """
 
 from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 
+from ..jit import kernels
 
-@numba.njit(cache=True, fastmath=False)
+
 def _deformation(u, tets, grads, t, F):
     for i in range(3):
         for J in range(3):
@@ -28,7 +28,6 @@ def _deformation(u, tets, grads, t, F):
                 F[i, J] += ui * grads[t, a, J]
 
 
-@numba.njit(cache=True, fastmath=False)
 def _inv_transpose(F, G):
     """G = F^-T; returns det F."""
     c00 = F[1, 1] * F[2, 2] - F[1, 2] * F[2, 1]
@@ -48,7 +47,6 @@ def _inv_transpose(F, G):
     return det
 
 
-@numba.njit(cache=True)
 def energy(u, tets, grads, vol, mu, lam):
     """sum_e vol_e W(F_e); +inf if any det F <= 0."""
     F = np.empty((3, 3))
@@ -71,7 +69,6 @@ def energy(u, tets, grads, vol, mu, lam):
     return total
 
 
-@numba.njit(cache=True)
 def internal_force(u, tets, grads, vol, mu, lam, out):
     """out (n, 3) = dE/du. NaN-free only where det F > 0 (callers check the energy first)."""
     out[:] = 0.0
@@ -91,7 +88,6 @@ def internal_force(u, tets, grads, vol, mu, lam, out):
                 out[n, i] += vol[t] * acc
 
 
-@numba.njit(cache=True)
 def tangent_data(u, tets, grads, vol, mu, lam, slot, data):
     """Tangent values into a CSR data array: data[slot[e]] += K_e for every element entry e.
 
@@ -126,3 +122,6 @@ def tangent_data(u, tets, grads, vol, mu, lam, slot, data):
                             if i == k:
                                 val += gab
                             data[s] += val
+
+
+compiled = kernels(energy, internal_force, tangent_data, helpers=(_deformation, _inv_transpose))

@@ -14,8 +14,7 @@ from functools import cached_property
 import numpy as np
 
 from ..mesh import TetMesh
-from ..registration.forward import ForwardFailed, check_support
-from ..registration.levenberg import DenseJacobian
+from ..forward import ForwardFailed, check_support
 from .assembly import Assembler
 from .linsolve import make_solver
 from .material import NeoHookean
@@ -248,3 +247,21 @@ def _refined_solve(K, approx_solve, b: Array, rtol: float = 1e-10, max_steps: in
             break
         x = x + approx_solve(r)
     return x
+
+
+class DenseJacobian:
+    """du/dg as it is: U (3p, K) node-major over the operator's nodes, C the identity (the
+    FEM's Jacobian, K = 3 x support nodes, float64)."""
+
+    def __init__(self, U: Array) -> None:
+        self.U = np.ascontiguousarray(U, np.float64)
+
+    def gram_product(self, A: Array) -> Array:
+        """C C^T A = A, Fortran-ordered (A symmetric): no product with the identity."""
+        return A.T
+
+    def matvec(self, v: Array) -> Array:
+        return np.asarray(v, np.float64).ravel()
+
+    def rmatvec(self, w: Array) -> Array:
+        return np.asarray(w, np.float64).ravel()

@@ -31,9 +31,10 @@ import numpy as np
 from scipy.optimize import minimize
 
 from .distance import PointToSurface
-from .forward import ForwardFailed, ForwardOperator
+from ..forward import ForwardFailed, ForwardOperator
 from .levenberg import GaussNewtonModel, prepare
 from .precondition import Curvature, gauss_newton
+from .settings import DEFAULT_ALPHA, DEFAULT_GTOL, NAMES, OPTIMIZERS, Optimizer, SessionConfig
 
 log = logging.getLogger(__name__)
 
@@ -42,8 +43,11 @@ Array = np.ndarray
 
 @dataclasses.dataclass(frozen=True)
 class SolveOptions:
-    alpha: float = 1e-7  # regularisation weight on |g|^2 (m^2 / N^2, with J in m^2)
-    gtol: float = 1e-4
+    """How one frame is solved. A session's settings of the same name pass through
+    (:meth:`of`); the rest are the engine's own."""
+
+    alpha: float = DEFAULT_ALPHA  # regularisation weight on |g|^2 (m^2 / N^2, with J in m^2)
+    gtol: float = DEFAULT_GTOL["fem"]
     max_iter: int = 100
     force_bound: float | None = None  # |g_i| <= bound per component, newtons
     force_scale: float = 0.1  # N: the optimiser's unit when the model gives no Jacobian
@@ -54,14 +58,20 @@ class SolveOptions:
     max_failures: int = 4  # forward failures at trial points before the frame gives up
     time_budget: float | None = None  # seconds: past it the frame returns its best iterate
     # (status time_limit); a display wants a frame in time more than a last digit
-    optimizer: str = "lbfgsb"  # or "levenberg-marquardt" (levenberg.py): no bounds, and a
-    # model with a Jacobian (the reduced network); for whole-surface cold starts
+    optimizer: Optimizer = SessionConfig.optimizer  # or "levenberg-marquardt" (levenberg.py): no
+    # bounds, and a model with a Jacobian (the reduced network); for whole-surface cold starts
     damping: float = 0.1  # Levenberg-Marquardt's first damping, in units of the mean curvature
     # the model sees (the beam: 0.1 lands every case at the L-BFGS-B error; 0.01 lands some in
     # a wrong basin from rest, 0.22 against 0.11 mm mean TRE)
 
+    @classmethod
+    def of(cls, config: SessionConfig) -> SolveOptions:
+        """The options a session's settings give (per-model defaults already filled in)."""
+        given = {f.name: getattr(config, f.name) for f in dataclasses.fields(cls) if f.name in NAMES}
+        budget = config.time_budget_ms
+        return cls(**given, time_budget=None if budget is None else 1e-3 * budget)
 
-OPTIMIZERS = ("lbfgsb", "levenberg-marquardt")
+
 _BOUNDED = "levenberg-marquardt takes no force bounds: use optimizer 'lbfgsb'"
 _NO_JACOBIAN = "levenberg-marquardt needs a forward model with a Jacobian: the fem method, or the network method with a reduced surrogate (a Jacobian in its basis); use optimizer 'lbfgsb'"
 

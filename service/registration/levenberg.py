@@ -11,7 +11,7 @@ with n_j the unit vector from point j to its closest point (its face's normal wh
 lies on the surface) and b_jv its barycentric weights. A damped step (H + mu I) d = -grad
 needs no K x K algebra: with z = C d, (lam I + C C^T A) z = C v and d = (v - C^T A z) / lam,
 lam = alpha + mu, v = -grad, an r x r solve (the beam: K = 939 forces, r = 64). The FEM
-gives du/dg itself (:class:`DenseJacobian`: U = du/dg, C = I, r = K), which pays where the
+gives du/dg itself (``DenseJacobian`` in ``fem/model.py``: U = du/dg, C = I, r = K), which pays where the
 support is small (the paper's liver: 60 nodes, 180 solves with the Newton factorisation).
 
 Why this, not L-BFGS-B, for whole-surface cold starts: L-BFGS-B learns the curvature from
@@ -29,7 +29,7 @@ import functools
 import numpy as np
 from scipy.linalg.lapack import dgesv
 
-from ..jit import compiled
+from ..jit import kernels
 from .distance import Match
 from .precondition import residual_rows
 
@@ -77,29 +77,12 @@ class GaussNewtonModel:
         return 0.5 * float(d @ (mu * d + self.v))
 
 
-class DenseJacobian:
-    """du/dg as it is: U (3p, K) node-major over the operator's nodes, C the identity (the
-    FEM's Jacobian, K = 3 x support nodes, float64)."""
-
-    def __init__(self, U: Array) -> None:
-        self.U = np.ascontiguousarray(U, np.float64)
-
-    def gram_product(self, A: Array) -> Array:
-        """C C^T A = A, Fortran-ordered (A symmetric): no product with the identity."""
-        return A.T
-
-    def matvec(self, v: Array) -> Array:
-        return np.asarray(v, np.float64).ravel()
-
-    def rmatvec(self, w: Array) -> Array:
-        return np.asarray(w, np.float64).ravel()
-
-
 def weighted_rows(U: Array, match: Match, faces: Array) -> Array:
     """sqrt(w_j) N_j for every point (see the module docstring), U's dtype. Shape: U (3p, r) ->
     (m, r). One compiled pass where numba imports (about 75 us on the beam's 500 points, against
     about 350 us for the same in NumPy calls), else NumPy."""
-    kernel = _rows_kernel()
+    K = _compiled()
+    kernel = None if K is None else K._rows_loop
     m, r = match.face.size, U.shape[1]
     if kernel is not None:
         out = np.empty((m, r), U.dtype)
@@ -159,7 +142,7 @@ def _rows_loop(U, x, faces, face, W, r, weight, out):
             )
 
 
-_rows_kernel = compiled(_rows_loop)  # the loop compiled (numba), or None
+_compiled = kernels(_rows_loop)  # the loop compiled (numba), or None
 
 
 @functools.cache

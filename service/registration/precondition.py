@@ -27,7 +27,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 from scipy.linalg.blas import dger, dtrsv
 
-from ..jit import compiled
+from ..jit import kernels
 
 Array = np.ndarray
 
@@ -42,7 +42,8 @@ def residual_rows(U: Array, faces: Array, bary: Array, normals: Array) -> Array:
     260 us for a sparse product, whose construction dominates), else that product.
     """
     m = len(faces)
-    kernel = _rows_kernel()
+    K = _compiled()
+    kernel = None if K is None else K._rows_loop
     if kernel is not None:
         out = np.empty((m, U.shape[1]), U.dtype)
         kernel(np.ascontiguousarray(U), np.ascontiguousarray(faces, np.intp),
@@ -68,7 +69,7 @@ def _rows_loop(U, faces, bary, normals, out):
                     out[j, k] += c * U[row, k]
 
 
-_rows_kernel = compiled(_rows_loop)  # the loop compiled (numba), or None
+_compiled = kernels(_rows_loop)  # the loop compiled (numba), or None
 
 
 class _Whitened:

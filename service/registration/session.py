@@ -31,56 +31,14 @@ from ..mesh import TetMesh
 from .confidence import error_estimate, estimator_for
 from .distance import PointToSurface
 from .engine import SolveOptions, check_optimizer, solve_frame
-from .forward import ForwardFailed, ForwardModel, ForwardOperator, check_support
+from ..forward import ForwardFailed, ForwardModel, ForwardOperator, check_support
 from .noise_prior import AlphaTracker
 from .precondition import Curvature
+from .settings import DEFAULT_ALPHA, DEFAULT_GTOL, METHODS, OUTPUT_NAMES, SessionConfig
 
 Array = np.ndarray
 
-OUTPUTS = ("displacement", "surface_displacement", "forces", "stress")
-
-#: the relative gradient tolerance per method, read off the error-against-time chart on the
-#: paper's liver (docs/performance.md): at 3e-4 the network meets 20 ms per frame on the slowest
-#: machine measured (Zen 3: 18.6 ms, TRE 0.095 mm, force error 2.2 %; 1e-4 buys 0.088 mm there for
-#: 30 ms); the Newton method needs 1e-4 for a force error under 1 % (0.63 % over the sequence,
-#: 0.33 s per frame on the Zen 5; on its first 6 frames 1e-3 gives 2.4 % and 1e-4 1.1 %)
-DEFAULT_GTOL = {"network": 3e-4, "fem": 1e-4}
-#: the regularisation weight (m^2 / N^2) at the model's own stiffness. A session at another E
-#: gets DEFAULT_ALPHA (E_model / E)^2: u(g; E) = u(g E_model / E; E_model) exactly, so this keeps
-#: the problem the same one in scaled forces (a fixed alpha at E x 10 with 10x loads penalised
-#: the forces 100x harder: 48 % force error and 0.56 mm on the liver, against 12 % and 0.12 mm)
-DEFAULT_ALPHA = 1e-7
 FAILED = ("forward_failed", "non_finite")
-METHODS = ("network", "fem", "auto")  # auto: the network, corrected by the FEM past max_error
-
-
-@dataclasses.dataclass(frozen=True)
-class SessionConfig:
-    """Every setting of a stream, defaults filled in (what the API echoes back)."""
-
-    method: str = "network"  # one of METHODS
-    support: tuple[int, ...] | None = None  # default: every node the model can load
-    alpha: float | None = None  # default: DEFAULT_ALPHA, scaled to the session's stiffness
-    gtol: float | None = None  # default: DEFAULT_GTOL of the method
-    max_iter: int = 200
-    force_bound: float | None = None
-    matching: tuple[tuple[int, int, int], ...] | None = None  # default: the whole boundary
-    outputs: tuple[str, ...] = ("displacement", "forces")
-    warm_start: bool = True
-    E: float | None = None
-    loss: str = "squared"  # squared | huber | trimmed
-    loss_param: float | None = None  # huber: delta (m); trimmed: fraction ignored
-    carry_curvature: bool = True  # precondition each frame with the curvature past frames measured
-    precondition: bool = False  # damped Gauss-Newton from the rest Jacobian where no carried
-    # curvature applies (cold starts): for whole-surface clouds (the beam); both methods
-    time_budget_ms: float | None = None  # per frame: past it, the best iterate (status time_limit)
-    noise: float | None = None  # per-axis noise of the clouds (m): alpha then follows the forces'
-    # MAP estimate with a prior the stream's frames estimate, from the default up (noise_prior.py)
-    optimizer: str = "lbfgsb"  # or "levenberg-marquardt": Gauss-Newton steps through the
-    # model's Jacobian (levenberg.py); no force bounds; the FEM (supports up to 500 nodes) or
-    # the reduced network
-    max_error: float | None = None  # auto: a frame whose error_estimate exceeds it (m) is
-    # registered again by the FEM, starting from the network's forces
 
 
 @dataclasses.dataclass
@@ -136,9 +94,9 @@ class Session:
             corrector = None if corrector is None else corrector.with_stiffness(config.E)
         self.corrector = corrector
         self._corrector_op: ForwardOperator | None = None
-        unknown = set(config.outputs) - set(OUTPUTS)
+        unknown = set(config.outputs) - set(OUTPUT_NAMES)
         if unknown:
-            raise ValueError(f"unknown outputs {sorted(unknown)}; choose from {list(OUTPUTS)}")
+            raise ValueError(f"unknown outputs {sorted(unknown)}; choose from {list(OUTPUT_NAMES)}")
         self.model = model
         self.mesh = model.mesh
         faces = self.mesh.surface_faces if config.matching is None else _check_faces(self.mesh, config.matching)
@@ -155,11 +113,7 @@ class Session:
             self.alpha_tracker = AlphaTracker(alpha, config.noise)  # starts at the default
         self.config = dataclasses.replace(config, E=float(model.material.E), gtol=gtol, alpha=alpha)
         self._noise = config.noise
-        self._options = SolveOptions(
-            alpha=alpha, gtol=gtol, max_iter=config.max_iter, force_bound=config.force_bound,
-            time_budget=None if config.time_budget_ms is None else 1e-3 * config.time_budget_ms,
-            precondition=config.precondition, optimizer=config.optimizer,
-        )
+        self._options = SolveOptions.of(self.config)
         self._rest = self.mesh.nodes[self.distance.nodes]
         self._lock = threading.Lock()
         self._set_support(support, None)

@@ -23,7 +23,7 @@ from scipy.linalg.blas import strmm
 
 from ..fem.material import NeoHookean
 from ..mesh import TetMesh
-from ..registration.forward import check_support
+from ..forward import check_support
 from .network import Ensemble, PaperSurrogate, ReducedSurrogate
 
 Array = np.ndarray

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from clients import ApiError, AsyncClient, Client, StreamError
-from clients.demo import run as demo
 from clients.loadtest import check_target, run_load
-from clients.loadtest import main as loadtest_main
+from service.demo import run as demo
+from service.loadtest import main as loadtest_main
 
 
 @pytest.mark.parametrize("encoding", ["msgpack", "json"])

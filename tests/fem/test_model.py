@@ -9,7 +9,7 @@ import torch
 from service.fem.material import NeoHookean
 from service.fem.model import FEMModel
 from service.fem.newton import NewtonOptions
-from service.registration.forward import ForwardFailed, torch_forward
+from service.forward import ForwardFailed, torch_forward
 
 
 @pytest.fixture(scope="module")

@@ -395,7 +395,7 @@ def test_probes_that_come_back_reuse_their_index(backend):
         assert J == pytest.approx(np.mean(brute_distance(faces, x_t, y) ** 2) / 2, rel=1e-12)
         if t == 0.0:
             assert J == J0 and np.array_equal(grad, g0)
-    assert len(S._indices) == 3
+    assert len(S.candidates._indices) == 3
 
     once = PointToSurface(faces, backend=backend, keep=1)  # one index: every return rebuilds
     once.bind(y)
@@ -698,7 +698,7 @@ def test_hinted_builds_give_the_same_lists():
     S = PointToSurface(faces, backend="numba")
     S.bind(cloud_near(x, faces, rng, 80))
     S(x)
-    h = S._spaces[0]
+    h = S.candidates._spaces[0]
     K = S._kernels
     moved = x + 0.02 * rng.normal(size=x.shape)
     K.refit(moved, S.faces, h.order, h.span, h.box, h.tri)

@@ -11,7 +11,7 @@ import service.registration.engine as engine
 import service.registration.levenberg as lev
 from service.registration.distance import PointToSurface
 from service.registration.engine import SolveOptions, solve_frame
-from service.registration.forward import ForwardFailed
+from service.forward import ForwardFailed
 from service.registration.levenberg import GaussNewtonModel, weighted_rows
 from service.registration.session import Session, SessionConfig
 
@@ -57,12 +57,12 @@ def test_rows_are_the_distance_derivatives(loaded):
     jac = op.jacobian(g)
     match = dist.last_match
     N = weighted_rows(jac.U, match, dist.faces).astype(np.float64)
-    kernel = lev._rows_kernel
+    compiled = lev._compiled
     try:
-        lev._rows_kernel = lambda: None
+        lev._compiled = lambda: None
         N_np = weighted_rows(jac.U, match, dist.faces).astype(np.float64)
     finally:
-        lev._rows_kernel = kernel
+        lev._compiled = compiled
     np.testing.assert_allclose(N, N_np, rtol=1e-5, atol=1e-6 * np.abs(N).max())
     c = np.random.default_rng(2).normal(size=jac.U.shape[1])
     dx = (jac.U.astype(np.float64) @ c).reshape(-1, 3)
@@ -223,9 +223,10 @@ def test_a_session_readies_the_compiled_rows_when_it_opens(entry, method):
     """Opening a Levenberg-Marquardt session compiles the rows kernel for the types its
     frames use, so a frame compiles nothing (a first frame used to pay 0.3 s to seconds inside
     its time budget)."""
-    kernel = lev._rows_kernel()
-    if kernel is None:
+    K = lev._compiled()
+    if K is None:
         pytest.skip("numba is not importable")
+    kernel = K._rows_loop
     _, support, _, pts, _ = tip_pull(entry)
     model = entry.network if method == "network" else entry.fem
     session = Session(model, SessionConfig(method=method, optimizer="levenberg-marquardt", support=tuple(support)))

@@ -102,7 +102,7 @@ def test_an_ensemble_trains_and_round_trips_through_the_store(bar_store, tmp_pat
     members learnt apart, and the NumPy operator (block-diagonal layers) is the torch ensemble."""
     import torch
 
-    from service.surrogate.build import build
+    from service.build import build
     from service.surrogate.network import Ensemble
     from service.surrogate.train import TrainConfig
 
@@ -156,7 +156,7 @@ def test_train_config_refuses_what_no_build_can_take(kwargs, message):
 def test_the_papers_layout_leaves_a_scenes_ensemble_out(bar_store, tmp_path):
     """The scene's members belong to the reduced layout (one POD basis); a paper-layout build
     of that scene trains its one network instead of failing after the data."""
-    from service.surrogate.build import build
+    from service.build import build
     from service.surrogate.train import TrainConfig
 
     root, scene = _bar_scene_with_members(bar_store, 2)

@@ -1,4 +1,4 @@
-"""``elastreg train``: a scene in, a verified model-store entry out.
+"""``elastreg train``: a scene in, a verified model-store entry out (above the store it writes).
 
 Data go to a folder keyed by a hash of everything that shapes them (mesh, material, load
 distribution), so a rerun resumes the same data set and a changed scene starts a new one.
@@ -17,12 +17,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..fem.assembly import Assembler
-from ..fem.material import NeoHookean
-from ..scene import Scene
-from ..store import write_entry
-from .data import LoadSpec, generate, load_dataset
-from .train import TrainConfig, train
+from .fem.assembly import Assembler
+from .fem.material import NeoHookean
+from .scene import Scene
+from .store import write_entry
+from .surrogate.data import LoadSpec, generate, load_dataset
+from .surrogate.train import TrainConfig, train
 
 log = logging.getLogger(__name__)
 

@@ -1,5 +1,8 @@
 """The one interface between the registration engine and a forward model (FEM or network).
 
+The bottom of the tree: the models (``fem/``, ``surrogate/``) implement these protocols and the
+engine (``registration/``) calls them, so neither side imports the other.
+
 A :class:`ForwardModel` is immutable and shared by every session of a model. For a session it
 makes a :class:`ForwardOperator` restricted to the session's support (the controls) and to the
 nodes the objective reads (the matching surface), so each evaluation computes only what the
@@ -19,6 +22,10 @@ An operator with slow solves (the FEM) may also have a settable ``deadline`` (a
 time budget, and a solve past it gives up with ``ForwardFailed("time_limit")``, so the budget
 holds inside a solve of seconds, not only between solves.
 :func:`torch_forward` wraps an operator as a torch autograd function.
+
+A model that can give du/dg at g (for Levenberg-Marquardt, ``registration/levenberg.py``) offers
+``op.jacobian(g)`` returning a :class:`Jacobian`: the FEM's ``DenseJacobian``
+(``fem/model.py``), the reduced network's ``CoefficientJacobian`` (``surrogate/model.py``).
 """
 
 from __future__ import annotations
@@ -27,8 +34,7 @@ from typing import Callable, Protocol
 
 import numpy as np
 
-from ..fem.material import NeoHookean
-from ..mesh import TetMesh
+from .mesh import TetMesh
 
 Array = np.ndarray
 Pullback = Callable[..., Array]  # (u_bar, rows=None) -> g_bar
@@ -41,6 +47,32 @@ class ForwardFailed(RuntimeError):
     def __init__(self, status: str, detail: str = "") -> None:
         super().__init__(f"{status}: {detail}" if detail else status)
         self.status = status
+
+
+class Material(Protocol):
+    """What the engine reads of a model's material (the FEM's ``NeoHookean``)."""
+
+    E: float  # Young's modulus, Pa
+    nu: float  # Poisson's ratio
+
+
+class Jacobian(Protocol):
+    """du/dg = U C at one g, in product form: U (3p, r) over the operator's nodes (node-major),
+    C (r, K) over the K = 3k force components; only C's products are formed.
+
+    A Jacobian may also offer ``gradient_image(alpha)``: C grad for the gradient the operator's
+    last evaluation gave at this g, or None (Levenberg-Marquardt's right-hand side, cheaply)."""
+
+    U: Array
+
+    def gram_product(self, A: Array) -> Array:
+        """C C^T A (r, r) for a symmetric A (r, r), Fortran-ordered as LAPACK takes it."""
+
+    def matvec(self, v: Array) -> Array:
+        """C v. Shape: (K,) -> (r,), float64."""
+
+    def rmatvec(self, w: Array) -> Array:
+        """C^T w. Shape: (r,) -> (K,), float64."""
 
 
 class ForwardOperator(Protocol):
@@ -60,7 +92,7 @@ class ForwardOperator(Protocol):
 class ForwardModel(Protocol):
     method: str  # "fem" or "network"
     mesh: TetMesh
-    material: NeoHookean
+    material: Material
 
     def with_stiffness(self, E: float) -> "ForwardModel":
         """The same model for another Young's modulus (a new object)."""
