@@ -22,10 +22,16 @@ def _at_least_one(text: str) -> int:
     return value
 
 
+def _positive(text: str) -> float:
+    value = float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {text!r}")
+    return value
+
+
 def _train(args: argparse.Namespace) -> int:
-    from .scene import resolve_scene
-    from .config import default_store
     from .build import build
+    from .scene import resolve_scene
     from .surrogate.train import TrainConfig
 
     try:  # the config first: a bad combination of flags fails before the scene and any data
@@ -43,7 +49,24 @@ def _train(args: argparse.Namespace) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     command = "elastreg " + " ".join(shlex.quote(a) for a in sys.argv[1:])
-    report = build(
+    try:
+        report = _build_from(build, scene, config, command, args)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    m = report.metrics
+    print(
+        f"{args.name or scene.name}: {report.samples} samples ({report.data_seconds:.0f} s of FEM), "
+        f"trained in {report.train_seconds:.0f} s; validation mean {m['mean_mm']:.3f} mm, "
+        f"p95 {m['p95_mm']:.3f} mm (u = 0: {m['zero_mean_mm']:.3f} mm) -> {report.entry}"
+    )
+    return 0
+
+
+def _build_from(build, scene, config, command: str, args: argparse.Namespace):
+    from .config import default_store
+
+    return build(
         scene,
         Path(args.store) if args.store else default_store(),
         samples=args.samples,
@@ -53,14 +76,8 @@ def _train(args: argparse.Namespace) -> int:
         config=config,
         command=command,
         name=args.name,
+        minutes=args.minutes,
     )
-    m = report.metrics
-    print(
-        f"{args.name or scene.name}: {report.samples} samples ({report.data_seconds:.0f} s of FEM), "
-        f"trained in {report.train_seconds:.0f} s; validation mean {m['mean_mm']:.3f} mm, "
-        f"p95 {m['p95_mm']:.3f} mm (u = 0: {m['zero_mean_mm']:.3f} mm) -> {report.entry}"
-    )
-    return 0
 
 
 def _serve(args: argparse.Namespace) -> int:
@@ -107,6 +124,8 @@ def parser() -> argparse.ArgumentParser:
     t.add_argument("--store", default=None, help="model store (default: $ELASTREG_STORE or the project's model_store/)")
     t.add_argument("--name", default=None, help="model id in the store (default: the scene's name)")
     t.add_argument("--samples", type=int, default=None, help="samples to generate (default: the scene's)")
+    t.add_argument("--minutes", type=_positive, default=None,
+                   help="bound the whole build's wall time: FEM data for 60 %% of it, training in the rest")
     t.add_argument("--workers", type=int, default=2, help="local Dask worker processes (one per core)")
     t.add_argument("--scheduler", default=None, help="address of an existing Dask scheduler for the data generation")
     t.add_argument("--data", default=None, help="data folder root (default: $ELASTREG_DATA or ~/.cache/elastreg/data)")

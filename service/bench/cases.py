@@ -67,6 +67,8 @@ class FrameRecord:
     converged: bool
     finite: bool  # no NaN or infinity anywhere in the result
     alpha: float | None = None  # the regularisation weight the frame ran with
+    error_estimate_mm: float | None = None  # the frame's own estimate of its error
+    method_used: str | None = None  # the forward model that answered (method auto)
 
 
 def liver_paper_case() -> Case:
@@ -120,15 +122,16 @@ def noisy(case: Case, noise: float = 0.0, outliers: float = 0.0, points: int | N
     return case.with_clouds(clouds)
 
 
-def run_case(model, case: Case, config: SessionConfig, method: str | None = None) -> list[FrameRecord]:
-    """Stream every frame of `case` through one session; score each frame."""
+def run_case(model, case: Case, config: SessionConfig, method: str | None = None, corrector=None) -> list[FrameRecord]:
+    """Stream every frame of `case` through one session (`corrector`: the FEM for method
+    auto); score each frame."""
     config = dataclasses.replace(
         config,
         support=tuple(int(i) for i in case.support),
         matching=None if case.matching is None else tuple(map(tuple, case.matching.tolist())),
         outputs=("displacement", "forces"),
     )
-    session = Session(model, config)
+    session = Session(model, config, corrector)
     rest = case.mesh.nodes
     out = []
     for k, cloud in enumerate(case.clouds):
@@ -140,8 +143,9 @@ def run_case(model, case: Case, config: SessionConfig, method: str | None = None
         tre = float(np.linalg.norm(rest + u - case.positions[k], axis=1).mean() * 1e3) if finite else float("nan")
         true_f = case.net_forces[k]
         fe = float(np.linalg.norm(r.net_force - true_f) / max(np.linalg.norm(true_f), 1e-300) * 100)
-        out.append(FrameRecord(case.name, method or model.method, k, tre, fe, ms, r.iterations, r.evaluations, r.status, r.converged, finite,
-                               r.alpha))
+        est = 1e3 * r.error_estimate if np.isfinite(r.error_estimate) else float("inf")
+        out.append(FrameRecord(case.name, method or model.method, k, tre, fe, ms, r.iterations, r.evaluations, r.status,
+                               r.converged, finite, r.alpha, est, r.method_used))
     return out
 
 

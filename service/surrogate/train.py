@@ -38,6 +38,8 @@ class TrainConfig:
     seed: int = 0
     device: str | None = None  # "cuda" when there is one, else "cpu"
     threads: int | None = None  # torch CPU threads (default: torch's)
+    max_seconds: float | None = None  # wall-time cap on training (a timed build): the epochs
+    # shrink to what fits, the learning-rate schedule with them
 
     def __post_init__(self) -> None:
         # refused here, where the config is made, so a command line fails before any data
@@ -175,6 +177,10 @@ def train(
             total += loss.item() * len(idx)
         sched.step()
         metrics = evaluate(model, F[va], U[va], device)
+        elapsed = time.perf_counter() - t0
+        if config.max_seconds is not None and epoch == 0:  # the schedule ends where the clock does
+            fits = int(config.max_seconds / max(elapsed, 1e-9))
+            sched.T_max = max(1, min(config.epochs, fits))
         history.append({"epoch": epoch, "loss": total / len(Xtr), **metrics, "seconds": time.perf_counter() - t0})
         bar.set_postfix(loss=f"{total / len(Xtr):.2e}", val_mm=f"{metrics['mean_mm']:.3f}", p95=f"{metrics['p95_mm']:.2f}")
         if metrics["mean_mm"] < best:
@@ -184,6 +190,9 @@ def train(
             if stale >= config.patience:
                 log.info("early stop at epoch %d", epoch)
                 break
+        if config.max_seconds is not None and elapsed * (epoch + 2) / (epoch + 1) > config.max_seconds:  # no room for one more
+            log.info("training stops at epoch %d: its %.0f s are spent", epoch, config.max_seconds)
+            break
     bar.close()
     model.load_state_dict(best_state)
     model.cpu().eval()

@@ -12,9 +12,9 @@ def test_bench_smoke_writes_the_whole_report(bar_store, tmp_path):
     out = tmp_path / "report"
     assert main(["bench", "--smoke", "bar", "--store", str(store), "--out", str(out)]) == 0
     results = json.loads((out / "results.json").read_text())
-    assert set(results["parts"]) == {"fem", "liver", "beam", "pareto", "stability"}
+    assert set(results["parts"]) == {"fem", "liver", "beam", "pareto", "stability", "anysite"}
     report = (out / "report.md").read_text()
-    for heading in ("FEM (Newton)", "Registration", "beam experiment", "Error against run time", "Stability"):
+    for heading in ("FEM (Newton)", "Registration", "beam experiment", "Error against run time", "Stability", "Any tool site"):
         assert heading in report
     assert (out / "figures" / "pareto.png").stat().st_size > 1000
     assert (out / "figures" / "liver_frames.png").stat().st_size > 1000
@@ -45,6 +45,12 @@ def test_bench_smoke_writes_the_whole_report(bar_store, tmp_path):
     assert {r["method"] for r in results["parts"]["stability"]["rows"]} >= {"fem", "fem, levenberg-marquardt"}
     assert not any(r.get("crashed") for r in results["parts"]["stability"]["rows"])
     assert results["parts"]["fem"]["backends"]  # at least one solver ran
+    anysite = results["parts"]["anysite"]  # two sites, truth from the subdivided bar
+    assert {s["method"] for s in anysite["summaries"]} == {"none (rest shape)", "network", "auto", "fem"}
+    assert {h["method"] for h in anysite["honesty"]} == {"network", "auto", "fem"}
+    assert all(-1 <= h["spearman"] <= 1 for h in anysite["honesty"])
+    assert all(r["error_estimate_mm"] > 0 for r in anysite["records"] if r["method"] == "network")
+    assert (out / "figures" / "anysite_estimates.png").stat().st_size > 1000
 
 
 def test_passes_take_the_same_steps_and_time_each_frame_by_its_median(entry):

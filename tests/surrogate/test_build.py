@@ -9,6 +9,8 @@ import pytest
 from service.fem.model import FEMModel
 from service.store import StoreError, load_entry, open_store
 
+from ..conftest import write_bar_scene
+
 
 def test_training_produces_a_loadable_entry_that_learnt(bar_store):
     store, report = bar_store
@@ -164,3 +166,49 @@ def test_the_papers_layout_leaves_a_scenes_ensemble_out(bar_store, tmp_path):
           config=TrainConfig(layout="paper", hidden=(16,), epochs=2, batch=32), progress=False)
     entry = load_entry(tmp_path / "store" / "bar")
     assert entry.manifest["network"]["layout"] == "paper" and entry.manifest["network"]["members"] == 1
+
+
+def test_a_timed_build_keeps_to_its_minutes_and_still_learns(tmp_path, bar):
+    """--minutes: data until 60 % of the budget (fewer paths than asked), training in the
+    rest, a loadable entry within the budget that beats u = 0."""
+    import time
+
+    from service.build import DATA_SHARE, build
+    from service.scene import load_scene
+    from service.surrogate.train import TrainConfig
+
+    scene = load_scene(write_bar_scene(tmp_path / "scene", bar, samples=30_000))  # far too many
+    minutes = 0.25
+    config = TrainConfig(hidden=(64, 64), rank=24, epochs=100_000, batch=32, lr=3e-3, physics_skip=True)
+    t0 = time.perf_counter()
+    report = build(scene, tmp_path / "store", workers=0, data_root=tmp_path / "data", config=config,
+                   progress=False, minutes=minutes)
+    wall = time.perf_counter() - t0
+    assert 2 <= report.paths < 10_000
+    assert report.data_seconds < DATA_SHARE * 60 * minutes + 5  # one path past the share at most
+    assert wall < 60 * minutes + 10  # the entry written inside the budget (slack: a loaded machine)
+    assert report.metrics["epochs"] < 100_000
+    entry = load_entry(report.entry)
+    assert entry.manifest["training"]["minutes"] == minutes
+    assert entry.manifest["training"]["paths"] == report.paths
+    assert report.metrics["mean_mm"] < report.metrics["zero_mean_mm"]
+
+
+def test_a_build_too_short_for_two_paths_is_refused(tmp_path, bar):
+    from service.build import build
+    from service.scene import load_scene
+
+    scene = load_scene(write_bar_scene(tmp_path / "scene", bar))
+    with pytest.raises(ValueError, match="needs 2"):
+        build(scene, tmp_path / "store", workers=0, data_root=tmp_path / "data", progress=False, minutes=1e-4)
+    with pytest.raises(ValueError, match="positive"):
+        build(scene, tmp_path / "store", workers=0, data_root=tmp_path / "data", progress=False, minutes=0)
+
+
+def test_the_command_line_refuses_a_budget_that_is_not_positive():
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-m", "service.cli", "train", "beam", "--minutes", "-1"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "must be a positive number" in r.stderr

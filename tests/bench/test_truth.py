@@ -1,0 +1,44 @@
+"""The finer mesh that the anysite part's truth comes from."""
+
+import numpy as np
+
+from service.bench.anysite import spread_sites
+from service.bench.truth import coarse_edges, fine_patch, subdivide
+
+
+def test_subdivision_keeps_the_body_and_its_nodes(bar):
+    fine = subdivide(bar)
+    edges = coarse_edges(bar)
+    assert fine.n_tets == 8 * bar.n_tets and fine.n_nodes == bar.n_nodes + len(edges)
+    np.testing.assert_array_equal(fine.nodes[: bar.n_nodes], bar.nodes)  # coarse ids unchanged
+    np.testing.assert_allclose(fine.nodes[bar.n_nodes:], bar.nodes[edges].mean(axis=1))
+    assert np.isclose(fine.volumes.sum(), bar.volumes.sum(), rtol=1e-12) and (fine.volumes > 0).all()
+    # children of one tet are not all alike: the octahedron's four are smaller than a corner's
+    assert fine.volumes.max() / fine.volumes.min() < 10
+    # the Dirichlet surface is the same surface: fixed coarse nodes and the midpoints between them
+    fixed = np.zeros(bar.n_nodes, bool)
+    fixed[bar.fixed] = True
+    want = np.concatenate([bar.fixed, bar.n_nodes + np.flatnonzero(fixed[edges].all(axis=1))])
+    np.testing.assert_array_equal(fine.fixed, np.sort(want))
+    # the boundary is the same surface, with four times the triangles
+    assert len(fine.surface_faces) == 4 * len(bar.surface_faces)
+
+
+def test_a_patch_on_the_fine_mesh_covers_its_area(bar):
+    fine = subdivide(bar)
+    site = int(bar.free_surface_nodes[0])
+    tool = bar.surface_patch(site, 6)
+    patch = fine_patch(bar, fine, tool)
+    assert set(tool) <= set(patch.tolist()) and len(patch) > len(tool)
+    assert np.isin(patch, fine.surface_nodes).all()
+    ends = coarse_edges(bar)[patch[patch >= bar.n_nodes] - bar.n_nodes]
+    assert np.isin(ends, tool).all()  # every midpoint between two of the patch's nodes
+
+
+def test_sites_spread_over_the_region(bar):
+    region = bar.free_surface_nodes
+    sites = spread_sites(bar, region, 4, np.random.default_rng(0))
+    assert len(set(sites.tolist())) == 4 and np.isin(sites, region).all()
+    x = bar.nodes[sites]
+    gaps = np.linalg.norm(x[:, None] - x[None], axis=2)[np.triu_indices(4, 1)]
+    assert gaps.min() > 0.2 * np.ptp(bar.nodes[region], axis=0).max()
