@@ -14,7 +14,7 @@
    sessions opened and dropped (half HTTP, closed with DELETE; half WebSocket, the socket dropped).
 
 The server runs as its own process (``elastreg serve``), so its RSS is its own and the client's
-work does not share its interpreter.
+work does not share its interpreter. The JSON names the machine and the commit it ran on.
 """
 
 from __future__ import annotations
@@ -37,6 +37,7 @@ sys.path.insert(0, str(ROOT))
 
 from clients.client import AsyncClient, Client  # noqa: E402
 from clients.loadtest import make_frames, run_load  # noqa: E402
+from service.bench.machine import describe  # noqa: E402
 
 
 def free_port() -> int:
@@ -104,11 +105,11 @@ def through_api(url: str, model: str, support, cloud, repeats: int, transport: s
     rtt, solve = [], []
     with Client(url, encoding=encoding) as api:
         if transport == "http":
-            s = api.open_session(model, support=support)
-            call, close = s.frame, s.close
+            session = api.open_session(model, support=support)
+            call, close = session.frame, session.close
         else:
-            s = api.stream(model, support=support)
-            call, close = s.frame, s.close
+            stream = api.stream(model, support=support)
+            call, close = stream.frame, stream.close
         for i in range(repeats + 5):
             t0 = time.perf_counter()
             r = call(cloud)
@@ -180,7 +181,10 @@ def main(argv=None) -> int:
     n_frames, n_sessions = (1000, 200) if args.quick else (10_000, 1000)
 
     proc, url = start_server(store, args.threads)
-    report: dict = {"model": args.model, "points": args.points, "quick": args.quick, "solver_threads": args.threads}
+    report: dict = {"started": time.strftime("%Y-%m-%d %H:%M:%S"), "machine": describe(), "model": args.model,
+                    "points": args.points, "quick": args.quick, "solver_threads": args.threads}
+    m = report["machine"]
+    print(f"{report['started']} on {m['cpu']}, {m['cores']} cores; commit {m['commit']}")
     try:
         async def frames():
             async with AsyncClient(url) as api:

@@ -51,8 +51,10 @@ def test_a_shipped_model_registers_a_known_deformation(shipped, name):
     tre = np.linalg.norm(entry.mesh.nodes + r.outputs["displacement"] - truth, axis=1).mean()
     f_true, f = seq.forces[-1].sum(0), r.net_force
     angle = np.degrees(np.arccos(f @ f_true / (np.linalg.norm(f) * np.linalg.norm(f_true))))
-    print(f"{name}: mean displacement {1e3 * moved:.2f} mm, TRE {1e3 * tre:.3f} mm, "
-          f"net force {np.linalg.norm(f) / np.linalg.norm(f_true):.2f} x the true one, {angle:.1f} degrees off")
+    print(
+        f"{name}: mean displacement {1e3 * moved:.2f} mm, TRE {1e3 * tre:.3f} mm, "
+        f"net force {np.linalg.norm(f) / np.linalg.norm(f_true):.2f} x the true one, {angle:.1f} degrees off"
+    )
     assert r.converged and r.status == "converged"
     assert moved > 1e-3  # a real deformation (over a millimetre on average)
     # within the entry's own validation error, and a small part of the motion

@@ -170,7 +170,7 @@ def _summarise(rows: list[dict]) -> dict:
         "force_error_pct": ms_("force_error_pct"),
         "ms": ms_("ms"),
         "ms_median": float(np.median([row["ms"] for row in rows])) if rows else float("nan"),
-        "ms_median_passes": [float(np.median(ms)) for ms in zip(*(row["ms_passes"] for row in rows))],
+        "ms_median_passes": [float(np.median(ms)) for ms in zip(*(row["ms_passes"] for row in rows), strict=True)],
         "iterations": ms_("iterations"),
         "evaluations": ms_("evaluations"),
         "max_displacement_m": ms_("max_displacement_m"),

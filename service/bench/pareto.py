@@ -14,6 +14,7 @@ from typing import Callable
 
 import numpy as np
 
+from ..optional import need
 from ..registration.session import SessionConfig
 from .cases import Case, noisy, run_passes, summarise
 from .liver import FEM, NETWORK
@@ -137,8 +138,7 @@ def pareto_front(rows: list[dict], error: str = "tre_mm") -> list[dict]:
 
 
 def plot(rows: list[dict], path, title: str) -> None:
-    import matplotlib
-
+    matplotlib = need("matplotlib", "the benchmark's figures")
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 

@@ -18,6 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..optional import need
+
 log = logging.getLogger(__name__)
 
 PARTS = ("fem", "liver", "beam", "pareto", "stability")
@@ -383,8 +385,7 @@ def write_report(results: dict, out: Path) -> None:
 
 
 def _plot_frames(records, path: Path) -> None:
-    import matplotlib
-
+    matplotlib = need("matplotlib", "the benchmark's figures")
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 

@@ -401,7 +401,7 @@ def _lbfgsb(op, distance: PointToSurface, evaluate: Objective, begin: _Start, v_
     bounds = None
     if bounded:
         b = P.to_z(np.full(3 * k, float(options.force_bound)))
-        bounds = list(zip(-b, b))
+        bounds = list(zip(-b, b, strict=True))
     try:
         res = minimize(
             fun, z0, jac=True, method="L-BFGS-B", bounds=bounds, callback=converged,
