@@ -38,16 +38,11 @@ Array = np.ndarray
 
 OUTPUTS = ("displacement", "surface_displacement", "forces", "stress")
 
-#: the relative gradient tolerance per method, read off the error-against-time chart on the
-#: paper's liver (docs/performance.md): at 3e-4 the network meets 20 ms per frame on the slowest
-#: machine measured (Zen 3: 18.6 ms, TRE 0.095 mm, force error 2.2 %; 1e-4 buys 0.088 mm there for
-#: 30 ms); the Newton method needs 1e-4 for a force error under 1 % (0.63 % over the sequence,
-#: 0.33 s per frame on the Zen 5; on its first 6 frames 1e-3 gives 2.4 % and 1e-4 1.1 %)
+#: the relative gradient tolerance per method: the loosest that meets the targets on the paper's
+#: liver on the slowest machine measured (the error-against-time chart, docs/performance.md)
 DEFAULT_GTOL = {"network": 3e-4, "fem": 1e-4}
-#: the regularisation weight (m^2 / N^2) at the model's own stiffness. A session at another E
-#: gets DEFAULT_ALPHA (E_model / E)^2: u(g; E) = u(g E_model / E; E_model) exactly, so this keeps
-#: the problem the same one in scaled forces (a fixed alpha at E x 10 with 10x loads penalised
-#: the forces 100x harder: 48 % force error and 0.56 mm on the liver, against 12 % and 0.12 mm)
+#: the regularisation weight (m^2 / N^2) at the model's own stiffness; a session at another E
+#: gets DEFAULT_ALPHA (E_model / E)^2, since u(g; E) = u(g E_model / E; E_model) exactly
 DEFAULT_ALPHA = 1e-7
 FAILED = ("forward_failed", "non_finite")
 
