@@ -182,9 +182,11 @@ def main(argv=None) -> int:
 
     proc, url = start_server(store, args.threads)
     report: dict = {"started": time.strftime("%Y-%m-%d %H:%M:%S"), "machine": describe(), "model": args.model,
-                    "points": args.points, "quick": args.quick, "solver_threads": args.threads}
+                    "points": args.points, "quick": args.quick, "solver_threads": args.threads,
+                    "load_average_at_start": os.getloadavg()}  # others' work on the machine skews every figure
     m = report["machine"]
-    print(f"{report['started']} on {m['cpu']}, {m['cores']} cores; commit {m['commit']}")
+    print(f"{report['started']} on {m['cpu']}, {m['cores']} cores; commit {m['commit']}; "
+          f"load average {report['load_average_at_start'][0]:.1f}")
     try:
         async def frames():
             async with AsyncClient(url) as api:
