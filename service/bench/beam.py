@@ -143,8 +143,8 @@ def beam_part(entry, n_cases: int = 60, n_points: int = 500, seed: int = 0, conf
     summary.update({
         "paper": PAPER,
         "unknowns": 3 * (len(config.support) if config.support is not None else default_support(entry.network).size),
-        "config": {"gtol": config.gtol, "max_iter": config.max_iter, "precondition": config.precondition, "points": n_points,
-                   "optimizer": config.optimizer},
+        "config": {"gtol": config.gtol, "max_iter": config.max_iter, "precondition": config.precondition,
+                   "points": n_points, "optimizer": config.optimizer},
     })  # fmt: skip
     if config.optimizer != "lbfgsb":  # the paper's optimizer on the same cases
         summary["lbfgsb"] = _summarise(repeated(entry.network, cases, dataclasses.replace(config, optimizer="lbfgsb"), passes))

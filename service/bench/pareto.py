@@ -119,7 +119,8 @@ def pareto_part(
         records, each = run_passes(model, short if is_short else (noisy(case, points=n) if n else case), config, passes)
         s = summarise(records)
         return {"tre_mm": s["tre_mean_mm"], "force_error_pct": s["force_error_mean_pct"], "ms": s["ms_median"],
-                "iterations": s["iterations_mean"], "converged": s["converged_fraction"], "ms_passes": each}  # fmt: skip
+                "iterations": s["iterations_mean"], "converged": s["converged_fraction"],
+                "ms_passes": each}  # fmt: skip
 
     return sweep(score, entry.network, entry.fem, NETWORK, FEM, gtols=gtols, caps=caps, points=points,
                  max_points=min(len(c) for c in case.clouds), fem_gtols=fem_gtols, alphas=alphas, variants=variants,

@@ -63,7 +63,10 @@ class SolveOptions:
 
 OPTIMIZERS = ("lbfgsb", "levenberg-marquardt")
 _BOUNDED = "levenberg-marquardt takes no force bounds: use optimizer 'lbfgsb'"
-_NO_JACOBIAN = "levenberg-marquardt needs a forward model with a Jacobian: the fem method, or the network method with a reduced surrogate (a Jacobian in its basis); use optimizer 'lbfgsb'"
+_NO_JACOBIAN = (
+    "levenberg-marquardt needs a forward model with a Jacobian: the fem method, or the network method "
+    "with a reduced surrogate (a Jacobian in its basis); use optimizer 'lbfgsb'"
+)
 
 
 def check_optimizer(op: ForwardOperator, options: SolveOptions) -> None:

@@ -91,7 +91,8 @@ def test_known_loads_are_recovered(method, entry):
     tre = np.linalg.norm(u - u_true, axis=1).mean()
     disp = np.linalg.norm(u_true, axis=1).mean()
     force_err = np.linalg.norm(sol.g.sum(0) - g_true.sum(0)) / np.linalg.norm(g_true.sum(0))
-    print(f"{method}: TRE {tre:.2e} m ({tre / disp:.1%} of the mean displacement), force error {force_err:.1%}, {sol.iterations} iterations")
+    print(f"{method}: TRE {tre:.2e} m ({tre / disp:.1%} of the mean displacement), "
+          f"force error {force_err:.1%}, {sol.iterations} iterations")
     assert sol.status == "converged" and sol.converged
     if method == "fem":
         assert tre < 0.002 * disp and force_err < 0.01
