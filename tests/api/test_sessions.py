@@ -103,10 +103,10 @@ def test_support_change_keeps_common_forces(http, entry, support, clouds):
     want = ref.frame(clouds[4], support=smaller)
     assert r["iterations"] == want.iterations and r["status"] == want.status
     np.testing.assert_allclose(r["forces"], want.outputs["forces"], rtol=1e-9, atol=1e-12)
-    # and it is a warm start: a cold start on the smaller support ends elsewhere
+    # and it is a warm start: a cold start on the smaller support takes more iterations to reach
+    # its answer (24 against 18 when written)
     cold = Session(entry.network, SessionConfig(support=tuple(int(i) for i in smaller), outputs=("forces",)))
-    assert cold.frame(clouds[4]).iterations != want.iterations or not np.allclose(
-        cold.g, want.outputs["forces"], rtol=1e-9, atol=1e-12)
+    assert cold.frame(clouds[4]).iterations > want.iterations
 
 
 def test_get_counts_and_delete(http, clouds, support):
