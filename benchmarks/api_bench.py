@@ -38,6 +38,7 @@ sys.path.insert(0, str(ROOT))
 from clients.client import AsyncClient, Client  # noqa: E402
 from clients.loadtest import make_frames, run_load  # noqa: E402
 from service.bench.machine import describe  # noqa: E402
+from service.optional import need  # noqa: E402
 
 
 def free_port() -> int:
@@ -71,8 +72,7 @@ def start_server(store: Path, threads: int) -> tuple[subprocess.Popen, str]:
 
 
 def rss_mb(pid: int) -> float:
-    import psutil
-
+    psutil = need("psutil", "the API benchmark's memory figures")
     return psutil.Process(pid).memory_info().rss / 2**20
 
 

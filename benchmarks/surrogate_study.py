@@ -25,6 +25,7 @@ import torch
 from service.bench.cases import LIVER, liver_paper_case
 from service.fem.assembly import Assembler
 from service.fem.material import NeoHookean
+from service.optional import need
 from service.scene import load_scene
 from service.surrogate.data import load_dataset
 from service.surrogate.model import NetworkModel
@@ -135,8 +136,7 @@ def main() -> None:
 
 
 def _plot(rows, path) -> None:
-    import matplotlib
-
+    matplotlib = need("matplotlib", "the surrogate study's figure")
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
