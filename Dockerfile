@@ -17,10 +17,17 @@ WORKDIR /app
 
 RUN pip install torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu
 
-COPY pyproject.toml README.md ./
+# the server's dependencies in their own layer (the base install: no trainer, benchmark or
+# client extras), rebuilt only when pyproject.toml changes, not at every source edit
+COPY pyproject.toml ./
+RUN python -c "import tomllib; print('\n'.join(tomllib.load(open('pyproject.toml', 'rb'))['project']['dependencies']))" \
+        > /tmp/requirements.txt \
+    && pip install -r /tmp/requirements.txt && rm /tmp/requirements.txt
+
+COPY README.md ./
 COPY service ./service
 COPY clients ./clients
-RUN pip install .
+RUN pip install --no-deps .
 
 COPY model_store ./model_store
 

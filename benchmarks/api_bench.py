@@ -2,12 +2,14 @@
 
     python benchmarks/api_bench.py --store model_store --model phantom           # full
     python benchmarks/api_bench.py --store /tmp/store_phantom --quick             # minutes
+    python benchmarks/api_bench.py --parts overhead --runs 5                      # the overhead, 5 times
 
 1. Overhead: a 1,000-point frame through the API (HTTP and WebSocket, MessagePack and JSON)
    against the same frame in-process (``Session.frame``), the same session config, the same
    cloud repeated (warm-started, so each repeat is a short, steady solve). Two figures per row:
    the median of (round trip - the server's own solve time) over paired frames, which is the
-   overhead free of solve-time noise, and median round trip - median in-process time.
+   overhead free of solve-time noise, and median round trip - median in-process time. With
+   ``--runs N`` the section runs N times and each figure is the median of the N runs' medians.
 2. Throughput: 1, 4 and 16 concurrent WebSocket streams (MessagePack) replaying frames:
    frames per second over all streams and latency percentiles (clients/loadtest.py,
    its frames from service/loadtest.py).
@@ -15,7 +17,7 @@
    sessions opened and dropped (half HTTP, closed with DELETE; half WebSocket, the socket dropped).
 
 The server runs as its own process (``elastreg serve``), so its RSS is its own and the client's
-work does not share its interpreter.
+work does not share its interpreter. The JSON names the machine and the commit it ran on.
 """
 
 from __future__ import annotations
@@ -38,7 +40,9 @@ sys.path.insert(0, str(ROOT))
 
 from clients.client import AsyncClient, Client  # noqa: E402
 from clients.loadtest import run_load  # noqa: E402
+from service.bench.machine import describe  # noqa: E402
 from service.loadtest import make_frames  # noqa: E402
+from service.optional import need  # noqa: E402
 
 
 def free_port() -> int:
@@ -72,8 +76,7 @@ def start_server(store: Path, threads: int) -> tuple[subprocess.Popen, str]:
 
 
 def rss_mb(pid: int) -> float:
-    import psutil
-
+    psutil = need("psutil", "the API benchmark's memory figures")
     return psutil.Process(pid).memory_info().rss / 2**20
 
 
@@ -106,11 +109,11 @@ def through_api(url: str, model: str, support, cloud, repeats: int, transport: s
     rtt, solve = [], []
     with Client(url, encoding=encoding) as api:
         if transport == "http":
-            s = api.open_session(model, support=support)
-            call, close = s.frame, s.close
+            session = api.open_session(model, support=support)
+            call, close = session.frame, session.close
         else:
-            s = api.stream(model, support=support)
-            call, close = s.frame, s.close
+            stream = api.stream(model, support=support)
+            call, close = stream.frame, stream.close
         for i in range(repeats + 5):
             t0 = time.perf_counter()
             r = call(cloud)
@@ -168,6 +171,39 @@ async def churn_sessions(url, model, support, cloud, total: int) -> None:
                 await st.ws.close()
 
 
+PARTS = ("overhead", "throughput", "memory")
+
+
+def memory(url, pid, model, support, clouds, n_frames: int, n_sessions: int) -> dict:
+    """The server's RSS after warm-up, after each fifth of the frames, then of the sessions."""
+    mem = {"after_warmup_mb": rss_mb(pid)}
+    t0 = time.perf_counter()
+    done = 0
+    for _ in range(5):
+        done += asyncio.run(many_frames(url, model, support, clouds, n_frames // 5))
+        mem[f"after_{done}_frames_mb"] = rss_mb(pid)
+    mem["frames_seconds"] = time.perf_counter() - t0
+    for step in range(1, 6):
+        asyncio.run(churn_sessions(url, model, support, clouds[0], n_sessions // 5))
+        time.sleep(1.0)
+        mem[f"after_{step * (n_sessions // 5)}_sessions_mb"] = rss_mb(pid)
+    with Client(url) as api:
+        mem["open_sessions_after"] = api.health()["sessions"]["open"]
+    return {k: round(v, 1) if isinstance(v, float) else v for k, v in mem.items()}
+
+
+def median_rows(runs: list[list[dict]]) -> list[dict]:
+    """Per path, the median over runs of each figure."""
+    out = []
+    for rows in zip(*runs, strict=True):
+        merged = {"path": rows[0]["path"]}
+        for key in rows[0]:
+            if key != "path":
+                merged[key] = round(median([r[key] for r in rows]), 3)
+        out.append(merged)
+    return out
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--store", default=str(ROOT / "model_store"))
@@ -176,13 +212,21 @@ def main(argv=None) -> int:
     p.add_argument("--threads", type=int, default=2, help="the server's solver threads")
     p.add_argument("--points", type=int, default=1000)
     p.add_argument("--out", default=None, help="also write the figures as JSON here")
+    p.add_argument("--parts", nargs="+", choices=PARTS, default=list(PARTS), help="sections to run (default: all)")
+    p.add_argument("--runs", type=int, default=1, help="times to run the overhead section (the median is reported)")
     args = p.parse_args(argv)
     store = Path(args.store)
     repeats, seconds = (40, 5.0) if args.quick else (200, 20.0)
     n_frames, n_sessions = (1000, 200) if args.quick else (10_000, 1000)
 
     proc, url = start_server(store, args.threads)
-    report: dict = {"model": args.model, "points": args.points, "quick": args.quick, "solver_threads": args.threads}
+    report: dict = {"started": time.strftime("%Y-%m-%d %H:%M:%S"), "machine": describe(), "model": args.model,
+                    "points": args.points, "quick": args.quick, "solver_threads": args.threads,
+                    "parts": args.parts, "runs": args.runs,
+                    "load_average_at_start": os.getloadavg()}  # others' work on the machine skews every figure
+    m = report["machine"]
+    print(f"{report['started']} on {m['cpu']}, {m['cores']} cores; commit {m['commit']}; "
+          f"load average {report['load_average_at_start'][0]:.1f}")
     try:
         async def frames():
             async with AsyncClient(url) as api:
@@ -191,39 +235,41 @@ def main(argv=None) -> int:
         clouds, support = asyncio.run(frames())
         print(f"server {url} (pid {proc.pid}); model {args.model}; {args.points} points; support {support.size} nodes")
 
-        rows = overhead(url, store, args.model, support, clouds[-1], repeats)
-        report["overhead"] = rows
-        print(f"\n1. API overhead, {args.points}-point frame, median of {repeats} (ms)")
-        print(f"{'path':<26}{'round trip':>11}{'solve':>8}{'overhead':>10}{'vs in-proc':>12}")
-        for r in rows:
-            print(f"{r['path']:<26}{r['median_ms']:>11.2f}{r.get('server_solve_ms', float('nan')):>8.2f}"
-                  f"{r.get('overhead_paired_ms', float('nan')):>10.2f}"
-                  f"{r.get('overhead_vs_in_process_ms', float('nan')):>12.2f}")
+        runs = []
+        for k in range(args.runs if "overhead" in args.parts else 0):
+            rows = overhead(url, store, args.model, support, clouds[-1], repeats)
+            runs.append(rows)
+            print(f"\n1. API overhead, {args.points}-point frame, median of {repeats} (ms), run {k + 1} of {args.runs}")
+            print(f"{'path':<26}{'round trip':>11}{'solve':>8}{'overhead':>10}{'vs in-proc':>12}")
+            for r in rows:
+                print(f"{r['path']:<26}{r['median_ms']:>11.2f}{r.get('server_solve_ms', float('nan')):>8.2f}"
+                      f"{r.get('overhead_paired_ms', float('nan')):>10.2f}"
+                      f"{r.get('overhead_vs_in_process_ms', float('nan')):>12.2f}")
+        if runs:
+            report["overhead"] = median_rows(runs) if len(runs) > 1 else runs[0]
+            if len(runs) > 1:
+                report["overhead_runs"] = runs
+                print(f"\n   median of the {len(runs)} runs (ms)")
+                for r in report["overhead"]:
+                    print(f"{r['path']:<26}{r['median_ms']:>11.2f}{r.get('server_solve_ms', float('nan')):>8.2f}"
+                          f"{r.get('overhead_paired_ms', float('nan')):>10.2f}"
+                          f"{r.get('overhead_vs_in_process_ms', float('nan')):>12.2f}")
 
-        print(f"\n2. concurrent WebSocket streams (msgpack), {seconds:g} s each")
-        report["throughput"] = []
-        for n in (1, 4, 16):
-            load = asyncio.run(run_load(url, args.model, streams=n, seconds=seconds, frames=clouds, support=support))
-            report["throughput"].append(load.as_dict())
-            print("  " + load.text())
+        if "throughput" in args.parts:
+            print(f"\n2. concurrent WebSocket streams (msgpack), {seconds:g} s each")
+            report["throughput"] = []
+            for n in (1, 4, 16):
+                load = asyncio.run(
+                    run_load(url, args.model, streams=n, seconds=seconds, frames=clouds, support=support)
+                )
+                report["throughput"].append(load.as_dict())
+                print("  " + load.text())
 
-        print("\n3. server memory (RSS), sampled in five steps of frames, then of sessions")
-        mem = {"after_warmup_mb": rss_mb(proc.pid)}
-        t0 = time.perf_counter()
-        done = 0
-        for _ in range(5):
-            done += asyncio.run(many_frames(url, args.model, support, clouds, n_frames // 5))
-            mem[f"after_{done}_frames_mb"] = rss_mb(proc.pid)
-        mem["frames_seconds"] = time.perf_counter() - t0
-        for step in range(1, 6):
-            asyncio.run(churn_sessions(url, args.model, support, clouds[0], n_sessions // 5))
-            time.sleep(1.0)
-            mem[f"after_{step * (n_sessions // 5)}_sessions_mb"] = rss_mb(proc.pid)
-        with Client(url) as api:
-            mem["open_sessions_after"] = api.health()["sessions"]["open"]
-        report["memory"] = {k: round(v, 1) if isinstance(v, float) else v for k, v in mem.items()}
-        for k, v in report["memory"].items():
-            print(f"  {k}: {v}")
+        if "memory" in args.parts:
+            report["memory"] = memory(url, proc.pid, args.model, support, clouds, n_frames, n_sessions)
+            print("\n3. server memory (RSS), sampled in five steps of frames, then of sessions")
+            for k, v in report["memory"].items():
+                print(f"  {k}: {v}")
     finally:
         proc.terminate()
         try:

@@ -64,7 +64,8 @@ def main() -> None:
             statuses: dict[str, int] = {}
             for row in rows:
                 statuses[row[3]] = statuses.get(row[3], 0) + 1
-            print(f"| {name} | {label} | {np.median([r[0] for r in rows]):.1f} | {1e3 * np.mean([r[1] for r in rows]):.3g} | "
+            print(f"| {name} | {label} | {np.median([r[0] for r in rows]):.1f} | "
+                  f"{1e3 * np.mean([r[1] for r in rows]):.3g} | "
                   f"{all(r[2] for r in rows)} | {', '.join(f'{k} {v}' for k, v in statuses.items())} | "
                   f"{np.mean([r[4] for r in rows]):.1f} |", flush=True)  # fmt: skip
 

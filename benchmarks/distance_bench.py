@@ -112,7 +112,7 @@ def main() -> None:
         for _ in range(args.repeats + 1):  # the first pass warms caches up and is dropped
             S = module.PointToSurface(matching, backend=backend, **options)
             runs.append(replay(S, rest, positions, clouds, frames, scenario == "engine"))
-        wall, cpu, builds = (np.array(z) for z in zip(*runs[1:]))
+        wall, cpu, builds = (np.array(z) for z in zip(*runs[1:], strict=True))
         builds = builds[-1]
         extra = ""
         if hasattr(S, "n_layouts"):

@@ -58,8 +58,8 @@ def main() -> None:
                                     ("noise x2 given", dataclasses.replace(base, noise=2 * sigma))):
                 row = {"sequence": case.name, "noise_mm": mm, "setting": setting, **stream(model, clouds, config)}
                 rows.append(row)
-                print("{sequence:<28} {noise_mm:4.1f} mm  {setting:<15} TRE {tre_mm:.3f} mm  force {force_error_pct:5.1f} %  "
-                      "{ms:6.1f} ms  alpha {alpha:.1e}".format(**row), flush=True)
+                print("{sequence:<28} {noise_mm:4.1f} mm  {setting:<15} TRE {tre_mm:.3f} mm  "
+                      "force {force_error_pct:5.1f} %  {ms:6.1f} ms  alpha {alpha:.1e}".format(**row), flush=True)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     with open(out / "noise.csv", "w", newline="") as f:

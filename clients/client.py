@@ -14,12 +14,19 @@ with its connection. With ``encoding="msgpack"`` (the default) arrays travel as 
 
 from __future__ import annotations
 
+import importlib.util
 import json
 from typing import Any
 
-import httpx
 import msgpack
 import numpy as np
+
+try:  # the [client] extra: httpx here, websockets at a stream's first use
+    import httpx
+except ImportError as err:  # pragma: no cover
+    raise ImportError("the elastreg client needs httpx: pip install 'elastreg[client]'") from err
+if importlib.util.find_spec("websockets") is None:  # pragma: no cover
+    raise ImportError("the elastreg client needs websockets: pip install 'elastreg[client]'")
 
 try:  # optional: faster JSON that writes NumPy arrays itself
     import orjson

@@ -104,7 +104,11 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("-v", "--verbose", action="store_true", help="log progress (INFO)")
     sub = p.add_subparsers(dest="command", required=True)
 
-    d = sub.add_parser("demo", help="serve the shipped default model, stream a synthetic sequence through the API, print error and latency per frame")
+    d = sub.add_parser(
+        "demo",
+        help="serve the shipped default model, stream a synthetic sequence through the API, "
+        "print error and latency per frame",
+    )
     d.add_argument("--model", default="phantom", help="model id in the store (default: phantom)")
     d.add_argument("--frames", type=int, default=20)
     d.add_argument("--method", choices=["network", "fem"], default="network")

@@ -17,6 +17,7 @@ from types import MappingProxyType
 import numpy as np
 
 from .mesh import MeshError, TetMesh
+from .optional import need
 
 log = logging.getLogger(__name__)
 
@@ -132,7 +133,7 @@ def tetrahedralise(
     tets (t, 4) int64.
     `max_volume` adds TetGen's -a bound (same units as the vertices, cubed) for a finer interior.
     """
-    import tetgen  # imported at first use: only surfaces need it
+    tetgen = need("tetgen", "filling a closed surface with tets")  # only surfaces need it
 
     options = dict(TETGEN_OPTIONS)
     if max_volume is not None:

@@ -89,7 +89,7 @@ Count = Annotated[int, Field(strict=True, ge=1)]
 
 
 def _check_box(box: tuple[Vec3, Vec3] | None) -> tuple[Vec3, Vec3] | None:
-    if box is not None and any(lo > hi for lo, hi in zip(*box)):
+    if box is not None and any(lo > hi for lo, hi in zip(*box, strict=True)):
         raise ValueError(
             "must be [[xmin, ymin, zmin], [xmax, ymax, zmax]] with min <= max, "
             f"got {[list(corner) for corner in box]}"

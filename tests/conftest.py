@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +13,25 @@ from service.phantoms import grid_tets
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 LIVER = SHARED / "meshes" / "liver_paper"
+#: CI sets CI=true and puts shared/ beside the checkout: there a missing ../shared is a failure
+IN_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
 
+
+def require_shared(path: Path) -> None:
+    """Skip a test that needs ``path`` (under ../shared) when it is absent locally; in CI, fail."""
+    if path.exists():
+        return
+    message = f"{path} is missing: the test needs ../shared beside the checkout"
+    if IN_CI:
+        pytest.fail(f"{message} (CI=true: the data must be there)", pytrace=False)
+    pytest.skip(message)
+
+
+@pytest.fixture
+def liver_data() -> Path:
+    """The paper's liver folder; skipped locally without it, a failure in CI."""
+    require_shared(LIVER)
+    return LIVER
 
 
 @pytest.fixture(scope="session")
@@ -31,7 +50,8 @@ def cube() -> TetMesh:
 
 
 def needs_liver():
-    return pytest.mark.skipif(not LIVER.exists(), reason="../shared/meshes/liver_paper not present")
+    """Mark a test that reads ../shared/meshes/liver_paper (see ``liver_data``)."""
+    return pytest.mark.usefixtures("liver_data")
 
 
 BAR_SCENE = """

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import os
+from typing import Any
 
 from ..config import get_settings
 
@@ -29,7 +30,7 @@ def serve(store=None, host: str = "127.0.0.1", port: int = 8000, workers: int = 
         settings = get_settings()  # refuses bad settings here, before any process starts
     except ValidationError as exc:
         raise SystemExit(f"error: invalid ELASTREG_* settings:\n{exc}") from None
-    common = dict(
+    common: dict[str, Any] = dict(
         host=host,
         port=port,
         ws_max_size=settings.max_body_bytes,

@@ -143,8 +143,8 @@ def beam_part(entry, n_cases: int = 60, n_points: int = 500, seed: int = 0, conf
     summary.update({
         "paper": PAPER,
         "unknowns": 3 * (len(config.support) if config.support is not None else default_support(entry.network).size),
-        "config": {"gtol": config.gtol, "max_iter": config.max_iter, "precondition": config.precondition, "points": n_points,
-                   "optimizer": config.optimizer},
+        "config": {"gtol": config.gtol, "max_iter": config.max_iter, "precondition": config.precondition,
+                   "points": n_points, "optimizer": config.optimizer},
     })  # fmt: skip
     if config.optimizer != "lbfgsb":  # the paper's optimizer on the same cases
         summary["lbfgsb"] = _summarise(repeated(entry.network, cases, dataclasses.replace(config, optimizer="lbfgsb"), passes))
@@ -170,7 +170,7 @@ def _summarise(rows: list[dict]) -> dict:
         "force_error_pct": ms_("force_error_pct"),
         "ms": ms_("ms"),
         "ms_median": float(np.median([row["ms"] for row in rows])) if rows else float("nan"),
-        "ms_median_passes": [float(np.median(ms)) for ms in zip(*(row["ms_passes"] for row in rows))],
+        "ms_median_passes": [float(np.median(ms)) for ms in zip(*(row["ms_passes"] for row in rows), strict=True)],
         "iterations": ms_("iterations"),
         "evaluations": ms_("evaluations"),
         "max_displacement_m": ms_("max_displacement_m"),

@@ -14,6 +14,7 @@ from typing import Callable
 
 import numpy as np
 
+from ..optional import need
 from ..registration.session import SessionConfig
 from .cases import Case, noisy, run_passes, summarise
 from .liver import FEM, NETWORK
@@ -118,7 +119,8 @@ def pareto_part(
         records, each = run_passes(model, short if is_short else (noisy(case, points=n) if n else case), config, passes)
         s = summarise(records)
         return {"tre_mm": s["tre_mean_mm"], "force_error_pct": s["force_error_mean_pct"], "ms": s["ms_median"],
-                "iterations": s["iterations_mean"], "converged": s["converged_fraction"], "ms_passes": each}  # fmt: skip
+                "iterations": s["iterations_mean"], "converged": s["converged_fraction"],
+                "ms_passes": each}  # fmt: skip
 
     return sweep(score, entry.network, entry.fem, NETWORK, FEM, gtols=gtols, caps=caps, points=points,
                  max_points=min(len(c) for c in case.clouds), fem_gtols=fem_gtols, alphas=alphas, variants=variants,
@@ -137,8 +139,7 @@ def pareto_front(rows: list[dict], error: str = "tre_mm") -> list[dict]:
 
 
 def plot(rows: list[dict], path, title: str) -> None:
-    import matplotlib
-
+    matplotlib = need("matplotlib", "the benchmark's figures")
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 

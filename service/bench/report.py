@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..optional import need
+
 log = logging.getLogger(__name__)
 
 PARTS = ("fem", "liver", "beam", "pareto", "stability", "anysite")
@@ -413,8 +415,7 @@ def write_report(results: dict, out: Path) -> None:
 
 
 def _plot_frames(records, path: Path) -> None:
-    import matplotlib
-
+    matplotlib = need("matplotlib", "the benchmark's figures")
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 

@@ -84,8 +84,9 @@ def stability_cases(
     out.append((synthetic_case("E x 10, loads x 10", mesh, e10, tool, support, matching=paper.matching, frames=frames, peak_force=10 * peak_force), {"E": e10.E}))
     small = tool[: max(3, tool_size // 4)]
     push = -mesh.vertex_normals[small].sum(0)
-    out.append((synthetic_case(f"near-inverting push ({small.size} nodes)", mesh, material, small, support, matching=paper.matching,
-                               frames=frames, peak_force=peak_force, direction=push, turn_deg=0.0), {}))  # fmt: skip
+    out.append((synthetic_case(f"near-inverting push ({small.size} nodes)", mesh, material, small, support,
+                               matching=paper.matching, frames=frames, peak_force=peak_force, direction=push,
+                               turn_deg=0.0), {}))  # fmt: skip
     return out
 
 
@@ -95,8 +96,8 @@ def stability_part(entry, base: Case, frames: int = 10, fem: bool = True, fem_bu
     fem_lm_cfg = dataclasses.replace(FEM_LM, time_budget_ms=fem_budget_ms)
     for case, overrides in stability_cases(base, entry.region, entry.fem.material, frames, **case_options):
         material = overrides.pop("material", None)
-        methods = (("network", NETWORK, entry.network), (LM_LABEL, NETWORK_LM, entry.network), ("fem", fem_cfg, entry.fem),
-                   (FEM_LM_LABEL, fem_lm_cfg, entry.fem))  # fmt: skip
+        methods = (("network", NETWORK, entry.network), (LM_LABEL, NETWORK_LM, entry.network),
+                   ("fem", fem_cfg, entry.fem), (FEM_LM_LABEL, fem_lm_cfg, entry.fem))  # fmt: skip
         for name, base_cfg, model in methods:
             if base_cfg.method == "fem" and not fem:
                 continue

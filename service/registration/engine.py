@@ -73,7 +73,10 @@ class SolveOptions:
 
 
 _BOUNDED = "levenberg-marquardt takes no force bounds: use optimizer 'lbfgsb'"
-_NO_JACOBIAN = "levenberg-marquardt needs a forward model with a Jacobian: the fem method, or the network method with a reduced surrogate (a Jacobian in its basis); use optimizer 'lbfgsb'"
+_NO_JACOBIAN = (
+    "levenberg-marquardt needs a forward model with a Jacobian: the fem method, or the network method "
+    "with a reduced surrogate (a Jacobian in its basis); use optimizer 'lbfgsb'"
+)
 
 
 def check_optimizer(op: ForwardOperator, options: SolveOptions) -> None:
@@ -411,7 +414,7 @@ def _lbfgsb(op, distance: PointToSurface, evaluate: Objective, begin: _Start, v_
     bounds = None
     if bounded:
         b = P.to_z(np.full(3 * k, float(options.force_bound)))
-        bounds = list(zip(-b, b))
+        bounds = list(zip(-b, b, strict=True))
     try:
         res = minimize(
             fun, z0, jac=True, method="L-BFGS-B", bounds=bounds, callback=converged,
@@ -494,33 +497,16 @@ def _spent(options: SolveOptions) -> str:
     return f"time budget of {1e3 * options.time_budget:g} ms spent"
 
 
-#: Rejected steps in a row before Levenberg-Marquardt stops: the damping has then grown 2^28
-#: times, and what is left to gain is below the float32 network's noise (at gtol 1e-6 on the
-#: beam, the uncapped search spent 2.3 ms an iteration on rejections)
+#: Rejected steps in a row before Levenberg-Marquardt stops: past them (damping x 2^28) what is
+#: left to gain is below the float32 network's noise (docs/performance.md, "Constants")
 _MAX_REJECTIONS = 6
 
-#: The least damping, in units of the frame's first Gauss-Newton model's mean curvature. Below
-#: it the float32 network's steps are rejected in turn (the beam's torsion cases from rest, whose
-#: twist the distance hardly sees), and it keeps such weakly seen directions from drifting on
-#: noise. Measured on the beam's 60 cases: 6.92 -> 6.33 evaluations a registration, TRE 0.099 ->
-#: 0.089 mm, force error 8.5 -> 7.5 %, median time the same within noise; the liver's streams,
-#: network and Newton alike, took the same steps (the paper's sequence: 0.1635 -> 0.1636 mm)
+#: The least damping, in units of the frame's first Gauss-Newton model's mean curvature: it keeps
+#: directions the distance hardly sees from drifting on noise (docs/performance.md, "Constants")
 _MIN_DAMPING = 3e-4
 
-#: From rest, a step whose gain ratio exceeds _TRUSTED_GAIN cuts the damping by _COLD_SHRINK
-#: instead of Nielsen's 1/3 at most. On the beam's cold starts every step had a gain ratio
-#: near 1, so the damping fell by exactly 3 a step, and the torsion cases took 6-8 steps
-#: (bending 3-4). Measured on its 60 cases: 5.33 -> 4.87 iterations a registration, TRE
-#: 0.089 -> 0.079 mm, force error 7.5 -> 7.3 %. A cut of 1/10 took 4.72 iterations at
-#: 0.090 mm and 8.0 %, and 1/20 took 4.88 at 0.121 mm and 12.6 %. Warm starts keep Nielsen's
-#: rule: there the same faster cut took more steps (our own liver sequences: 4.20 -> 4.55 a
-#: frame on the first). The liver's streams, which start cold only at their first frame, took
-#: 1.50 -> 1.48, 4.20 -> 4.05, 3.00 -> 2.95 and 3.10 -> 3.05 iterations a frame (network),
-#: errors the same to 0.3 %; the Newton method's the same steps. Not every registration gains:
-#: of the beam's 60, 22 moved nearer by over 0.02 mm TRE and 5 farther (at most 0.07 mm), and
-#: the Newton method from rest on its first 6 went 0.029 -> 0.037 mm at gtol 1e-3 (one case
-#: 0.035 -> 0.105 mm, one 0.021 -> 0.027, four the same or nearer) and 0.017 -> 0.024 mm at
-#: 1e-4 (force error 4.8 -> 4.4 %).
+#: From rest, a step whose gain ratio exceeds _TRUSTED_GAIN cuts the damping by _COLD_SHRINK, not
+#: Nielsen's 1/3: cold starts trust their model, warm starts keep Nielsen's rule (docs/performance.md)
 _TRUSTED_GAIN = 0.9
 _COLD_SHRINK = 0.2
 

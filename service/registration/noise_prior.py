@@ -10,17 +10,13 @@ the distance sees) and a zero-mean Gaussian prior of variance s^2 on each force 
 The prior's variance is unknown but a stream estimates it: the mean of g^2 over the support in
 the last frame (an empirical prior, which scales with the loads of the scene and needs no
 calibration to the organ). A fixed alpha suits one noise level only: small enough for a clean
-cloud, it lets the forces chase a noisy one (the paper's liver, 2 mm of noise, alpha 1e-7:
-2.6 mm TRE and 270 ms per frame; with this rule 0.66 mm and 35 ms).
+cloud, it lets the forces chase a noisy one.
 
 Two guards. The bare rule has a collapse: smaller forces give a larger alpha, which gives smaller
 forces (measured: alpha 8e10 on one sequence), so alpha stays within [floor, ceiling x floor],
 the floor being the session's default (the right weight for clean clouds). And each frame moves
 alpha to the geometric mean of its value and the rule's, so one odd frame does not throw it far.
-Measured on the paper's liver, its recorded sequence and three of our own, network method,
-noise 0.5 / 1 / 2 mm: TRE better than the default alpha in 10 of 12 cases (by 2-3x at 1-2 mm:
-2.6 -> 0.66, 1.6 -> 0.48 mm) and 2-8x faster frames; worse at 0.5 mm on two (0.25 -> 0.30,
-0.37 -> 0.41 mm), where the default was already right.
+What it gains, and where it loses, is measured in docs/performance.md ("Noisy clouds").
 """
 
 from __future__ import annotations

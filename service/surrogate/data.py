@@ -27,6 +27,7 @@ from ..fem.assembly import Assembler
 from ..fem.material import NeoHookean
 from ..fem.newton import NewtonOptions, NewtonSolver
 from ..mesh import TetMesh
+from ..optional import need
 
 log = logging.getLogger(__name__)
 
@@ -215,7 +216,8 @@ def generate(
         bar.close()
         return
 
-    from dask.distributed import Client, LocalCluster, as_completed
+    distributed = need("dask.distributed", "training with worker processes")
+    Client, LocalCluster, as_completed = distributed.Client, distributed.LocalCluster, distributed.as_completed
 
     cluster = None
     if scheduler is None:
@@ -243,9 +245,7 @@ def generate(
 
 
 def _progress(total: int, initial: int, enabled: bool):
-    from tqdm.auto import tqdm
-
-    bar = tqdm(total=total, initial=initial, desc="load paths", unit="path", disable=not enabled)
+    bar = need("tqdm.auto", "the trainer's progress bar").tqdm(total=total, initial=initial, desc="load paths", unit="path", disable=not enabled)
     bar.samples = 0
     return bar
 

@@ -107,8 +107,8 @@ def _layers(net: torch.nn.Module) -> list:
     each = [_mlp_layers(m) for m in net.net.members]
     k, depth = len(each), len(each[0])
     out = []
-    for i, parts in enumerate(zip(*each)):
-        Ws, bs, slopes = zip(*parts)
+    for i, parts in enumerate(zip(*each, strict=True)):
+        Ws, bs, slopes = zip(*parts, strict=True)
         if i == depth - 1:  # the last: the members' mean
             W, b = np.hstack(Ws) / np.float32(k), np.sum(bs, axis=0) / np.float32(k)
         else:

@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 from ..fem.assembly import Assembler
+from ..optional import need
 from .basis import linear_response, pod_basis
 from .network import PaperSurrogate, ReducedSurrogate
 
@@ -134,8 +135,7 @@ def train(
     progress: bool = True,
 ) -> TrainResult:
     """Fit a surrogate to samples F (N, R, 3) -> U (N, n, 3), validating on held-out paths."""
-    from tqdm.auto import tqdm
-
+    tqdm = need("tqdm.auto", "the trainer's progress bar").tqdm
     if config.threads:
         torch.set_num_threads(config.threads)
     device = config.device or ("cuda" if torch.cuda.is_available() else "cpu")

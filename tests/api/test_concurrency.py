@@ -38,9 +38,9 @@ def test_concurrent_streams_match_one_at_a_time(live, support, clouds):
     alone = [run_stream(live.ws, *job) for job in jobs]
     with concurrent.futures.ThreadPoolExecutor(len(jobs)) as ex:
         together = list(ex.map(lambda job: run_stream(live.ws, *job), jobs))
-    for a, b in zip(alone, together):
+    for a, b in zip(alone, together, strict=True):
         assert [r["frame_id"] for r in b] == list(range(5))
-        for ra, rb in zip(a, b):
+        for ra, rb in zip(a, b, strict=True):
             np.testing.assert_array_equal(np.asarray(ra["displacement"]), np.asarray(rb["displacement"]))
             np.testing.assert_array_equal(np.asarray(ra["forces"]), np.asarray(rb["forces"]))
             assert ra["iterations"] == rb["iterations"]

@@ -80,16 +80,34 @@ def test_msgpack_nested_lists_and_float32(http, support, clouds):
     http.delete(f"/sessions/{sid}")
 
 
-def test_support_change_keeps_common_forces(http, support, clouds):
+def test_support_change_keeps_common_forces(http, entry, support, clouds):
+    """A frame with a new support starts from the last frame's forces on the nodes both supports
+    share (zero on new ones): the server's frames equal a Session's that does exactly that."""
     sid = open_session(http, support=support.tolist(), outputs=["forces"])["session"]
     first = http.post(f"/sessions/{sid}/frames", json={"points": clouds[3].tolist()}).json()
     smaller = support[::2]
-    r = http.post(f"/sessions/{sid}/frames", json={"points": clouds[3].tolist(), "support": smaller.tolist()}).json()
+    r = http.post(f"/sessions/{sid}/frames", json={"points": clouds[4].tolist(), "support": smaller.tolist()}).json()
     assert r["support"] == smaller.tolist() and np.shape(r["forces"]) == (smaller.size, 3)
     info = http.get(f"/sessions/{sid}").json()
     assert info["config"]["support"] == smaller.tolist() and info["counters"]["support_size"] == smaller.size
-    assert first["converged"] in (True, False)
     http.delete(f"/sessions/{sid}")
+
+    ref = Session(entry.network, SessionConfig(support=tuple(int(i) for i in support), outputs=("forces",)))
+    want = ref.frame(clouds[3])
+    assert first["converged"] and want.converged
+    np.testing.assert_allclose(first["forces"], want.outputs["forces"], rtol=1e-9, atol=1e-12)
+    # the warm start after the change: the common nodes' forces, carried over unchanged
+    kept = Session(entry.network, SessionConfig(support=tuple(int(i) for i in support), outputs=("forces",)))
+    kept.frame(clouds[3])
+    kept._set_support(smaller, kept.g)
+    np.testing.assert_array_equal(kept.g, want.outputs["forces"][::2])
+    want = ref.frame(clouds[4], support=smaller)
+    assert r["iterations"] == want.iterations and r["status"] == want.status
+    np.testing.assert_allclose(r["forces"], want.outputs["forces"], rtol=1e-9, atol=1e-12)
+    # and it is a warm start: a cold start on the smaller support takes more iterations to reach
+    # its answer (24 against 18 when written)
+    cold = Session(entry.network, SessionConfig(support=tuple(int(i) for i in smaller), outputs=("forces",)))
+    assert cold.frame(clouds[4]).iterations > want.iterations
 
 
 def test_get_counts_and_delete(http, clouds, support):
@@ -106,10 +124,10 @@ def test_get_counts_and_delete(http, clouds, support):
 
 
 def test_fem_session(http, support, clouds):
-    sid = open_session(http, method="fem", support=support.tolist(), max_iter=20, outputs=["displacement"])["session"]
+    sid = open_session(http, method="fem", support=support.tolist(), max_iter=200, outputs=["displacement"])["session"]
     r = http.post(f"/sessions/{sid}/frames", json={"points": clouds[1].tolist()})
     assert r.status_code == 200 and np.shape(r.json()["displacement"]) == (81, 3)
-    assert r.json()["status"] in ("converged", "max_iter", "line_search")
+    assert r.json()["status"] == "converged" and r.json()["converged"] is True
     http.delete(f"/sessions/{sid}")
 
 

@@ -80,17 +80,17 @@ def test_nearly_incompressible(bar):
 
 
 def test_crushing_load_never_produces_nan(bar):
-    """A load that tries to push the tip through the bar: converged or a clear failure."""
+    """A load that tries to push the tip through the bar: the solve runs out of iterations and
+    says so, with a finite, uninverted state (never NaN, never an exception)."""
     g = np.zeros((bar.n_nodes, 3))
     corner = np.argmin(np.linalg.norm(bar.nodes - [4.0, 1.0, 1.0], axis=1))
     g[corner] = [-3000.0, -3000.0, -3000.0]
     res = NewtonSolver(Assembler(bar, NeoHookean(4500.0, 0.49))).solve(g)
-    assert np.isfinite(res.u).all()
-    assert res.status in {"converged", "max_iter", "load_step_too_small", "line_search"}
+    assert np.isfinite(res.u).all() and np.isfinite(res.residual)
+    assert res.status == "max_iter" and not res.converged and res.iterations == NewtonOptions().max_iter
+    assert np.abs(res.u).max() > 1.0  # it followed the load a long way before it stopped
     J = np.linalg.det(Assembler(bar, NeoHookean(4500.0, 0.49)).F(res.u))
     assert (J > 0).all()
-    if res.converged:
-        assert J.min() < 0.2  # it really did nearly invert elements
 
 
 def test_warm_start_needs_fewer_iterations(bar):
@@ -108,7 +108,7 @@ def test_iteration_cap_is_reported_not_raised(bar):
     solver = NewtonSolver(Assembler(bar, NeoHookean(4500.0, 0.49)), NewtonOptions(max_iter=2))
     res = solver.solve(tip_load(bar, [0.0, 0.0, -150.0]))
     assert not res.converged
-    assert res.status in {"max_iter", "load_step_too_small"}
+    assert res.status == "max_iter" and res.iterations == 2
     assert np.isfinite(res.u).all()
 
 

@@ -8,8 +8,6 @@ against central differences.
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 import trimesh
@@ -19,12 +17,12 @@ from service.registration.distance import (
     closest_point_on_triangles,
     numba_available,
 )
+from tests.conftest import LIVER, needs_liver
 
 BACKENDS = [
     "numpy",
     pytest.param("numba", marks=pytest.mark.skipif(not numba_available(), reason="no numba")),
 ]
-LIVER = Path(__file__).resolve().parents[3] / "shared" / "meshes" / "liver_paper"  # ../shared
 
 
 # -- references -----------------------------------------------------------------------------------
@@ -651,7 +649,7 @@ def test_bad_inputs_are_refused():
             PointToSurface(bad_faces)
 
 
-@pytest.mark.skipif(not (LIVER / "liver.msh").exists(), reason="liver data not available")
+@needs_liver()
 def test_liver_cloud_against_brute_force():
     meshio = pytest.importorskip("meshio")
     from service.mesh import TetMesh

@@ -84,19 +84,20 @@ def test_known_loads_are_recovered(method, entry):
     dist.bind(pts)
     model = entry.fem if method == "fem" else entry.network
     op = model.restrict(support, dist.nodes)
-    sol = solve_frame(op, dist, mesh.nodes[dist.nodes], np.zeros_like(g_true), SolveOptions(alpha=1e-9, gtol=1e-6, max_iter=300))
+    # gtol 1e-6 lies below the float32 network's gradient noise (it stalls there): 1e-5 for it
+    gtol = 1e-6 if method == "fem" else 1e-5
+    sol = solve_frame(op, dist, mesh.nodes[dist.nodes], np.zeros_like(g_true), SolveOptions(alpha=1e-9, gtol=gtol, max_iter=300))
     u = model.restrict(support).displacement(sol.g)
     tre = np.linalg.norm(u - u_true, axis=1).mean()
     disp = np.linalg.norm(u_true, axis=1).mean()
     force_err = np.linalg.norm(sol.g.sum(0) - g_true.sum(0)) / np.linalg.norm(g_true.sum(0))
-    print(f"{method}: TRE {tre:.2e} m ({tre / disp:.1%} of the mean displacement), force error {force_err:.1%}, {sol.iterations} iterations")
-    # gtol 1e-6 lies below the float32 network's gradient noise: it ends where roundoff stops
-    # progress, as "stalled" or "line_search" by chance (a cloud 1e-12 away flips it)
-    assert sol.status in ({"converged", "stalled"} if method == "fem" else {"converged", "stalled", "line_search"})
+    print(f"{method}: TRE {tre:.2e} m ({tre / disp:.1%} of the mean displacement), "
+          f"force error {force_err:.1%}, {sol.iterations} iterations")
+    assert sol.status == "converged" and sol.converged
     if method == "fem":
-        assert tre < 0.01 * disp and force_err < 0.02
-    else:
-        assert tre < 0.2 * disp and force_err < 0.3
+        assert tre < 0.002 * disp and force_err < 0.01
+    else:  # the small network: 1.7 % and 17 % when written
+        assert tre < 0.03 * disp and force_err < 0.25
 
 
 def test_bounds_are_respected(entry):

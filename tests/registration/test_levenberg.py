@@ -95,10 +95,11 @@ def test_registers_as_lbfgsb_does_in_fewer_evaluations(entry, method, loss):
     sol = {opt: _register(entry, opt, pts, support, **kw) for opt in ("lbfgsb", "levenberg-marquardt")}
     err = {}
     for opt, (s, op) in sol.items():
-        assert s.status in (("converged",) if opt != "lbfgsb" else ("converged", "stalled")), (opt, s.status, s.message)
+        assert s.status == "converged", (opt, s.status, s.message)
         err[opt] = np.linalg.norm(op.displacement(s.g) - u_true, axis=1).mean()
     lm, lb = sol["levenberg-marquardt"][0], sol["lbfgsb"][0]
-    print(f"{method}, {loss}: L-BFGS-B {lb.evaluations} evaluations, TRE {err['lbfgsb']:.3e}; LM {lm.evaluations}, {err['levenberg-marquardt']:.3e}")
+    print(f"{method}, {loss}: L-BFGS-B {lb.evaluations} evaluations, TRE {err['lbfgsb']:.3e}; "
+          f"LM {lm.evaluations}, {err['levenberg-marquardt']:.3e}")
     assert lm.evaluations < lb.evaluations
     assert err["levenberg-marquardt"] <= 1.2 * err["lbfgsb"] + 1e-3 * np.linalg.norm(u_true, axis=1).mean()
     assert lm.value <= lb.value * (1 + 1e-3)

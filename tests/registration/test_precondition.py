@@ -55,7 +55,7 @@ def test_cold_start_with_gauss_newton_registers_as_well(entry, method):
         s = Session(model, SessionConfig(method=method, warm_start=False, precondition=pc, gtol=gtol, outputs=("displacement",)))
         assert s.config.precondition is pc
         out[pc] = [s.frame(c) for c in seq.clouds[1::2]]
-    for plain, gn, truth in zip(out[False], out[True], seq.positions[1::2]):
+    for plain, gn, truth in zip(out[False], out[True], seq.positions[1::2], strict=True):
         err = [np.linalg.norm(mesh.nodes + r.outputs["displacement"] - truth, axis=1).mean() for r in (plain, gn)]
         print(f"{method}: plain {plain.iterations} it, {err[0]:.2e}; Gauss-Newton {gn.iterations} it, {err[1]:.2e}")
         assert gn.converged

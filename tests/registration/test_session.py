@@ -49,7 +49,7 @@ def test_cold_starts_ignore_the_carried_curvature(entry, sequence):
         s = Session(entry.network, SessionConfig(support=_support(entry, tool), warm_start=False, carry_curvature=carry))
         results[carry] = [s.frame(c) for c in seq.clouds[::4]]
     assert s.curvature is None and all(r.converged for r in results[False])
-    for a, b in zip(results[True], results[False]):
+    for a, b in zip(results[True], results[False], strict=True):
         assert a.iterations == b.iterations and a.objective == b.objective
 
 
@@ -161,7 +161,7 @@ def test_noise_sets_alpha_from_the_forces_prior(entry, method):
         results = [s.frame(c) for c in clouds]
         alphas[label] = [r.alpha for r in results]
         tre[label] = np.mean([np.linalg.norm(mesh.nodes + r.outputs["displacement"] - x, axis=1).mean()
-                              for r, x in zip(results[6:], seq.positions[6:])])
+                              for r, x in zip(results[6:], seq.positions[6:], strict=True)])
     print(method, {k: round(v * 1e3, 1) for k, v in tre.items()}, alphas["noise"][::3])
     default = alphas["default"][0]
     assert alphas["default"] == [default] * len(clouds) and alphas["noise"][0] == default

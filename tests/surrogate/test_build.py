@@ -22,14 +22,15 @@ def test_training_produces_a_loadable_entry_that_learnt(bar_store):
     assert m["training"]["samples"] == report.samples == 60
     assert m["material"] == {"law": "neo-hookean", "E": 4500.0, "nu": 0.45}
     val = m["training"]["validation"]
-    assert val["mean_mm"] < 0.5 * report.metrics["zero_mean_mm"]  # far better than u = 0
+    assert val["mean_mm"] < 0.15 * report.metrics["zero_mean_mm"]  # far better than u = 0 (6 % when written)
     # the network and the FEM agree on a fresh load like the training ones (a surface patch)
     tip = entry.region[np.argmax(entry.mesh.nodes[entry.region, 0])]
     support = np.intersect1d(entry.mesh.surface_patch(tip, 5), entry.region)
     g = np.tile([0.0, 0.0, -30.0 / support.size], (support.size, 1))
     u_net = entry.network.restrict(support).displacement(g)
     u_fem = entry.fem.solve(g, support).u
-    assert np.linalg.norm(u_net - u_fem) < 0.3 * np.linalg.norm(u_fem)
+    # 8 % when written (54 samples, 60 epochs): the bound leaves room for another CPU's roundoff
+    assert np.linalg.norm(u_net - u_fem) < 0.12 * np.linalg.norm(u_fem)
 
 
 def test_stiffness_scaling_matches_the_fem(bar_store):
@@ -44,7 +45,10 @@ def test_stiffness_scaling_matches_the_fem(bar_store):
     net_E = entry.network.with_stiffness(E).restrict(support).displacement(g)
     net_0 = entry.network.restrict(support).displacement(g / 2.5)
     np.testing.assert_allclose(net_E, net_0, atol=1e-7)
-    assert np.linalg.norm(net_E - fem_E) < 0.5 * np.linalg.norm(fem_E)
+    # so its error at E is exactly its error at E0 on the scaled load (16 % when written)
+    err_E = np.linalg.norm(net_E - fem_E) / np.linalg.norm(fem_E)
+    err_0 = np.linalg.norm(net_0 - entry.fem.solve(g / 2.5, support).u) / np.linalg.norm(fem_E)
+    assert err_E == pytest.approx(err_0, rel=1e-4) and err_E < 0.22
 
 
 @pytest.mark.parametrize(
@@ -117,7 +121,7 @@ def test_an_ensemble_trains_and_round_trips_through_the_store(bar_store, tmp_pat
     assert entry.manifest["training"]["config"]["members"] == 2
     net = entry.network.net
     assert isinstance(net.net, Ensemble) and len(net.net.members) == 2
-    assert report.metrics["mean_mm"] < 0.5 * report.metrics["zero_mean_mm"]
+    assert report.metrics["mean_mm"] < 0.15 * report.metrics["zero_mean_mm"]  # 6 % when written
     x = torch.randn(3, net.skip.in_features)
     with torch.no_grad():
         each = net.member_coefficients(x)
