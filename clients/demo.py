@@ -20,6 +20,12 @@ def _pct(a, q) -> float:
     return float(np.percentile(a, q)) if len(a) else float("nan")
 
 
+def _spearman(a: Sequence[float], b: Sequence[float]) -> float:
+    """Spearman's rank correlation (no ties expected in measured floats)."""
+    ra, rb = (np.argsort(np.argsort(np.asarray(x, float))) for x in (a, b))
+    return float(np.corrcoef(ra, rb)[0, 1]) if len(ra) > 1 else float("nan")
+
+
 def score_stream(
     api: Client,
     model: str,
@@ -31,19 +37,20 @@ def score_stream(
     method: str,
     support: np.ndarray,
     say: Callable[..., None] = print,
+    settings: dict | None = None,
 ) -> int:
     """Stream `clouds` through a session and score each frame against the truth; 0 when done.
 
     Shape: clouds[t] (m, 3); positions[t] (n, 3) the true node positions of frame t; net_forces[t]
     (3,) the true net force; rest (n, 3) the model's nodes.
     """
-    say(f"{'frame':>5} {'error mm':>9} {'rest mm':>8} {'force %':>8} {'latency ms':>11} "
+    say(f"{'frame':>5} {'error mm':>9} {'est. mm':>8} {'rest mm':>8} {'force %':>8} {'latency ms':>11} "
         f"{'solve ms':>9} {'iters':>6}  status")  # fmt: skip
-    errors, rest_errors, force_errors, latency, solve = [], [], [], [], []
+    errors, rest_errors, force_errors, latency, solve, estimates, by_fem = [], [], [], [], [], [], 0
     failed = 0
     t_stream = time.perf_counter()
     outputs = ["displacement", "forces"]
-    with api.stream(model, method=method, support=support, outputs=outputs) as stream:
+    with api.stream(model, method=method, support=support, outputs=outputs, **(settings or {})) as stream:
         for t, cloud in enumerate(clouds):
             t1 = time.perf_counter()
             r = stream.frame(cloud, frame_id=t)
@@ -58,8 +65,11 @@ def score_stream(
             force_errors.append(f_err)
             solve.append(r["timing_ms"]["total"])
             failed += not r["converged"]
-            say(f"{t + 1:>5} {err:>9.3f} {at_rest:>8.3f} {f_err:>8.1f} {latency[-1]:>11.1f} "
-                f"{solve[-1]:>9.1f} {r['iterations']:>6}  {r['status']}")  # fmt: skip
+            est = r.get("error_estimate")
+            estimates.append(np.inf if est is None else 1e3 * est)
+            by_fem += r.get("method_used") == "fem"
+            say(f"{t + 1:>5} {err:>9.3f} {estimates[-1]:>8.3f} {at_rest:>8.3f} {f_err:>8.1f} {latency[-1]:>11.1f} "
+                f"{solve[-1]:>9.1f} {r['iterations']:>6}  {r['status']}{' (fem)' if r.get('method_used') == 'fem' else ''}")  # fmt: skip
     seconds = time.perf_counter() - t_stream
     n = len(errors)
     say(f"\n{n} frames in {seconds:.2f} s ({n / seconds:.1f} frames/s); {n - failed} converged")
@@ -67,6 +77,8 @@ def score_stream(
         f"(undeformed shape: median {np.median(rest_errors):.3f} mm)")  # fmt: skip
     say(f"net force error:    median {np.median(force_errors):.1f} %, "
         f"p95 {_pct(force_errors, 95):.1f} %")  # fmt: skip
+    say(f"error estimate:     median {np.median(estimates):.3f} mm; rank correlation with the error "
+        f"{_spearman(estimates, errors):.2f}; {by_fem} of {n} frames corrected by the FEM")  # fmt: skip
     say(f"latency:            median {np.median(latency):.1f} ms, p95 {_pct(latency, 95):.1f} ms "
         f"(server solve: median {np.median(solve):.1f} ms, p95 {_pct(solve, 95):.1f} ms)")  # fmt: skip
     return 0

@@ -111,7 +111,8 @@ def parser() -> argparse.ArgumentParser:
     )
     d.add_argument("--model", default="phantom", help="model id in the store (default: phantom)")
     d.add_argument("--frames", type=int, default=20)
-    d.add_argument("--method", choices=["network", "fem"], default="network")
+    d.add_argument("--method", choices=["network", "fem", "auto"], default="network",
+                   help="auto: the network, with frames whose error estimate is large redone by the FEM")
     d.add_argument("--encoding", choices=["msgpack", "json"], default="msgpack")
     d.add_argument("--store", default=None, help="model store (default: the project's model_store/)")
     d.set_defaults(func=_demo)

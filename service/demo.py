@@ -107,5 +107,10 @@ def run(
             say("error: the FEM could not follow the first frame of the sequence")
             return 1
 
+        settings = None
+        if method == "auto":  # correct frames past twice the build's validation error: the build's figure
+            val = float(summary["training"].get("validation", {}).get("mean_mm", 0.5))
+            settings = {"max_error": 2e-3 * val}
+            say(f"auto: frames whose error estimate exceeds {2 * val:.3g} mm are registered again by the FEM")
         return score_stream(api, model, seq.clouds, seq.positions, seq.net_forces, mesh.nodes,
-                            method=method, support=support, say=say)
+                            method=method, support=support, say=say, settings=settings)

@@ -264,7 +264,6 @@ def test_paper_liver_scene():
     region = scene.region_nodes(mesh)
     support = scene.support_nodes(mesh)
     assert support.size == 60 and np.isin(support, mesh.free_surface_nodes).all()
-    centre = mesh.nodes[support].mean(axis=0)
-    assert (np.linalg.norm(mesh.nodes[region] - centre, axis=1) <= 0.05).all()
-    assert region.size > 100
+    # the recipe takes nothing from the sequence it is scored on: its loads may act anywhere
+    np.testing.assert_array_equal(region, mesh.free_surface_nodes)
     assert scene.matching_faces(mesh).shape == (4745, 3)
