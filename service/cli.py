@@ -23,9 +23,9 @@ def _at_least_one(text: str) -> int:
 
 
 def _train(args: argparse.Namespace) -> int:
-    from .scene import resolve_scene
-    from .config import default_store
     from .build import build
+    from .config import default_store
+    from .scene import resolve_scene
     from .surrogate.train import TrainConfig
 
     try:  # the config first: a bad combination of flags fails before the scene and any data
