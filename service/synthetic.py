@@ -15,8 +15,8 @@ import numpy as np
 
 from .fem.material import NeoHookean
 from .fem.model import FEMModel
-from .mesh import TetMesh
 from .forward import ForwardFailed
+from .mesh import TetMesh
 
 Array = np.ndarray
 

@@ -90,8 +90,8 @@ def write_bar_scene(folder: Path, bar: TetMesh, name: str = "bar", samples: int 
 @pytest.fixture(scope="session")
 def bar_store(tmp_path_factory, bar):
     """A model store with one small trained entry ("bar"), built by the real trainer."""
-    from service.scene import load_scene
     from service.build import build
+    from service.scene import load_scene
     from service.surrogate.train import TrainConfig
 
     root = tmp_path_factory.mktemp("bar_store")

@@ -162,7 +162,7 @@ def _request_field(f: dataclasses.Field, hint: Any) -> tuple[Any, Any]:
     kind = base if choice else base | None
     kw = dict(meta["bounds"], description=meta["doc"])
     if f.name == "outputs":
-        return kind, Field(default_factory=lambda: list(f.default), **kw)
+        return kind, Field(default_factory=lambda: list(SessionConfig.outputs), **kw)
     return kind, Field(f.default, **kw)
 
 
@@ -180,11 +180,9 @@ def _strip_none(hint: Any) -> Any:
 _HINTS = get_type_hints(SessionConfig)
 _API_TYPES = {float: Finite, NodeList: NodeIds, FaceList: Triangles, Outputs: list[OutputName]}
 
-_SessionSettingsBase = create_model(
-    "_SessionSettingsBase",
-    __base__=_Request,
-    **{f.name: _request_field(f, _HINTS[f.name]) for f in SETTINGS},
-)
+_REQUEST_FIELDS: dict[str, Any] = {f.name: _request_field(f, _HINTS[f.name]) for f in SETTINGS}
+#: typed Any: its fields are the settings', known when the module runs, not to a type checker
+_SessionSettingsBase: Any = create_model("_SessionSettingsBase", __base__=_Request, **_REQUEST_FIELDS)
 
 
 class SessionSettings(_SessionSettingsBase):
@@ -346,14 +344,15 @@ class SimulateOut(_Reply):
 
 _REPLY_TYPES = {NodeList: list[int], FaceList: list[Tri], Outputs: list[OutputName]}
 
-SessionConfigOut = create_model(
-    "SessionConfigOut",
-    __base__=_Reply,
-    __doc__="The effective settings of a session (every default filled in).",
-    model=(str, ...),
-    **{f.name: (_reply_field(f, _HINTS[f.name]), ...) for f in SETTINGS},
-    skip_stale=(bool, ...),
-)
+_REPLY_FIELDS: dict[str, Any] = {f.name: (_reply_field(f, _HINTS[f.name]), ...) for f in SETTINGS}
+_SessionConfigBase: Any = create_model("_SessionConfigBase", __base__=_Reply, **_REPLY_FIELDS)
+
+
+class SessionConfigOut(_SessionConfigBase):
+    """The effective settings of a session (every default filled in)."""
+
+    model: str
+    skip_stale: bool
 
 
 class SessionOpened(_Reply):

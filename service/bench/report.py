@@ -102,8 +102,7 @@ def _smoke_case(entry):
 
 
 def main(args: argparse.Namespace) -> int:
-    from ..config import Settings, limit_threads
-    from ..config import default_store
+    from ..config import Settings, default_store, limit_threads
     from . import machine
 
     blas_threads = Settings().blas_threads

@@ -13,8 +13,8 @@ from functools import cached_property
 
 import numpy as np
 
-from ..mesh import TetMesh
 from ..forward import ForwardFailed, check_support
+from ..mesh import TetMesh
 from .assembly import Assembler
 from .linsolve import make_solver
 from .material import NeoHookean

@@ -30,8 +30,8 @@ import time
 import numpy as np
 from scipy.optimize import minimize
 
-from .distance import PointToSurface
 from ..forward import ForwardFailed, ForwardOperator
+from .distance import PointToSurface
 from .levenberg import GaussNewtonModel, prepare
 from .precondition import Curvature, gauss_newton
 from .settings import DEFAULT_ALPHA, DEFAULT_GTOL, NAMES, OPTIMIZERS, Optimizer, SessionConfig

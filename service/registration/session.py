@@ -27,11 +27,11 @@ import numpy as np
 
 from ..fem.assembly import Assembler
 from ..fem.material import NeoHookean
+from ..forward import ForwardFailed, ForwardModel, ForwardOperator, check_support
 from ..mesh import TetMesh
 from .confidence import error_estimate, estimator_for
 from .distance import PointToSurface
 from .engine import SolveOptions, check_optimizer, solve_frame
-from ..forward import ForwardFailed, ForwardModel, ForwardOperator, check_support
 from .noise_prior import AlphaTracker
 from .precondition import Curvature
 from .settings import DEFAULT_ALPHA, DEFAULT_GTOL, METHODS, OUTPUT_NAMES, SessionConfig

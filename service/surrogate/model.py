@@ -22,8 +22,8 @@ import torch
 from scipy.linalg.blas import strmm
 
 from ..fem.material import NeoHookean
-from ..mesh import TetMesh
 from ..forward import check_support
+from ..mesh import TetMesh
 from .network import Ensemble, PaperSurrogate, ReducedSurrogate
 
 Array = np.ndarray

@@ -9,9 +9,9 @@ import pytest
 
 import service.registration.engine as engine
 import service.registration.levenberg as lev
+from service.forward import ForwardFailed
 from service.registration.distance import PointToSurface
 from service.registration.engine import SolveOptions, solve_frame
-from service.forward import ForwardFailed
 from service.registration.levenberg import GaussNewtonModel, weighted_rows
 from service.registration.session import Session, SessionConfig
 
