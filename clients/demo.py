@@ -24,26 +24,10 @@ PEAK_FRACTION = 0.7  # of the model's training max_force
 
 
 def _patches(mesh, region: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """A tool patch and a larger support around it, both free surface nodes in the region.
+    """A tool patch and a larger support around it (see :func:`service.synthetic.tool_patches`)."""
+    from service.synthetic import tool_patches
 
-    The centre is the region's surface node nearest the region's surface centroid, so both
-    patches grow inside the part of the surface the network was trained to load.
-    """
-    inside = np.zeros(mesh.n_nodes, bool)
-    inside[region] = True
-    cand = mesh.free_surface_nodes[inside[mesh.free_surface_nodes]]
-    if cand.size == 0:
-        raise ValueError("the model's load region has no free surface nodes")
-    x = mesh.nodes[cand]
-    centre = int(cand[np.argmin(np.linalg.norm(x - x.mean(axis=0), axis=1))])
-
-    def patch(size: int) -> np.ndarray:
-        p = mesh.surface_patch(centre, size)
-        return np.sort(p[inside[p]])
-
-    tool = mesh.surface_patch(centre, 3 * TOOL_NODES)  # nearest first: keep the closest in the region
-    tool = tool[inside[tool]][:TOOL_NODES]
-    return np.sort(tool), patch(SUPPORT_NODES)
+    return tool_patches(mesh, region, TOOL_NODES, SUPPORT_NODES)
 
 
 def _pct(a, q) -> float:
