@@ -124,3 +124,34 @@ def run(
     say(f"latency:            median {np.median(latency):.1f} ms, p95 {_pct(latency, 95):.1f} ms "
         f"(server solve: median {np.median(solve):.1f} ms, p95 {_pct(solve, 95):.1f} ms)")
     return 0
+
+
+def viewer(model: str = "phantom", store=None, port: int | None = None, *, out=None) -> int:
+    """``elastreg demo --viewer``: serve the model and open the viewer's demo (the page streams a
+    synthetic sequence itself) until interrupted."""
+    import webbrowser
+
+    from service.api.server import BackgroundServer
+    from service.config import Settings
+    from service.store import default_store
+
+    out = out or sys.stdout
+    store = Path(store) if store else default_store()
+    if not (store / model / "manifest.json").exists():
+        print(f"error: no model {model!r} in the store at {store}.\nBuild it first with:  elastreg train {model}",
+              file=out)
+        return 1
+    with BackgroundServer(Settings(store=store), port=port) as server:
+        url = f"{server.url}/viewer?model={model}&demo=1"
+        print(f"the viewer: {url}\n(watch any session with {server.url}/viewer?session=ID; Ctrl-C to stop)",
+              file=out, flush=True)
+        try:
+            webbrowser.open(url)
+        except Exception:  # no browser here: the URL above is enough
+            pass
+        try:
+            while True:
+                time.sleep(3600)
+        except KeyboardInterrupt:
+            pass
+    return 0

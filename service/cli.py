@@ -71,8 +71,10 @@ def _serve(args: argparse.Namespace) -> int:
 
 
 def _demo(args: argparse.Namespace) -> int:
-    from clients.demo import run
+    from clients.demo import run, viewer
 
+    if args.viewer:
+        return viewer(model=args.model, store=args.store, port=args.port)
     return run(model=args.model, frames=args.frames, method=args.method, encoding=args.encoding, store=args.store)
 
 
@@ -105,6 +107,8 @@ def parser() -> argparse.ArgumentParser:
     d.add_argument("--method", choices=["network", "fem"], default="network")
     d.add_argument("--encoding", choices=["msgpack", "json"], default="msgpack")
     d.add_argument("--store", default=None, help="model store (default: the project's model_store/)")
+    d.add_argument("--viewer", action="store_true", help="serve and open the live viewer's demo instead (Ctrl-C to stop)")
+    d.add_argument("--port", type=int, default=None, help="with --viewer: the server's port (default: a free one)")
     d.set_defaults(func=_demo)
 
     s = sub.add_parser("serve", help="run the HTTP/WebSocket API over a model store")
