@@ -33,8 +33,10 @@ def _watch_10hz(url: str, model: str, clouds, support, seconds: float) -> dict:
 
     sent: dict[int, float] = {}
     with Client(url) as api, api.stream(model, support=support) as stream, sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=shutil.which("chromium"),
-                                     args=["--no-sandbox", "--disable-gpu", "--disable-background-networking"])
+        browser = pw.chromium.launch(
+            executable_path=shutil.which("chromium"),
+            args=["--no-sandbox", "--disable-gpu", "--disable-background-networking"],
+        )
         page = browser.new_page(viewport={"width": 1000, "height": 700})
         page.goto(f"{url}/viewer?session={stream.session}")
         page.wait_for_function("() => window.elastregViewer.model !== null", timeout=60_000)
@@ -56,10 +58,16 @@ def _watch_10hz(url: str, model: str, clouds, support, seconds: float) -> dict:
     latency = [r["t"] - sent[r["frame_id"]] for r in shown]
     span = (shown[-1]["t"] - shown[0]["t"]) / 1e3 if len(shown) > 1 else float("nan")
     return {
-        "frames_sent": k, "frames_drawn": len(shown), "stream_hz": k / seconds,
-        "drawn_per_s": (len(shown) - 1) / span, "last_error": err,
-        "latency_ms": {"median": float(np.median(latency)), "p95": float(np.percentile(latency, 95)),
-                       "max": float(np.max(latency))},
+        "frames_sent": k,
+        "frames_drawn": len(shown),
+        "stream_hz": k / seconds,
+        "drawn_per_s": (len(shown) - 1) / span,
+        "last_error": err,
+        "latency_ms": {
+            "median": float(np.median(latency)),
+            "p95": float(np.percentile(latency, 95)),
+            "max": float(np.max(latency)),
+        },
     }
 
 
@@ -75,8 +83,25 @@ def _bridge_vs_ws(url: str, model: str, clouds, support, frames: int) -> dict:
     port = free_port()
     ids = ROOT / "reports/frontends/.support.txt"
     ids.write_text(" ".join(map(str, np.asarray(support).tolist())))
-    proc = subprocess.Popen([sys.executable, "-m", "service.cli", "igtl", "--model", model, "--server", url,
-                             "--port", str(port), "--support", str(ids)], stdout=subprocess.PIPE, text=True, cwd=ROOT)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "service.cli",
+            "igtl",
+            "--model",
+            model,
+            "--server",
+            url,
+            "--port",
+            str(port),
+            "--support",
+            str(ids),
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+    )
     try:
         assert "OpenIGTLink on" in proc.stdout.readline()
         sock = socket.create_connection(("127.0.0.1", port))
@@ -105,9 +130,15 @@ def _bridge_vs_ws(url: str, model: str, clouds, support, frames: int) -> dict:
         proc.wait(10)
         ids.unlink(missing_ok=True)
     ws, ig = float(np.median(ws_ms)), float(np.median(igtl_ms))
-    return {"frames": frames, "points": int(len(clouds[0])), "websocket_ms_median": ws, "bridge_ms_median": ig,
-            "ratio_bridge_to_websocket": ig / ws,
-            "websocket_ms_p95": float(np.percentile(ws_ms, 95)), "bridge_ms_p95": float(np.percentile(igtl_ms, 95))}
+    return {
+        "frames": frames,
+        "points": int(len(clouds[0])),
+        "websocket_ms_median": ws,
+        "bridge_ms_median": ig,
+        "ratio_bridge_to_websocket": ig / ws,
+        "websocket_ms_p95": float(np.percentile(ws_ms, 95)),
+        "bridge_ms_p95": float(np.percentile(igtl_ms, 95)),
+    }
 
 
 def main() -> int:
@@ -133,8 +164,13 @@ def main() -> int:
         support = seq["support"]
         viewer = _watch_10hz(server.url, args.model, clouds, support, args.seconds)
         bridge = _bridge_vs_ws(server.url, args.model, clouds, support, args.frames)
-    report = {"machine": describe(), "model": args.model, "command": " ".join(sys.argv),
-              "viewer_watching_10hz": viewer, "bridge_vs_websocket": bridge}
+    report = {
+        "machine": describe(),
+        "model": args.model,
+        "command": " ".join(sys.argv),
+        "viewer_watching_10hz": viewer,
+        "bridge_vs_websocket": bridge,
+    }
     (out / "frontends.json").write_text(json.dumps(report, indent=2))
     print(json.dumps({"viewer_watching_10hz": viewer, "bridge_vs_websocket": bridge}, indent=2))
     return 0

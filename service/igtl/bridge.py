@@ -51,8 +51,15 @@ class Surface:
 
 
 class Bridge:
-    def __init__(self, api_url: str, model: str, *, device: str = "cloud", settings: dict | None = None,
-                 encoding: str = "msgpack") -> None:
+    def __init__(
+        self,
+        api_url: str,
+        model: str,
+        *,
+        device: str = "cloud",
+        settings: dict | None = None,
+        encoding: str = "msgpack",
+    ) -> None:
         self.api_url = api_url
         self.model = model
         self.device = device
@@ -63,6 +70,7 @@ class Bridge:
         self.surface: Surface | None = None
         self.busy = False
         self.sessions: list[str] = []  # ids of the sessions opened so far (for logs and tests)
+        self.announce = log.info  # what to do with a line a person should see (the CLI prints it)
 
     async def prepare(self) -> None:
         from clients import AsyncClient
@@ -76,8 +84,17 @@ class Bridge:
         peer = writer.get_extra_info("peername")
         if self.busy:
             log.warning("refusing %s: a client is already connected", peer)
-            writer.write(p.pack("STRING", STATUS, p.encode_string(json.dumps(
-                {"error": "this bridge serves one client at a time; one is connected"}))))
+            writer.write(
+                p.pack(
+                    "STRING",
+                    STATUS,
+                    p.encode_string(
+                        json.dumps(
+                            {"error": "this bridge serves one client at a time; one is connected"}
+                        )
+                    ),
+                )
+            )
             await _close(writer)
             return
         self.busy = True
@@ -97,8 +114,8 @@ class Bridge:
         async with AsyncClient(self.api_url, encoding=self.encoding) as api:
             stream = await api.stream(self.model, **self.settings)
             self.sessions.append(stream.session)
-            log.info("session %s opened; watch it at %s/viewer?session=%s", stream.session,
-                     self.api_url, stream.session)
+            sid = stream.session
+            self.announce(f"session {sid}: watch it at {self.api_url}/viewer?session={sid}")
             frame = 0
             try:
                 while True:
@@ -135,8 +152,12 @@ class Bridge:
 
     def _cloud(self, msg: p.Message, writer) -> np.ndarray | None:
         if msg.device != self.device or msg.type not in ("POLYDATA", "POINT"):
-            log.info("ignored a %s message named %r (frames are POLYDATA or POINT named %r)",
-                     msg.type, msg.device, self.device)
+            log.info(
+                "ignored a %s message named %r (frames are POLYDATA or POINT named %r)",
+                msg.type,
+                msg.device,
+                self.device,
+            )
             return None
         try:
             if msg.type == "POLYDATA":
@@ -153,7 +174,12 @@ class Bridge:
         try:
             r = await stream.frame(points, frame_id=frame)
         except StreamError as exc:
-            writer.write(_status({"frame_id": frame, "error": {"code": exc.status, "detail": str(exc.detail)}}, version))
+            writer.write(
+                _status(
+                    {"frame_id": frame, "error": {"code": exc.status, "detail": str(exc.detail)}},
+                    version,
+                )
+            )
             await writer.drain()
             return
         surface = self.surface.positions(r)
@@ -166,7 +192,14 @@ class Bridge:
             "timing_ms": {**r.get("timing_ms", {}), "bridge": 1e3 * (time.perf_counter() - t0)},
             "session": stream.session,
         }
-        writer.write(p.pack("POLYDATA", SURFACE, p.encode_polydata(surface, self.surface.triangles), version=version))
+        writer.write(
+            p.pack(
+                "POLYDATA",
+                SURFACE,
+                p.encode_polydata(surface, self.surface.triangles),
+                version=version,
+            )
+        )
         writer.write(_status(status, version))
         await writer.drain()
 
@@ -177,8 +210,12 @@ class Bridge:
 
 
 def _status(obj: dict, version: int) -> bytes:
-    return p.pack("STRING", STATUS, p.encode_string(json.dumps(obj, allow_nan=False, default=float)),
-                  version=min(version, 2))
+    return p.pack(
+        "STRING",
+        STATUS,
+        p.encode_string(json.dumps(obj, allow_nan=False, default=float)),
+        version=min(version, 2),
+    )
 
 
 async def _close(writer) -> None:
@@ -194,15 +231,29 @@ async def serve(bridge: Bridge, host: str, port: int, ready=None) -> None:
     await bridge.prepare()
     server = await asyncio.start_server(bridge.handle, host, port)
     bound = server.sockets[0].getsockname()[1]
-    log.info("OpenIGTLink bridge for model %r on %s:%d (API %s)", bridge.model, host, bound, bridge.api_url)
+    log.info(
+        "OpenIGTLink bridge for model %r on %s:%d (API %s)",
+        bridge.model,
+        host,
+        bound,
+        bridge.api_url,
+    )
     if ready is not None:
         ready(bound)
     async with server:
         await server.serve_forever()
 
 
-def run(model: str, *, host: str = "127.0.0.1", port: int = 18944, server: str | None = None, store=None,
-        device: str = "cloud", settings: dict | None = None) -> int:
+def run(
+    model: str,
+    *,
+    host: str = "127.0.0.1",
+    port: int = 18944,
+    server: str | None = None,
+    store=None,
+    device: str = "cloud",
+    settings: dict | None = None,
+) -> int:
     """``elastreg igtl``: the bridge, over ``server`` or an API it starts in this process."""
     from contextlib import ExitStack
 
@@ -215,10 +266,14 @@ def run(model: str, *, host: str = "127.0.0.1", port: int = 18944, server: str |
             api = stack.enter_context(BackgroundServer(Settings(store=store or default_store())))
             server = api.url
         bridge = Bridge(server, model, device=device, settings=settings)
+        bridge.announce = lambda line: print(f"elastreg igtl: {line}", flush=True)
 
         def ready(bound: int) -> None:
-            print(f"elastreg igtl: OpenIGTLink on {host}:{bound}, model {model!r}, API {server} "
-                  f"(frames: POLYDATA or POINT named {device!r})", flush=True)
+            print(
+                f"elastreg igtl: OpenIGTLink on {host}:{bound}, model {model!r}, API {server} "
+                f"(frames: POLYDATA or POINT named {device!r})",
+                flush=True,
+            )
 
         try:
             asyncio.run(serve(bridge, host, port, ready))

@@ -50,7 +50,9 @@ _TABLE = _crc_table()
 def _crc64(data, table):
     crc = np.uint64(0)
     for b in data:
-        crc = table[np.uint64((crc >> np.uint64(56)) ^ np.uint64(b)) & np.uint64(0xFF)] ^ (crc << np.uint64(8))
+        crc = table[np.uint64((crc >> np.uint64(56)) ^ np.uint64(b)) & np.uint64(0xFF)] ^ (
+            crc << np.uint64(8)
+        )
     return crc
 
 
@@ -88,7 +90,9 @@ def parse_header(raw: bytes) -> tuple[int, str, str, float, int, int]:
     return version, _name(mtype), _name(device), sec + frac / 2**32, size, crc
 
 
-def parse_body(version: int, mtype: str, device: str, timestamp: float, body: bytes, crc: int | None) -> Message:
+def parse_body(
+    version: int, mtype: str, device: str, timestamp: float, body: bytes, crc: int | None
+) -> Message:
     """The message a header and its body make; ProtocolError when they do not fit."""
     if crc is not None and crc != 0 and crc64(body) != crc:
         raise ProtocolError(f"{mtype} {device!r}: CRC mismatch (the body is corrupt)")
@@ -113,12 +117,14 @@ def _metadata(raw: bytes, header_size: int, what: str) -> dict[str, str]:
     try:
         (count,) = struct.unpack_from(">H", raw)
         if header_size != 2 + 8 * count:
-            raise ProtocolError(f"{what}: metadata header of {header_size} bytes for {count} entries")
+            raise ProtocolError(
+                f"{what}: metadata header of {header_size} bytes for {count} entries"
+            )
         out, at = {}, header_size
         for i in range(count):
             klen, encoding, vlen = struct.unpack_from(">HHI", raw, 2 + 8 * i)
-            key = raw[at:at + klen].decode("utf-8")
-            value = raw[at + klen:at + klen + vlen]
+            key = raw[at : at + klen].decode("utf-8")
+            value = raw[at + klen : at + klen + vlen]
             if at + klen + vlen > len(raw):
                 raise ProtocolError(f"{what}: metadata entry {i} runs past the body")
             out[key] = value.decode("ascii" if encoding == ASCII else "utf-8", errors="replace")
@@ -128,11 +134,19 @@ def _metadata(raw: bytes, header_size: int, what: str) -> dict[str, str]:
         raise ProtocolError(f"{what}: malformed metadata ({exc})") from None
 
 
-def pack(mtype: str, device: str, content: bytes, *, version: int = 1, timestamp: float | None = None,
-         metadata: dict[str, str] | None = None, message_id: int = 0) -> bytes:
+def pack(
+    mtype: str,
+    device: str,
+    content: bytes,
+    *,
+    version: int = 1,
+    timestamp: float | None = None,
+    metadata: dict[str, str] | None = None,
+    message_id: int = 0,
+) -> bytes:
     """A whole message (header and body) of ``content``."""
     if version >= 2:
-        keys, values, index = [], [], [struct.pack(">H", len(metadata or {}))]
+        keys, index = [], [struct.pack(">H", len(metadata or {}))]
         for k, v in (metadata or {}).items():
             kb, vb = k.encode(), v.encode()
             index.append(struct.pack(">HHI", len(kb), UTF8, len(vb)))
@@ -144,7 +158,9 @@ def pack(mtype: str, device: str, content: bytes, *, version: int = 1, timestamp
     t = time.time() if timestamp is None else timestamp
     sec = int(t)
     frac = min(int((t - sec) * 2**32), 2**32 - 1)
-    header = HEADER.pack(version, mtype.encode()[:12], device.encode()[:20], sec, frac, len(body), crc64(body))
+    header = HEADER.pack(
+        version, mtype.encode()[:12], device.encode()[:20], sec, frac, len(body), crc64(body)
+    )
     return header + body
 
 
@@ -178,7 +194,7 @@ def _cells(raw: bytes, count: int, n_points: int, what: str) -> list[np.ndarray]
         if at >= a.size:
             raise ProtocolError(f"POLYDATA: {what} section ends before its {count} cells")
         k = int(a[at])
-        cell = a[at + 1:at + 1 + k]
+        cell = a[at + 1 : at + 1 + k]
         if cell.size != k:
             raise ProtocolError(f"POLYDATA: a {what} cell runs past its section")
         cells.append(cell)
@@ -186,7 +202,9 @@ def _cells(raw: bytes, count: int, n_points: int, what: str) -> list[np.ndarray]
     if at != a.size:
         raise ProtocolError(f"POLYDATA: {what} section holds more than its {count} cells")
     if cells and (max(int(c.max(initial=0)) for c in cells) >= n_points):
-        raise ProtocolError(f"POLYDATA: a {what} cell refers to a point beyond the {n_points} points")
+        raise ProtocolError(
+            f"POLYDATA: a {what} cell refers to a point beyond the {n_points} points"
+        )
     return cells
 
 
@@ -197,7 +215,13 @@ def _fast_triangles(raw: bytes, count: int) -> list[np.ndarray] | None:
     return None
 
 
-_ATTR_COMPONENTS = {0: None, 1: 3, 2: 3, 3: 9, 4: 4}  # scalar (its own count), vector, normal, tensor, RGBA
+_ATTR_COMPONENTS = {
+    0: None,
+    1: 3,
+    2: 3,
+    3: 9,
+    4: 4,
+}  # scalar (its own count), vector, normal, tensor, RGBA
 
 
 def decode_polydata(content: bytes) -> PolyData:
@@ -210,13 +234,19 @@ def decode_polydata(content: bytes) -> PolyData:
     at = POLY_HEADER.size
     need = at + 12 * npts + sv + sl + spoly + sstrip
     if len(content) < need:
-        raise ProtocolError(f"POLYDATA: {len(content)} bytes, but its header announces at least {need}")
+        raise ProtocolError(
+            f"POLYDATA: {len(content)} bytes, but its header announces at least {need}"
+        )
     points = np.frombuffer(content, ">f4", 3 * npts, at).astype(np.float32).reshape(npts, 3)
     at += 12 * npts
     sections = []
-    for count, size, what in ((nv, sv, "vertices"), (nl, sl, "lines"), (npoly, spoly, "polygons"),
-                              (ns, sstrip, "triangle strips")):
-        raw = content[at:at + size]
+    for count, size, what in (
+        (nv, sv, "vertices"),
+        (nl, sl, "lines"),
+        (npoly, spoly, "polygons"),
+        (ns, sstrip, "triangle strips"),
+    ):
+        raw = content[at : at + size]
         cells = _fast_triangles(raw, count) if what == "polygons" else None
         if cells is not None and npts and int(np.max(cells)) >= npts:
             raise ProtocolError(f"POLYDATA: a polygon refers to a point beyond the {npts} points")
@@ -238,13 +268,15 @@ def _attributes(content: bytes, at: int, count: int) -> dict[str, np.ndarray]:
             at = end + 1
         at += (at - start) % 2  # names padded to an even length
         out = {}
-        for (kind, ncomp, n), name in zip(heads, names):
+        for (kind, ncomp, n), name in zip(heads, names, strict=True):
             comps = _ATTR_COMPONENTS.get(kind & 0x0F)
             width = ncomp if comps is None else comps
             size = 4 * width * n
             if at + size > len(content):
                 raise ProtocolError(f"POLYDATA: attribute {name!r} runs past the body")
-            out[name] = np.frombuffer(content, ">f4", width * n, at).astype(np.float32).reshape(n, width)
+            out[name] = (
+                np.frombuffer(content, ">f4", width * n, at).astype(np.float32).reshape(n, width)
+            )
             at += size
         return out
     except (struct.error, ValueError) as exc:
@@ -282,7 +314,9 @@ def decode_string(content: bytes) -> str:
     encoding, length = struct.unpack_from(">HH", content)
     if 4 + length > len(content):
         raise ProtocolError(f"STRING: {length} bytes announced, {len(content) - 4} present")
-    return content[4:4 + length].decode("ascii" if encoding == ASCII else "utf-8", errors="replace")
+    return content[4 : 4 + length].decode(
+        "ascii" if encoding == ASCII else "utf-8", errors="replace"
+    )
 
 
 def encode_string(text: str) -> bytes:

@@ -39,9 +39,24 @@ def bridge(live, support, tmp_path):
     ids = tmp_path / "support.txt"
     ids.write_text(" ".join(map(str, support.tolist())))
     proc = subprocess.Popen(
-        [sys.executable, "-m", "service.cli", "igtl", "--model", "bar", "--server", live.url,
-         "--port", str(port), "--support", str(ids)],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        [
+            sys.executable,
+            "-m",
+            "service.cli",
+            "igtl",
+            "--model",
+            "bar",
+            "--server",
+            live.url,
+            "--port",
+            str(port),
+            "--support",
+            str(ids),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     line = proc.stdout.readline()
     assert "OpenIGTLink on" in line, line + proc.stdout.read() if proc.poll() is not None else line
     yield port
@@ -68,20 +83,34 @@ def test_bridge_surface_equals_the_http_api(live, http, bridge, entry, support, 
                 msg = pyigtl.PointMessage(positions=pts, device_name="cloud")
             else:
                 tris = mesh.surface_faces[:10]
-                msg = pyigtl.PolyDataMessage(points=pts, polygons=np.c_[np.full(10, 3), tris].ravel(),
-                                             device_name="cloud")
+                msg = pyigtl.PolyDataMessage(
+                    points=pts, polygons=np.c_[np.full(10, 3), tris].ravel(), device_name="cloud"
+                )
             msg.header_version = 2 if t == 2 else 1
             sock.sendall(msg.pack())
             surf, status = read_message(sock), read_message(sock)
-            assert (surf.type, surf.device, surf.version) == ("POLYDATA", "registered", msg.header_version)
+            assert (surf.type, surf.device, surf.version) == (
+                "POLYDATA",
+                "registered",
+                msg.header_version,
+            )
             assert (status.type, status.device) == ("STRING", "status")
             got = p.decode_polydata(surf.content)
             st = json.loads(p.decode_string(status.content))
-            assert st["frame_id"] == t and isinstance(st["converged"], bool) and len(st["net_force"]) == 3
+            assert (
+                st["frame_id"] == t
+                and isinstance(st["converged"], bool)
+                and len(st["net_force"]) == 3
+            )
             assert {"status", "error_estimate", "timing_ms"} <= set(st)
 
-            want = http.post(f"/sessions/{sid}/frames", json={"points": pts.astype(float).tolist()}).json()
-            x = mesh.nodes[mesh.surface_nodes] + np.asarray(want["displacement"])[mesh.surface_nodes]
+            want = http.post(
+                f"/sessions/{sid}/frames", json={"points": pts.astype(float).tolist()}
+            ).json()
+            x = (
+                mesh.nodes[mesh.surface_nodes]
+                + np.asarray(want["displacement"])[mesh.surface_nodes]
+            )
             np.testing.assert_allclose(got.points, x.astype(np.float32), rtol=0, atol=1e-6)
             np.testing.assert_allclose(st["net_force"], want["net_force"], rtol=1e-6, atol=1e-9)
             # outward triangles: the model's surface faces, renumbered onto the surface nodes

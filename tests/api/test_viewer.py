@@ -15,7 +15,9 @@ import pytest
 
 playwright = pytest.importorskip("playwright.sync_api")
 CHROMIUM = shutil.which("chromium")
-pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed (.ci/run installs it)")
+pytestmark = pytest.mark.skipif(
+    CHROMIUM is None, reason="Debian's chromium is not installed (.ci/run installs it)"
+)
 ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking"]
 
 
@@ -73,17 +75,24 @@ def test_demo_mode_renders_frames(live, browser, tmp_path):
 
 
 def test_watch_mode_follows_a_session(live, http, browser, support, clouds, tmp_path):
-    sid = http.post("/sessions", json={"model": "bar", "support": support.tolist()}).json()["session"]
+    sid = http.post("/sessions", json={"model": "bar", "support": support.tolist()}).json()[
+        "session"
+    ]
     page = browser.new_page(viewport={"width": 960, "height": 640})
     page.goto(f"{live.url}/viewer?session={sid}#token=not-needed-here")
-    page.wait_for_function("() => window.elastregViewer.model === 'bar' || window.elastregViewer.lastError",
-                           timeout=60_000)
+    page.wait_for_function(
+        "() => window.elastregViewer.model === 'bar' || window.elastregViewer.lastError",
+        timeout=60_000,
+    )
     stop = threading.Event()
 
     def post():
         t = 0
         while not stop.is_set():
-            http.post(f"/sessions/{sid}/frames", json={"points": clouds[t % len(clouds)].tolist(), "frame_id": t})
+            http.post(
+                f"/sessions/{sid}/frames",
+                json={"points": clouds[t % len(clouds)].tolist(), "frame_id": t},
+            )
             t += 1
             time.sleep(0.1)
 

@@ -39,15 +39,29 @@ def recv(ws, timeout=30):
 
 
 @contextlib.contextmanager
-def watch(live, session_id: str, *, encoding: str = "json", sock=None, token: str | None = TOKEN,
-          max_queue: int = 16):
+def watch(
+    live,
+    session_id: str,
+    *,
+    encoding: str = "json",
+    sock=None,
+    token: str | None = TOKEN,
+    max_queue: int = 16,
+):
     """A watch socket; the token goes both ways a client may send it (header, first message)."""
     url = live.url.replace("http://", "ws://") + f"/sessions/{session_id}/watch"
     if encoding != "json":
         url += f"?encoding={encoding}"
     headers = {"Authorization": f"Bearer {token}"} if token else None
-    ws = connect(url, additional_headers=headers, sock=sock, max_size=1 << 24, max_queue=max_queue,
-                 compression=None, ping_interval=None)
+    ws = connect(
+        url,
+        additional_headers=headers,
+        sock=sock,
+        max_size=1 << 24,
+        max_queue=max_queue,
+        compression=None,
+        ping_interval=None,
+    )
     try:
         if token:
             with contextlib.suppress(ConnectionClosed):  # a refused watcher may be closed already
@@ -131,7 +145,9 @@ def test_mailbox_keeps_only_the_newest():
         channel = Channel()
         channel.subscribe(box)
         pts = np.zeros((1, 3))
-        t = threading.Thread(target=lambda: [channel.publish(pts, {"frame_id": i}, {}) for i in range(50)])
+        t = threading.Thread(
+            target=lambda: [channel.publish(pts, {"frame_id": i}, {}) for i in range(50)]
+        )
         t.start()
         t.join()
         item = await box.get(5)
@@ -150,8 +166,18 @@ def test_lagging_watcher_skips_to_the_newest_frame(live, http, support, entry):
     while a watcher that reads gets every frame."""
     rng = np.random.default_rng(3)
     mesh = entry.mesh
-    big = [mp({"points": packed(mesh.nodes[rng.integers(0, mesh.n_nodes, MAX_POINTS)]
-                                + rng.normal(0, 1e-3, (MAX_POINTS, 3))), "frame_id": t}) for t in range(40)]
+    big = [
+        mp(
+            {
+                "points": packed(
+                    mesh.nodes[rng.integers(0, mesh.n_nodes, MAX_POINTS)]
+                    + rng.normal(0, 1e-3, (MAX_POINTS, 3))
+                ),
+                "frame_id": t,
+            }
+        )
+        for t in range(40)
+    ]
     r = http.post("/sessions", json={"model": "bar", "support": support.tolist(), "max_iter": 2})
     sid = r.json()["session"]
     sock = socket.socket()
@@ -159,7 +185,10 @@ def test_lagging_watcher_skips_to_the_newest_frame(live, http, support, entry):
     sock.connect(("127.0.0.1", live.server.port))
     n = len(big)  # ~170 kB a JSON message: more than the kernel's socket buffers hold
     t0 = time.perf_counter()
-    with watch(live, sid, sock=sock, max_queue=4) as slow, watch(live, sid, encoding="msgpack") as fast:
+    with (
+        watch(live, sid, sock=sock, max_queue=4) as slow,
+        watch(live, sid, encoding="msgpack") as fast,
+    ):
         recv(slow), recv(fast)
         ids = []
         for body in big:
@@ -171,8 +200,10 @@ def test_lagging_watcher_skips_to_the_newest_frame(live, http, support, entry):
         seqs = []
         while not seqs or seqs[-1] < n:
             seqs.append(recv(slow, timeout=20)["seq"])
-    print(f"\nlagging watcher received seq {seqs} of 1..{n} ({t1 - t0:.1f} s of frames, "
-          f"{time.perf_counter() - t1:.1f} s to drain)")
+    print(
+        f"\nlagging watcher received seq {seqs} of 1..{n} ({t1 - t0:.1f} s of frames, "
+        f"{time.perf_counter() - t1:.1f} s to drain)"
+    )
     assert seqs == sorted(set(seqs)) and seqs[-1] == n
     assert len(seqs) < n, "the lagging watcher should have skipped frames"
     http.delete(f"/sessions/{sid}")
@@ -225,8 +256,12 @@ def test_watchers_do_not_slow_the_session(live, http, support, clouds):
     alone, watched, counts = [], [], []
     for _ in range(3):
         alone += frames(10, "alone")
-        proc = subprocess.Popen([sys.executable, "-c", WATCHERS, url, "3"], stdin=subprocess.PIPE,
-                                stdout=subprocess.PIPE, text=True)
+        proc = subprocess.Popen(
+            [sys.executable, "-c", WATCHERS, url, "3"],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+        )
         try:
             assert proc.stdout.readline().strip() == "ready"
             while live.app.state.registry.get(sid, touch=False).watch.watchers < 3:
@@ -241,9 +276,12 @@ def test_watchers_do_not_slow_the_session(live, http, support, clouds):
             proc.wait()
     ratio = statistics.median(watched) / statistics.median(alone)
     med = {k: statistics.median(v) for k, v in solve.items()}
-    print(f"\nframe round trip: median {1e3 * statistics.median(alone):.2f} ms alone, "
-          f"{1e3 * statistics.median(watched):.2f} ms with 3 watchers (ratio {ratio:.2f}); server solve "
-          f"{med['alone']:.2f} vs {med['watched']:.2f} ms; messages per watcher per block: {counts}")
+    print(
+        f"\nframe round trip: median {1e3 * statistics.median(alone):.2f} ms alone, "
+        f"{1e3 * statistics.median(watched):.2f} ms with 3 watchers (ratio {ratio:.2f}); "
+        f"server solve {med['alone']:.2f} vs {med['watched']:.2f} ms; "
+        f"messages per watcher per block: {counts}"
+    )
     assert all(c >= 6 for block in counts for c in block)  # they were watching (hello + frames)
     # generous: on 2 shared cores the watchers' own process competes for CPU with the solve
     assert ratio < 2.0

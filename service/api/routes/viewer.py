@@ -35,7 +35,9 @@ PEAK_FRACTION = 0.7  # of the model's training max_force, as in `elastreg demo`
 
 @router.get("/viewer", include_in_schema=False)
 async def viewer_page() -> FileResponse:
-    return FileResponse(HERE / "index.html", media_type="text/html", headers={"cache-control": "no-cache"})
+    return FileResponse(
+        HERE / "index.html", media_type="text/html", headers={"cache-control": "no-cache"}
+    )
 
 
 @router.get("/viewer/static/{name:path}", include_in_schema=False)
@@ -53,9 +55,19 @@ def demo_sequence(entry, frames: int, points: int, seed: int) -> dict:
 
     mesh = entry.mesh
     tool, support = tool_patches(mesh, entry.region)
-    max_force = float(entry.manifest.get("training", {}).get("load_distribution", {}).get("max_force", 1.0))
-    seq = make_sequence(mesh, entry.fem.material, tool, n_frames=frames, peak_force=PEAK_FRACTION * max_force,
-                        n_points=points, noise=0.0, seed=seed)
+    max_force = float(
+        entry.manifest.get("training", {}).get("load_distribution", {}).get("max_force", 1.0)
+    )
+    seq = make_sequence(
+        mesh,
+        entry.fem.material,
+        tool,
+        n_frames=frames,
+        peak_force=PEAK_FRACTION * max_force,
+        n_points=points,
+        noise=0.0,
+        seed=seed,
+    )
     if not seq.clouds:
         raise ApiError(422, "the FEM could not follow the first frame of the demo sequence")
     return {

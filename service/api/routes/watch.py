@@ -89,7 +89,9 @@ class Watcher:
             return False, None
         raw = msg.get("bytes") if msg.get("bytes") is not None else (msg.get("text") or "")
         try:
-            obj = codec.decode(raw, codec.MSGPACK if isinstance(raw, bytes) else codec.JSON, max_bytes=1 << 16)
+            obj = codec.decode(
+                raw, codec.MSGPACK if isinstance(raw, bytes) else codec.JSON, max_bytes=1 << 16
+            )
         except Exception:
             obj = None
         token = obj.get("token") if isinstance(obj, dict) else None
@@ -114,8 +116,11 @@ class Watcher:
         except SessionNotFound as exc:
             await self._refuse(404, str(exc))
             return
-        hello = {"watching": held.id, "model": held.model,
-                 "config": {k: v for k, v in config_of(held).items() if k != "matching"}}
+        hello = {
+            "watching": held.id,
+            "model": held.model,
+            "config": {k: v for k, v in config_of(held).items() if k != "matching"},
+        }
         if not await self._send(codec.encode(hello, self.kind)):
             return
         box = Mailbox(asyncio.get_running_loop())
@@ -126,7 +131,12 @@ class Watcher:
         finally:
             held.watch.unsubscribe(box)
             reader.cancel()
-            log.debug("watcher of %s: %d frames published, %d overwritten", held.id, box.received, box.overwritten)
+            log.debug(
+                "watcher of %s: %d frames published, %d overwritten",
+                held.id,
+                box.received,
+                box.overwritten,
+            )
 
     async def _forward(self, held: Held, box: Mailbox, reader: asyncio.Task) -> None:
         while not reader.done():

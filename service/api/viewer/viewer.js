@@ -127,7 +127,7 @@ function setMesh(m) {
 let uMax = 0;  // the colour scale grows with the largest displacement seen
 let fSeen = 0;
 const up = new THREE.Vector3(0, 1, 0), dir = new THREE.Vector3(), mat = new THREE.Matrix4();
-const quat = new THREE.Quaternion(), one = new THREE.Vector3(1, 1, 1), pos = new THREE.Vector3();
+const quat = new THREE.Quaternion(), scl = new THREE.Vector3(), pos = new THREE.Vector3();
 
 let aimed = false;
 function aim(points) {
@@ -207,7 +207,8 @@ function showFrame(points, result) {
       dir.set(f[j][0], f[j][1], f[j][2]).normalize();
       quat.setFromUnitVectors(up, dir);
       pos.set(...p1);
-      heads.setMatrixAt(count, mat.compose(pos, quat, one));
+      const k = Math.min(1, Math.max(0.3, 3 * len / fMax));  // small forces get small heads
+      heads.setMatrixAt(count, mat.compose(pos, quat, scl.set(k, k, k)));
       count++;
     }
     shafts.geometry.setAttribute('position', new THREE.BufferAttribute(seg.subarray(0, 6 * count), 3));
