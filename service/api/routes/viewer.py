@@ -30,6 +30,7 @@ ASSETS = {  # an allow-list: no path from the URL ever reaches the filesystem
     "vendor/OrbitControls.js": "text/javascript",
     "vendor/LICENSE-three.txt": "text/plain",
 }
+DEMO_CACHE = 8  # sequences kept (oldest dropped first)
 PEAK_FRACTION = 0.7  # of the model's training max_force, as in `elastreg demo`
 
 
@@ -79,7 +80,8 @@ def demo_sequence(entry, frames: int, points: int, seed: int) -> dict:
     }
 
 
-@router.get("/models/{model}/demo", tags=["viewer"])
+# not in the OpenAPI document: a helper of the viewer's demo (docs/frontends.md), not the contract
+@router.get("/models/{model}/demo", tags=["viewer"], include_in_schema=False)
 async def demo(
     request: Request,
     entry: EntryDep,
@@ -98,5 +100,7 @@ async def demo(
         cache = state.demo_sequences = {}
     key = (entry.id, frames, points, seed)
     if key not in cache:  # one FEM solve per frame: computed once, off the event loop
+        while len(cache) >= DEMO_CACHE:
+            cache.pop(next(iter(cache)))
         cache[key] = await asyncio.to_thread(demo_sequence, entry, frames, points, seed)
     return reply(cache[key], kind)
