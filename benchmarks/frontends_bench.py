@@ -1,6 +1,7 @@
 """Figures for the frontends (about a minute): the viewer watching a 10 Hz stream (frames drawn
-per second, end-to-end latency from a frame's send to its picture on screen), and the
-OpenIGTLink bridge's round trip per frame against the WebSocket's for the same frames.
+per second, end-to-end latency from a frame's send to its picture on screen), the OpenIGTLink
+bridge's round trip per frame against the WebSocket's for the same frames, and a session's
+frame time with three watchers against none (the server in its own process).
 
     python benchmarks/frontends_bench.py [--model beam] [--store model_store] [--seconds 15]
 
@@ -11,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import socket
 import subprocess
@@ -141,6 +143,72 @@ def _bridge_vs_ws(url: str, model: str, clouds, support, frames: int) -> dict:
     }
 
 
+def _watchers_cost(store: str, model: str, clouds, support, blocks: int = 5) -> dict:
+    """A session's HTTP frames with three watchers (another process) against none, in blocks of
+    10 frames interleaved, the server in its own process (`elastreg serve`) as in production."""
+    import httpx
+
+    from service.api.server import free_port
+
+    watchers = (
+        (ROOT / "tests/api/test_watch.py").read_text().split('WATCHERS = """')[1].split('"""')[0]
+    )
+    port = free_port()
+    cmd = [sys.executable, "-m", "service.cli", "serve", "--store", store, "--port", str(port)]
+    server = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=ROOT)
+    url = f"http://127.0.0.1:{port}"
+    try:
+        for _ in range(600):
+            try:
+                if httpx.get(url + "/health").status_code == 200:
+                    break
+            except httpx.HTTPError:
+                pass
+            time.sleep(0.2)
+        http = httpx.Client(base_url=url, timeout=60)
+        body = {"model": model, "support": np.asarray(support).tolist()}
+        sid = http.post("/sessions", json=body).json()["session"]
+        frames = [json.dumps({"points": c.tolist()}) for c in clouds]
+        hdr = {"content-type": "application/json"}
+
+        def run(k: int, into: list, solve: list) -> None:
+            for i in range(k):
+                t0 = time.perf_counter()
+                r = http.post(
+                    f"/sessions/{sid}/frames", content=frames[i % len(frames)], headers=hdr
+                )
+                into.append(1e3 * (time.perf_counter() - t0))
+                solve.append(r.json()["timing_ms"]["solve"])
+
+        run(5, [], [])
+        alone, watched, s_alone, s_watched = [], [], [], []
+        ws_url = url.replace("http://", "ws://") + f"/sessions/{sid}/watch"
+        for _ in range(blocks):
+            run(10, alone, s_alone)
+            proc = subprocess.Popen(
+                [sys.executable, "-c", watchers, ws_url, "3"],
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                text=True,
+            )
+            proc.stdout.readline()
+            time.sleep(0.3)
+            run(10, watched, s_watched)
+            proc.kill()
+            proc.wait()
+    finally:
+        server.terminate()
+        server.wait(10)
+    return {
+        "frames_each": len(alone),
+        "round_trip_ms_alone": float(np.median(alone)),
+        "round_trip_ms_watched": float(np.median(watched)),
+        "ratio": float(np.median(watched) / np.median(alone)),
+        "server_solve_ms_alone": float(np.median(s_alone)),
+        "server_solve_ms_watched": float(np.median(s_watched)),
+    }
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--model", default="beam")
@@ -164,15 +232,18 @@ def main() -> int:
         support = seq["support"]
         viewer = _watch_10hz(server.url, args.model, clouds, support, args.seconds)
         bridge = _bridge_vs_ws(server.url, args.model, clouds, support, args.frames)
+    watchers = _watchers_cost(args.store, args.model, clouds, support)
     report = {
         "machine": describe(),
         "model": args.model,
         "command": " ".join(sys.argv),
+        "load_average": list(os.getloadavg()),  # this machine is shared: read the figures with it
         "viewer_watching_10hz": viewer,
         "bridge_vs_websocket": bridge,
+        "three_watchers_vs_none": watchers,
     }
     (out / "frontends.json").write_text(json.dumps(report, indent=2))
-    print(json.dumps({"viewer_watching_10hz": viewer, "bridge_vs_websocket": bridge}, indent=2))
+    print(json.dumps({k: report[k] for k in list(report)[3:]}, indent=2))
     return 0
 
 
