@@ -222,6 +222,7 @@ def main() -> int:
     from service.bench.machine import describe
     from service.config import Settings
 
+    machine = describe()  # before this run rewrites its own artefacts (the commit stays clean)
     out = ROOT / "reports/frontends"
     out.mkdir(parents=True, exist_ok=True)
     with BackgroundServer(Settings(store=args.store)) as server:
@@ -234,7 +235,7 @@ def main() -> int:
         bridge = _bridge_vs_ws(server.url, args.model, clouds, support, args.frames)
     watchers = _watchers_cost(args.store, args.model, clouds, support)
     report = {
-        "machine": describe(),
+        "machine": machine,
         "model": args.model,
         "command": " ".join(sys.argv),
         "load_average": list(os.getloadavg()),  # this machine is shared: read the figures with it
