@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import shlex
 import sys
 from pathlib import Path
@@ -87,7 +88,7 @@ def _igtl(args: argparse.Namespace) -> int:
     if args.support:
         settings["support"] = [int(v) for v in Path(args.support).read_text().split()]
     return run(args.model, host=args.host, port=args.port, server=args.server, store=args.store,
-               device=args.device, settings=settings)
+               device=args.device, settings=settings, token=args.token or os.environ.get("ELASTREG_TOKEN"))
 
 
 def _bench(args: argparse.Namespace) -> int:
@@ -151,6 +152,7 @@ def parser() -> argparse.ArgumentParser:
     g.add_argument("--max-iter", type=int, default=None)
     g.add_argument("--force-bound", type=float, default=None)
     g.add_argument("--support", default=None, help="a file of node ids (whitespace-separated) forces may act on")
+    g.add_argument("--token", default=None, help="the API token, for a --server with tokens (default: $ELASTREG_TOKEN)")
     g.set_defaults(func=_igtl)
 
     b = sub.add_parser("bench", help="error against run time: tables and plots (see the README)")

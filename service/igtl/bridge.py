@@ -59,10 +59,12 @@ class Bridge:
         device: str = "cloud",
         settings: dict | None = None,
         encoding: str = "msgpack",
+        token: str | None = None,
     ) -> None:
         self.api_url = api_url
         self.model = model
         self.device = device
+        self.token = token  # for a server with tokens: a header on HTTP, the stream's first message
         self.settings = dict(settings or {})
         outputs = set(self.settings.get("outputs") or ["forces"])
         self.settings["outputs"] = sorted(outputs | {"surface_displacement"})
@@ -73,10 +75,17 @@ class Bridge:
         self.announce = log.info  # what to do with a line a person should see (the CLI prints it)
 
     async def prepare(self) -> None:
+
+        async with self._api() as api:
+            self.surface = Surface(await api.mesh(self.model))
+
+    def _api(self):
         from clients import AsyncClient
 
-        async with AsyncClient(self.api_url, encoding=self.encoding) as api:
-            self.surface = Surface(await api.mesh(self.model))
+        api = AsyncClient(self.api_url, encoding=self.encoding)
+        if self.token:
+            api.http.headers["Authorization"] = f"Bearer {self.token}"
+        return api
 
     # -- one connection --------------------------------------------------------------------------
 
@@ -109,10 +118,10 @@ class Bridge:
             log.info("client %s disconnected", peer)
 
     async def _serve(self, reader, writer) -> None:
-        from clients import AsyncClient
 
-        async with AsyncClient(self.api_url, encoding=self.encoding) as api:
-            stream = await api.stream(self.model, **self.settings)
+        async with self._api() as api:
+            extra = {"token": self.token} if self.token else {}
+            stream = await api.stream(self.model, **self.settings, **extra)
             self.sessions.append(stream.session)
             sid = stream.session
             self.announce(f"session {sid}: watch it at {self.api_url}/viewer?session={sid}")
@@ -253,6 +262,7 @@ def run(
     store=None,
     device: str = "cloud",
     settings: dict | None = None,
+    token: str | None = None,
 ) -> int:
     """``elastreg igtl``: the bridge, over ``server`` or an API it starts in this process."""
     from contextlib import ExitStack
@@ -265,7 +275,7 @@ def run(
 
             api = stack.enter_context(BackgroundServer(Settings(store=store or default_store())))
             server = api.url
-        bridge = Bridge(server, model, device=device, settings=settings)
+        bridge = Bridge(server, model, device=device, settings=settings, token=token)
         bridge.announce = lambda line: print(f"elastreg igtl: {line}", flush=True)
 
         def ready(bound: int) -> None:
