@@ -75,7 +75,6 @@ class Bridge:
         self.announce = log.info  # what to do with a line a person should see (the CLI prints it)
 
     async def prepare(self) -> None:
-
         async with self._api() as api:
             self.surface = Surface(await api.mesh(self.model))
 
