@@ -99,10 +99,13 @@ class Watcher:
 
     async def _drain(self) -> None:
         """Read (and ignore) what the client sends; returns when it disconnects."""
-        while True:
-            msg = await self.ws.receive()
-            if msg["type"] == "websocket.disconnect":
-                return
+        try:
+            while True:
+                msg = await self.ws.receive()
+                if msg["type"] == "websocket.disconnect":
+                    return
+        except Exception:  # the connection broke: the same as a disconnect
+            return
 
     async def run(self) -> None:
         await self.ws.accept(headers=[(b"x-elastreg-instance", self.settings.instance_id.encode())])
