@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import shlex
 import sys
 from pathlib import Path
@@ -88,9 +89,23 @@ def _serve(args: argparse.Namespace) -> int:
 
 
 def _demo(args: argparse.Namespace) -> int:
-    from .demo import run
+    from .demo import run, viewer
 
+    if args.viewer:
+        return viewer(model=args.model, store=args.store, port=args.port)
     return run(model=args.model, frames=args.frames, method=args.method, encoding=args.encoding, store=args.store)
+
+
+def _igtl(args: argparse.Namespace) -> int:
+    from .igtl.bridge import run
+
+    settings = {k: v for k, v in (("method", args.method), ("alpha", args.alpha), ("gtol", args.gtol),
+                                  ("max_iter", args.max_iter), ("force_bound", args.force_bound))
+                if v is not None}
+    if args.support:
+        settings["support"] = [int(v) for v in Path(args.support).read_text().split()]
+    return run(args.model, host=args.host, port=args.port, server=args.server, store=args.store,
+               device=args.device, settings=settings, token=args.token or os.environ.get("ELASTREG_TOKEN"))
 
 
 def _bench(args: argparse.Namespace) -> int:
@@ -115,6 +130,8 @@ def parser() -> argparse.ArgumentParser:
                    help="auto: the network, with frames whose error estimate is large redone by the FEM")
     d.add_argument("--encoding", choices=["msgpack", "json"], default="msgpack")
     d.add_argument("--store", default=None, help="model store (default: the project's model_store/)")
+    d.add_argument("--viewer", action="store_true", help="serve and open the live viewer's demo instead (Ctrl-C to stop)")
+    d.add_argument("--port", type=int, default=None, help="with --viewer: the server's port (default: a free one)")
     d.set_defaults(func=_demo)
 
     s = sub.add_parser("serve", help="run the HTTP/WebSocket API over a model store")
@@ -144,6 +161,23 @@ def parser() -> argparse.ArgumentParser:
     t.add_argument("--epochs", type=int, default=200)
     t.add_argument("--seed", type=int, default=0)
     t.set_defaults(func=_train)
+
+    g = sub.add_parser("igtl", help="an OpenIGTLink bridge (3D Slicer connects as a client): clouds in, "
+                                     "the registered surface and a status out (docs/frontends.md)")
+    g.add_argument("--model", required=True, help="model id in the store")
+    g.add_argument("--host", default="127.0.0.1")
+    g.add_argument("--port", type=int, default=18944, help="OpenIGTLink port (default: 18944)")
+    g.add_argument("--server", default=None, help="URL of a running API (default: serve --store in this process)")
+    g.add_argument("--store", default=None, help="model store when no --server is given")
+    g.add_argument("--device", default="cloud", help="device name of the incoming clouds (default: cloud)")
+    g.add_argument("--method", choices=["network", "fem"], default=None)
+    g.add_argument("--alpha", type=float, default=None)
+    g.add_argument("--gtol", type=float, default=None)
+    g.add_argument("--max-iter", type=int, default=None)
+    g.add_argument("--force-bound", type=float, default=None)
+    g.add_argument("--support", default=None, help="a file of node ids (whitespace-separated) forces may act on")
+    g.add_argument("--token", default=None, help="the API token, for a --server with tokens (default: $ELASTREG_TOKEN)")
+    g.set_defaults(func=_igtl)
 
     b = sub.add_parser("bench", help="error against run time: tables and plots (see the README)")
     from .bench.report import add_arguments

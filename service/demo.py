@@ -23,7 +23,7 @@ from clients.demo import score_stream
 from .config import Settings, default_store
 from .fem.material import NeoHookean
 from .mesh import TetMesh
-from .synthetic import make_sequence
+from .synthetic import make_sequence, tool_patches
 
 TOOL_NODES = 12
 SUPPORT_NODES = 36
@@ -31,26 +31,8 @@ PEAK_FRACTION = 0.7  # of the model's training max_force
 
 
 def patches(mesh, region: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """A tool patch and a larger support around it, both free surface nodes in the region.
-
-    The centre is the region's surface node nearest the region's surface centroid, so both
-    patches grow inside the part of the surface the network was trained to load.
-    """
-    inside = np.zeros(mesh.n_nodes, bool)
-    inside[region] = True
-    cand = mesh.free_surface_nodes[inside[mesh.free_surface_nodes]]
-    if cand.size == 0:
-        raise ValueError("the model's load region has no free surface nodes")
-    x = mesh.nodes[cand]
-    centre = int(cand[np.argmin(np.linalg.norm(x - x.mean(axis=0), axis=1))])
-
-    def patch(size: int) -> np.ndarray:
-        p = mesh.surface_patch(centre, size)
-        return np.sort(p[inside[p]])
-
-    tool = mesh.surface_patch(centre, 3 * TOOL_NODES)  # nearest first: keep the closest in the region
-    tool = tool[inside[tool]][:TOOL_NODES]
-    return np.sort(tool), patch(SUPPORT_NODES)
+    """The demo's tool patch and the support around it (:func:`service.synthetic.tool_patches`)."""
+    return tool_patches(mesh, region, TOOL_NODES, SUPPORT_NODES)
 
 
 def run(
@@ -114,3 +96,32 @@ def run(
             say(f"auto: frames whose error estimate exceeds {2 * val:.3g} mm are registered again by the FEM")
         return score_stream(api, model, seq.clouds, seq.positions, seq.net_forces, mesh.nodes,
                             method=method, support=support, say=say, settings=settings)
+
+
+def viewer(model: str = "phantom", store=None, port: int | None = None, *, out=None) -> int:
+    """``elastreg demo --viewer``: serve the model and open the viewer's demo (the page streams a
+    synthetic sequence itself) until interrupted."""
+    import webbrowser
+
+    from .api.server import BackgroundServer
+
+    out = out or sys.stdout
+    store = Path(store) if store else default_store()
+    if not (store / model / "manifest.json").exists():
+        print(f"error: no model {model!r} in the store at {store}.\nBuild it first with:  elastreg train {model}",
+              file=out)
+        return 1
+    with BackgroundServer(Settings(store=store), port=port) as server:
+        url = f"{server.url}/viewer?model={model}&demo=1"
+        print(f"the viewer: {url}\n(watch any session with {server.url}/viewer?session=ID; Ctrl-C to stop)",
+              file=out, flush=True)
+        try:
+            webbrowser.open(url)
+        except Exception:  # no browser here: the URL above is enough
+            pass
+        try:
+            while True:
+                time.sleep(3600)
+        except KeyboardInterrupt:
+            pass
+    return 0

@@ -123,3 +123,21 @@ def make_sequence(
         positions.append(x)
         clouds.append(perturb(pts, rng, noise, outliers, spread=0.02))
     return Sequence(mesh, tool, np.array(forces), np.array(positions), clouds, faces_visible)
+
+
+def tool_patches(mesh: TetMesh, region: Array, tool_nodes: int = 12, support_nodes: int = 36) -> tuple[Array, Array]:
+    """A tool patch and a larger support around it, both free surface nodes in `region`.
+
+    The centre is the region's surface node nearest the region's surface centroid, so both
+    patches grow inside the part of the surface the network was trained to load.
+    """
+    inside = np.zeros(mesh.n_nodes, bool)
+    inside[region] = True
+    cand = mesh.free_surface_nodes[inside[mesh.free_surface_nodes]]
+    if cand.size == 0:
+        raise ValueError("the model's load region has no free surface nodes")
+    x = mesh.nodes[cand]
+    centre = int(cand[np.argmin(np.linalg.norm(x - x.mean(axis=0), axis=1))])
+    tool = mesh.surface_patch(centre, 3 * tool_nodes)  # nearest first: keep the closest in the region
+    support = mesh.surface_patch(centre, support_nodes)
+    return np.sort(tool[inside[tool]][:tool_nodes]), np.sort(support[inside[support]])

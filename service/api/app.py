@@ -17,7 +17,7 @@ from fastapi.openapi.utils import get_openapi
 from .. import __version__
 from ..config import Settings, get_settings, limit_threads
 from . import deps, errors
-from .routes import health, models, sessions, stream
+from .routes import health, models, sessions, stream, viewer, watch
 from .schemas import REQUEST_MODELS
 from .sessions import SessionRegistry
 from .work import SolvePool
@@ -104,7 +104,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.dependency_overrides[deps.settings] = own_settings
     app.add_middleware(InstanceHeader, instance_id=settings.instance_id)
     errors.install(app)
-    for module in (health, models, sessions, stream):
+    for module in (health, models, sessions, stream, watch, viewer):
         app.include_router(module.router)
 
     def openapi() -> dict:

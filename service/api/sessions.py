@@ -21,6 +21,8 @@ import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
+from .watch import Channel
+
 if TYPE_CHECKING:
     from ..registration.session import Session
 
@@ -55,6 +57,7 @@ class Held:
     touched: float = dataclasses.field(default_factory=time.monotonic)
     busy: int = 0  # frames in flight (never swept while > 0)
     lock: asyncio.Lock = dataclasses.field(default_factory=asyncio.Lock)  # HTTP frames, FIFO
+    watch: Channel = dataclasses.field(default_factory=Channel)  # WS /sessions/{id}/watch
 
     @property
     def skip_stale(self) -> bool:

@@ -160,7 +160,9 @@ def solve_frame(held: Held, frame: FrameIn, kind: str, timing: dict, *, t_receiv
     timing.update(result.timing_ms)
     timing["solve"] = _ms(t0)  # the engine call as the server sees it (its own total inside)
     timing["server"] = _ms(t_received)
-    return codec.encode_timed(payload, kind, timing)
+    body = codec.encode_timed(payload, kind, timing)
+    held.watch.publish(frame.points, payload, timing)  # never blocks: see watch.py
+    return body
 
 
 async def http_frame(held: Held, frame: FrameIn, kind: str, *, decode_ms: float, t_received: float,

@@ -1,0 +1,165 @@
+"""``WS /sessions/{id}/watch``: an observer of a session (a second screen, the viewer).
+
+Protocol: connect (``?encoding=msgpack`` for binary MessagePack messages; JSON text otherwise),
+optionally sending a first message ``{"token": ...}``. The server answers ``{"watching": id,
+"model", "config"}``, then one message per frame the session solves: ``{"seq", "time",
+"points", "result"}`` (``result`` as the session's own client received it). A watcher that
+falls behind gets the newest frame next; the frames it missed are the gaps in ``seq``. When the
+session ends the socket is closed (1000); an unknown session gets ``{"error": {"code": 404}}``
+and a close with 1008. Messages the client sends after the first are ignored.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+
+from fastapi import APIRouter, WebSocket
+from starlette.websockets import WebSocketState
+
+from .. import codec
+from ..sessions import Held, SessionNotFound, SessionRegistry
+from ..watch import Mailbox
+from ..work import config_of
+
+router = APIRouter(tags=["watch"])
+log = logging.getLogger(__name__)
+
+POLICY = 1008
+POLL_S = 0.25  # how often an idle watcher checks that its session and its client still exist
+
+
+def bearer(ws: WebSocket) -> str | None:
+    """The token of an ``Authorization: Bearer`` handshake header, if any."""
+    value = ws.headers.get("authorization", "")
+    scheme, _, token = value.partition(" ")
+    return token.strip() or None if scheme.lower() == "bearer" else None
+
+
+def tokens_required(ws: WebSocket) -> bool:
+    """Whether this server checks tokens (access control wires its setting in here)."""
+    return bool(getattr(ws.app.state, "tokens", None))
+
+
+def find_session(registry: SessionRegistry, session_id: str, token: str | None) -> Held:
+    """The session to watch, looked up as the session routes do (ownership checks go here:
+    another token's session is a 404, like an unknown one)."""
+    return registry.get(session_id, touch=False)  # watching does not keep an idle session alive
+
+
+class Watcher:
+    """Runs one watch socket to its end (never raises for a client's mistakes)."""
+
+    def __init__(self, ws: WebSocket, session_id: str) -> None:
+        self.ws = ws
+        self.session_id = session_id
+        self.registry: SessionRegistry = ws.app.state.registry
+        self.settings = ws.app.state.settings
+        enc = ws.query_params.get("encoding", "json").lower()
+        self.kind = codec.MSGPACK if enc in ("msgpack", "application/msgpack") else codec.JSON
+
+    async def _send(self, data: bytes) -> bool:
+        try:
+            if self.kind == codec.MSGPACK:
+                await self.ws.send_bytes(data)
+            else:
+                await self.ws.send_text(data.decode())
+            return True
+        except Exception:  # the client went away mid-message
+            return False
+
+    async def _close(self, code: int, reason: str) -> None:
+        if self.ws.client_state == WebSocketState.CONNECTED:
+            try:
+                await self.ws.close(code, reason.encode()[:120].decode(errors="ignore"))
+            except Exception:
+                pass
+
+    async def _refuse(self, status: int, detail: str) -> None:
+        await self._send(codec.encode({"error": {"code": status, "detail": detail}}, self.kind))
+        await self._close(POLICY, detail)
+
+    async def _first_token(self) -> tuple[bool, str | None]:
+        """(still connected, token) from a first message ``{"token": ...}``."""
+        try:
+            msg = await asyncio.wait_for(self.ws.receive(), self.settings.session_ttl_s)
+        except (TimeoutError, Exception):
+            return False, None
+        if msg["type"] == "websocket.disconnect":
+            return False, None
+        raw = msg.get("bytes") if msg.get("bytes") is not None else (msg.get("text") or "")
+        try:
+            obj = codec.decode(
+                raw, codec.MSGPACK if isinstance(raw, bytes) else codec.JSON, max_bytes=1 << 16
+            )
+        except Exception:
+            obj = None
+        token = obj.get("token") if isinstance(obj, dict) else None
+        return True, token if isinstance(token, str) else None
+
+    async def _drain(self) -> None:
+        """Read (and ignore) what the client sends; returns when it disconnects."""
+        try:
+            while True:
+                msg = await self.ws.receive()
+                if msg["type"] == "websocket.disconnect":
+                    return
+        except Exception:  # the connection broke: the same as a disconnect
+            return
+
+    async def run(self) -> None:
+        await self.ws.accept(headers=[(b"x-elastreg-instance", self.settings.instance_id.encode())])
+        token = bearer(self.ws)
+        if token is None and tokens_required(self.ws):
+            connected, token = await self._first_token()
+            if not connected:
+                return
+        try:
+            held = find_session(self.registry, self.session_id, token)
+        except SessionNotFound as exc:
+            await self._refuse(404, str(exc))
+            return
+        hello = {
+            "watching": held.id,
+            "model": held.model,
+            "config": {k: v for k, v in config_of(held).items() if k != "matching"},
+        }
+        if not await self._send(codec.encode(hello, self.kind)):
+            return
+        box = Mailbox(asyncio.get_running_loop())
+        held.watch.subscribe(box)
+        reader = asyncio.create_task(self._drain())
+        try:
+            await self._forward(held, box, reader)
+        finally:
+            held.watch.unsubscribe(box)
+            reader.cancel()
+            log.debug(
+                "watcher of %s: %d frames published, %d overwritten",
+                held.id,
+                box.received,
+                box.overwritten,
+            )
+
+    async def _forward(self, held: Held, box: Mailbox, reader: asyncio.Task) -> None:
+        while not reader.done():
+            item = await box.get(POLL_S)
+            if item is None:
+                try:
+                    self.registry.get(held.id, touch=False)
+                except SessionNotFound:
+                    last = box.take()  # published just before it closed
+                    if last is not None:
+                        await self._send(await asyncio.to_thread(last.encoded, self.kind))
+                    await self._close(1000, "the session has ended")
+                    return
+                continue
+            data = await asyncio.to_thread(item.encoded, self.kind)  # off the loop, once per frame
+            if not await self._send(data):
+                return
+
+
+@router.websocket("/sessions/{session_id}/watch")
+async def watch(websocket: WebSocket, session_id: str) -> None:
+    """Every frame the session solves (points and result); the newest first when behind."""
+    await Watcher(websocket, session_id).run()

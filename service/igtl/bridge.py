@@ -1,0 +1,291 @@
+"""``elastreg igtl``: an OpenIGTLink server (3D Slicer's OpenIGTLinkIF connects as a client) in
+front of the registration API.
+
+The bridge is a client of the HTTP/WebSocket API (:class:`clients.AsyncClient`), never a part
+of the engine: each OpenIGTLink client gets one ``/stream`` session, which a viewer can watch
+(``/viewer?session=ID``). One client at a time; a second is told so and closed.
+
+In: ``POLYDATA`` (a model's points, as Slicer sends one) or ``POINT`` named ``cloud`` (the
+device name is configurable) is one frame. Out, per frame: ``POLYDATA`` ``registered`` (the
+boundary surface's outward triangles at the registered positions) and ``STRING`` ``status``
+(JSON). Other messages are ignored and logged; a malformed one is answered with a ``status``
+whose JSON holds an ``error``, and the connection goes on.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import time
+
+import numpy as np
+
+from . import protocol as p
+
+log = logging.getLogger(__name__)
+
+SURFACE = "registered"
+STATUS = "status"
+
+
+class Surface:
+    """The model's boundary: surface node ids and triangles renumbered onto them."""
+
+    def __init__(self, mesh: dict) -> None:
+        self.nodes = np.asarray(mesh["nodes"], np.float64)
+        self.surface_nodes = np.asarray(mesh["surface_nodes"], np.int64)
+        where = np.full(len(self.nodes), -1, np.int64)
+        where[self.surface_nodes] = np.arange(self.surface_nodes.size)
+        self.triangles = where[np.asarray(mesh["surface_faces"], np.int64)]
+        if (self.triangles < 0).any():
+            raise ValueError("the model's surface faces use nodes outside its surface nodes")
+
+    def positions(self, result: dict) -> np.ndarray:
+        """(s, 3) registered positions of the surface nodes."""
+        if "surface_displacement" in result:
+            u = np.asarray(result["surface_displacement"], np.float64)
+        else:
+            u = np.asarray(result["displacement"], np.float64)[self.surface_nodes]
+        return self.nodes[self.surface_nodes] + u
+
+
+class Bridge:
+    def __init__(
+        self,
+        api_url: str,
+        model: str,
+        *,
+        device: str = "cloud",
+        settings: dict | None = None,
+        encoding: str = "msgpack",
+        token: str | None = None,
+    ) -> None:
+        self.api_url = api_url
+        self.model = model
+        self.device = device
+        self.token = token  # for a server with tokens: a header on HTTP, the stream's first message
+        self.settings = dict(settings or {})
+        outputs = set(self.settings.get("outputs") or ["forces"])
+        self.settings["outputs"] = sorted(outputs | {"surface_displacement"})
+        self.encoding = encoding
+        self.surface: Surface | None = None
+        self.busy = False
+        self.sessions: list[str] = []  # ids of the sessions opened so far (for logs and tests)
+        self.announce = log.info  # what to do with a line a person should see (the CLI prints it)
+
+    async def prepare(self) -> None:
+        async with self._api() as api:
+            self.surface = Surface(await api.mesh(self.model))
+
+    def _api(self):
+        from clients import AsyncClient
+
+        api = AsyncClient(self.api_url, encoding=self.encoding)
+        if self.token:
+            api.http.headers["Authorization"] = f"Bearer {self.token}"
+        return api
+
+    # -- one connection --------------------------------------------------------------------------
+
+    async def handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        peer = writer.get_extra_info("peername")
+        if self.busy:
+            log.warning("refusing %s: a client is already connected", peer)
+            writer.write(
+                p.pack(
+                    "STRING",
+                    STATUS,
+                    p.encode_string(
+                        json.dumps(
+                            {"error": "this bridge serves one client at a time; one is connected"}
+                        )
+                    ),
+                )
+            )
+            await _close(writer)
+            return
+        self.busy = True
+        log.info("client %s connected", peer)
+        try:
+            await self._serve(reader, writer)
+        except (ConnectionError, asyncio.IncompleteReadError):
+            pass
+        finally:
+            self.busy = False
+            await _close(writer)
+            log.info("client %s disconnected", peer)
+
+    async def _serve(self, reader, writer) -> None:
+
+        async with self._api() as api:
+            extra = {"token": self.token} if self.token else {}
+            stream = await api.stream(self.model, **self.settings, **extra)
+            self.sessions.append(stream.session)
+            sid = stream.session
+            self.announce(f"session {sid}: watch it at {self.api_url}/viewer?session={sid}")
+            frame = 0
+            try:
+                while True:
+                    msg = await self._read(reader, writer)
+                    if msg is None:
+                        continue
+                    points = self._cloud(msg, writer)
+                    if points is None:
+                        continue
+                    await self._frame(stream, frame, points, msg.version, writer)
+                    frame += 1
+            finally:
+                await stream.close()
+
+    async def _read(self, reader, writer) -> p.Message | None:
+        """The next message; None (answered or logged) when it is malformed or not for us."""
+        raw = await reader.readexactly(p.HEADER_SIZE)
+        try:
+            version, mtype, device, ts, size, crc = p.parse_header(raw)
+        except p.ProtocolError as exc:
+            size = int.from_bytes(raw[42:50], "big")
+            if size > p.MAX_BODY:  # cannot find the next message: the connection is lost
+                await self._error(writer, str(exc), 1)
+                raise ConnectionError(str(exc)) from None
+            await reader.readexactly(size)
+            await self._error(writer, str(exc), 1)
+            return None
+        body = await reader.readexactly(size)
+        try:
+            return p.parse_body(version, mtype, device, ts, body, crc)
+        except p.ProtocolError as exc:
+            await self._error(writer, str(exc), version)
+            return None
+
+    def _cloud(self, msg: p.Message, writer) -> np.ndarray | None:
+        if msg.device != self.device or msg.type not in ("POLYDATA", "POINT"):
+            log.info(
+                "ignored a %s message named %r (frames are POLYDATA or POINT named %r)",
+                msg.type,
+                msg.device,
+                self.device,
+            )
+            return None
+        try:
+            if msg.type == "POLYDATA":
+                return p.decode_polydata(msg.content).points.astype(np.float64)
+            return p.decode_point(msg.content).astype(np.float64)
+        except p.ProtocolError as exc:
+            writer.write(_status({"error": str(exc)}, msg.version))
+            return None
+
+    async def _frame(self, stream, frame: int, points: np.ndarray, version: int, writer) -> None:
+        from clients.client import StreamError
+
+        t0 = time.perf_counter()
+        try:
+            r = await stream.frame(points, frame_id=frame)
+        except StreamError as exc:
+            writer.write(
+                _status(
+                    {"frame_id": frame, "error": {"code": exc.status, "detail": str(exc.detail)}},
+                    version,
+                )
+            )
+            await writer.drain()
+            return
+        surface = self.surface.positions(r)
+        status = {
+            "frame_id": r.get("frame_id"),
+            "converged": bool(r["converged"]),
+            "status": r["status"],
+            "net_force": np.asarray(r["net_force"], float).tolist(),
+            "error_estimate": r.get("error_estimate"),
+            "timing_ms": {**r.get("timing_ms", {}), "bridge": 1e3 * (time.perf_counter() - t0)},
+            "session": stream.session,
+        }
+        writer.write(
+            p.pack(
+                "POLYDATA",
+                SURFACE,
+                p.encode_polydata(surface, self.surface.triangles),
+                version=version,
+            )
+        )
+        writer.write(_status(status, version))
+        await writer.drain()
+
+    async def _error(self, writer, text: str, version: int) -> None:
+        log.warning("malformed message: %s", text)
+        writer.write(_status({"error": text}, version))
+        await writer.drain()
+
+
+def _status(obj: dict, version: int) -> bytes:
+    return p.pack(
+        "STRING",
+        STATUS,
+        p.encode_string(json.dumps(obj, allow_nan=False, default=float)),
+        version=min(version, 2),
+    )
+
+
+async def _close(writer) -> None:
+    try:
+        writer.close()
+        await writer.wait_closed()
+    except Exception:
+        pass
+
+
+async def serve(bridge: Bridge, host: str, port: int, ready=None) -> None:
+    """Serve until cancelled; ``ready`` (a callable) is told the bound port."""
+    await bridge.prepare()
+    server = await asyncio.start_server(bridge.handle, host, port)
+    bound = server.sockets[0].getsockname()[1]
+    log.info(
+        "OpenIGTLink bridge for model %r on %s:%d (API %s)",
+        bridge.model,
+        host,
+        bound,
+        bridge.api_url,
+    )
+    if ready is not None:
+        ready(bound)
+    async with server:
+        await server.serve_forever()
+
+
+def run(
+    model: str,
+    *,
+    host: str = "127.0.0.1",
+    port: int = 18944,
+    server: str | None = None,
+    store=None,
+    device: str = "cloud",
+    settings: dict | None = None,
+    token: str | None = None,
+) -> int:
+    """``elastreg igtl``: the bridge, over ``server`` or an API it starts in this process."""
+    from contextlib import ExitStack
+
+    with ExitStack() as stack:
+        if server is None:
+            from ..api.server import BackgroundServer
+            from ..config import Settings
+            from ..store import default_store
+
+            api = stack.enter_context(BackgroundServer(Settings(store=store or default_store())))
+            server = api.url
+        bridge = Bridge(server, model, device=device, settings=settings, token=token)
+        bridge.announce = lambda line: print(f"elastreg igtl: {line}", flush=True)
+
+        def ready(bound: int) -> None:
+            print(
+                f"elastreg igtl: OpenIGTLink on {host}:{bound}, model {model!r}, API {server} "
+                f"(frames: POLYDATA or POINT named {device!r})",
+                flush=True,
+            )
+
+        try:
+            asyncio.run(serve(bridge, host, port, ready))
+        except KeyboardInterrupt:
+            pass
+    return 0

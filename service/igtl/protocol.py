@@ -1,0 +1,326 @@
+"""OpenIGTLink messages: the 58-byte header (header versions 1 and 2, i.e. protocol versions 1 to
+3), the version-2 extended header and metadata, and the POLYDATA, POINT and STRING bodies.
+
+Everything on the wire is big-endian. A message is ``header + body``; the header's CRC is the
+CRC-64 (ECMA-182 polynomial, no reflection, initial 0) of the whole body. With header version 2
+the body is ``extended header (12 bytes) + content + metadata header + metadata``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import struct
+import time
+
+import numba
+import numpy as np
+
+HEADER = struct.Struct(">H12s20sIIQQ")  # version, type, device, seconds, fraction, body size, crc
+HEADER_SIZE = HEADER.size  # 58
+EXT_HEADER = struct.Struct(">HHII")  # ext header size, metadata header size, metadata size, msg id
+POLY_HEADER = struct.Struct(">10I")
+POINT_ITEM = 136  # name 64, group 32, rgba 4, xyz 12, diameter 4, owner 20
+MAX_BODY = 256 << 20
+ASCII, UTF8 = 3, 106  # IANA character sets used by STRING
+
+
+class ProtocolError(ValueError):
+    """A message that does not follow the protocol (answered with an error, never fatal)."""
+
+
+# -- CRC-64 ------------------------------------------------------------------------------------
+
+
+def _crc_table() -> np.ndarray:
+    poly = np.uint64(0x42F0E1EBA9EA3693)
+    table = np.zeros(256, np.uint64)
+    for i in range(256):
+        c = np.uint64(i) << np.uint64(56)
+        for _ in range(8):
+            top = c & np.uint64(1 << 63)
+            c = (c << np.uint64(1)) ^ poly if top else c << np.uint64(1)
+        table[i] = c
+    return table
+
+
+_TABLE = _crc_table()
+
+
+@numba.njit(cache=True)
+def _crc64(data, table):
+    crc = np.uint64(0)
+    for b in data:
+        crc = table[np.uint64((crc >> np.uint64(56)) ^ np.uint64(b)) & np.uint64(0xFF)] ^ (
+            crc << np.uint64(8)
+        )
+    return crc
+
+
+def crc64(data: bytes) -> int:
+    return int(_crc64(np.frombuffer(data, np.uint8), _TABLE))
+
+
+# -- messages ----------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class Message:
+    """A decoded header and its content (the body less extended header and metadata)."""
+
+    type: str
+    device: str
+    version: int = 1
+    timestamp: float = 0.0
+    content: bytes = b""
+    metadata: dict[str, str] = dataclasses.field(default_factory=dict)
+    message_id: int = 0
+
+
+def _name(raw: bytes) -> str:
+    return raw.split(b"\0", 1)[0].decode("ascii", errors="replace").strip()
+
+
+def parse_header(raw: bytes) -> tuple[int, str, str, float, int, int]:
+    """(version, type, device, timestamp, body size, crc) of a 58-byte header."""
+    version, mtype, device, sec, frac, size, crc = HEADER.unpack(raw)
+    if version not in (1, 2, 3):
+        raise ProtocolError(f"header version {version} (this bridge reads 1 to 3)")
+    if size > MAX_BODY:
+        raise ProtocolError(f"a body of {size} bytes is over this bridge's limit of {MAX_BODY}")
+    return version, _name(mtype), _name(device), sec + frac / 2**32, size, crc
+
+
+def parse_body(
+    version: int, mtype: str, device: str, timestamp: float, body: bytes, crc: int | None
+) -> Message:
+    """The message a header and its body make; ProtocolError when they do not fit."""
+    if crc is not None and crc != 0 and crc64(body) != crc:
+        raise ProtocolError(f"{mtype} {device!r}: CRC mismatch (the body is corrupt)")
+    msg = Message(mtype, device, version, timestamp)
+    if version == 1:
+        msg.content = body
+        return msg
+    if len(body) < EXT_HEADER.size:
+        raise ProtocolError(f"{mtype} {device!r}: body shorter than the extended header")
+    ext, meta_header, meta_size, msg.message_id = EXT_HEADER.unpack_from(body)
+    end = len(body) - meta_header - meta_size
+    if ext < EXT_HEADER.size or end < ext:
+        raise ProtocolError(f"{mtype} {device!r}: extended header sizes do not fit the body")
+    msg.content = body[ext:end]
+    msg.metadata = _metadata(body[end:], meta_header, f"{mtype} {device!r}")
+    return msg
+
+
+def _metadata(raw: bytes, header_size: int, what: str) -> dict[str, str]:
+    if not raw:
+        return {}
+    try:
+        (count,) = struct.unpack_from(">H", raw)
+        if header_size != 2 + 8 * count:
+            raise ProtocolError(
+                f"{what}: metadata header of {header_size} bytes for {count} entries"
+            )
+        out, at = {}, header_size
+        for i in range(count):
+            klen, encoding, vlen = struct.unpack_from(">HHI", raw, 2 + 8 * i)
+            key = raw[at : at + klen].decode("utf-8")
+            value = raw[at + klen : at + klen + vlen]
+            if at + klen + vlen > len(raw):
+                raise ProtocolError(f"{what}: metadata entry {i} runs past the body")
+            out[key] = value.decode("ascii" if encoding == ASCII else "utf-8", errors="replace")
+            at += klen + vlen
+        return out
+    except (struct.error, UnicodeDecodeError) as exc:
+        raise ProtocolError(f"{what}: malformed metadata ({exc})") from None
+
+
+def pack(
+    mtype: str,
+    device: str,
+    content: bytes,
+    *,
+    version: int = 1,
+    timestamp: float | None = None,
+    metadata: dict[str, str] | None = None,
+    message_id: int = 0,
+) -> bytes:
+    """A whole message (header and body) of ``content``."""
+    if version >= 2:
+        keys, index = [], [struct.pack(">H", len(metadata or {}))]
+        for k, v in (metadata or {}).items():
+            kb, vb = k.encode(), v.encode()
+            index.append(struct.pack(">HHI", len(kb), UTF8, len(vb)))
+            keys.append(kb + vb)
+        mh, mb = b"".join(index), b"".join(keys)
+        body = EXT_HEADER.pack(EXT_HEADER.size, len(mh), len(mb), message_id) + content + mh + mb
+    else:
+        body = content
+    t = time.time() if timestamp is None else timestamp
+    sec = int(t)
+    frac = min(int((t - sec) * 2**32), 2**32 - 1)
+    header = HEADER.pack(
+        version, mtype.encode()[:12], device.encode()[:20], sec, frac, len(body), crc64(body)
+    )
+    return header + body
+
+
+# -- POLYDATA ----------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class PolyData:
+    """Shape: points (n, 3) float32; polygons, lines, vertices, strips: lists of index arrays
+    (cells of any size), triangles (f, 3) when every polygon is a triangle."""
+
+    points: np.ndarray
+    vertices: list[np.ndarray]
+    lines: list[np.ndarray]
+    polygons: list[np.ndarray]
+    strips: list[np.ndarray]
+    attributes: dict[str, np.ndarray]
+
+    @property
+    def triangles(self) -> np.ndarray:
+        if any(len(p) != 3 for p in self.polygons):
+            raise ValueError("not every polygon is a triangle")
+        return np.array(self.polygons, np.int64).reshape(-1, 3)
+
+
+def _cells(raw: bytes, count: int, n_points: int, what: str) -> list[np.ndarray]:
+    """Cells of ``(N, i_1 .. i_N)`` records (uint32, big-endian)."""
+    a = np.frombuffer(raw, ">u4").astype(np.int64)
+    cells, at = [], 0
+    for _ in range(count):  # a Python loop over cells only where the cells are not all triangles
+        if at >= a.size:
+            raise ProtocolError(f"POLYDATA: {what} section ends before its {count} cells")
+        k = int(a[at])
+        cell = a[at + 1 : at + 1 + k]
+        if cell.size != k:
+            raise ProtocolError(f"POLYDATA: a {what} cell runs past its section")
+        cells.append(cell)
+        at += 1 + k
+    if at != a.size:
+        raise ProtocolError(f"POLYDATA: {what} section holds more than its {count} cells")
+    if cells and (max(int(c.max(initial=0)) for c in cells) >= n_points):
+        raise ProtocolError(
+            f"POLYDATA: a {what} cell refers to a point beyond the {n_points} points"
+        )
+    return cells
+
+
+def _fast_triangles(raw: bytes, count: int) -> list[np.ndarray] | None:
+    a = np.frombuffer(raw, ">u4")
+    if a.size == 4 * count and count and np.all(a[::4] == 3):
+        return list(a.reshape(-1, 4)[:, 1:].astype(np.int64))
+    return None
+
+
+_ATTR_COMPONENTS = {
+    0: None,
+    1: 3,
+    2: 3,
+    3: 9,
+    4: 4,
+}  # scalar (its own count), vector, normal, tensor, RGBA
+
+
+def decode_polydata(content: bytes) -> PolyData:
+    """A POLYDATA body (pyigtl does not decode these; this follows igtl_polydata.c)."""
+    if len(content) < POLY_HEADER.size:
+        raise ProtocolError(f"POLYDATA: {len(content)} bytes, shorter than its 40-byte header")
+    npts, nv, sv, nl, sl, npoly, spoly, ns, sstrip, natt = POLY_HEADER.unpack_from(content)
+    if any(s % 4 for s in (sv, sl, spoly, sstrip)):
+        raise ProtocolError("POLYDATA: a cell section size is not a multiple of 4 bytes")
+    at = POLY_HEADER.size
+    need = at + 12 * npts + sv + sl + spoly + sstrip
+    if len(content) < need:
+        raise ProtocolError(
+            f"POLYDATA: {len(content)} bytes, but its header announces at least {need}"
+        )
+    points = np.frombuffer(content, ">f4", 3 * npts, at).astype(np.float32).reshape(npts, 3)
+    at += 12 * npts
+    sections = []
+    for count, size, what in (
+        (nv, sv, "vertices"),
+        (nl, sl, "lines"),
+        (npoly, spoly, "polygons"),
+        (ns, sstrip, "triangle strips"),
+    ):
+        raw = content[at : at + size]
+        cells = _fast_triangles(raw, count) if what == "polygons" else None
+        if cells is not None and npts and int(np.max(cells)) >= npts:
+            raise ProtocolError(f"POLYDATA: a polygon refers to a point beyond the {npts} points")
+        sections.append(cells if cells is not None else _cells(raw, count, npts, what))
+        at += size
+    attributes = _attributes(content, at, natt)
+    return PolyData(points, *sections, attributes)
+
+
+def _attributes(content: bytes, at: int, count: int) -> dict[str, np.ndarray]:
+    try:
+        heads = [struct.unpack_from(">BBI", content, at + 6 * i) for i in range(count)]
+        at += 6 * count
+        names = []
+        start = at
+        for _ in range(count):
+            end = content.index(b"\0", at)
+            names.append(content[at:end].decode("utf-8", errors="replace"))
+            at = end + 1
+        at += (at - start) % 2  # names padded to an even length
+        out = {}
+        for (kind, ncomp, n), name in zip(heads, names, strict=True):
+            comps = _ATTR_COMPONENTS.get(kind & 0x0F)
+            width = ncomp if comps is None else comps
+            size = 4 * width * n
+            if at + size > len(content):
+                raise ProtocolError(f"POLYDATA: attribute {name!r} runs past the body")
+            out[name] = (
+                np.frombuffer(content, ">f4", width * n, at).astype(np.float32).reshape(n, width)
+            )
+            at += size
+        return out
+    except (struct.error, ValueError) as exc:
+        if isinstance(exc, ProtocolError):
+            raise
+        raise ProtocolError(f"POLYDATA: malformed attributes ({exc})") from None
+
+
+def encode_polydata(points: np.ndarray, triangles: np.ndarray) -> bytes:
+    """A POLYDATA body of points (n, 3) and triangles (f, 3), no attributes."""
+    pts = np.ascontiguousarray(points, ">f4").reshape(-1, 3)
+    tri = np.asarray(triangles, np.int64).reshape(-1, 3)
+    cells = np.empty((len(tri), 4), ">u4")
+    cells[:, 0] = 3
+    cells[:, 1:] = tri
+    header = POLY_HEADER.pack(len(pts), 0, 0, 0, 0, len(tri), cells.nbytes, 0, 0, 0)
+    return header + pts.tobytes() + cells.tobytes()
+
+
+# -- POINT and STRING --------------------------------------------------------------------------
+
+
+def decode_point(content: bytes) -> np.ndarray:
+    """The positions (m, 3) of a POINT body (136 bytes a point)."""
+    if len(content) % POINT_ITEM:
+        raise ProtocolError(f"POINT: {len(content)} bytes is not a whole number of 136-byte points")
+    items = np.frombuffer(content, np.uint8).reshape(-1, POINT_ITEM)
+    xyz = np.ascontiguousarray(items[:, 100:112]).view(">f4")
+    return xyz.astype(np.float32).reshape(-1, 3)
+
+
+def decode_string(content: bytes) -> str:
+    if len(content) < 4:
+        raise ProtocolError("STRING: shorter than its 4-byte header")
+    encoding, length = struct.unpack_from(">HH", content)
+    if 4 + length > len(content):
+        raise ProtocolError(f"STRING: {length} bytes announced, {len(content) - 4} present")
+    return content[4 : 4 + length].decode(
+        "ascii" if encoding == ASCII else "utf-8", errors="replace"
+    )
+
+
+def encode_string(text: str) -> bytes:
+    raw = text.encode("utf-8")
+    if len(raw) > 0xFFFF:
+        raise ValueError("a STRING holds at most 65535 bytes")
+    return struct.pack(">HH", UTF8, len(raw)) + raw

@@ -1,0 +1,113 @@
+"""GET /viewer in a real browser (Debian's chromium, headless, driven by Playwright): the demo
+mode streams by itself and the watch mode follows a session posted to over HTTP; in both the
+frame counter grows with no error, and the picture is not blank and changes as frames arrive.
+Screenshots are kept under the test's tmp folder (and /tmp/elastreg-viewer-*.png) to look at."""
+
+from __future__ import annotations
+
+import io
+import shutil
+import threading
+import time
+
+import numpy as np
+import pytest
+
+playwright = pytest.importorskip("playwright.sync_api")
+CHROMIUM = shutil.which("chromium")
+pytestmark = pytest.mark.skipif(
+    CHROMIUM is None, reason="Debian's chromium is not installed (.ci/run installs it)"
+)
+ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking"]
+
+
+@pytest.fixture(scope="module")
+def browser():
+    with playwright.sync_playwright() as pw:
+        b = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        yield b
+        b.close()
+
+
+def state(page) -> dict:
+    return page.evaluate("() => ({...window.elastregViewer, renderLog: undefined})")
+
+
+def wait_frames(page, at_least: int, timeout: float = 90) -> dict:
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout:
+        s = state(page)
+        assert s["lastError"] is None, s["lastError"]
+        if s["framesRendered"] >= at_least:
+            return s
+        time.sleep(0.2)
+    raise AssertionError(f"only {state(page)['framesRendered']} frames rendered in {timeout} s")
+
+
+def picture(page, path) -> np.ndarray:
+    from PIL import Image
+
+    png = page.screenshot(path=str(path))
+    shutil.copy(path, f"/tmp/elastreg-viewer-{path.name}")
+    return np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), np.float64)
+
+
+def check_pictures(a: np.ndarray, b: np.ndarray) -> None:
+    # the 3D view (right of the panel), not blank: many colours and a real spread of brightness
+    for img in (a, b):
+        view = img[:, 330:]
+        assert view.std() > 10 and len(np.unique(view.reshape(-1, 3), axis=0)) > 200
+    changed = np.abs(a[:, 330:] - b[:, 330:]).max(axis=2) > 8
+    assert changed.mean() > 0.002, f"only {changed.mean():.4%} of the view changed between frames"
+
+
+def test_demo_mode_renders_frames(live, browser, tmp_path):
+    page = browser.new_page(viewport={"width": 960, "height": 640})
+    page.goto(f"{live.url}/viewer?model=bar&demo=1&frames=12&points=200&rate=10")
+    s = wait_frames(page, 4)
+    assert s["mode"] == "demo" and s["session"].startswith("alpha-")
+    assert s["pointsShown"] == 200
+    a = picture(page, tmp_path / "demo-1.png")
+    wait_frames(page, s["framesRendered"] + 5)
+    b = picture(page, tmp_path / "demo-2.png")
+    check_pictures(a, b)
+    page.close()
+
+
+def test_watch_mode_follows_a_session(live, http, browser, support, clouds, tmp_path):
+    sid = http.post("/sessions", json={"model": "bar", "support": support.tolist()}).json()[
+        "session"
+    ]
+    page = browser.new_page(viewport={"width": 960, "height": 640})
+    page.goto(f"{live.url}/viewer?session={sid}#token=not-needed-here")
+    page.wait_for_function(
+        "() => window.elastregViewer.model === 'bar' || window.elastregViewer.lastError",
+        timeout=60_000,
+    )
+    stop = threading.Event()
+
+    def post():
+        t = 0
+        while not stop.is_set():
+            http.post(
+                f"/sessions/{sid}/frames",
+                json={"points": clouds[t % len(clouds)].tolist(), "frame_id": t},
+            )
+            t += 1
+            time.sleep(0.1)
+
+    poster = threading.Thread(target=post)
+    poster.start()
+    try:
+        s = wait_frames(page, 3)
+        assert s["mode"] == "watch" and s["session"] == sid
+        a = picture(page, tmp_path / "watch-1.png")
+        s2 = wait_frames(page, s["framesRendered"] + 4)
+        b = picture(page, tmp_path / "watch-2.png")
+        assert s2["lastSeq"] > s["lastSeq"]
+    finally:
+        stop.set()
+        poster.join()
+    check_pictures(a, b)
+    page.close()
+    http.delete(f"/sessions/{sid}")
