@@ -269,8 +269,7 @@ def run(
     with ExitStack() as stack:
         if server is None:
             from ..api.server import BackgroundServer
-            from ..config import Settings
-            from ..store import default_store
+            from ..config import Settings, default_store
 
             api = stack.enter_context(BackgroundServer(Settings(store=store or default_store())))
             server = api.url
