@@ -3,7 +3,11 @@
 A frame's displacement u was produced for forces g by some forward model. The exact (discrete)
 physics asks ``f_int(u) = g`` on the free nodes; the residual ``r = f_int(u) - g`` says how far u
 is from the equilibrium of its own forces, and one solve with the rest stiffness turns it into a
-displacement, ``d = K0^-1 r ~ u - u_eq``, the linearised error of u against that equilibrium. Its mean nodal
+displacement, ``d = K0^-1 r ~ u - u_eq``, the linearised error of u against that equilibrium.
+The rest stiffness knows nothing of rotation, and a nearly incompressible body's stiffness
+rotated against it is off by about lambda / mu (fifty here): so the residual is taken into the
+rest frame node by node (the local rotation of the deformation, as corotational "stiffness
+warping" does), solved there, and turned back. Its mean nodal
 norm estimates the forward model's error (a network's; the FEM's is its Newton tolerance).
 
 The registration adds its own error: points it could not explain. The cloud's RMS distance to
@@ -44,18 +48,20 @@ class ResidualEstimator:
         self._lock = threading.Lock()  # a factorisation's solve is not reentrant (PARDISO)
 
     def correction(self, u: Array, forces: Array, support: Array) -> Array:
-        """d = K0^-1 (f_int(u) - g) ~ u - u_eq(g): the linearised error of u.
+        """d = R K0^-1 R^T (f_int(u) - g) ~ u - u_eq(g): the linearised error of u, with each
+        node's residual turned into the rest frame and back (R: the nodes' rotations).
 
         Shape: u (n, 3), forces (k, 3) on support (k,) -> (n, 3), zero on fixed nodes.
         """
         f = self.assembler.internal_force(u)
         np.subtract.at(f, support, forces)
-        r = self.assembler.pack(f)
-        if not np.isfinite(r).all():
+        if not np.isfinite(f).all():
             return np.full_like(u, np.inf)
+        R = node_rotations(self.assembler, u)
+        r = self.assembler.pack(np.einsum("nji,nj->ni", R, f))  # into the rest frame: R^T f
         with self._lock:
             d = self._solver.solve(r)
-        return self.assembler.unpack(d)
+        return np.einsum("nij,nj->ni", R, self.assembler.unpack(d))  # and back
 
     def forward_error(self, u: Array, forces: Array, support: Array) -> float:
         """Mean nodal norm of :meth:`correction` (length units of the mesh)."""
@@ -82,3 +88,19 @@ def error_estimate(forward_error: float, distance_rms: float, noise: float | Non
     if not np.isfinite(forward_error) or not np.isfinite(unexplained):
         return float("inf")
     return float(forward_error + unexplained)
+
+
+def node_rotations(assembler: Assembler, u: Array, iterations: int = 8) -> Array:
+    """Each node's rotation: the polar factor of the volume-weighted mean of its tets'
+    deformation gradients (Newton's iteration X <- (X + X^-T) / 2). Shape: u (n, 3) -> (n, 3, 3)."""
+    mesh = assembler.mesh
+    F = assembler.F(u) * mesh.volumes[:, None, None]  # (t, 3, 3)
+    idx = mesh.tets.ravel()
+    X = np.stack([np.bincount(idx, weights=np.repeat(F[:, i, j], 4), minlength=mesh.n_nodes)
+                  for i in range(3) for j in range(3)], axis=1).reshape(-1, 3, 3)
+    det = np.linalg.det(X)
+    X[~(det > 0)] = np.eye(3)  # a node whose tets average to a fold: no rotation to undo
+    X /= np.cbrt(np.where(det > 0, det, 1.0))[:, None, None]  # scale out the volume: same factor
+    for _ in range(iterations):
+        X = 0.5 * (X + np.linalg.inv(X).transpose(0, 2, 1))
+    return X

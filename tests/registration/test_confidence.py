@@ -115,3 +115,33 @@ def test_auto_corrects_the_frames_past_max_error(entry, hard_sequence):
 def test_auto_is_refused_without_what_it_needs(entry, config, corrector, message):
     with pytest.raises(ValueError, match=message):
         Session(entry.network, config, corrector=entry.fem if corrector else None)
+
+
+def test_node_rotations_recover_a_rigid_rotation(entry):
+    from scipy.spatial.transform import Rotation
+
+    from service.registration.confidence import node_rotations
+
+    R0 = Rotation.from_rotvec([0.3, -0.5, 0.8]).as_matrix()
+    x = entry.mesh.nodes
+    u = x @ R0.T - x  # every node turned by R0 about the origin
+    R = node_rotations(ResidualEstimator(entry.mesh, entry.fem.material).assembler, u)
+    np.testing.assert_allclose(R, np.broadcast_to(R0, R.shape), atol=1e-10)
+
+
+def test_a_rotated_error_is_measured_in_the_rotated_frame(entry):
+    """A small error on top of a large rigid turn: the rest stiffness alone sees the turn as
+    strain of a nearly incompressible body; taken into each node's frame, the error comes back."""
+    from scipy.spatial.transform import Rotation
+
+    mesh = entry.mesh
+    R0 = Rotation.from_rotvec([0.0, 0.0, 0.6]).as_matrix()
+    x = mesh.nodes
+    rigid = x @ R0.T - x
+    delta = 1e-4 * np.ptp(x) * np.stack([np.sin(3 * x[:, 0]), x[:, 1] * x[:, 0], np.cos(2 * x[:, 2])], axis=1)
+    delta[~mesh.free_mask] = 0.0
+    est = ResidualEstimator(mesh, entry.fem.material)
+    none = np.zeros((0,), np.int64)
+    measured = est.forward_error(rigid + delta @ R0.T, np.zeros((0, 3)), none)
+    true = np.linalg.norm(delta, axis=1).mean()
+    assert abs(measured - true) < 0.25 * true
