@@ -42,8 +42,10 @@ class Live:
 
 def start(store, **overrides) -> BackgroundServer:
     # blas_threads=0: the server shares this process with the rest of the test session; leave
-    # its BLAS and torch threads alone
-    defaults = {"max_points": MAX_POINTS, "max_body_bytes": 1 << 20, "blas_threads": 0}
+    # its BLAS and torch threads alone. session_queue=8: test_concurrency posts 6 frames of one
+    # session at once (the default, 2, would answer some of them 503)
+    defaults = {"max_points": MAX_POINTS, "max_body_bytes": 1 << 20, "max_message_bytes": 1 << 20,
+                "blas_threads": 0, "session_queue": 8}
     settings = Settings(store=store, **{**defaults, **overrides})
     return BackgroundServer(settings).start()
 
