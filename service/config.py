@@ -173,10 +173,10 @@ class Settings(BaseSettings):
                     f"{name} ({getattr(self, name)}) cannot hold a packed cloud of max_points "
                     f"({self.max_points}) points: raise it to at least {self.max_points * 24 + 4096}"
                 )
-        if self.max_array_elements < 4 * self.max_points:  # a cloud as nested lists: m + 3m elements
+        if self.max_array_elements < 4 * self.max_points + 1024:  # a cloud as nested lists: m + 3m elements
             raise ValueError(
                 f"max_array_elements ({self.max_array_elements}) cannot hold a cloud of max_points "
-                f"({self.max_points}) points as nested lists: raise it to at least {4 * self.max_points}"
+                f"({self.max_points}) points as nested lists: raise it to at least {4 * self.max_points + 1024}"
             )
         if self.stream_queue_bytes < self.max_message_bytes:
             raise ValueError(f"stream_queue_bytes ({self.stream_queue_bytes}) must hold one message of "

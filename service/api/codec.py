@@ -270,7 +270,12 @@ def decode(data: bytes | str, kind: str, *, max_bytes: int = 64 << 20, max_eleme
             )
         except DecodeError:
             raise
-        except (ValueError, msgpack.ExtraData, msgpack.FormatError, msgpack.StackError, RecursionError) as exc:
+        except ValueError as exc:
+            if "exceeds max_" in str(exc):  # a declared length over the limits, refused before allocating
+                raise TooLarge(f"the body declares an array or map beyond its own size or this server's limit of "
+                               f"{max_elements} array elements ({exc})") from None
+            raise DecodeError(f"not valid MessagePack: {exc}") from None
+        except (msgpack.ExtraData, msgpack.FormatError, msgpack.StackError, RecursionError) as exc:
             raise DecodeError(f"not valid MessagePack: {exc}") from None
         return _unpack_tree(obj)
     raise ValueError(f"unknown encoding {kind!r}")
