@@ -71,6 +71,7 @@ class StreamRunner:
         self.held = None
         self.busy = False
         self.gone = False  # the client has left: queued frames are dropped
+        self._left = asyncio.Event()  # set with gone (the reader saw the socket close)
         self.draining = False
         self.queue: asyncio.Queue | None = None
         self.queued_bytes = 0
@@ -246,6 +247,7 @@ class StreamRunner:
                 continue
             if item is _CLOSED:
                 self.gone = True  # before it is queued: the worker drops what is still queued
+                self._left.set()
             if isinstance(item, tuple):
                 while self.queued_bytes and self.queued_bytes + len(item[1]) > limit:
                     self._space.clear()  # reads pause: TCP slows the client down
@@ -296,11 +298,19 @@ class StreamRunner:
         held, registry = self.held, self.registry
         try:
             registry.begin(held)
-            body = await self.pool.run(
+            solve = asyncio.ensure_future(self.pool.run(
                 solve_frame, held, frame, kind, {"decode": decode_ms},
                 t_received=t_received, t_submitted=time.perf_counter(), support=support, extra=extra,
                 cancelled=lambda: self.gone, done=lambda: registry.end(held),
-            )
+            ))
+            left = asyncio.ensure_future(self._left.wait())
+            await asyncio.wait({solve, left}, return_when=asyncio.FIRST_COMPLETED)
+            left.cancel()
+            if not solve.done():  # the client left: the stream ends now; the job, dropped or
+                # finishing, keeps its session's slot until it is over (registry.end)
+                solve.add_done_callback(lambda f: f.cancelled() or f.exception())
+                return False
+            body = solve.result()
         except Dropped:
             return False
         except Exception as exc:
