@@ -11,6 +11,7 @@ import sys
 import time
 
 import httpx
+
 from clients import Client
 from clients.client import encode
 from service.api.server import free_port
