@@ -30,6 +30,7 @@ import asyncio
 import base64
 import collections
 import json
+import multiprocessing
 import os
 import secrets
 import socket
@@ -41,6 +42,7 @@ import time
 from pathlib import Path
 
 import httpx
+import msgpack
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -129,10 +131,18 @@ class Tally:
         self.counts[f"{what} ws:{code}"] += 1
 
     def server_errors(self) -> dict[str, int]:
-        out = {"500": 0, "503": 0, "other_5xx": 0}
+        """HTTP 5xx answers and stream errors with a 5xx code; close code 1011 (internal error)."""
+        out = {"500": 0, "503": 0, "other_5xx": 0, "ws_close_1011": 0}
         for key, n in self.counts.items():
-            status = key.rsplit(" ", 1)[1].removeprefix("ws:").removeprefix("error:")
-            if status.isdigit() and int(status) >= 500:
+            status = key.rsplit(" ", 1)[1]
+            if status == "ws:1011":
+                out["ws_close_1011"] += n
+                continue
+            if status.startswith("ws:"):
+                if not status.startswith("ws:error:"):
+                    continue  # a close code (1008, 1009...): not an HTTP status
+                status = status.removeprefix("ws:error:")
+            if status.isdigit() and 500 <= int(status) < 600:
                 out["500" if status == "500" else "503" if status == "503" else "other_5xx"] += n
         return out
 
@@ -205,15 +215,38 @@ async def raw_websocket(url: str, token: str | None):
     return reader, writer
 
 
-async def _read_ws_message(reader) -> bytes:
-    """The payload of the next (unfragmented, unmasked) server frame."""
+async def _read_frame(reader) -> tuple[int, bytes]:
+    """(opcode, payload) of the next (unfragmented, unmasked) server frame."""
     b0, b1 = await reader.readexactly(2)
     n = b1 & 0x7F
     if n == 126:
         n = int.from_bytes(await reader.readexactly(2), "big")
     elif n == 127:
         n = int.from_bytes(await reader.readexactly(8), "big")
-    return await reader.readexactly(n)
+    return b0 & 0x0F, await reader.readexactly(n)
+
+
+async def _read_ws_message(reader) -> bytes:
+    """The payload of the next data message (pings are skipped, and never answered)."""
+    while True:
+        opcode, payload = await _read_frame(reader)
+        if opcode in (0x1, 0x2):
+            return payload
+        if opcode == 0x8:
+            raise ConnectionError(f"closed {int.from_bytes(payload[:2], 'big') if len(payload) >= 2 else ''}")
+
+
+async def _close_code(reader, timeout: float):
+    """The code of the server's close frame (pings skipped, never answered)."""
+    async def wait():
+        while True:
+            opcode, payload = await _read_frame(reader)
+            if opcode == 0x8:
+                return int.from_bytes(payload[:2], "big") if len(payload) >= 2 else "none"
+    try:
+        return await asyncio.wait_for(wait(), timeout)
+    except (TimeoutError, asyncio.IncompleteReadError, ConnectionError):
+        return "dropped"
 
 
 async def stuck_stream(url: str, token: str, frame: bytes, result: dict) -> None:
@@ -251,8 +284,8 @@ async def abuse(url: str, token: str, frame_msgpack: bytes, stop: asyncio.Event,
                 t0 = time.monotonic()
                 try:
                     await fn()
-                except (httpx.HTTPError, OSError, asyncio.IncompleteReadError, ConnectionError) as exc:
-                    tally.counts[f"client error {type(exc).__name__}"] += 1
+                except Exception as exc:  # noqa: BLE001 - a misbehaving client's connection breaks
+                    tally.counts[f"{fn.__name__} ended by {type(exc).__name__}"] += 1
                 await asyncio.sleep(max(0.0, period - (time.monotonic() - t0)))
 
         async def bombs() -> None:
@@ -269,10 +302,9 @@ async def abuse(url: str, token: str, frame_msgpack: bytes, stop: asyncio.Event,
             writer.write(_mask(b"\x00" * (limits["max_message_bytes"] + 1), 0x2))
             try:
                 await writer.drain()
-                payload = await asyncio.wait_for(_read_ws_message(reader), 10)  # the close frame
-                tally.ws("oversized message", int.from_bytes(payload[:2], "big") if len(payload) >= 2 else "?")
-            except (ConnectionError, asyncio.IncompleteReadError, TimeoutError):
-                tally.ws("oversized message", "dropped")
+            except ConnectionError:
+                pass
+            tally.ws("oversized message", await _close_code(reader, 10))
             writer.close()
 
         async def garbage() -> None:
@@ -291,7 +323,9 @@ async def abuse(url: str, token: str, frame_msgpack: bytes, stop: asyncio.Event,
                 await ws.recv()
                 for _ in range(25):
                     await ws.send(secrets.token_bytes(256) if secrets.randbits(1) else "not json {[")
-                    tally.ws("garbage frame", json.loads(await ws.recv())["error"]["code"])
+                    reply = await ws.recv()  # in the message's own kind: MessagePack for bytes
+                    reply = msgpack.unpackb(reply) if isinstance(reply, bytes) else json.loads(reply)
+                    tally.ws("garbage frame", f"error:{reply['error']['code']}")
                     await asyncio.sleep(0.2)
 
         async def storm() -> None:
@@ -310,8 +344,7 @@ async def abuse(url: str, token: str, frame_msgpack: bytes, stop: asyncio.Event,
         async def idle_socket() -> None:
             reader, writer = await raw_websocket(url, None)  # then nothing: closed after first_message_timeout_s
             try:
-                payload = await asyncio.wait_for(_read_ws_message(reader), 60)
-                tally.ws("idle socket", int.from_bytes(payload[:2], "big") if len(payload) >= 2 else "?")
+                tally.ws("idle socket", await _close_code(reader, 60))
             finally:
                 writer.close()
 
@@ -362,6 +395,26 @@ async def abuse(url: str, token: str, frame_msgpack: bytes, stop: asyncio.Event,
         await asyncio.wait_for(stuck_task, 130)
 
 
+def abuse_process(url: str, token: str, frame_msgpack: bytes, limits: dict, stop, results) -> None:
+    """The misbehaving clients in a process of their own: their work (building bombs, masking
+    16 MiB messages) never stalls the good streams' event loop."""
+
+    async def main() -> None:
+        tally, stuck, done = Tally(), {}, asyncio.Event()
+
+        async def watch() -> None:
+            while not stop.is_set():
+                await asyncio.sleep(0.05)
+            done.set()
+
+        watcher = asyncio.create_task(watch())
+        await abuse(url, token, frame_msgpack, done, tally, limits, stuck)
+        watcher.cancel()
+        results.put({"counts": dict(tally.counts), "stuck": stuck})
+
+    asyncio.run(main())
+
+
 # -- the run --------------------------------------------------------------------------------------
 
 
@@ -380,13 +433,17 @@ async def run(url: str, token: str, seconds: float, sampler: RssSampler) -> dict
     alone = await good_streams(url, token, frames, support, seconds, tally_alone)
     rss_before = sampler.now()
     peak_before = sampler.peak
-    stop = asyncio.Event()
-    stuck: dict = {}
-    abusers = asyncio.create_task(abuse(url, token, frame_msgpack, stop, tally, limits, stuck))
-    await asyncio.sleep(2.0)  # the abuse under way before the good streams are timed again
+    ctx = multiprocessing.get_context("spawn")
+    stop, results = ctx.Event(), ctx.Queue()
+    abusers = ctx.Process(target=abuse_process, args=(url, token, frame_msgpack, limits, stop, results))
+    abusers.start()
+    await asyncio.sleep(5.0)  # the abuse under way before the good streams are timed again
     together = await good_streams(url, token, frames, support, seconds, tally)
     stop.set()
-    await abusers
+    abused = await asyncio.to_thread(results.get, True, 180)
+    abusers.join(timeout=30)
+    tally.counts.update(abused["counts"])
+    stuck = abused["stuck"]
     async with httpx.AsyncClient(base_url=url) as c:
         health = (await c.get("/health")).json()
     return {

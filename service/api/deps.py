@@ -26,7 +26,7 @@ from typing import Annotated, Generic, TypeVar
 from fastapi import Depends, Request, Response, WebSocket
 from fastapi.concurrency import run_in_threadpool
 from pydantic import BaseModel
-from starlette.requests import HTTPConnection
+from starlette.requests import ClientDisconnect, HTTPConnection
 
 from ..config import Settings, get_settings
 from ..store import Entry
@@ -209,6 +209,8 @@ async def read_body(request: Request, settings: Settings):
                 chunks.append(chunk)
     except TimeoutError:
         raise ApiError(408, f"the body did not arrive within {settings.body_timeout_s:g} s") from None
+    except ClientDisconnect:  # nobody to answer: not a server error
+        raise ApiError(400, "the client disconnected before its body arrived") from None
     data = b"".join(chunks)
     if not data:
         raise ApiError(422, [{"loc": ["body"], "msg": "a body is required", "type": "missing"}])

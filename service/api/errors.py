@@ -24,9 +24,9 @@ from pydantic import ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from . import codec
+from .pool import Dropped, Overloaded
 from .schemas import TooManyPoints, error_list
 from .sessions import RegistryFull, SessionNotFound, WrongKind
-from .pool import Dropped, Overloaded
 
 log = logging.getLogger(__name__)
 

@@ -12,7 +12,6 @@ carrying its message; anything else is a bug and surfaces as a 500 with its trac
 
 from __future__ import annotations
 
-import asyncio
 import logging
 import math
 import time

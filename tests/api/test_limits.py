@@ -10,7 +10,6 @@ import time
 import tracemalloc
 
 import httpx
-import msgpack
 import numpy as np
 import pytest
 from websockets.exceptions import ConnectionClosed, InvalidStatus
