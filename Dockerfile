@@ -1,11 +1,17 @@
 # elastreg: the registration API (`elastreg serve`) on port 8000, with the shipped models.
 #
 #   docker build -t elastreg .
-#   docker run --rm -p 8000:8000 elastreg
-#   docker run --rm -p 8000:8000 -e ELASTREG_SOLVER_THREADS=4 elastreg elastreg serve --host 0.0.0.0 --workers 2
+#   docker run --rm -p 127.0.0.1:8000:8000 -e ELASTREG_API_TOKENS="$(cat tokens.csv)" elastreg
+#   docker run --rm -p 8000:8000 -v $PWD/tokens.txt:/run/tokens.txt:ro -e ELASTREG_SOLVER_THREADS=4 \
+#       elastreg elastreg serve --host 0.0.0.0 --token-file /run/tokens.txt
 #
-# The same install as the README (CPU torch first, then the package); nothing is fetched at
-# run time. Settings come from ELASTREG_* variables (service/config.py).
+# The container listens on 0.0.0.0, so it needs tokens (it refuses to start without them; see
+# docs/deployment.md). More cores: one process with ELASTREG_SOLVER_THREADS, not --workers (an
+# HTTP session lives in the process that opened it, and a second worker answers its frames
+# 404); more machines: one container each behind a proxy with session affinity. TLS: a TLS
+# proxy in front, or --ssl-certfile/--ssl-keyfile. The same install as the README (CPU torch
+# first, then the package); nothing is fetched at run time. Settings come from ELASTREG_*
+# variables (service/config.py).
 FROM python:3.11-slim
 
 ENV PYTHONDONTWRITEBYTECODE=1 \

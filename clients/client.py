@@ -10,6 +10,8 @@ MessagePack; NumPy arrays in, NumPy arrays out.
 HTTP sessions (``open_session``) live in the server process that opened them: behind several
 processes, route them with affinity (see the README) or use ``stream``, whose session lives
 with its connection. With ``encoding="msgpack"`` (the default) arrays travel as packed bytes.
+On a server with tokens pass ``token=`` (sent as ``Authorization: Bearer``, on the WebSocket's
+handshake too); over HTTPS, ``verify=`` takes a CA file for a private certificate.
 """
 
 from __future__ import annotations
@@ -164,14 +166,35 @@ def _reply(message, encoding: str) -> dict:
 # -- sync ----------------------------------------------------------------------------------------
 
 
+def _ssl_context(verify):
+    """An SSL context for ``verify``: True (the system's CAs), a CA file's path, or a context."""
+    import ssl
+
+    if isinstance(verify, ssl.SSLContext):
+        return verify
+    if isinstance(verify, str):
+        return ssl.create_default_context(cafile=verify)
+    return ssl.create_default_context()
+
+
 class _Base:
-    def __init__(self, base_url: str, encoding: str) -> None:
+    def __init__(self, base_url: str, encoding: str, token: str | None = None, verify=True) -> None:
         if encoding not in ("msgpack", "json"):
             raise ValueError("encoding must be 'msgpack' or 'json'")
         self.base_url = base_url.rstrip("/")
         self.encoding = encoding
         media = MSGPACK_MEDIA if encoding == "msgpack" else JSON_MEDIA
         self.headers = {"content-type": media, "accept": media}
+        self.ws_headers = {}
+        if token is not None:  # the same header on HTTP and in the WebSocket's handshake
+            self.headers["authorization"] = self.ws_headers["authorization"] = f"Bearer {token}"
+        self.tls = _ssl_context(verify) if self.base_url.startswith("https:") else None
+
+    def _ws_options(self, max_size) -> dict:
+        options = {"max_size": max_size, "compression": None, "additional_headers": self.ws_headers}
+        if self.tls is not None:
+            options["ssl"] = self.tls
+        return options
 
     def _result(self, r: httpx.Response):
         kind = "msgpack" if "msgpack" in r.headers.get("content-type", "") else "json"
@@ -191,10 +214,11 @@ class Client(_Base):
     """The API over HTTP (httpx, one keep-alive connection pool) and WebSocket streams."""
 
     def __init__(self, base_url: str = "http://127.0.0.1:8000", *, encoding: str = "msgpack",
-                 timeout: float = 60.0) -> None:
-        super().__init__(base_url, encoding)
+                 timeout: float = 60.0, token: str | None = None, verify=True) -> None:
+        super().__init__(base_url, encoding, token, verify)
         self.timeout = timeout
-        self.http = httpx.Client(base_url=self.base_url, timeout=timeout, headers=self.headers)
+        self.http = httpx.Client(base_url=self.base_url, timeout=timeout, headers=self.headers,
+                                 verify=self.tls if self.tls is not None else True)
 
     def _call(self, method: str, path: str, body=None):
         content = None if body is None else encode(body, self.encoding)
@@ -228,7 +252,7 @@ class Client(_Base):
         """A WebSocket stream (``/stream``) whose session lives with the connection."""
         from websockets.sync.client import connect
 
-        ws = connect(_ws_url(self.base_url), max_size=max_size, compression=None, open_timeout=self.timeout)
+        ws = connect(_ws_url(self.base_url), open_timeout=self.timeout, **self._ws_options(max_size))
         ws.__enter__()  # the Stream owns the connection (and closes it): websockets >= 17 asks for this
         return Stream(ws, self.encoding, _config_body(model, config), self.timeout)
 
@@ -344,11 +368,12 @@ class AsyncClient(_Base):
     """The same API for asyncio (httpx.AsyncClient and websockets' asyncio client)."""
 
     def __init__(self, base_url: str = "http://127.0.0.1:8000", *, encoding: str = "msgpack",
-                 timeout: float = 60.0, max_connections: int = 100) -> None:
-        super().__init__(base_url, encoding)
+                 timeout: float = 60.0, max_connections: int = 100, token: str | None = None, verify=True) -> None:
+        super().__init__(base_url, encoding, token, verify)
         self.timeout = timeout
         self.http = httpx.AsyncClient(base_url=self.base_url, timeout=timeout, headers=self.headers,
-                                      limits=httpx.Limits(max_connections=max_connections))
+                                      limits=httpx.Limits(max_connections=max_connections),
+                                      verify=self.tls if self.tls is not None else True)
 
     async def _call(self, method: str, path: str, body=None):
         content = None if body is None else encode(body, self.encoding)
@@ -378,7 +403,7 @@ class AsyncClient(_Base):
     async def stream(self, model: str, *, max_size: int | None = 1 << 27, **config) -> AsyncStream:
         from websockets import connect
 
-        ws = await connect(_ws_url(self.base_url), max_size=max_size, compression=None, open_timeout=self.timeout)
+        ws = await connect(_ws_url(self.base_url), open_timeout=self.timeout, **self._ws_options(max_size))
         stream = AsyncStream(ws, self.encoding, self.timeout)
         await stream._open(_config_body(model, config))
         return stream

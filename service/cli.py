@@ -84,7 +84,8 @@ def _build_from(build, scene, config, command: str, args: argparse.Namespace):
 def _serve(args: argparse.Namespace) -> int:
     from .api.server import serve
 
-    serve(store=args.store, host=args.host, port=args.port, workers=args.workers)
+    serve(store=args.store, host=args.host, port=args.port, workers=args.workers, token_file=args.token_file,
+          insecure=args.insecure, ssl_certfile=args.ssl_certfile, ssl_keyfile=args.ssl_keyfile)
     return 0
 
 
@@ -139,6 +140,10 @@ def parser() -> argparse.ArgumentParser:
     s.add_argument("--host", default="127.0.0.1")
     s.add_argument("--port", type=int, default=8000)
     s.add_argument("--workers", type=int, default=1, help="server processes (sessions live in the process that made them)")
+    s.add_argument("--token-file", default=None, help="bearer tokens, one a line (or ELASTREG_API_TOKENS); see docs/deployment.md")
+    s.add_argument("--insecure", action="store_true", help="serve a non-loopback address without tokens")
+    s.add_argument("--ssl-certfile", default=None, help="TLS certificate (PEM): serve HTTPS and WSS")
+    s.add_argument("--ssl-keyfile", default=None, help="the certificate's private key (PEM)")
     s.set_defaults(func=_serve)
 
     t = sub.add_parser("train", help="generate FEM data for a scene and train its surrogate into the model store")

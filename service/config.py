@@ -11,12 +11,14 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 import secrets
 from functools import lru_cache
 from pathlib import Path
+from typing import Annotated
 
-from pydantic import Field, model_validator
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic import Field, field_validator, model_validator
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 log = logging.getLogger(__name__)
 
@@ -54,10 +56,39 @@ def _instance_id() -> str:
     return secrets.token_hex(3)
 
 
+_TOKEN = r"^[A-Za-z0-9._~+/=-]{16,512}$"  # RFC 6750's token68 characters, at least 16 of them
+
+#: the settings that bound what one client can make the server hold or do: /health lists them
+LIMITS = (
+    "max_points", "max_sessions", "session_ttl_s", "max_body_bytes", "max_message_bytes",
+    "max_array_elements", "stream_queue", "stream_queue_bytes", "max_sockets", "max_connections",
+    "first_message_timeout_s", "body_timeout_s", "send_timeout_s", "max_iter", "max_time_budget_ms",
+    "e_range", "solve_queue", "session_queue",
+)
+
+
+def _split(value):
+    """A comma-separated environment value as a tuple (a tuple or list passes through)."""
+    if isinstance(value, str):
+        return tuple(v.strip() for v in value.split(",") if v.strip())
+    return value
+
+
+def read_token_file(path: Path) -> tuple[str, ...]:
+    """The tokens of a token file: one a line; blank lines and ``#`` comments ignored."""
+    try:
+        text = Path(path).read_text()
+    except OSError as exc:
+        raise ValueError(f"cannot read the token file {path}: {exc}") from None
+    return tuple(t for t in (line.split("#", 1)[0].strip() for line in text.splitlines()) if t)
+
+
 class Settings(BaseSettings):
     """What a server process runs with."""
 
-    model_config = SettingsConfigDict(env_prefix="ELASTREG_", extra="ignore", frozen=True)
+    model_config = SettingsConfigDict(
+        env_prefix="ELASTREG_", extra="ignore", frozen=True, hide_input_in_errors=True  # no token in a log
+    )
 
     store: Path = Field(default_factory=default_store, description="the model store folder")
     max_points: int = Field(100_000, ge=1, le=10_000_000, description="points per frame (413 over it)")
@@ -68,8 +99,43 @@ class Settings(BaseSettings):
     blas_threads: int = Field(
         1, ge=0, le=256, description="BLAS/OpenMP threads per solve (0: leave the process as it is)"
     )
-    max_body_bytes: int = Field(64 << 20, ge=1 << 10, le=1 << 31, description="request body / WebSocket message size")
+    max_body_bytes: int = Field(16 << 20, ge=1 << 10, le=1 << 31, description="bytes per HTTP request body (413 over it)")
     stream_queue: int = Field(256, ge=1, le=100_000, description="frames a stream may queue before reads pause")
+    # -- access (API.md, "Access") -----------------------------------------------------------------
+    api_tokens: Annotated[tuple[str, ...], NoDecode] = Field(
+        (), repr=False, description="bearer tokens, comma-separated (none: the server is open, loopback only)"
+    )
+    token_file: Path | None = Field(None, description="a file of bearer tokens, one a line (added to api_tokens)")
+    allowed_origins: Annotated[tuple[str, ...], NoDecode] = Field(
+        (), description="browser origins allowed to call the API cross-origin, comma-separated (scheme://host[:port])"
+    )
+    insecure: bool = Field(False, description="serve a non-loopback address without tokens")
+    # -- limits: what one client can make the server hold or do ----------------------------------------
+    max_message_bytes: int = Field(16 << 20, ge=1 << 10, le=1 << 31, description="bytes per WebSocket message (closed 1009 over it)")
+    max_array_elements: int = Field(
+        1_000_000, ge=1024, le=1 << 31, description="array elements decoded per body or message (413 over it)"
+    )
+    stream_queue_bytes: int = Field(
+        32 << 20, ge=1 << 10, le=1 << 34, description="bytes of frames a stream may queue before its reads pause"
+    )
+    max_sockets: int = Field(128, ge=1, le=100_000, description="open WebSockets (HTTP 503 for the next handshake)")
+    max_connections: int = Field(
+        512, ge=2, le=1_000_000, description="open TCP connections and requests in progress (uvicorn's limit_concurrency)"
+    )
+    first_message_timeout_s: float = Field(10.0, gt=0, le=3600, description="a socket without its first message is closed")
+    body_timeout_s: float = Field(30.0, gt=0, le=3600, description="seconds to receive a request body (408 past it)")
+    send_timeout_s: float = Field(30.0, gt=0, le=3600, description="a stream whose client takes no reply for this long is closed")
+    ws_ping_interval_s: float = Field(10.0, gt=0, le=3600, description="WebSocket keepalive pings")
+    ws_ping_timeout_s: float = Field(10.0, gt=0, le=3600, description="a socket that answers no ping for this long is dropped")
+    max_iter: int = Field(1000, ge=1, le=10_000, description="server-wide cap on a session's max_iter")
+    max_time_budget_ms: float = Field(
+        10_000.0, gt=0, le=3_600_000, description="server-wide cap on a frame's time_budget_ms (and its default)"
+    )
+    e_range: float = Field(1000.0, ge=1, le=1e6, description="a session's E within this factor of the model's own")
+    solve_queue: int = Field(16, ge=0, le=100_000, description="solves waiting for a thread (503 with Retry-After over it)")
+    session_queue: int = Field(2, ge=0, le=1000, description="HTTP frames of one session waiting behind its running one")
+    retry_after_s: int = Field(1, ge=1, le=3600, description="Retry-After of a 503")
+    drain_timeout_s: float = Field(30.0, ge=0, le=3600, description="at shutdown: seconds to finish frames in flight")
     instance_id: str = Field(
         default_factory=_instance_id,
         pattern=r"^[A-Za-z0-9_.]{1,32}$",
@@ -77,15 +143,63 @@ class Settings(BaseSettings):
     )
     access_log: bool = Field(False, description="uvicorn's per-request log lines")
 
+    @field_validator("api_tokens", "allowed_origins", mode="before")
+    @classmethod
+    def _comma_separated(cls, value):
+        return _split(value)
+
+    @field_validator("api_tokens")
+    @classmethod
+    def _tokens(cls, value: tuple[str, ...]) -> tuple[str, ...]:
+        return _check_tokens(value, "ELASTREG_API_TOKENS")
+
+    @field_validator("allowed_origins")
+    @classmethod
+    def _origins(cls, value: tuple[str, ...]) -> tuple[str, ...]:
+        out = []
+        for origin in value:
+            o = origin.rstrip("/").lower()
+            if o == "*" or not re.fullmatch(r"(https?)://[^/\s]+", o):
+                raise ValueError(f"an allowed origin is scheme://host[:port] (no path, no '*'), got {origin!r}")
+            out.append(o)
+        return tuple(out)
+
     @model_validator(mode="after")
     def _consistent(self) -> Settings:
-        # a packed float64 cloud at the point limit must fit in one body
-        if self.max_points * 24 > self.max_body_bytes:
+        # a packed float64 cloud at the point limit must fit in one body and one message
+        for name in ("max_body_bytes", "max_message_bytes"):
+            if self.max_points * 24 > getattr(self, name):
+                raise ValueError(
+                    f"{name} ({getattr(self, name)}) cannot hold a packed cloud of max_points "
+                    f"({self.max_points}) points: raise it to at least {self.max_points * 24 + 4096}"
+                )
+        if self.max_array_elements < 4 * self.max_points + 1024:  # a cloud as nested lists: m + 3m elements
             raise ValueError(
-                f"max_body_bytes ({self.max_body_bytes}) cannot hold a packed cloud of max_points "
-                f"({self.max_points}) points: raise it to at least {self.max_points * 24 + 4096}"
+                f"max_array_elements ({self.max_array_elements}) cannot hold a cloud of max_points "
+                f"({self.max_points}) points as nested lists: raise it to at least {4 * self.max_points + 1024}"
             )
+        if self.stream_queue_bytes < self.max_message_bytes:
+            raise ValueError(f"stream_queue_bytes ({self.stream_queue_bytes}) must hold one message of "
+                             f"max_message_bytes ({self.max_message_bytes})")
+        if self.token_file is not None:  # read once, here: a bad file stops the server at startup
+            extra = _check_tokens(read_token_file(self.token_file), str(self.token_file))
+            object.__setattr__(self, "api_tokens", tuple(dict.fromkeys(self.api_tokens + extra)))
         return self
+
+    @property
+    def limits(self) -> dict[str, float | int]:
+        """The limits as /health lists them."""
+        return {name: getattr(self, name) for name in LIMITS}
+
+
+def _check_tokens(tokens: tuple[str, ...], where: str) -> tuple[str, ...]:
+    for t in tokens:
+        if not re.fullmatch(_TOKEN, t):
+            raise ValueError(
+                f"{where}: a token is 16 to 512 characters of A-Z a-z 0-9 . _ ~ + / = - "
+                f"(got one of {len(t)} characters); make one with: python -c 'import secrets; print(secrets.token_urlsafe(32))'"
+            )
+    return tokens
 
 
 @lru_cache

@@ -6,10 +6,14 @@
     <store>/<id>/mesh.npz             nodes, tets, fixed nodes, the load region
     <store>/<id>/weights.safetensors  the network's tensors (normalisation buffers included)
 
-Loading re-hashes every file against the manifest and the mesh arrays against the recorded
-mesh hash, builds the network from the manifest and loads the weights strictly; any mismatch
-is a :class:`StoreError` naming the entry and what is wrong, and :func:`open_store` skips that
-entry (logged) while the others load. Weights are read with safetensors: no pickle anywhere.
+Loading checks the manifest's shape and every name in it before any other file is opened (the
+file names must be exactly the two above, regular files inside the entry's folder: a manifest
+naming ``../../../dev/zero`` is refused without reading it), re-hashes every file against the
+manifest and the mesh arrays against the recorded mesh hash, builds the network from the
+manifest and loads the weights strictly; any mismatch is a :class:`StoreError` naming the entry
+and what is wrong. :func:`open_store` isolates entries: whatever goes wrong with one (a
+StoreError, or any other exception) skips it with a logged reason while the others load.
+Weights are read with safetensors: no pickle anywhere.
 """
 
 from __future__ import annotations
@@ -19,7 +23,9 @@ import hashlib
 import json
 import logging
 import os
+import re
 import shutil
+import stat
 import tempfile
 import time
 from pathlib import Path
@@ -41,6 +47,8 @@ FORMAT_VERSION = 1
 MANIFEST = "manifest.json"
 MESH = "mesh.npz"
 WEIGHTS = "weights.safetensors"
+ENTRY_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")  # a folder name and a URL segment
+_MAX_MANIFEST = 1 << 20  # bytes
 
 
 class StoreError(RuntimeError):
@@ -169,27 +177,67 @@ def _jsonable(x):
     raise TypeError(f"not JSON serialisable: {type(x).__name__}")
 
 
+def _regular_file(path: Path, folder: Path, name: str, fname: str) -> None:
+    """A StoreError unless ``path`` is a regular file inside ``folder`` (no device, pipe or link
+    out of the entry), checked without opening it."""
+    try:
+        inside = path.resolve().is_relative_to(folder.resolve())
+        mode = path.stat().st_mode
+    except FileNotFoundError:
+        raise StoreError(f"{name}: {fname} is missing") from None
+    except OSError as exc:
+        raise StoreError(f"{name}: {fname} cannot be read ({exc})") from None
+    if not inside:
+        raise StoreError(f"{name}: {fname} points outside the entry's folder")
+    if not stat.S_ISREG(mode):
+        raise StoreError(f"{name}: {fname} is not a regular file")
+
+
+def _check_manifest(manifest, name: str) -> None:
+    """The manifest's shape and names, before any other file is opened."""
+    if not isinstance(manifest, dict):
+        raise StoreError(f"{name}: {MANIFEST} must hold a JSON object")
+    version = manifest.get("format_version")
+    if version != FORMAT_VERSION:
+        raise StoreError(f"{name}: manifest format {version!r} is not supported (expected {FORMAT_VERSION})")
+    files = manifest.get("files")
+    if not isinstance(files, dict) or set(files) != {MESH, WEIGHTS}:
+        listed = sorted(files)[:4] if isinstance(files, dict) else files
+        raise StoreError(f"{name}: the manifest must list {MESH} and {WEIGHTS} under files, and nothing else "
+                         f"(it lists {listed!r:.200})")
+    if not all(isinstance(d, str) and re.fullmatch(r"[0-9a-f]{64}", d) for d in files.values()):
+        raise StoreError(f"{name}: each file's checksum must be a SHA-256 hex digest")
+    entry_id = manifest.get("id")
+    if not isinstance(entry_id, str) or not ENTRY_ID.fullmatch(entry_id):
+        raise StoreError(f"{name}: the manifest's id must match {ENTRY_ID.pattern}, got {entry_id!r:.80}")
+    for key in ("mesh", "material", "network"):
+        if not isinstance(manifest.get(key), dict):
+            raise StoreError(f"{name}: the manifest has no {key!r} object")
+    material = manifest["material"]
+    if not all(isinstance(material.get(k), (int, float)) and not isinstance(material.get(k), bool)
+               for k in ("E", "nu")):
+        raise StoreError(f"{name}: the manifest's material needs numbers E and nu")
+
+
 def load_entry(path: Path) -> Entry:
     """Load and verify one entry; a :class:`StoreError` says what is wrong."""
     path = Path(path)
     name = path.name
+    if not ENTRY_ID.fullmatch(name):
+        raise StoreError(f"{name!r:.80}: an entry's folder name must match {ENTRY_ID.pattern}")
+    _regular_file(path / MANIFEST, path, name, MANIFEST)
+    if (path / MANIFEST).stat().st_size > _MAX_MANIFEST:
+        raise StoreError(f"{name}: {MANIFEST} is over {_MAX_MANIFEST} bytes")
     try:
         manifest = json.loads((path / MANIFEST).read_text())
-    except FileNotFoundError:
-        raise StoreError(f"{name}: no {MANIFEST}") from None
-    except json.JSONDecodeError as exc:
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise StoreError(f"{name}: {MANIFEST} is not valid JSON ({exc})") from None
-    version = manifest.get("format_version")
-    if version != FORMAT_VERSION:
-        raise StoreError(f"{name}: manifest format {version!r} is not supported (expected {FORMAT_VERSION})")
-    for fname, digest in manifest.get("files", {}).items():
-        f = path / fname
-        if not f.exists():
-            raise StoreError(f"{name}: {fname} is missing")
-        if sha256(f) != digest:
+    _check_manifest(manifest, name)
+    for fname in (MESH, WEIGHTS):  # every name checked before any file is read
+        _regular_file(path / fname, path, name, fname)
+    for fname, digest in manifest["files"].items():
+        if sha256(path / fname) != digest:
             raise StoreError(f"{name}: {fname} does not match its checksum in the manifest (corrupt or changed)")
-    if set(manifest.get("files", {})) != {MESH, WEIGHTS}:
-        raise StoreError(f"{name}: the manifest must list {MESH} and {WEIGHTS}")
     try:
         with np.load(path / MESH, allow_pickle=False) as z:
             mesh = TetMesh(z["nodes"], z["tets"], z["fixed"])
@@ -225,6 +273,11 @@ def open_store(store: Path) -> tuple[dict[str, Entry], dict[str, str]]:
         except StoreError as exc:
             log.error("skipping model %s", exc)
             errors[path.name] = str(exc)
+            continue
+        except Exception as exc:  # one entry never stops the others: skipped, with its reason
+            msg = f"{path.name}: cannot be loaded ({type(exc).__name__}: {exc})"
+            log.error("skipping model %s", msg, exc_info=exc)
+            errors[path.name] = msg
             continue
         if entry.id in entries:
             msg = f"{path.name}: duplicate model id {entry.id!r}"

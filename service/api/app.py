@@ -1,6 +1,10 @@
 """The FastAPI application: ``create_app(settings)`` assembles middleware, handlers and routers;
 its lifespan opens the model store and holds what requests share (app.state): the models, the
-session registry with its sweeper, and the solve pool.
+session registry with its sweeper, the solve pool, the open WebSockets and streams.
+
+Access: every router but /health's is included with the token dependency (:func:`.deps.owner`);
+WebSocket routes call :func:`.deps.authorize_websocket` themselves. On a server with tokens the
+OpenAPI document needs one too, and the interactive docs (which cannot send one) are off.
 
 Run it with ``elastreg serve`` (:mod:`.server`), or ``uvicorn --factory service.api.app:create_app``.
 """
@@ -11,12 +15,15 @@ import asyncio
 import contextlib
 import logging
 
-from fastapi import FastAPI
+from fastapi import Depends, FastAPI
 from fastapi.openapi.utils import get_openapi
+from fastapi.responses import JSONResponse
+from starlette.middleware.cors import CORSMiddleware
 
 from .. import __version__
 from ..config import Settings, get_settings, limit_threads
 from . import deps, errors
+from .guard import OriginGuard
 from .routes import health, models, sessions, stream, viewer, watch
 from .schemas import REQUEST_MODELS
 from .sessions import SessionRegistry
@@ -52,19 +59,49 @@ async def lifespan(app: FastAPI):
     await asyncio.to_thread(_warm_up)
     log.info("instance %s: %d model(s) from %s (%d refused)",
              settings.instance_id, len(entries), settings.store, len(refused))
+    if not entries:
+        log.error("no model loaded from %s: /health reports degraded (503)", settings.store)
+    if settings.api_tokens:
+        log.info("access: %d bearer token(s) required on every endpoint but GET /health", len(settings.api_tokens))
+    else:
+        log.warning("access: NO TOKENS - this server is open to anyone who can reach it (set "
+                    "ELASTREG_API_TOKENS or --token-file before it leaves loopback)")
     app.state.models = entries
     app.state.store_errors = refused
     app.state.mesh_cache = {}
     app.state.registry = SessionRegistry(
         max_sessions=settings.max_sessions, ttl_s=settings.session_ttl_s, instance_id=settings.instance_id
     )
-    app.state.pool = SolvePool(settings.solver_threads)
+    app.state.pool = SolvePool(settings.solver_threads, settings.solve_queue, retry_after=settings.retry_after_s)
+    app.state.sockets = 0  # open WebSockets (deps.websocket_slot)
+    app.state.streams = set()  # running /stream runners, told to drain at shutdown
     sweeper = asyncio.create_task(_sweep(app.state.registry, settings.sweep_interval_s))
     try:
         yield
     finally:
         sweeper.cancel()
         app.state.pool.shutdown()
+
+
+async def drain(app: FastAPI, timeout: float) -> bool:
+    """Before the server closes its connections: refuse new solves (503), let the ones in flight
+    finish and their replies go out, and close each stream with 1012 once it has answered what
+    it had queued. True when everything finished within ``timeout`` seconds."""
+    state = app.state
+    if not hasattr(state, "pool"):  # never started
+        return True
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout
+    state.pool.draining = True
+    n_streams, n_jobs = len(state.streams), state.pool.in_flight
+    for runner in list(state.streams):
+        runner.drain()
+    while (state.streams or state.pool.in_flight) and loop.time() < deadline:
+        await asyncio.sleep(0.02)
+    done = not state.streams and not state.pool.in_flight
+    log.info("drained %d stream(s) and %d solve(s) in flight%s", n_streams, n_jobs,
+             "" if done else f"; gave up after {timeout:g} s")
+    return done
 
 
 class InstanceHeader:
@@ -90,11 +127,15 @@ class InstanceHeader:
 def create_app(settings: Settings | None = None) -> FastAPI:
     """The application over ``settings`` (default: :func:`get_settings`, from the environment)."""
     settings = settings or get_settings()
+    closed = bool(settings.api_tokens)  # the docs pages cannot send a token: off on such a server
     app = FastAPI(
         title="elastreg",
         version=__version__,
         description="Real-time elastic registration of an organ's mesh to partial point clouds.",
         lifespan=lifespan,
+        openapi_url=None if closed else "/openapi.json",
+        docs_url=None if closed else "/docs",
+        redoc_url=None if closed else "/redoc",
     )
     app.state.settings = settings
 
@@ -103,8 +144,22 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     app.dependency_overrides[deps.settings] = own_settings
     app.add_middleware(InstanceHeader, instance_id=settings.instance_id)
+    if settings.allowed_origins:  # preflights of the listed origins (the guard refuses the rest)
+        app.add_middleware(
+            CORSMiddleware, allow_origins=list(settings.allowed_origins), allow_methods=["GET", "POST", "DELETE"],
+            allow_headers=["authorization", "content-type", "accept"],
+            expose_headers=["x-elastreg-instance", "retry-after"],
+        )
+    app.add_middleware(OriginGuard, allowed_origins=settings.allowed_origins,
+                       loopback_only=not settings.api_tokens and not settings.insecure)
     errors.install(app)
-    for module in (health, models, sessions, stream, watch, viewer):
+    authorized = [Depends(deps.owner)]
+    app.include_router(health.router)  # the one endpoint without a token
+    for module in (models, sessions):
+        app.include_router(module.router, dependencies=authorized)
+    # WebSocket routes authorize themselves (deps.authorize_websocket); the viewer's page is
+    # public: its token stays in the URL's fragment, which browsers never send
+    for module in (stream, watch, viewer):
         app.include_router(module.router)
 
     def openapi() -> dict:
@@ -119,4 +174,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return app.openapi_schema
 
     app.openapi = openapi
+    if closed:
+        @app.get("/openapi.json", include_in_schema=False, dependencies=authorized)
+        async def openapi_document():
+            return JSONResponse(app.openapi())
+
     return app

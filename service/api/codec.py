@@ -6,7 +6,11 @@ value of a map key); MessagePack responses always do. JSON responses carry neste
 
 Decoding is strict: no pickle or extension types, sizes bounded, JSON's ``NaN``/``Infinity``
 literals refused, packed arrays checked against their declared shape before they are viewed
-(``np.frombuffer``, no copy, no per-element Python). JSON goes through orjson when it is
+(``np.frombuffer``, no copy, no per-element Python). Its cost is bounded by a small multiple of
+the body: an empty list is one byte of MessagePack and 64 bytes of Python, so the containers a
+body may hold are bounded by its size (one per ``_BYTES_PER_CONTAINER`` bytes, beyond a few
+thousand) and its array elements by ``max_elements``; JSON is counted before it is parsed (a
+scan of its bytes), MessagePack as it is built, refused at the first container over a bound. JSON goes through orjson when it is
 installed (arrays written from NumPy directly), else the standard library; both give the same
 bodies and refuse the same inputs.
 
@@ -52,6 +56,17 @@ class UnsupportedMedia(ValueError):
     """A Content-Type the service does not speak (HTTP 415)."""
 
 
+class TooLarge(DecodeError):
+    """A body whose decoding would cost more than its limits allow (HTTP 413)."""
+
+
+#: legitimate bodies hold one container (list or map) per 7 bytes or more (``[1,2,3],`` is the
+#: densest: a mesh's matching triangles as JSON); an empty list is 1-2 bytes of input and 64 of
+#: Python. Allowing one per 6 bytes keeps decoding within ~20x the body's size.
+_BYTES_PER_CONTAINER = 6
+_FREE_CONTAINERS = 4096  # small bodies are never refused for their shape
+
+
 # -- negotiation ---------------------------------------------------------------------------------
 
 
@@ -60,15 +75,17 @@ def _media(value: str) -> str:
 
 
 def request_kind(content_type: str | None) -> str:
-    """The encoding of a request body from its Content-Type (JSON when absent)."""
-    if not content_type:
-        return JSON
-    media = _media(content_type)
+    """The encoding of a request body from its Content-Type: JSON or MessagePack types only. A
+    web page can send ``text/plain``, a form or no type at all without a CORS preflight (so
+    without the server's consent), never these."""
+    media = _media(content_type or "")
     if media in _MSGPACK_TYPES:
         return MSGPACK
-    if media == "application/json" or media.endswith("+json") or media in ("", "*/*", "text/plain"):
+    if media == "application/json" or media.endswith("+json"):
         return JSON
-    raise UnsupportedMedia(f"unsupported Content-Type {media!r}: use application/json or application/msgpack")
+    raise UnsupportedMedia(
+        f"unsupported Content-Type {media or '(none)'!r}: use application/json or application/msgpack"
+    )
 
 
 def response_kind(accept: str | None, content_type: str | None) -> str:
@@ -181,15 +198,66 @@ def _loads_json(data: bytes | str):
         raise DecodeError(f"not valid JSON: {exc}") from None
 
 
-def decode(data: bytes | str, kind: str, *, max_bytes: int = 64 << 20):
-    """Parse a body. Raises DecodeError for anything malformed, never a crash."""
+class _Budget:
+    """What a body may still build: array elements (and map entries) and containers."""
+
+    def __init__(self, size: int, max_elements: int) -> None:
+        self.max_elements = max_elements
+        self.max_containers = size // _BYTES_PER_CONTAINER + _FREE_CONTAINERS
+        self.elements = 0
+        self.containers = 0
+
+    def check(self, elements: int, containers: int) -> None:
+        if elements > self.max_elements:
+            raise TooLarge(f"the body holds more than this server's limit of {self.max_elements} array elements")
+        if containers > self.max_containers:
+            raise TooLarge(
+                f"the body holds more than {self.max_containers} lists and maps for its size: send large "
+                "arrays packed, or as flat lists"
+            )
+
+    def list_hook(self, items: list) -> list:
+        self.elements += len(items)
+        self.containers += 1
+        self.check(self.elements, self.containers)
+        return items
+
+    def object_hook(self, entries: dict) -> dict:
+        self.elements += len(entries)
+        self.containers += 1
+        self.check(self.elements, self.containers)
+        return entries
+
+
+def _json_budget(data: bytes | str, max_elements: int) -> None:
+    """Refuse a JSON body before parsing it when it may hold too much: each value after an
+    array's or object's first follows a comma, so commas plus containers bound the elements
+    (strings that hold these characters only make the bound looser, never too tight)."""
+    raw = data.encode() if isinstance(data, str) else data
+    containers = raw.count(b"[") + raw.count(b"{")
+    _Budget(len(raw), max_elements).check(raw.count(b",") + containers, containers)
+
+
+def decode(data: bytes | str, kind: str, *, max_bytes: int = 64 << 20, max_elements: int = 1 << 24):
+    """Parse a body. Raises DecodeError for anything malformed, never a crash; TooLarge for a
+    body over ``max_bytes``, or whose decoding would build more than ``max_elements`` array
+    elements or more lists and maps than its size allows."""
     if len(data) > max_bytes:
-        raise DecodeError(f"body of {len(data)} bytes is over the limit of {max_bytes}")
+        raise TooLarge(f"body of {len(data)} bytes is over the limit of {max_bytes}")
     if kind == JSON:
+        _json_budget(data, max_elements)
         return _loads_json(data)
     if kind == MSGPACK:
         if isinstance(data, str):
             raise DecodeError("MessagePack bodies are binary")
+        budget = _Budget(len(data), max_elements)
+        # empty lists and maps (one byte each, 64 of Python) refused before anything is built;
+        # other bytes of those values (in floats, packed data) are far rarer than one in eight
+        empties = data.count(b"\x90") + data.count(b"\x80")
+        if empties > len(data) // 8 + _FREE_CONTAINERS:
+            raise TooLarge(f"the body holds {empties} empty lists and maps: more than its size allows")
+        # a declared length is allocated before its items are read: no more than the body could hold
+        most = min(len(data), max_elements)
         try:
             obj = msgpack.unpackb(
                 data,
@@ -197,15 +265,22 @@ def decode(data: bytes | str, kind: str, *, max_bytes: int = 64 << 20):
                 strict_map_key=True,
                 use_list=True,
                 ext_hook=_no_ext,
-                max_bin_len=max_bytes,
-                max_str_len=max_bytes,
-                max_array_len=max_bytes,
-                max_map_len=max_bytes,
-                max_ext_len=max_bytes,
+                list_hook=budget.list_hook,
+                object_hook=budget.object_hook,
+                max_bin_len=len(data),
+                max_str_len=len(data),
+                max_array_len=most,
+                max_map_len=most // 2,
+                max_ext_len=len(data),
             )
         except DecodeError:
             raise
-        except (ValueError, msgpack.ExtraData, msgpack.FormatError, msgpack.StackError, RecursionError) as exc:
+        except ValueError as exc:
+            if "exceeds max_" in str(exc):  # a declared length over the limits, refused before allocating
+                raise TooLarge(f"the body declares an array or map beyond its own size or this server's limit of "
+                               f"{max_elements} array elements ({exc})") from None
+            raise DecodeError(f"not valid MessagePack: {exc}") from None
+        except (msgpack.ExtraData, msgpack.FormatError, msgpack.StackError, RecursionError) as exc:
             raise DecodeError(f"not valid MessagePack: {exc}") from None
         return _unpack_tree(obj)
     raise ValueError(f"unknown encoding {kind!r}")

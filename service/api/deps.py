@@ -1,5 +1,11 @@
-"""What routes need, as ``Annotated`` dependencies: settings, the loaded models, the session
-registry, the solve pool, the reply's encoding and decoded, validated bodies.
+"""What routes need, as ``Annotated`` dependencies: who is calling (the bearer token's owner),
+settings, the loaded models, the session registry, the solve pool, the reply's encoding and
+decoded, validated bodies.
+
+Access is checked here and only here: :func:`owner` is the HTTP dependency (every router but
+/health's is included with it, and routes that touch a session take its value as ``Owner``),
+:func:`authorize_websocket` the helper every WebSocket route calls with its first message.
+Both go through :func:`check_token`.
 
 Bodies are read here rather than by FastAPI's JSON parsing so that JSON and MessagePack (with
 packed arrays) go through one strict decoder; each body dependency returns a :class:`Body`
@@ -8,14 +14,19 @@ with the validated model and how long decoding took (reported in the frame's ``t
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import dataclasses
+import hashlib
+import hmac
 import time
+from collections.abc import AsyncIterator, Callable, Iterator
 from typing import Annotated, Generic, TypeVar
 
-from fastapi import Depends, Request, Response
+from fastapi import Depends, Request, Response, WebSocket
 from fastapi.concurrency import run_in_threadpool
 from pydantic import BaseModel
-from starlette.requests import HTTPConnection
+from starlette.requests import ClientDisconnect, HTTPConnection
 
 from ..config import Settings, get_settings
 from ..store import Entry
@@ -63,6 +74,101 @@ async def reply_kind(request: Request) -> str:
 
 
 SettingsDep = Annotated[Settings, Depends(settings)]
+
+
+# -- access --------------------------------------------------------------------------------------
+
+_CHALLENGE = {"WWW-Authenticate": 'Bearer realm="elastreg"'}
+
+
+def fingerprint(token: str) -> str:
+    """What a session keeps of the token that opened it: a digest, never the token itself."""
+    return hashlib.sha256(token.encode()).hexdigest()[:24]
+
+
+def check_token(settings: Settings, token: str | None) -> str | None:
+    """The owner a request acts as: None on a server without tokens (open), else the fingerprint
+    of ``token`` when it is one of the server's; ApiError 401 for a missing or unknown token.
+
+    >>> check_token(Settings(api_tokens="t" * 16), "t" * 16) == fingerprint("t" * 16)
+    True
+    """
+    if not settings.api_tokens:
+        return None
+    if not token:
+        raise ApiError(401, "this server needs a token: send 'Authorization: Bearer <token>'", _CHALLENGE)
+    given = token.encode()
+    if not any(hmac.compare_digest(given, t.encode()) for t in settings.api_tokens):  # constant time
+        raise ApiError(401, "unknown token", _CHALLENGE)
+    return fingerprint(token)
+
+
+def bearer(header: str | None) -> str | None:
+    """The token of an ``Authorization: Bearer <token>`` header (None when there is no header)."""
+    if header is None:
+        return None
+    scheme, _, value = header.strip().partition(" ")
+    if scheme.lower() != "bearer" or not value.strip():
+        raise ApiError(401, "the Authorization header must be 'Bearer <token>'", _CHALLENGE)
+    return value.strip()
+
+
+async def owner(conn: HTTPConnection, settings: SettingsDep) -> str | None:
+    """The HTTP dependency: who is calling (see :func:`check_token`); 401 otherwise."""
+    return check_token(settings, bearer(conn.headers.get("authorization")))
+
+
+Owner = Annotated[str | None, Depends(owner)]
+
+
+def authorize_websocket(websocket: WebSocket, first_message=None) -> str | None:
+    """The owner a WebSocket acts as, for every WebSocket route: the token of its handshake's
+    ``Authorization`` header when it sent one (browsers cannot), else the ``token`` field of its
+    first message (a map; the field is removed from it, so the rest validates as the route's
+    own body). Raises ApiError 401 without a valid token on a server that has tokens: the route
+    sends that as its error and closes the socket with 1008.
+
+    A route without a first message (one that only sends) passes ``None``: the header is then
+    the only way in."""
+    token = None
+    if isinstance(first_message, dict):
+        token = first_message.pop("token", None)
+        if token is not None and not isinstance(token, str):
+            raise ApiError(401, "the first message's token must be a string")
+    header = websocket.headers.get("authorization")
+    if header is not None:
+        token = bearer(header)
+    return check_token(websocket.app.state.settings, token)
+
+
+async def deny_websocket(websocket: WebSocket, status: int, detail: str, headers: dict | None = None) -> None:
+    """Refuse a WebSocket handshake with an HTTP status (the Denial Response extension, where the
+    server has it; else a close before accept, which clients see as a 403)."""
+    if "websocket.http.response" in websocket.scope.get("extensions", {}):
+        body = codec.encode({"detail": detail}, codec.JSON)
+        await websocket.send_denial_response(Response(body, status, headers, media_type=codec.MEDIA[codec.JSON]))
+    else:
+        await websocket.close(1013 if status == 503 else 1008)
+
+
+@contextlib.asynccontextmanager
+async def websocket_slot(websocket: WebSocket) -> AsyncIterator[bool]:
+    """Every WebSocket route runs inside one: the socket counts against ``max_sockets`` while the
+    block runs; at the cap its handshake is answered 503 (Retry-After) and the block gets False."""
+    state = websocket.app.state
+    settings = state.settings
+    if state.sockets >= settings.max_sockets:
+        await deny_websocket(websocket, 503, f"this server has its maximum of {settings.max_sockets} open WebSockets",
+                             {"Retry-After": str(settings.retry_after_s)})
+        yield False
+        return
+    state.sockets += 1
+    try:
+        yield True
+    finally:
+        state.sockets -= 1
+
+
 ModelsDep = Annotated[dict[str, Entry], Depends(models)]
 RegistryDep = Annotated[SessionRegistry, Depends(registry)]
 PoolDep = Annotated[SolvePool, Depends(pool)]
@@ -76,8 +182,8 @@ async def entry(model: str, models: ModelsDep) -> Entry:
     return found
 
 
-async def http_session(session_id: str, registry: RegistryDep) -> Held:
-    return registry.get(session_id, kind="http")
+async def http_session(session_id: str, registry: RegistryDep, owner: Owner) -> Held:
+    return registry.get(session_id, kind="http", owner=owner)
 
 
 EntryDep = Annotated[Entry, Depends(entry)]
@@ -85,24 +191,52 @@ HttpSessionDep = Annotated[Held, Depends(http_session)]
 
 
 async def read_body(request: Request, settings: Settings):
-    """The request's body decoded (JSON or MessagePack), size-limited (413)."""
+    """The request's body decoded (JSON or MessagePack): 415 for another Content-Type, 413 over
+    the byte limit (counted as it arrives) or the array-element limit, 408 when it takes longer
+    than ``body_timeout_s`` to arrive."""
     kind = codec.request_kind(request.headers.get("content-type"))
     limit = settings.max_body_bytes
     length = request.headers.get("content-length")
     if length and length.isdigit() and int(length) > limit:
         raise ApiError(413, f"body of {length} bytes is over this server's limit of {limit}")
     chunks, size = [], 0
-    async for chunk in request.stream():
-        size += len(chunk)
-        if size > limit:
-            raise ApiError(413, f"body over this server's limit of {limit} bytes")
-        chunks.append(chunk)
+    try:
+        async with asyncio.timeout(settings.body_timeout_s):
+            async for chunk in request.stream():
+                size += len(chunk)
+                if size > limit:
+                    raise ApiError(413, f"body over this server's limit of {limit} bytes")
+                chunks.append(chunk)
+    except TimeoutError:
+        raise ApiError(408, f"the body did not arrive within {settings.body_timeout_s:g} s") from None
+    except ClientDisconnect:  # nobody to answer: not a server error
+        raise ApiError(400, "the client disconnected before its body arrived") from None
     data = b"".join(chunks)
     if not data:
         raise ApiError(422, [{"loc": ["body"], "msg": "a body is required", "type": "missing"}])
+    limits = {"max_bytes": limit, "max_elements": settings.max_array_elements}
     if len(data) > _THREAD_DECODE:
-        return await run_in_threadpool(codec.decode, data, kind, max_bytes=limit)
-    return codec.decode(data, kind, max_bytes=limit)
+        return await run_in_threadpool(codec.decode, data, kind, **limits)
+    return codec.decode(data, kind, **limits)
+
+
+@contextlib.contextmanager
+def client_gone(request: Request) -> Iterator[Callable[[], bool]]:
+    """Within the block, a callable that says whether the client has disconnected (call it
+    after the body is read: it watches the connection's next message)."""
+    gone = False
+
+    async def watch() -> None:
+        nonlocal gone
+        while (await request.receive())["type"] != "http.disconnect":
+            pass
+        gone = True
+
+    task = asyncio.ensure_future(watch())
+    try:
+        yield lambda: gone
+    finally:
+        task.cancel()
 
 
 def _validated(cls: type[M], obj) -> M:

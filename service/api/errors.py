@@ -1,12 +1,15 @@
 """Errors as replies: one exception type for the API's own refusals, and the handlers that turn
 every failure into a body in the request's encoding.
 
-    404 unknown model or session (the session's text explains session affinity)
+    401 no token, or an unknown one, on a server with tokens (WWW-Authenticate: Bearer)
+    403 a cross-origin request from an origin not allowed
+    404 unknown model or session, or another token's session (the text explains session affinity)
+    408 a body that did not arrive within body_timeout_s
     409 a stream's session addressed over HTTP
-    413 a body or a point cloud over the limits
+    413 a body, a point cloud or a body's array elements over the limits
     415 a Content-Type that is neither JSON nor MessagePack
     422 a body that does not decode or validate, or that the engine refuses (ValueError)
-    503 the process is at its session limit
+    503 the process is at its session limit, or its solves are saturated (Retry-After)
     500 our bug: logged with its traceback, the reply names only the exception type
 """
 
@@ -21,6 +24,7 @@ from pydantic import ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from . import codec
+from .pool import Dropped, Overloaded
 from .schemas import TooManyPoints, error_list
 from .sessions import RegistryFull, SessionNotFound, WrongKind
 
@@ -30,10 +34,11 @@ log = logging.getLogger(__name__)
 class ApiError(Exception):
     """A refusal with its HTTP status; ``detail`` is a string or FastAPI's 422 list."""
 
-    def __init__(self, status: int, detail) -> None:
+    def __init__(self, status: int, detail, headers: dict[str, str] | None = None) -> None:
         super().__init__(detail)
         self.status = status
         self.detail = detail
+        self.headers = headers
 
     @property
     def text(self) -> str:
@@ -55,6 +60,8 @@ def as_api_error(exc: BaseException) -> ApiError | None:
         return exc
     if isinstance(exc, ValidationError):
         return ApiError(422, error_list(exc))
+    if isinstance(exc, codec.TooLarge):
+        return ApiError(413, str(exc))
     if isinstance(exc, codec.DecodeError):
         return unprocessable(str(exc), type_="decode_error")
     if isinstance(exc, TooManyPoints):
@@ -67,6 +74,10 @@ def as_api_error(exc: BaseException) -> ApiError | None:
         return ApiError(409, str(exc))
     if isinstance(exc, RegistryFull):
         return ApiError(503, str(exc))
+    if isinstance(exc, Dropped):
+        return ApiError(404, str(exc))
+    if isinstance(exc, Overloaded):
+        return ApiError(503, str(exc), {"Retry-After": str(exc.retry_after)})
     return None
 
 
@@ -85,7 +96,7 @@ def install(app: FastAPI) -> None:
 
     async def api_error(request: Request, exc: Exception) -> Response:
         err = as_api_error(exc)
-        return error_response(request, err.status, err.detail)
+        return error_response(request, err.status, err.detail, err.headers)
 
     async def validation(request: Request, exc: RequestValidationError) -> Response:
         detail = [
@@ -102,7 +113,7 @@ def install(app: FastAPI) -> None:
         return error_response(request, 500, f"internal error ({type(exc).__name__}); it has been logged")
 
     for cls in (ApiError, ValidationError, codec.DecodeError, TooManyPoints, codec.UnsupportedMedia,
-                SessionNotFound, WrongKind, RegistryFull):
+                SessionNotFound, WrongKind, RegistryFull, Overloaded, Dropped):
         app.add_exception_handler(cls, api_error)
     app.add_exception_handler(RequestValidationError, validation)
     app.add_exception_handler(StarletteHTTPException, http_error)

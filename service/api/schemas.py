@@ -281,6 +281,8 @@ class _Reply(BaseModel):
 
 
 class Limits(_Reply):
+    """Every limit of service/config.py's LIMITS (all listed; these three at least)."""
+
     max_points: int
     max_sessions: int
     session_ttl_s: float
@@ -293,7 +295,8 @@ class SessionCount(_Reply):
 
 
 class Health(_Reply):
-    status: Literal["ok"]
+    status: Literal["ok", "degraded"] = Field(description="degraded (HTTP 503): no model loaded, or the solve queue is full")
+    reasons: list[str] = Field([], description="why it is degraded")
     models: int
     device: str
     version: str

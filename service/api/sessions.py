@@ -8,6 +8,11 @@ instead of a wrong answer, and a load balancer can route on that prefix.
 HTTP sessions expire after ``ttl_s`` seconds without a request (a background sweeper drops
 them; a session busy with a frame is never dropped). A WebSocket stream's session belongs to
 its connection: it counts against the limit but is never swept; the stream closes it.
+
+A session belongs to the token that opened it (``owner``, a fingerprint of the token; None on a
+server without tokens): asked for by any other owner it is not found (404), exactly as if it did
+not exist. A session closed while a frame of it is still being solved keeps its slot until
+that solve ends, so the limit counts every session that holds a thread.
 """
 
 from __future__ import annotations
@@ -27,6 +32,7 @@ if TYPE_CHECKING:
     from ..registration.session import Session
 
 _FORGET = 4096  # closed / expired ids remembered for a precise 404
+ANY = object()  # an owner that matches every session (the server's own housekeeping)
 
 
 class RegistryFull(RuntimeError):
@@ -55,7 +61,10 @@ class Held:
     config: dict[str, Any]  # the effective config, as echoed when it opened
     created: float = dataclasses.field(default_factory=time.time)
     touched: float = dataclasses.field(default_factory=time.monotonic)
+    owner: str | None = None  # the fingerprint of the token that opened it
     busy: int = 0  # frames in flight (never swept while > 0)
+    waiting: int = 0  # HTTP frames waiting for the lock
+    closed: bool = False  # closed or expired: its waiting frames are dropped
     lock: asyncio.Lock = dataclasses.field(default_factory=asyncio.Lock)  # HTTP frames, FIFO
     watch: Channel = dataclasses.field(default_factory=Channel)  # WS /sessions/{id}/watch
 
@@ -88,6 +97,7 @@ class SessionRegistry:
         self.clock = clock
         self._held: dict[str, Held] = {}
         self._pending = 0
+        self._draining = 0  # closed sessions whose frame is still being solved
         self._gone: collections.OrderedDict[str, str] = collections.OrderedDict()
         self._lock = threading.Lock()
 
@@ -96,7 +106,7 @@ class SessionRegistry:
     def reserve(self, kind: str) -> Reservation:
         """A slot and an id for a session about to be built; RegistryFull at the limit."""
         with self._lock:
-            if len(self._held) + self._pending >= self.max_sessions:
+            if len(self._held) + self._pending + self._draining >= self.max_sessions:
                 raise RegistryFull(
                     f"this server process holds its maximum of {self.max_sessions} sessions; "
                     "close one (DELETE /sessions/{id}) or retry later"
@@ -121,18 +131,18 @@ class SessionRegistry:
 
     # -- use ---------------------------------------------------------------------------------------
 
-    def _find(self, session_id: str, kind: str | None, instead: str) -> Held:
+    def _find(self, session_id: str, kind: str | None, instead: str, owner) -> Held:
         """The held session (under the lock); `instead` tells a caller of the wrong kind what to do."""
         held = self._held.get(session_id)
-        if held is None:
+        if held is None or (owner is not ANY and held.owner != owner):
             raise SessionNotFound(self._not_found(session_id))
         if kind is not None and held.kind != kind:
             raise WrongKind(f"session {session_id!r} belongs to a WebSocket stream: {instead}")
         return held
 
-    def get(self, session_id: str, *, kind: str | None = None, touch: bool = True) -> Held:
+    def get(self, session_id: str, *, kind: str | None = None, touch: bool = True, owner=ANY) -> Held:
         with self._lock:
-            held = self._find(session_id, kind, "send its frames on that socket, and close the socket to end it")
+            held = self._find(session_id, kind, "send its frames on that socket, and close the socket to end it", owner)
             if touch:
                 held.touched = self.clock()
             return held
@@ -140,18 +150,26 @@ class SessionRegistry:
     def begin(self, held: Held) -> None:
         """A frame starts: the session is busy (never swept) until :meth:`end`."""
         with self._lock:
+            if held.closed:
+                raise SessionNotFound(self._not_found(held.id))
             held.busy += 1
             held.touched = self.clock()
 
     def end(self, held: Held) -> None:
+        """A frame is over (from any thread): a closed session's slot is free once idle."""
         with self._lock:
             held.busy -= 1
             held.touched = self.clock()
+            if held.closed and held.busy == 0:
+                self._draining -= 1
 
-    def close(self, session_id: str, *, kind: str | None = None, why: str = "closed") -> Held:
+    def close(self, session_id: str, *, kind: str | None = None, why: str = "closed", owner=ANY) -> Held:
         with self._lock:
-            held = self._find(session_id, kind, "close the socket to end it")
+            held = self._find(session_id, kind, "close the socket to end it", owner)
             del self._held[session_id]
+            held.closed = True
+            if held.busy:
+                self._draining += 1
             self._forget(session_id, why)
             return held
 
@@ -165,7 +183,7 @@ class SessionRegistry:
                 if h.kind == "http" and h.busy == 0 and now - h.touched > self.ttl_s
             ]
             for sid in gone:
-                del self._held[sid]
+                self._held.pop(sid).closed = True
                 self._forget(sid, f"expired after {self.ttl_s:g} s without a request")
         return gone
 
@@ -181,6 +199,11 @@ class SessionRegistry:
         with self._lock:
             http = sum(h.kind == "http" for h in self._held.values())
             return {"open": len(self._held), "http": http, "stream": len(self._held) - http}
+
+    @property
+    def closing(self) -> int:
+        """Closed sessions whose last frame is still being solved (they hold their slot)."""
+        return self._draining
 
     def __len__(self) -> int:
         with self._lock:

@@ -7,11 +7,21 @@ invalid, refused by the engine, too many points) is answered ``{"error": {"code"
 in its turn and the stream goes on with its state unchanged; only a bad first message closes
 the socket (1008), and a full server closes it with 1013 (try again later).
 
-Two tasks per stream: a reader that queues messages as they arrive (bounded: a client that
-outruns the server is slowed by TCP, not by our memory) and a worker that answers them in
-order, each solve in the pool. With ``skip_stale`` the worker takes everything queued when it
-becomes free, answers the bad ones, solves only the newest good frame and reports the frames it
-skipped (``skipped``, ``skipped_ids``); a support sent with a skipped frame still applies.
+Two tasks per stream: a reader that queues messages as they arrive (bounded in messages and in
+bytes: a client that outruns the server is slowed by TCP, not by our memory) and a worker that
+answers them in order, each solve in the pool. With ``skip_stale`` the worker takes everything
+queued when it becomes free, answers the bad ones, solves only the newest good frame and reports
+the frames it skipped (``skipped``, ``skipped_ids``); a support sent with a skipped frame still
+applies.
+
+Access and limits (API.md, "Access"): the socket counts against ``max_sockets`` (a handshake
+over it is answered 503); the token comes in the handshake or the first message
+(:func:`~.deps.authorize_websocket`), else the socket closes with 1008; a first message must
+come within ``first_message_timeout_s``. A frame that finds the solve pool saturated gets a 503
+error of its own and the stream goes on. Frames still queued when the client leaves are
+dropped, not solved; a reply the client does not take within ``send_timeout_s`` ends the
+stream. When the server shuts down, the frame being solved is answered, the queued ones get a
+503, and the socket closes with 1012 (service restart).
 """
 
 from __future__ import annotations
@@ -25,18 +35,21 @@ from fastapi import WebSocket
 from starlette.websockets import WebSocketState
 
 from . import codec
+from .deps import authorize_websocket, websocket_slot
 from .errors import ApiError, as_api_error
 from .schemas import FrameIn, SessionCreate, check_points_limit
 from .sessions import RegistryFull
-from .work import not_found_model, open_session, opened, solve_frame
+from .work import Dropped, not_found_model, open_session, opened, solve_frame
 
 log = logging.getLogger(__name__)
 
-POLICY = 1008  # a bad first message
+POLICY = 1008  # a bad first message, or no valid token
 TRY_LATER = 1013  # the server is at its session limit
+RESTART = 1012  # the server is shutting down
 _THREAD_DECODE = 256 << 10  # messages larger than this are decoded off the event loop
 _CLOSED = object()
 _IDLE = object()
+_DRAIN = object()
 
 
 def _reason(text: str) -> str:
@@ -57,17 +70,30 @@ class StreamRunner:
         self.pool = state.pool
         self.held = None
         self.busy = False
+        self.gone = False  # the client has left: queued frames are dropped
+        self._left = asyncio.Event()  # set with gone (the reader saw the socket close)
+        self.draining = False
+        self.queue: asyncio.Queue | None = None
+        self.queued_bytes = 0
+        self._space = asyncio.Event()
 
     # -- sending -----------------------------------------------------------------------------------
 
     async def _send(self, kind: str, body: bytes) -> bool:
+        """False when the client has gone, or took no reply within send_timeout_s."""
         try:
-            if kind == codec.MSGPACK:
-                await self.ws.send_bytes(body)
-            else:
-                await self.ws.send_text(body.decode())
+            async with asyncio.timeout(self.settings.send_timeout_s):
+                if kind == codec.MSGPACK:
+                    await self.ws.send_bytes(body)
+                else:
+                    await self.ws.send_text(body.decode())
             return True
+        except TimeoutError:
+            log.info("a stream's client took no reply for %g s: closing it", self.settings.send_timeout_s)
+            self.gone = True
+            return False
         except Exception:  # the client went away mid-reply
+            self.gone = True
             return False
 
     async def _error(self, kind: str, err: ApiError, frame_id=None) -> bool:
@@ -100,30 +126,61 @@ class StreamRunner:
     # -- the stream --------------------------------------------------------------------------------
 
     async def run(self) -> None:
+        async with websocket_slot(self.ws) as admitted:
+            if admitted:
+                await self._run()
+
+    async def _run(self) -> None:
         await self.ws.accept(headers=[(b"x-elastreg-instance", self.settings.instance_id.encode())])
-        first = await self._receive(self.settings.session_ttl_s)
+        if "authorization" in self.ws.headers:  # a bad header token is refused now, not after a message
+            try:
+                authorize_websocket(self.ws, None)
+            except ApiError as err:
+                await self._error(codec.JSON, err)
+                await self._close(POLICY, err.text)
+                return
+        wait = self.settings.first_message_timeout_s
+        first = await self._receive(wait)
         if first is _CLOSED:
             return
         if first is _IDLE:
-            await self._close(1000, "no session config within the idle timeout")
+            await self._close(POLICY, f"no session config within {wait:g} s")
             return
+        streams = self.ws.app.state.streams
+        streams.add(self)
         try:
             if await self._open(*first[:2]):
                 await self._frames()
         finally:
+            streams.discard(self)
             if self.held is not None:  # opened (even if the client left before the reply)
                 self.registry.close(self.held.id, why="ended with its WebSocket stream")
 
+    def drain(self) -> None:
+        """The server is shutting down: answer what is queued, then close (1012)."""
+        self.draining = True
+        if self.queue is not None and self.queue.empty():
+            self.queue.put_nowait(_DRAIN)  # wakes the worker
+
+    def _decode(self, data, kind: str):
+        return codec.decode(data, kind, max_bytes=self.settings.max_message_bytes,
+                            max_elements=self.settings.max_array_elements)
+
     async def _open(self, kind: str, data) -> bool:
         try:
-            obj = codec.decode(data, kind, max_bytes=self.settings.max_body_bytes)
+            if len(data) > _THREAD_DECODE:
+                obj = await asyncio.to_thread(self._decode, data, kind)
+            else:
+                obj = self._decode(data, kind)
             if not isinstance(obj, dict):
                 raise ApiError(422, "the first message must be a session config (a map)")
+            owner = authorize_websocket(self.ws, obj)
             create = SessionCreate.model_validate(obj)
             entry = self.models.get(create.model)
             if entry is None:
                 raise not_found_model(create.model, self.models)
-            self.held = await open_session(entry, create, kind="stream", registry=self.registry, pool=self.pool)
+            self.held = await open_session(entry, create, kind="stream", registry=self.registry, pool=self.pool,
+                                           settings=self.settings, owner=owner)
         except RegistryFull as exc:
             await self._error(kind, ApiError(503, str(exc)))
             await self._close(TRY_LATER, "server at its session limit")
@@ -139,23 +196,39 @@ class StreamRunner:
         reply = opened(self.held, self.settings.instance_id)
         return await self._send(kind, codec.encode(reply, kind))
 
+    def _taken(self, item):
+        """An item leaves the queue: its bytes no longer count."""
+        if isinstance(item, tuple):
+            self.queued_bytes -= len(item[1])
+            self._space.set()
+        return item
+
     async def _frames(self) -> None:
-        queue: asyncio.Queue = asyncio.Queue(maxsize=self.settings.stream_queue)
+        self.queue = queue = asyncio.Queue(maxsize=self.settings.stream_queue)
+        self.draining = self.draining or self.pool.draining
         reader = asyncio.create_task(self._read(queue))
+        code, reason = 1000, ""
         try:
             while True:
-                item = await queue.get()
-                if item is _CLOSED:
+                if self.draining and queue.empty():  # what was queued is answered (503s)
+                    code, reason = RESTART, "the server is shutting down"
+                    return
+                item = self._taken(await queue.get())
+                if item is _CLOSED or self.gone:
                     return
                 if item is _IDLE:
-                    await self._close(1000, f"idle for {self.settings.session_ttl_s:g} s")
+                    code, reason = 1000, f"idle for {self.settings.session_ttl_s:g} s"
                     return
+                if item is _DRAIN:
+                    continue
                 batch = [item]
                 closing = False
                 if self.held.skip_stale:
                     while not queue.empty():
-                        nxt = queue.get_nowait()
-                        if nxt is _CLOSED or nxt is _IDLE:
+                        nxt = self._taken(queue.get_nowait())
+                        if nxt is _DRAIN:
+                            continue
+                        if not isinstance(nxt, tuple):
                             closing = True
                             break
                         batch.append(nxt)
@@ -163,20 +236,29 @@ class StreamRunner:
                     return
         finally:
             reader.cancel()
-            await self._close(1000, "")
+            await self._close(code, reason)
 
     async def _read(self, queue: asyncio.Queue) -> None:
         ttl = self.settings.session_ttl_s
+        limit = self.settings.stream_queue_bytes
         while True:
             item = await self._receive(ttl)
             if item is _IDLE and (self.busy or not queue.empty()):
                 continue
+            if item is _CLOSED:
+                self.gone = True  # before it is queued: the worker drops what is still queued
+                self._left.set()
+            if isinstance(item, tuple):
+                while self.queued_bytes and self.queued_bytes + len(item[1]) > limit:
+                    self._space.clear()  # reads pause: TCP slows the client down
+                    await self._space.wait()
+                self.queued_bytes += len(item[1])
             await queue.put(item)
             if item is _CLOSED or item is _IDLE:
                 return
 
     def _parse(self, kind: str, data) -> FrameIn:
-        obj = codec.decode(data, kind, max_bytes=self.settings.max_body_bytes)
+        obj = self._decode(data, kind)
         if not isinstance(obj, dict):
             raise ApiError(422, "a frame must be a map with points (and optionally support, frame_id)")
         check_points_limit(obj, self.settings.max_points)
@@ -210,12 +292,27 @@ class StreamRunner:
             extra = {"skipped": len(skipped), "skipped_ids": [f.frame_id for f in skipped]}
             if frame.support is None:  # a support sent with a skipped frame still applies
                 support = next((f.support for f in reversed(skipped) if f.support is not None), None)
+        if self.gone:
+            return False
         self.busy = True
+        held, registry = self.held, self.registry
         try:
-            body = await self.pool.run(
-                solve_frame, self.held, frame, kind, {"decode": decode_ms},
+            registry.begin(held)
+            solve = asyncio.ensure_future(self.pool.run(
+                solve_frame, held, frame, kind, {"decode": decode_ms},
                 t_received=t_received, t_submitted=time.perf_counter(), support=support, extra=extra,
-            )
+                cancelled=lambda: self.gone, done=lambda: registry.end(held),
+            ))
+            left = asyncio.ensure_future(self._left.wait())
+            await asyncio.wait({solve, left}, return_when=asyncio.FIRST_COMPLETED)
+            left.cancel()
+            if not solve.done():  # the client left: the stream ends now; the job, dropped or
+                # finishing, keeps its session's slot until it is over (registry.end)
+                solve.add_done_callback(lambda f: f.cancelled() or f.exception())
+                return False
+            body = solve.result()
+        except Dropped:
+            return False
         except Exception as exc:
             err = as_api_error(exc)
             if err is None:

@@ -1,8 +1,10 @@
-"""What the routes hand to the engine, and the pool that runs it off the event loop.
+"""What the routes hand to the engine, run off the event loop by the solve pool (:mod:`.pool`).
 
 Every function here that touches the engine is a plain ``def`` run by :class:`SolvePool` (a
 fixed number of threads, ``solver_threads``): the event loop only reads sockets, decodes small
 bodies and writes replies, so ``/health`` and other streams answer while a long FEM frame runs.
+Server-wide caps apply before an engine sees a config (:func:`admit_config`: ``max_iter``,
+``time_budget_ms``, ``E``), and a result with non-finite numbers is never reported converged.
 A job returns the encoded reply (encoding a large field is work too). The engine's
 ``ValueError`` (a support node outside the network's region, a fixed node, ...) becomes a 422
 carrying its message; anything else is a bug and surfaces as a 500 with its traceback logged.
@@ -10,21 +12,21 @@ carrying its message; anything else is a bug and surfaces as a 500 with its trac
 
 from __future__ import annotations
 
-import asyncio
-import concurrent.futures
-import functools
 import logging
+import math
 import time
 from collections.abc import Callable
-from typing import Any
 
 import numpy as np
 
 from ..registration.settings import NAMES
 from . import codec
 from .errors import ApiError, unprocessable
+from .pool import Dropped, Overloaded, SolvePool
 from .schemas import FrameIn, SessionCreate, SimulateIn
 from .sessions import Held, Reservation, SessionRegistry
+
+__all__ = ["SolvePool", "Overloaded", "Dropped"]  # the pool lives in .pool; routes import it from here
 
 log = logging.getLogger(__name__)
 
@@ -36,26 +38,13 @@ def _ms(t0: float) -> float:
     return 1e3 * (time.perf_counter() - t0)
 
 
-class SolvePool:
-    """A fixed thread pool for solves; ``await pool.run(fn, ...)`` from the event loop."""
-
-    def __init__(self, threads: int) -> None:
-        self.threads = threads
-        self._pool = concurrent.futures.ThreadPoolExecutor(max_workers=threads, thread_name_prefix="elastreg-solve")
-
-    async def run(self, fn: Callable, *args, **kwargs) -> Any:
-        loop = asyncio.get_running_loop()
-        return await loop.run_in_executor(self._pool, functools.partial(fn, *args, **kwargs))
-
-    def shutdown(self) -> None:
-        self._pool.shutdown(wait=False, cancel_futures=True)
-
-
 # -- sessions ------------------------------------------------------------------------------------
 
 
-def build_session(entry, create: SessionCreate, reservation: Reservation) -> Held:
-    """The engine's Session for a validated config, wrapped for the registry (in the pool)."""
+def build_session(entry, create: SessionCreate, reservation: Reservation, budget_ms: float | None = None) -> Held:
+    """The engine's Session for a validated config, wrapped for the registry (in the pool). A
+    session without a time budget of its own runs under ``budget_ms`` (the server's cap, listed
+    in /health's limits); its echoed config keeps its own (null)."""
     # the engine: loaded by the app already
     from ..registration.session import Session, SessionConfig
 
@@ -65,6 +54,8 @@ def build_session(entry, create: SessionCreate, reservation: Reservation) -> Hel
     if create.matching is not None:
         given["matching"] = tuple(map(tuple, create.matching.tolist()))
     given["outputs"] = tuple(create.outputs)
+    if create.time_budget_ms is None and budget_ms is not None:
+        given["time_budget_ms"] = budget_ms
     try:
         if create.method == "auto":
             session = Session(entry.network, SessionConfig(**given), corrector=entry.fem)
@@ -79,6 +70,7 @@ def build_session(entry, create: SessionCreate, reservation: Reservation) -> Hel
         outputs=list(c.outputs),
         matching=np.asarray(c.matching, np.int64) if c.matching is not None else session.mesh.surface_faces,
         skip_stale=create.skip_stale,
+        time_budget_ms=create.time_budget_ms,
     )
     return Held(id=reservation.id, kind=reservation.kind, model=entry.id, session=session, config=config)
 
@@ -89,14 +81,46 @@ def config_of(held: Held) -> dict:
             **{k: v for k, v in held.config.items() if k not in ("model", "method")}}
 
 
-async def open_session(entry, create: SessionCreate, *, kind: str, registry: SessionRegistry, pool: SolvePool) -> Held:
-    """Reserve a slot (RegistryFull at the limit, before any work), build, register."""
+def model_E(entry) -> float:
+    return float(entry.manifest["material"]["E"])
+
+
+def check_E(E: float | None, entry, settings) -> None:
+    """A 422 for a Young's modulus further than ``e_range`` from the model's own: far outside
+    it the scaled forces and alpha overflow (E = 1e-300 made alpha infinite)."""
+    if E is None:
+        return
+    E0, k = model_E(entry), settings.e_range
+    if not E0 / k <= E <= E0 * k:
+        raise unprocessable(
+            f"E = {E:g} Pa is outside this server's range for model {entry.id!r}: within a factor of "
+            f"{k:g} of its own {E0:g} Pa ({E0 / k:g} to {E0 * k:g})", "E", type_="less_than_equal"
+        )
+
+
+def admit_config(create: SessionCreate, entry, settings) -> None:
+    """The server-wide caps: 422 for a max_iter or time_budget_ms over them, or an E out of
+    range (a session without a time budget runs under the cap: :func:`build_session`)."""
+    if create.max_iter is not None and create.max_iter > settings.max_iter:
+        raise unprocessable(f"max_iter {create.max_iter} is over this server's cap of {settings.max_iter}",
+                            "max_iter", type_="less_than_equal")
+    if create.time_budget_ms is not None and create.time_budget_ms > settings.max_time_budget_ms:
+        raise unprocessable(f"time_budget_ms {create.time_budget_ms:g} is over this server's cap of "
+                            f"{settings.max_time_budget_ms:g}", "time_budget_ms", type_="less_than_equal")
+    check_E(create.E, entry, settings)
+
+
+async def open_session(entry, create: SessionCreate, *, kind: str, registry: SessionRegistry, pool: SolvePool,
+                       settings, owner: str | None = None) -> Held:
+    """Caps applied (422), a slot reserved (RegistryFull at the limit), built, registered."""
+    admit_config(create, entry, settings)
     reservation = registry.reserve(kind)
     try:
-        held = await pool.run(build_session, entry, create, reservation)
+        held = await pool.run(build_session, entry, create, reservation, settings.max_time_budget_ms)
     except BaseException:
         registry.cancel(reservation)
         raise
+    held.owner = owner
     return registry.commit(reservation, held)
 
 
@@ -142,6 +166,24 @@ def frame_payload(result) -> dict:
     return out
 
 
+def _finite(value) -> bool:
+    if isinstance(value, np.ndarray):
+        return value.dtype.kind != "f" or bool(np.isfinite(value).all())
+    if isinstance(value, float):
+        return math.isfinite(value)
+    return True
+
+
+def flag_non_finite(payload: dict) -> None:
+    """A result holding NaN or infinity is not converged, whatever the solver said (API.md)."""
+    bad = [k for k, v in payload.items() if not _finite(v)]
+    if bad:
+        log.warning("a frame produced non-finite %s (solver status %s)", ", ".join(bad), payload.get("status"))
+        payload["converged"] = False
+        payload["status"] = "non_finite"
+        payload["message"] = f"non-finite values in {', '.join(bad)} (solver: {payload.get('message') or ''})"
+
+
 def solve_frame(held: Held, frame: FrameIn, kind: str, timing: dict, *, t_received: float,
                 t_submitted: float, support=None, extra: dict | None = None) -> bytes:
     """One frame in the pool: solve, build the reply, encode it (timing filled in)."""
@@ -155,6 +197,7 @@ def solve_frame(held: Held, frame: FrameIn, kind: str, timing: dict, *, t_receiv
         field = "support" if support is not None and "support" in str(exc) else "points"
         raise unprocessable(str(exc), field) from None
     payload = frame_payload(result)
+    flag_non_finite(payload)
     if extra:
         payload.update(extra)
     timing.update(result.timing_ms)
@@ -166,15 +209,26 @@ def solve_frame(held: Held, frame: FrameIn, kind: str, timing: dict, *, t_receiv
 
 
 async def http_frame(held: Held, frame: FrameIn, kind: str, *, decode_ms: float, t_received: float,
-                     registry: SessionRegistry, pool: SolvePool) -> bytes:
-    """A frame posted over HTTP: frames of one session run one at a time, in arrival order."""
-    async with held.lock:  # asyncio.Lock wakes waiters first come, first served
-        registry.begin(held)
-        try:
-            return await pool.run(solve_frame, held, frame, kind, {"decode": decode_ms},
-                                  t_received=t_received, t_submitted=time.perf_counter())
-        finally:
-            registry.end(held)
+                     registry: SessionRegistry, pool: SolvePool, session_queue: int,
+                     gone: Callable[[], bool] = lambda: False) -> bytes:
+    """A frame posted over HTTP: frames of one session run one at a time, in arrival order;
+    at most ``session_queue`` wait behind the running one (503 beyond). A frame whose session
+    closed, or whose client left (``gone()``), while it waited is dropped, not solved."""
+    if held.lock.locked() and held.waiting >= session_queue:
+        raise Overloaded(f"session {held.id!r} already has {held.waiting} frame(s) waiting behind the one "
+                         "being solved", pool.retry_after)
+    held.waiting += 1
+    try:
+        await held.lock.acquire()  # asyncio.Lock wakes waiters first come, first served
+    finally:
+        held.waiting -= 1
+    try:
+        registry.begin(held)  # SessionNotFound if it closed while this frame waited
+        return await pool.run(solve_frame, held, frame, kind, {"decode": decode_ms},
+                              t_received=t_received, t_submitted=time.perf_counter(),
+                              cancelled=lambda: held.closed or gone(), done=lambda: registry.end(held))
+    finally:
+        held.lock.release()
 
 
 # -- models --------------------------------------------------------------------------------------
@@ -197,6 +251,8 @@ def simulate(entry, body: SimulateIn, kind: str, timing: dict, t_received: float
                       "iterations": int(res.iterations), "residual": float(res.residual)}
     except ValueError as exc:
         raise unprocessable(str(exc), "forces") from None
+    if not np.isfinite(u).all():  # never a converged field of NaN (E far from the model's did it)
+        result.update(converged=False, status="non_finite")
     timing["solve"] = _ms(t0)
     timing["server"] = _ms(t_received)
     payload = {"displacement": u, "net_force": values.sum(axis=0), "method": body.method, **result}

@@ -3,7 +3,11 @@ trained ``bar`` store, and frames whose answers are known."""
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import dataclasses
+import threading
+import time
 
 import httpx
 import msgpack
@@ -42,8 +46,10 @@ class Live:
 
 def start(store, **overrides) -> BackgroundServer:
     # blas_threads=0: the server shares this process with the rest of the test session; leave
-    # its BLAS and torch threads alone
-    defaults = {"max_points": MAX_POINTS, "max_body_bytes": 1 << 20, "blas_threads": 0}
+    # its BLAS and torch threads alone. session_queue=8: test_concurrency posts 6 frames of one
+    # session at once (the default, 2, would answer some of them 503)
+    defaults = {"max_points": MAX_POINTS, "max_body_bytes": 1 << 20, "max_message_bytes": 1 << 20,
+                "blas_threads": 0, "session_queue": 8}
     settings = Settings(store=store, **{**defaults, **overrides})
     return BackgroundServer(settings).start()
 
@@ -118,3 +124,34 @@ def unpack(data: bytes):
         return o
 
     return walk(msgpack.unpackb(data, raw=False))
+
+
+@contextlib.contextmanager
+def occupied(pool, n: int = 1, timeout: float = 60.0):
+    """``n`` jobs admitted to a server's solve pool as solves are, each holding a solver thread
+    (or a queue place) until the block ends: a stand-in for long FEM frames."""
+    release = threading.Event()
+    threads = [threading.Thread(target=lambda: asyncio.run(pool.run(release.wait, timeout)), daemon=True)
+               for _ in range(n)]
+    before = pool.in_flight
+    for t in threads:
+        t.start()
+    deadline = time.monotonic() + 10
+    while pool.in_flight < before + n and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert pool.in_flight >= before + n, "the blockers were not admitted"
+    try:
+        yield release
+    finally:
+        release.set()
+        for t in threads:
+            t.join(timeout=30)
+
+
+def wait_for(predicate, timeout: float = 10.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.02)
+    return True

@@ -1,7 +1,7 @@
 """Scale-out: `elastreg serve --workers 2` (two processes on one port). WebSocket streams work
 whichever process accepts them; an HTTP session's frames on a connection that reaches the other
-process get the affinity 404, never another session's answer. Slow (two processes load torch
-and the store): run with -m slow."""
+process get the affinity 404, never another session's answer. Part of the default suite: this is
+what docs/deployment.md says of --workers, checked (about 20 s: two processes load torch)."""
 
 from __future__ import annotations
 
@@ -11,13 +11,10 @@ import sys
 import time
 
 import httpx
-import pytest
 
 from clients import Client
 from clients.client import encode
 from service.api.server import free_port
-
-pytestmark = pytest.mark.slow
 
 
 def test_two_worker_processes(bar_store, clouds, support):

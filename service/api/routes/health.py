@@ -1,31 +1,46 @@
-"""``GET /health``: liveness, what is loaded, the limits, and which process answered."""
+"""``GET /health``: readiness, what is loaded, the limits, and which process answered. The one
+endpoint without a token (load balancers and container health checks probe it).
+
+``status`` is ``"degraded"`` with HTTP 503 when the process cannot serve registrations: no model
+loaded, or every solve thread busy with a full queue behind it (the next frame would get a 503);
+``reasons`` says which.
+"""
 
 from __future__ import annotations
 
 from fastapi import APIRouter, Request
 
 from ... import __version__
-from ..deps import ALT_MSGPACK, ModelsDep, RegistryDep, ReplyKind, SettingsDep, reply
+from ..deps import ALT_MSGPACK, ModelsDep, PoolDep, RegistryDep, ReplyKind, SettingsDep, reply
 from ..schemas import Health
 
 router = APIRouter(tags=["health"])
 
 
-@router.get("/health", response_model=Health, responses={200: {"content": ALT_MSGPACK}})
-async def health(request: Request, settings: SettingsDep, models: ModelsDep, registry: RegistryDep, kind: ReplyKind):
+@router.get("/health", response_model=Health,
+            responses={200: {"content": ALT_MSGPACK},
+                       503: {"model": Health, "description": "degraded: no model loaded, or the solve queue is full"}})
+async def health(request: Request, settings: SettingsDep, models: ModelsDep, registry: RegistryDep, pool: PoolDep,
+                 kind: ReplyKind):
+    reasons = []
+    if not models:
+        reasons.append(f"no model loaded from the store ({len(request.app.state.store_errors)} refused)")
+    if pool.saturated:
+        reasons.append(f"the solve queue is saturated ({pool.in_flight} solves in flight)")
     body = {
-        "status": "ok",
+        "status": "degraded" if reasons else "ok",
+        "reasons": reasons,
         "models": len(models),
         "device": "cpu",
         "version": __version__,
-        "limits": {
-            "max_points": settings.max_points,
-            "max_sessions": settings.max_sessions,
-            "session_ttl_s": settings.session_ttl_s,
-        },
+        "limits": settings.limits,
         "instance": settings.instance_id,
-        "sessions": registry.counts(),
+        "sessions": {**registry.counts(), "closing": registry.closing},
+        "solves": pool.counts(),
+        "sockets": request.app.state.sockets,
         "solver_threads": settings.solver_threads,
+        "auth": "bearer" if settings.api_tokens else "none",
         "skipped_models": request.app.state.store_errors,
     }
-    return reply(body, kind)
+    return reply(body, kind, status=503 if reasons else 200)
+

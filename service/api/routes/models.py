@@ -11,6 +11,7 @@ from ..deps import (
     ModelsDep,
     PoolDep,
     ReplyKind,
+    SettingsDep,
     SimulateBody,
     reply,
     request_body,
@@ -43,9 +44,11 @@ async def get_mesh(request: Request, entry: EntryDep, pool: PoolDep, kind: Reply
 @router.post(
     "/{model}/simulate",
     response_model=SimulateOut,
-    responses={**NOT_FOUND, 200: {"content": ALT_MSGPACK}, 422: {"model": ErrorOut}},
+    responses={**NOT_FOUND, 200: {"content": ALT_MSGPACK}, 422: {"model": ErrorOut},
+               503: {"model": ErrorOut, "description": "at capacity: retry after Retry-After seconds"}},
     openapi_extra=request_body(SimulateIn),
 )
-async def simulate(entry: EntryDep, body: SimulateBody, pool: PoolDep, kind: ReplyKind):
+async def simulate(entry: EntryDep, body: SimulateBody, pool: PoolDep, settings: SettingsDep, kind: ReplyKind):
+    work.check_E(body.value.E, entry, settings)
     data = await pool.run(work.simulate, entry, body.value, kind, {"decode": body.decode_ms}, body.t_received)
     return reply(data, kind)

@@ -18,6 +18,8 @@ from fastapi import APIRouter, WebSocket
 from starlette.websockets import WebSocketState
 
 from .. import codec
+from ..deps import authorize_websocket, websocket_slot
+from ..errors import ApiError
 from ..sessions import Held, SessionNotFound, SessionRegistry
 from ..watch import Mailbox
 from ..work import config_of
@@ -29,22 +31,10 @@ POLICY = 1008
 POLL_S = 0.25  # how often an idle watcher checks that its session and its client still exist
 
 
-def bearer(ws: WebSocket) -> str | None:
-    """The token of an ``Authorization: Bearer`` handshake header, if any."""
-    value = ws.headers.get("authorization", "")
-    scheme, _, token = value.partition(" ")
-    return token.strip() or None if scheme.lower() == "bearer" else None
-
-
-def tokens_required(ws: WebSocket) -> bool:
-    """Whether this server checks tokens (access control wires its setting in here)."""
-    return bool(getattr(ws.app.state, "tokens", None))
-
-
-def find_session(registry: SessionRegistry, session_id: str, token: str | None) -> Held:
-    """The session to watch, looked up as the session routes do (ownership checks go here:
-    another token's session is a 404, like an unknown one)."""
-    return registry.get(session_id, touch=False)  # watching does not keep an idle session alive
+def find_session(registry: SessionRegistry, session_id: str, owner: str | None) -> Held:
+    """The session to watch, looked up as the session routes do: another token's session is a
+    404, like an unknown one."""
+    return registry.get(session_id, touch=False, owner=owner)  # watching keeps no session alive
 
 
 class Watcher:
@@ -79,10 +69,10 @@ class Watcher:
         await self._send(codec.encode({"error": {"code": status, "detail": detail}}, self.kind))
         await self._close(POLICY, detail)
 
-    async def _first_token(self) -> tuple[bool, str | None]:
-        """(still connected, token) from a first message ``{"token": ...}``."""
+    async def _first_message(self) -> tuple[bool, dict | None]:
+        """(still connected, the first message as a map, or None)."""
         try:
-            msg = await asyncio.wait_for(self.ws.receive(), self.settings.session_ttl_s)
+            msg = await asyncio.wait_for(self.ws.receive(), self.settings.first_message_timeout_s)
         except (TimeoutError, Exception):
             return False, None
         if msg["type"] == "websocket.disconnect":
@@ -94,8 +84,7 @@ class Watcher:
             )
         except Exception:
             obj = None
-        token = obj.get("token") if isinstance(obj, dict) else None
-        return True, token if isinstance(token, str) else None
+        return True, obj if isinstance(obj, dict) else None
 
     async def _drain(self) -> None:
         """Read (and ignore) what the client sends; returns when it disconnects."""
@@ -108,14 +97,23 @@ class Watcher:
             return
 
     async def run(self) -> None:
+        async with websocket_slot(self.ws) as ok:
+            if ok:
+                await self._run()
+
+    async def _run(self) -> None:
         await self.ws.accept(headers=[(b"x-elastreg-instance", self.settings.instance_id.encode())])
-        token = bearer(self.ws)
-        if token is None and tokens_required(self.ws):
-            connected, token = await self._first_token()
+        first = None
+        if "authorization" not in self.ws.headers and self.settings.api_tokens:
+            connected, first = await self._first_message()  # browsers send the token here
             if not connected:
                 return
         try:
-            held = find_session(self.registry, self.session_id, token)
+            owner = authorize_websocket(self.ws, first)
+            held = find_session(self.registry, self.session_id, owner)
+        except ApiError as exc:
+            await self._refuse(exc.status, exc.text)
+            return
         except SessionNotFound as exc:
             await self._refuse(404, str(exc))
             return

@@ -1,0 +1,366 @@
+"""Access (API.md, "Access"): bearer tokens on every endpoint but GET /health, over HTTP and the
+WebSocket (handshake header or first message), sessions owned by their token, the Origin
+allow-list, 415 for other content types, the open server's loopback-only rules, and TLS. All
+against real servers on real ports, in JSON and MessagePack."""
+
+from __future__ import annotations
+
+import json
+import logging
+import socket
+import ssl
+import subprocess
+import sys
+import time
+
+import httpx
+import numpy as np
+import pytest
+from websockets.exceptions import ConnectionClosed, InvalidStatus
+from websockets.sync.client import connect
+
+from clients import Client
+from service.api.deps import check_token, fingerprint
+from service.api.errors import ApiError
+from service.api.server import BackgroundServer, BindRefused, check_bind, free_port
+from service.config import Settings, read_token_file
+
+from .conftest import MSGPACK, Live, mp, packed, start, unpack
+
+TOKEN_A = "alpha-token-0123456789abcdef"
+TOKEN_B = "bravo-token-0123456789abcdef"
+ORIGIN = "https://viewer.example"
+
+
+def auth(token: str) -> dict:
+    return {"authorization": f"Bearer {token}"}
+
+
+@pytest.fixture(scope="module")
+def guarded(bar_store, tmp_path_factory):
+    """A server with two tokens (one from ELASTREG_API_TOKENS's form, one from a token file)
+    and one allowed browser origin."""
+    token_file = tmp_path_factory.mktemp("tokens") / "tokens.txt"
+    token_file.write_text(f"# the second client\n{TOKEN_B}\n\n")
+    server = start(bar_store[0], instance_id="guarded", api_tokens=TOKEN_A, token_file=token_file,
+                   allowed_origins=ORIGIN)
+    yield Live(server)
+    server.stop()
+
+
+def ws_url(live: Live) -> str:
+    return live.url.replace("http://", "ws://") + "/stream"
+
+
+def recv(ws, timeout=60):
+    m = ws.recv(timeout=timeout)
+    return unpack(m) if isinstance(m, bytes) else json.loads(m)
+
+
+def close_code(ws) -> int:
+    with pytest.raises(ConnectionClosed) as info:
+        while True:
+            ws.recv(timeout=10)
+    return info.value.rcvd.code
+
+
+# -- tokens over HTTP ----------------------------------------------------------------------------
+
+
+def test_tokens_come_from_the_environment_form_and_a_file(guarded, tmp_path):
+    assert guarded.settings.api_tokens == (TOKEN_A, TOKEN_B)
+    assert TOKEN_A not in repr(guarded.settings)  # never in a log line
+    assert read_token_file(guarded.settings.token_file) == (TOKEN_B,)
+    with pytest.raises(ValueError, match="16 to 512"):
+        Settings(store=tmp_path, api_tokens="short")
+    assert check_token(guarded.settings, TOKEN_B) == fingerprint(TOKEN_B) != fingerprint(TOKEN_A)
+    with pytest.raises(ApiError) as err:
+        check_token(guarded.settings, "x" * 20)
+    assert err.value.status == 401
+
+
+def test_health_needs_no_token(guarded):
+    r = httpx.get(guarded.url + "/health")
+    assert r.status_code == 200 and r.json()["auth"] == "bearer" and r.json()["status"] == "ok"
+
+
+ENDPOINTS = [
+    ("GET", "/models", None),
+    ("GET", "/models/bar", None),
+    ("GET", "/models/bar/mesh", None),
+    ("POST", "/models/bar/simulate", {"forces": {"nodes": [70], "values": [[0.0, 0.0, 1.0]]}}),
+    ("POST", "/sessions", {"model": "bar"}),
+    ("GET", "/sessions/guarded-xyz", None),
+    ("POST", "/sessions/guarded-xyz/frames", {"points": [[0.0, 0.0, 0.0]]}),
+    ("DELETE", "/sessions/guarded-xyz", None),
+    ("GET", "/openapi.json", None),
+]
+
+
+@pytest.mark.parametrize("method, path, body", ENDPOINTS)
+@pytest.mark.parametrize("encoding", ["json", "msgpack"])
+def test_every_endpoint_but_health_refuses_a_missing_or_unknown_token(guarded, method, path, body, encoding):
+    media = "application/json" if encoding == "json" else "application/msgpack"
+    content = None if body is None else (json.dumps(body).encode() if encoding == "json" else mp(body))
+    with httpx.Client(base_url=guarded.url, headers={"content-type": media, "accept": media}) as c:
+        for headers in ({}, auth("unknown-token-0123456789"), {"authorization": f"Basic {TOKEN_A}"},
+                        {"authorization": "Bearer"}):
+            r = c.request(method, path, content=content, headers=headers)
+            assert r.status_code == 401, (path, headers, r.status_code, r.text[:200])
+            assert r.headers["www-authenticate"].startswith("Bearer")
+            detail = r.json()["detail"] if encoding == "json" else unpack(r.content)["detail"]
+            assert "token" in detail or "Bearer" in detail
+        r = c.request(method, path, content=content, headers=auth(TOKEN_A))
+        assert r.status_code != 401, (path, r.text[:200])
+
+
+def test_docs_pages_are_off_and_the_schema_needs_a_token(guarded):
+    assert httpx.get(guarded.url + "/docs").status_code == 404
+    r = httpx.get(guarded.url + "/openapi.json", headers=auth(TOKEN_B))
+    assert r.status_code == 200 and "/sessions" in r.json()["paths"]
+
+
+def test_a_session_belongs_to_the_token_that_opened_it(guarded, support, clouds):
+    a = httpx.Client(base_url=guarded.url, headers=auth(TOKEN_A), timeout=60)
+    b = httpx.Client(base_url=guarded.url, headers={**auth(TOKEN_B), **MSGPACK}, timeout=60)
+    with a, b:
+        sid = a.post("/sessions", json={"model": "bar", "support": support.tolist()}).json()["session"]
+        unknown = sid[:-4] + "zzzz"
+        for method, path, content in [("GET", f"/sessions/{sid}", None),
+                                      ("POST", f"/sessions/{sid}/frames", mp({"points": packed(clouds[0])})),
+                                      ("DELETE", f"/sessions/{sid}", None)]:
+            r = b.request(method, path, content=content)
+            assert r.status_code == 404, (method, r.status_code)
+            # exactly what a session that does not exist gets: nothing says it is someone else's
+            other = b.request(method, path.replace(sid, unknown), content=content)
+            assert unpack(r.content)["detail"].replace(sid, unknown) == unpack(other.content)["detail"]
+        r = a.post(f"/sessions/{sid}/frames", json={"points": clouds[0].tolist()})
+        assert r.status_code == 200 and a.get(f"/sessions/{sid}").json()["counters"]["frames"] == 1
+        assert a.delete(f"/sessions/{sid}").status_code == 204
+
+
+def test_the_client_sends_its_token_on_http_and_the_websocket(guarded, support, clouds):
+    with Client(guarded.url, token=TOKEN_A) as api:
+        assert [m["id"] for m in api.models()] == ["bar"]
+        with api.stream("bar", support=support) as s:
+            assert s.frame(clouds[0])["displacement"].shape == (81, 3)
+    with Client(guarded.url) as api, pytest.raises(Exception) as err:
+        api.models()
+    assert getattr(err.value, "status", None) == 401
+
+
+# -- tokens on the WebSocket ---------------------------------------------------------------------
+
+
+def test_websocket_token_in_the_handshake_header(guarded, support, clouds):
+    with connect(ws_url(guarded), additional_headers=auth(TOKEN_A)) as ws:
+        ws.send(mp({"model": "bar", "support": packed(support, "<i8")}))
+        opened = recv(ws)
+        ws.send(mp({"points": packed(clouds[1]), "frame_id": 1}))
+        assert recv(ws)["frame_id"] == 1
+        sid = opened["session"]
+        # the stream's session is its token's: another token is told it does not exist
+        assert httpx.get(f"{guarded.url}/sessions/{sid}", headers=auth(TOKEN_B)).status_code == 404
+        assert httpx.get(f"{guarded.url}/sessions/{sid}", headers=auth(TOKEN_A)).status_code == 200
+
+
+@pytest.mark.parametrize("binary", [False, True])
+def test_websocket_token_in_the_first_message(guarded, support, clouds, binary):
+    """What a browser does (it cannot set headers): the token rides in the session config."""
+    config = {"model": "bar", "support": support.tolist(), "token": TOKEN_B}
+    with connect(ws_url(guarded)) as ws:
+        ws.send(mp(config) if binary else json.dumps(config))
+        opened = recv(ws)
+        assert "token" not in opened["config"] and opened["session"].startswith("guarded-")
+        ws.send(json.dumps({"points": clouds[2].tolist(), "frame_id": "x"}))
+        assert recv(ws)["frame_id"] == "x"
+
+
+@pytest.mark.parametrize(
+    "headers, first",
+    [
+        ({}, {"model": "bar"}),  # no token anywhere
+        ({}, {"model": "bar", "token": "unknown-token-0123456789"}),
+        ({}, {"model": "bar", "token": 12345}),
+    ],
+)
+def test_websocket_without_a_valid_token_closes_with_1008(guarded, headers, first):
+    registry = guarded.app.state.registry
+    before = registry.counts()["open"]
+    with connect(ws_url(guarded), additional_headers=headers) as ws:
+        ws.send(json.dumps(first))
+        r = recv(ws)
+        assert r["error"]["code"] == 401
+        assert close_code(ws) == 1008
+    assert registry.counts()["open"] == before  # nothing was opened for it
+
+
+def test_a_bad_handshake_token_is_refused_before_any_message(guarded):
+    """(and a good token in a first message would not rescue it: none is read)"""
+    t0 = time.monotonic()
+    with connect(ws_url(guarded), additional_headers=auth("unknown-token-0123456789")) as ws:
+        assert recv(ws)["error"]["code"] == 401
+        assert close_code(ws) == 1008
+    assert time.monotonic() - t0 < guarded.settings.first_message_timeout_s
+
+
+# -- browsers ------------------------------------------------------------------------------------
+
+
+def test_unlisted_origins_are_refused_listed_and_same_origin_ones_pass(guarded):
+    h = auth(TOKEN_A)
+    evil = httpx.post(guarded.url + "/sessions", json={"model": "bar"}, headers={**h, "origin": "https://evil.example"})
+    assert evil.status_code == 403 and "evil.example" in evil.json()["detail"]
+    assert httpx.get(guarded.url + "/health", headers={"origin": "null"}).status_code == 403
+    ok = httpx.get(guarded.url + "/models", headers={**h, "origin": ORIGIN})
+    assert ok.status_code == 200 and ok.headers["access-control-allow-origin"] == ORIGIN
+    pre = httpx.options(guarded.url + "/sessions", headers={
+        "origin": ORIGIN, "access-control-request-method": "POST",
+        "access-control-request-headers": "authorization, content-type"})
+    assert pre.status_code == 200 and "authorization" in pre.headers["access-control-allow-headers"].lower()
+    pre = httpx.options(guarded.url + "/sessions", headers={
+        "origin": "https://evil.example", "access-control-request-method": "POST"})
+    assert pre.status_code == 403
+    same = httpx.get(guarded.url + "/models", headers={**h, "origin": guarded.url})
+    assert same.status_code == 200
+
+
+def test_websocket_handshakes_from_unlisted_origins_are_refused(guarded):
+    with pytest.raises(InvalidStatus) as err:
+        connect(ws_url(guarded), origin="https://evil.example", additional_headers=auth(TOKEN_A))
+    assert err.value.response.status_code == 403
+    with connect(ws_url(guarded), origin=ORIGIN, additional_headers=auth(TOKEN_A)) as ws:
+        ws.send(json.dumps({"model": "bar"}))
+        assert "session" in recv(ws)
+
+
+@pytest.mark.parametrize("headers", [{"content-type": "text/plain"}, {},
+                                     {"content-type": "application/x-www-form-urlencoded"},
+                                     {"content-type": "multipart/form-data; boundary=x"}])
+def test_bodies_a_page_can_send_without_a_preflight_are_415(live, http, headers):
+    """On the open test server too: a text/plain body of valid JSON is not taken as JSON."""
+    body = json.dumps({"model": "bar"}).encode()
+    r = httpx.post(live.url + "/sessions", content=body, headers=headers)
+    assert r.status_code == 415, (headers, r.status_code)
+    assert "Content-Type" in r.json()["detail"]
+    assert live.app.state.registry.counts()["http"] == http.get("/health").json()["sessions"]["http"]
+
+
+def test_an_open_server_answers_loopback_names_only(live):
+    """DNS rebinding: a page's own name that resolves to 127.0.0.1 makes its requests
+    same-origin; a server without tokens answers loopback host names only."""
+    r = httpx.get(live.url + "/health", headers={"host": "rebound.example:80"})
+    assert r.status_code == 403 and "loopback" in r.json()["detail"]
+    assert httpx.get(live.url + "/health", headers={"host": f"localhost:{live.server.port}"}).status_code == 200
+    sock = socket.create_connection(("127.0.0.1", live.server.port))
+    with pytest.raises(InvalidStatus) as err:  # the handshake's Host is the URI's
+        connect("ws://rebound.example/stream", sock=sock)
+    assert err.value.response.status_code == 403
+    sock.close()
+
+
+# -- an open server ------------------------------------------------------------------------------
+
+
+def test_an_open_server_says_so_and_binds_loopback_only(bar_store, caplog, tmp_path):
+    open_settings = Settings(store=bar_store[0], blas_threads=0)
+    for host in ("0.0.0.0", "::", "10.1.2.3", "theatre-pc.local"):
+        with pytest.raises(BindRefused, match="without tokens"):
+            check_bind(host, open_settings)
+    for host in ("127.0.0.1", "::1", "localhost"):
+        check_bind(host, open_settings)
+    check_bind("0.0.0.0", Settings(store=tmp_path, insecure=True))
+    check_bind("0.0.0.0", Settings(store=tmp_path, api_tokens=TOKEN_A))
+    with caplog.at_level(logging.WARNING, logger="service.api.app"):
+        with BackgroundServer(open_settings):
+            pass
+    assert any("NO TOKENS" in r.getMessage() for r in caplog.records)
+
+
+def test_serve_refuses_a_network_address_without_tokens(bar_store):
+    port = free_port()
+    r = subprocess.run([sys.executable, "-m", "service.cli", "serve", "--store", str(bar_store[0]), "--host",
+                        "0.0.0.0", "--port", str(port)], capture_output=True, text=True, timeout=120)
+    assert r.returncode != 0 and "refusing to serve 0.0.0.0 without tokens" in r.stderr
+    r = subprocess.run([sys.executable, "-m", "service.cli", "serve", "--store", str(bar_store[0]),
+                        "--ssl-certfile", "cert.pem"], capture_output=True, text=True, timeout=120)
+    assert r.returncode != 0 and "go together" in r.stderr
+
+
+# -- TLS -----------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def certificate(tmp_path_factory):
+    """A self-signed certificate for 127.0.0.1, made here with the openssl command."""
+    folder = tmp_path_factory.mktemp("tls")
+    cert, key = folder / "cert.pem", folder / "key.pem"
+    subprocess.run(["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1",
+                    "-subj", "/CN=127.0.0.1", "-addext", "subjectAltName=IP:127.0.0.1",
+                    "-keyout", str(key), "-out", str(cert)], check=True, capture_output=True, timeout=60)
+    return cert, key
+
+
+def test_https_and_wss_with_a_certificate(bar_store, certificate, support, clouds):
+    cert, key = certificate
+    settings = Settings(store=bar_store[0], blas_threads=0, api_tokens=TOKEN_A, max_body_bytes=1 << 20,
+                        max_message_bytes=1 << 20, max_points=3000)
+    with BackgroundServer(settings, ssl_certfile=str(cert), ssl_keyfile=str(key)) as server:
+        assert server.url.startswith("https://")
+        context = ssl.create_default_context(cafile=str(cert))
+        r = httpx.get(server.url + "/health", verify=context)
+        assert r.status_code == 200 and r.json()["status"] == "ok"
+        with pytest.raises(httpx.HTTPError):  # a client that does not trust it refuses it
+            httpx.get(server.url + "/health")
+        with pytest.raises(httpx.HTTPError):  # and plain HTTP is not served on that port
+            httpx.get(server.url.replace("https://", "http://") + "/health")
+        with Client(server.url, token=TOKEN_A, verify=str(cert)) as api:  # HTTPS and WSS
+            assert api.model("bar")["id"] == "bar"
+            with api.stream("bar", support=support) as s:
+                result = s.frame(clouds[0])
+            assert np.isfinite(result["displacement"]).all()
+
+
+# -- watching needs the session's token ----------------------------------------------------------
+
+
+def _watch_url(live: Live, sid: str) -> str:
+    return live.url.replace("http://", "ws://") + f"/sessions/{sid}/watch"
+
+
+def _guarded_session(guarded, support, token: str) -> str:
+    r = httpx.post(f"{guarded.url}/sessions", json={"model": "bar", "support": support.tolist()}, headers=auth(token))
+    assert r.status_code == 201, r.text
+    return r.json()["session"]
+
+
+@pytest.mark.parametrize("how", ["header", "first message"])
+def test_a_watcher_with_the_sessions_token_sees_its_frames(guarded, support, clouds, how):
+    sid = _guarded_session(guarded, support, TOKEN_A)
+    headers = auth(TOKEN_A) if how == "header" else {}
+    with connect(_watch_url(guarded, sid), additional_headers=headers) as ws:
+        if how == "first message":
+            ws.send(json.dumps({"token": TOKEN_A}))
+        assert recv(ws)["watching"] == sid
+        r = httpx.post(f"{guarded.url}/sessions/{sid}/frames", json={"points": clouds[1].tolist(), "frame_id": 7},
+                       headers=auth(TOKEN_A))
+        assert r.status_code == 200
+        assert recv(ws)["result"]["frame_id"] == 7
+
+
+@pytest.mark.parametrize(
+    "headers, first, code",
+    [
+        ({}, {"token": TOKEN_B}, 404),  # another token's session: as if it did not exist
+        (auth(TOKEN_B), None, 404),
+        ({}, {}, 401),  # no token at all
+        ({}, {"token": "unknown-token-0123456789"}, 401),
+    ],
+)
+def test_a_watcher_without_the_sessions_token_is_refused(guarded, support, headers, first, code):
+    sid = _guarded_session(guarded, support, TOKEN_A)
+    with connect(_watch_url(guarded, sid), additional_headers=headers) as ws:
+        if first is not None:
+            ws.send(json.dumps(first))
+        assert recv(ws)["error"]["code"] == code
+        assert close_code(ws) == 1008

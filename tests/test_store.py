@@ -1,0 +1,81 @@
+"""Loading the store: every bad entry is skipped with a logged reason while the others load, and
+the names in a manifest are checked before any file is read (a name like ``../../../dev/zero``
+hung startup, hashing the endless device)."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import time
+
+import pytest
+
+from service.store import StoreError, load_entry, open_store
+
+
+def _edit(path, **changes):
+    m = json.loads((path / "manifest.json").read_text())
+    m.update(changes)
+    for k, v in list(m.items()):
+        if v is None:
+            del m[k]
+    (path / "manifest.json").write_text(json.dumps(m))
+
+
+def _files(path, **names):
+    m = json.loads((path / "manifest.json").read_text())
+    m["files"] = names
+    (path / "manifest.json").write_text(json.dumps(m))
+
+
+DIGEST = "0" * 64
+BAD = {
+    "no_mesh_key": (lambda p: _edit(p, mesh=None), "no 'mesh'"),
+    "no_network_key": (lambda p: _edit(p, network=None), "no 'network'"),
+    "no_material_E": (lambda p: _edit(p, material={"nu": 0.45}), "E and nu"),
+    "dev_zero": (lambda p: _files(p, **{"../../../dev/zero": DIGEST, "mesh.npz": DIGEST}), "must list"),
+    "extra_file": (lambda p: _files(p, **{"mesh.npz": DIGEST, "weights.safetensors": DIGEST, "x": DIGEST}), "nothing else"),
+    "bad_digest": (lambda p: _files(p, **{"mesh.npz": "abc", "weights.safetensors": DIGEST}), "SHA-256"),
+    "mesh_is_a_device": (lambda p: (p / "mesh.npz").unlink() or os.symlink("/dev/zero", p / "mesh.npz"), "outside"),
+    "mesh_is_a_fifo": (lambda p: (p / "mesh.npz").unlink() or os.mkfifo(p / "mesh.npz"), "not a regular file"),
+    "mesh_links_out": (lambda p: (p / "mesh.npz").unlink() or os.symlink("/etc/hostname", p / "mesh.npz"), "outside"),
+    "bad_id": (lambda p: _edit(p, id="../x"), "id must match"),
+    "a list": (lambda p: (p / "manifest.json").write_text("[1, 2]"), "folder name"),
+    "not_an_object": (lambda p: (p / "manifest.json").write_text("[1, 2]"), "JSON object"),
+    "bad_hidden": (lambda p: _edit(p, network={"layout": "reduced", "n_in": 3, "hidden": 5}), "cannot be loaded"),
+}
+
+
+@pytest.fixture
+def store(bar_store, tmp_path):
+    """A store with the good bar and one copy of it damaged each way in BAD."""
+    root = tmp_path / "store"
+    shutil.copytree(bar_store[0] / "bar", root / "bar")
+    for name, (damage, _) in BAD.items():
+        shutil.copytree(bar_store[0] / "bar", root / name)
+        _edit(root / name, id=name if " " not in name else "a_list")
+        damage(root / name)
+    return root
+
+
+def test_every_bad_entry_is_skipped_with_its_reason_and_the_good_one_loads(store, caplog):
+    t0 = time.monotonic()
+    with caplog.at_level(logging.ERROR, logger="service.store"):
+        entries, errors = open_store(store)
+    assert time.monotonic() - t0 < 60  # /dev/zero is never read
+    assert set(entries) == {"bar"}
+    assert set(errors) == set(BAD)
+    for name, (_, words) in BAD.items():
+        assert words in errors[name], (name, errors[name])
+        assert any(name in r.getMessage() and words in r.getMessage() for r in caplog.records), name
+
+
+def test_names_are_checked_before_any_file_is_read(store):
+    """The hostile names are refused as names: loading them takes no time at all."""
+    for name in ("dev_zero", "mesh_is_a_device", "mesh_is_a_fifo"):  # reading these would never end
+        t0 = time.monotonic()
+        with pytest.raises(StoreError):
+            load_entry(store / name)
+        assert time.monotonic() - t0 < 1.0
