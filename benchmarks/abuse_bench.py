@@ -48,8 +48,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from clients.client import AsyncClient, StreamError  # noqa: E402
-from clients.loadtest import make_frames  # noqa: E402
+from clients.client import AsyncClient, StreamError
+from service.loadtest import make_frames
 
 HOST = "127.0.0.1"
 MAX_SECONDS = 60.0
@@ -67,8 +67,12 @@ def start_server(store: Path, token: str) -> tuple[subprocess.Popen, str, Path]:
     port = free_port()
     env = {**os.environ, "PYTHONPATH": str(ROOT), "ELASTREG_API_TOKENS": token}
     log = tempfile.NamedTemporaryFile("w+", prefix="elastreg-abuse-server-", suffix=".log", delete=False)
-    proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--store", str(store), "--host", HOST,
-                             "--port", str(port)], env=env, stdout=log, stderr=subprocess.STDOUT)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "service.cli", "serve", "--store", str(store), "--host", HOST, "--port", str(port)],
+        env=env,
+        stdout=log,
+        stderr=subprocess.STDOUT,
+    )
     url = f"http://{HOST}:{port}"
     deadline = time.monotonic() + 180
     while time.monotonic() < deadline:
@@ -194,8 +198,11 @@ def _mask(payload: bytes, opcode: int) -> bytes:
         head += bytes([0x80 | 126]) + n.to_bytes(2, "big")
     else:
         head += bytes([0x80 | 127]) + n.to_bytes(8, "big")
-    masked = bytes(b ^ key[i % 4] for i, b in enumerate(payload)) if n < 4096 else \
-        (np.frombuffer(payload, np.uint8) ^ np.resize(np.frombuffer(key, np.uint8), n)).tobytes()
+    masked = (
+        bytes(b ^ key[i % 4] for i, b in enumerate(payload))
+        if n < 4096
+        else (np.frombuffer(payload, np.uint8) ^ np.resize(np.frombuffer(key, np.uint8), n)).tobytes()
+    )
     return head + key + masked
 
 
@@ -205,8 +212,12 @@ async def raw_websocket(url: str, token: str | None):
     reader, writer = await asyncio.open_connection(HOST, port)
     key = base64.b64encode(secrets.token_bytes(16)).decode()
     auth = f"Authorization: Bearer {token}\r\n" if token else ""
-    writer.write((f"GET /stream HTTP/1.1\r\nHost: {HOST}:{port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
-                  f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n{auth}\r\n").encode())
+    writer.write(
+        (
+            f"GET /stream HTTP/1.1\r\nHost: {HOST}:{port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+            f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n{auth}\r\n"
+        ).encode()
+    )
     await writer.drain()
     head = await reader.readuntil(b"\r\n\r\n")
     if b" 101 " not in head.split(b"\r\n", 1)[0]:
@@ -238,11 +249,13 @@ async def _read_ws_message(reader) -> bytes:
 
 async def _close_code(reader, timeout: float):
     """The code of the server's close frame (pings skipped, never answered)."""
+
     async def wait():
         while True:
             opcode, payload = await _read_frame(reader)
             if opcode == 0x8:
                 return int.from_bytes(payload[:2], "big") if len(payload) >= 2 else "none"
+
     try:
         return await asyncio.wait_for(wait(), timeout)
     except (TimeoutError, asyncio.IncompleteReadError, ConnectionError):
@@ -269,8 +282,9 @@ async def stuck_stream(url: str, token: str, frame: bytes, result: dict) -> None
     writer.close()
 
 
-async def abuse(url: str, token: str, frame_msgpack: bytes, stop: asyncio.Event, tally: Tally, limits: dict,
-                stuck: dict) -> None:
+async def abuse(
+    url: str, token: str, frame_msgpack: bytes, stop: asyncio.Event, tally: Tally, limits: dict, stuck: dict
+) -> None:
     auth = {"authorization": f"Bearer {token}"}
     mp_headers = {**auth, "content-type": "application/msgpack"}
     bomb_mp = b"\xdd" + (4 << 20).to_bytes(4, "big") + b"\x90" * (4 << 20)
@@ -284,14 +298,16 @@ async def abuse(url: str, token: str, frame_msgpack: bytes, stop: asyncio.Event,
                 t0 = time.monotonic()
                 try:
                     await fn()
-                except Exception as exc:  # noqa: BLE001 - a misbehaving client's connection breaks
+                except Exception as exc:
                     tally.counts[f"{fn.__name__} ended by {type(exc).__name__}"] += 1
                 await asyncio.sleep(max(0.0, period - (time.monotonic() - t0)))
 
         async def bombs() -> None:
             r = await c.post(f"/sessions/{sid}/frames", content=bomb_mp, headers=mp_headers)
             tally.http("msgpack bomb", r.status_code)
-            r = await c.post(f"/sessions/{sid}/frames", content=bomb_json, headers={**auth, "content-type": "application/json"})
+            r = await c.post(
+                f"/sessions/{sid}/frames", content=bomb_json, headers={**auth, "content-type": "application/json"}
+            )
             tally.http("json bomb", r.status_code)
 
         async def oversized() -> None:
@@ -310,9 +326,15 @@ async def abuse(url: str, token: str, frame_msgpack: bytes, stop: asyncio.Event,
         async def garbage() -> None:
             r = await c.post(f"/sessions/{sid}/frames", content=secrets.token_bytes(512), headers=mp_headers)
             tally.http("garbage body", r.status_code)
-            r = await c.post(f"/sessions/{sid}/frames", content=b'{"points": [[1, 2', headers={**auth, "content-type": "application/json"})
+            r = await c.post(
+                f"/sessions/{sid}/frames",
+                content=b'{"points": [[1, 2',
+                headers={**auth, "content-type": "application/json"},
+            )
             tally.http("garbage body", r.status_code)
-            r = await c.post("/sessions", content=b'{"model": "phantom"}', headers={**auth, "content-type": "text/plain"})
+            r = await c.post(
+                "/sessions", content=b'{"model": "phantom"}', headers={**auth, "content-type": "text/plain"}
+            )
             tally.http("text/plain body", r.status_code)
 
         async def garbage_stream() -> None:
@@ -338,7 +360,9 @@ async def abuse(url: str, token: str, frame_msgpack: bytes, stop: asyncio.Event,
             r = await c.post("/sessions", json={"model": "phantom"}, headers=auth)
             tally.http("storm session", r.status_code)
             if r.status_code == 201:
-                tally.http("storm close", (await c.delete(f"/sessions/{r.json()['session']}", headers=auth)).status_code)
+                tally.http(
+                    "storm close", (await c.delete(f"/sessions/{r.json()['session']}", headers=auth)).status_code
+                )
             tally.http("no token", (await c.post("/sessions", json={"model": "phantom"})).status_code)
 
         async def idle_socket() -> None:
@@ -351,8 +375,12 @@ async def abuse(url: str, token: str, frame_msgpack: bytes, stop: asyncio.Event,
         async def slow_body() -> None:
             port = int(url.rsplit(":", 1)[1])
             reader, writer = await asyncio.open_connection(HOST, port)
-            writer.write((f"POST /sessions HTTP/1.1\r\nHost: {HOST}:{port}\r\nAuthorization: Bearer {token}\r\n"
-                          "Content-Type: application/json\r\nContent-Length: 1000\r\n\r\n").encode())
+            writer.write(
+                (
+                    f"POST /sessions HTTP/1.1\r\nHost: {HOST}:{port}\r\nAuthorization: Bearer {token}\r\n"
+                    "Content-Type: application/json\r\nContent-Length: 1000\r\n\r\n"
+                ).encode()
+            )
             await writer.drain()
             t0 = time.monotonic()
             status = None
@@ -382,9 +410,17 @@ async def abuse(url: str, token: str, frame_msgpack: bytes, stop: asyncio.Event,
             finally:
                 writer.close()
 
-        tasks = [every(1.0, bombs), every(2.0, oversized), every(0.5, garbage), every(0.0, garbage_stream),
-                 every(0.5, storm), every(0.5, slow_body), every(0.5, slow_body), every(0.0, unread_stream),
-                 every(0.0, unread_stream)]
+        tasks = [
+            every(1.0, bombs),
+            every(2.0, oversized),
+            every(0.5, garbage),
+            every(0.0, garbage_stream),
+            every(0.5, storm),
+            every(0.5, slow_body),
+            every(0.5, slow_body),
+            every(0.0, unread_stream),
+            every(0.0, unread_stream),
+        ]
         tasks += [every(0.0, idle_socket) for _ in range(16)]
         runners = [asyncio.create_task(t) for t in tasks]
         stuck_task = asyncio.create_task(stuck_stream(url, token, frame_msgpack, stuck))
@@ -452,8 +488,12 @@ async def run(url: str, token: str, seconds: float, sampler: RssSampler) -> dict
         "ratio_p50": pct(together, 50) / pct(alone, 50),
         "ratio_p99": pct(together, 99) / pct(alone, 99),
         "expected_frames": int(GOOD_STREAMS * RATE_HZ * seconds),
-        "rss_mb": {"before_abuse": rss_before, "peak_before_abuse": peak_before, "peak": sampler.peak,
-                   "growth": sampler.peak - rss_before},
+        "rss_mb": {
+            "before_abuse": rss_before,
+            "peak_before_abuse": peak_before,
+            "peak": sampler.peak,
+            "growth": sampler.peak - rss_before,
+        },
         "server_errors": tally.server_errors(),
         "server_errors_alone": tally_alone.server_errors(),
         "stuck_session_reclaimed_s": stuck.get("reclaimed_s"),
@@ -480,20 +520,31 @@ def main(argv=None) -> int:
     finally:
         proc.terminate()
         proc.wait(timeout=60)
-    out = {"benchmark": "abuse", "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-           "machine": describe(), "command": "python benchmarks/abuse_bench.py " + " ".join(argv or sys.argv[1:]),
-           "seconds_per_phase": args.seconds, "good_streams": GOOD_STREAMS, "rate_hz": RATE_HZ,
-           "server_settings": "defaults, with ELASTREG_API_TOKENS set", **result}
+    out = {
+        "benchmark": "abuse",
+        "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "machine": describe(),
+        "command": "python benchmarks/abuse_bench.py " + " ".join(argv or sys.argv[1:]),
+        "seconds_per_phase": args.seconds,
+        "good_streams": GOOD_STREAMS,
+        "rate_hz": RATE_HZ,
+        "server_settings": "defaults, with ELASTREG_API_TOKENS set",
+        **result,
+    }
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(out, indent=1, default=float) + "\n")
     a, b = result["alone"], result["abused"]
     print(f"machine: {out['machine']['cpu']}, commit {out['machine']['commit']}")
     print(f"good streams alone:  {a['frames']} frames, p50 {a['p50_ms']:.1f} ms, p99 {a['p99_ms']:.1f} ms")
-    print(f"good streams abused: {b['frames']} frames, p50 {b['p50_ms']:.1f} ms, p99 {b['p99_ms']:.1f} ms "
-          f"(ratio p50 {result['ratio_p50']:.2f}, p99 {result['ratio_p99']:.2f}; aim p99 within 2x)")
+    print(
+        f"good streams abused: {b['frames']} frames, p50 {b['p50_ms']:.1f} ms, p99 {b['p99_ms']:.1f} ms "
+        f"(ratio p50 {result['ratio_p50']:.2f}, p99 {result['ratio_p99']:.2f}; aim p99 within 2x)"
+    )
     r = result["rss_mb"]
-    print(f"server RSS: {r['before_abuse']:.0f} MB before the abuse, peak {r['peak']:.0f} MB "
-          f"(growth {r['growth']:.0f} MB; aim under 200)")
+    print(
+        f"server RSS: {r['before_abuse']:.0f} MB before the abuse, peak {r['peak']:.0f} MB "
+        f"(growth {r['growth']:.0f} MB; aim under 200)"
+    )
     print(f"5xx answers under abuse: {result['server_errors']} (alone: {result['server_errors_alone']})")
     print(f"stuck session reclaimed after {result['stuck_session_reclaimed_s']} s")
     print(f"wrote {args.out} (server log: {log})")

@@ -38,11 +38,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from clients.client import AsyncClient, Client  # noqa: E402
-from clients.loadtest import run_load  # noqa: E402
-from service.bench.machine import describe  # noqa: E402
-from service.loadtest import make_frames  # noqa: E402
-from service.optional import need  # noqa: E402
+from clients.client import AsyncClient, Client
+from clients.loadtest import run_load
+from service.bench.machine import describe
+from service.loadtest import make_frames
+from service.optional import need
 
 
 def free_port() -> int:
@@ -53,12 +53,18 @@ def free_port() -> int:
 
 def start_server(store: Path, threads: int) -> tuple[subprocess.Popen, str]:
     port = free_port()
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "ELASTREG_SOLVER_THREADS": str(threads),
-           "ELASTREG_MAX_SESSIONS": "64"}
+    env = {
+        **os.environ,
+        "PYTHONPATH": str(ROOT),
+        "ELASTREG_SOLVER_THREADS": str(threads),
+        "ELASTREG_MAX_SESSIONS": "64",
+    }
     log = tempfile.NamedTemporaryFile("w+", prefix="elastreg-bench-server-", suffix=".log", delete=False)
     proc = subprocess.Popen(
         [sys.executable, "-m", "service.cli", "serve", "--store", str(store), "--port", str(port)],
-        env=env, stdout=log, stderr=subprocess.STDOUT,
+        env=env,
+        stdout=log,
+        stderr=subprocess.STDOUT,
     )
     url = f"http://127.0.0.1:{port}"
     deadline = time.monotonic() + 180
@@ -130,13 +136,15 @@ def overhead(url, store, model, support, cloud, repeats) -> list[dict]:
     for transport in ("http", "ws"):
         for encoding in ("msgpack", "json"):
             rtt, solve = through_api(url, model, support, cloud, repeats, transport, encoding)
-            rows.append({
-                "path": f"{transport} {encoding}",
-                "median_ms": round(median(rtt), 3),
-                "server_solve_ms": round(median(solve), 3),
-                "overhead_paired_ms": round(median(rtt - solve), 3),
-                "overhead_vs_in_process_ms": round(median(rtt) - median(base), 3),
-            })
+            rows.append(
+                {
+                    "path": f"{transport} {encoding}",
+                    "median_ms": round(median(rtt), 3),
+                    "server_solve_ms": round(median(solve), 3),
+                    "overhead_paired_ms": round(median(rtt - solve), 3),
+                    "overhead_vs_in_process_ms": round(median(rtt) - median(base), 3),
+                }
+            )
     return rows
 
 
@@ -220,14 +228,24 @@ def main(argv=None) -> int:
     n_frames, n_sessions = (1000, 200) if args.quick else (10_000, 1000)
 
     proc, url = start_server(store, args.threads)
-    report: dict = {"started": time.strftime("%Y-%m-%d %H:%M:%S"), "machine": describe(), "model": args.model,
-                    "points": args.points, "quick": args.quick, "solver_threads": args.threads,
-                    "parts": args.parts, "runs": args.runs,
-                    "load_average_at_start": os.getloadavg()}  # others' work on the machine skews every figure
+    report: dict = {
+        "started": time.strftime("%Y-%m-%d %H:%M:%S"),
+        "machine": describe(),
+        "model": args.model,
+        "points": args.points,
+        "quick": args.quick,
+        "solver_threads": args.threads,
+        "parts": args.parts,
+        "runs": args.runs,
+        "load_average_at_start": os.getloadavg(),
+    }  # others' work on the machine skews every figure
     m = report["machine"]
-    print(f"{report['started']} on {m['cpu']}, {m['cores']} cores; commit {m['commit']}; "
-          f"load average {report['load_average_at_start'][0]:.1f}")
+    print(
+        f"{report['started']} on {m['cpu']}, {m['cores']} cores; commit {m['commit']}; "
+        f"load average {report['load_average_at_start'][0]:.1f}"
+    )
     try:
+
         async def frames():
             async with AsyncClient(url) as api:
                 return await make_frames(api, args.model, n_points=args.points)
@@ -242,18 +260,22 @@ def main(argv=None) -> int:
             print(f"\n1. API overhead, {args.points}-point frame, median of {repeats} (ms), run {k + 1} of {args.runs}")
             print(f"{'path':<26}{'round trip':>11}{'solve':>8}{'overhead':>10}{'vs in-proc':>12}")
             for r in rows:
-                print(f"{r['path']:<26}{r['median_ms']:>11.2f}{r.get('server_solve_ms', float('nan')):>8.2f}"
-                      f"{r.get('overhead_paired_ms', float('nan')):>10.2f}"
-                      f"{r.get('overhead_vs_in_process_ms', float('nan')):>12.2f}")
+                print(
+                    f"{r['path']:<26}{r['median_ms']:>11.2f}{r.get('server_solve_ms', float('nan')):>8.2f}"
+                    f"{r.get('overhead_paired_ms', float('nan')):>10.2f}"
+                    f"{r.get('overhead_vs_in_process_ms', float('nan')):>12.2f}"
+                )
         if runs:
             report["overhead"] = median_rows(runs) if len(runs) > 1 else runs[0]
             if len(runs) > 1:
                 report["overhead_runs"] = runs
                 print(f"\n   median of the {len(runs)} runs (ms)")
                 for r in report["overhead"]:
-                    print(f"{r['path']:<26}{r['median_ms']:>11.2f}{r.get('server_solve_ms', float('nan')):>8.2f}"
-                          f"{r.get('overhead_paired_ms', float('nan')):>10.2f}"
-                          f"{r.get('overhead_vs_in_process_ms', float('nan')):>12.2f}")
+                    print(
+                        f"{r['path']:<26}{r['median_ms']:>11.2f}{r.get('server_solve_ms', float('nan')):>8.2f}"
+                        f"{r.get('overhead_paired_ms', float('nan')):>10.2f}"
+                        f"{r.get('overhead_vs_in_process_ms', float('nan')):>12.2f}"
+                    )
 
         if "throughput" in args.parts:
             print(f"\n2. concurrent WebSocket streams (msgpack), {seconds:g} s each")

@@ -60,7 +60,9 @@ def main() -> None:
                 r = session.frame(pts)
                 ms = 1e3 * (time.perf_counter() - t0)
                 u = r.outputs["displacement"]
-                rows.append((ms, np.linalg.norm(u - c["u"], axis=1).mean(), np.isfinite(u).all(), r.status, r.evaluations))
+                rows.append(
+                    (ms, np.linalg.norm(u - c["u"], axis=1).mean(), np.isfinite(u).all(), r.status, r.evaluations)
+                )
             statuses: dict[str, int] = {}
             for row in rows:
                 statuses[row[3]] = statuses.get(row[3], 0) + 1

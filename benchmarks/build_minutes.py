@@ -22,10 +22,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from service.bench.machine import describe  # noqa: E402
-from service.build import build  # noqa: E402
-from service.scene import load_scene  # noqa: E402
-from service.surrogate.train import TrainConfig  # noqa: E402
+from service.bench.machine import describe
+from service.build import build
+from service.scene import load_scene
+from service.surrogate.train import TrainConfig
 
 
 def main() -> int:
@@ -33,7 +33,9 @@ def main() -> int:
     p.add_argument("--minutes", type=float, nargs="+", default=[5.0, 10.0])
     p.add_argument("--scenes", nargs="+", default=["liver_sofa", "liver_deepphysx"])
     p.add_argument("--workers", type=int, default=2)
-    p.add_argument("--physics-skip", action="store_true", help="the network learns the remainder over the linear response")
+    p.add_argument(
+        "--physics-skip", action="store_true", help="the network learns the remainder over the linear response"
+    )
     p.add_argument("--out", default=str(ROOT / "reports" / "build-minutes" / "build_minutes.json"))
     args = p.parse_args()
     out = Path(args.out)
@@ -45,15 +47,34 @@ def main() -> int:
             with tempfile.TemporaryDirectory() as tmp:
                 t0 = time.perf_counter()
                 load0 = os.getloadavg()[0]
-                report = build(scene, Path(tmp) / "store", workers=args.workers, data_root=Path(tmp) / "data",
-                               progress=False, minutes=minutes, config=TrainConfig(physics_skip=args.physics_skip))
+                report = build(
+                    scene,
+                    Path(tmp) / "store",
+                    workers=args.workers,
+                    data_root=Path(tmp) / "data",
+                    progress=False,
+                    minutes=minutes,
+                    config=TrainConfig(physics_skip=args.physics_skip),
+                )
                 wall = time.perf_counter() - t0
             m = report.metrics
-            row = {"scene": name, "minutes": minutes, "physics_skip": args.physics_skip, "wall_s": round(wall, 1), "samples": report.samples,
-                   "paths": report.paths, "data_s": round(report.data_seconds, 1),
-                   "train_s": round(report.train_seconds, 1), "epochs": m["epochs"],
-                   "val_mean_mm": m["mean_mm"], "val_p95_mm": m["p95_mm"], "val_relative": m.get("relative"),
-                   "zero_mean_mm": m["zero_mean_mm"], "load_before": load0, "load_after": os.getloadavg()[0]}
+            row = {
+                "scene": name,
+                "minutes": minutes,
+                "physics_skip": args.physics_skip,
+                "wall_s": round(wall, 1),
+                "samples": report.samples,
+                "paths": report.paths,
+                "data_s": round(report.data_seconds, 1),
+                "train_s": round(report.train_seconds, 1),
+                "epochs": m["epochs"],
+                "val_mean_mm": m["mean_mm"],
+                "val_p95_mm": m["p95_mm"],
+                "val_relative": m.get("relative"),
+                "zero_mean_mm": m["zero_mean_mm"],
+                "load_before": load0,
+                "load_after": os.getloadavg()[0],
+            }
             key = (name, minutes, args.physics_skip)
             rows = [r for r in rows if (r["scene"], r["minutes"], r.get("physics_skip", False)) != key] + [row]
             print(json.dumps(row), flush=True)

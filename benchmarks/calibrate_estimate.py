@@ -22,11 +22,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from service.bench.anysite import FEM, NETWORK, SITE_SEED, anysite_cases  # noqa: E402
-from service.bench.cases import run_case  # noqa: E402
-from service.bench.machine import describe  # noqa: E402
-from service.config import default_store  # noqa: E402
-from service.store import load_entry  # noqa: E402
+from service.bench.anysite import FEM, NETWORK, SITE_SEED, anysite_cases
+from service.bench.cases import run_case
+from service.bench.machine import describe
+from service.config import default_store
+from service.store import load_entry
 
 CALIBRATION_SEED = SITE_SEED + 1000  # not the benchmark's sites
 
@@ -44,14 +44,25 @@ def main() -> int:
     for case in cases:
         for model, config in ((entry.fem, FEM), (entry.network, NETWORK)):
             for r in run_case(model, case, config):
-                rows.append({"case": case.name, "method": r.method, "frame": r.frame, "tre_mm": r.tre_mm,
-                             "estimate_mm": r.error_estimate_mm})
+                rows.append(
+                    {
+                        "case": case.name,
+                        "method": r.method,
+                        "frame": r.frame,
+                        "tre_mm": r.tre_mm,
+                        "estimate_mm": r.error_estimate_mm,
+                    }
+                )
     fem = [r for r in rows if r["method"] == "fem"]
     ratio = np.array([r["tre_mm"] / r["estimate_mm"] for r in fem])
     factor = float(np.quantile(ratio, 0.9))
     net = np.array([r["estimate_mm"] / r["tre_mm"] for r in rows if r["method"] == "network"])
-    summary = {"seed": CALIBRATION_SEED, "misfit_factor_q90": factor, "fem_ratio_median": float(np.median(ratio)),
-               "network_estimate_over_error_median": float(np.median(net))}
+    summary = {
+        "seed": CALIBRATION_SEED,
+        "misfit_factor_q90": factor,
+        "fem_ratio_median": float(np.median(ratio)),
+        "network_estimate_over_error_median": float(np.median(net)),
+    }
     print(json.dumps(summary, indent=1))
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps({"machine": describe(), "summary": summary, "rows": rows}, indent=1))

@@ -150,9 +150,7 @@ def _watchers_cost(store: str, model: str, clouds, support, blocks: int = 5) -> 
 
     from service.api.server import free_port
 
-    watchers = (
-        (ROOT / "tests/api/test_watch.py").read_text().split('WATCHERS = """')[1].split('"""')[0]
-    )
+    watchers = (ROOT / "tests/api/test_watch.py").read_text().split('WATCHERS = """')[1].split('"""')[0]
     port = free_port()
     cmd = [sys.executable, "-m", "service.cli", "serve", "--store", store, "--port", str(port)]
     server = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=ROOT)
@@ -174,9 +172,7 @@ def _watchers_cost(store: str, model: str, clouds, support, blocks: int = 5) -> 
         def run(k: int, into: list, solve: list) -> None:
             for i in range(k):
                 t0 = time.perf_counter()
-                r = http.post(
-                    f"/sessions/{sid}/frames", content=frames[i % len(frames)], headers=hdr
-                )
+                r = http.post(f"/sessions/{sid}/frames", content=frames[i % len(frames)], headers=hdr)
                 into.append(1e3 * (time.perf_counter() - t0))
                 solve.append(r.json()["timing_ms"]["solve"])
 

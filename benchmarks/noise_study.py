@@ -30,8 +30,12 @@ def stream(model, case: Case, config) -> dict:
     later frames ran with."""
     records = run_case(model, case, config)
     s = summarise(records)
-    return {"tre_mm": s["tre_mean_mm"], "force_error_pct": s["force_error_mean_pct"], "ms": s["ms_median"],
-            "alpha": float(np.median([r.alpha for r in records[len(records) // 4:]]))}
+    return {
+        "tre_mm": s["tre_mean_mm"],
+        "force_error_pct": s["force_error_mean_pct"],
+        "ms": s["ms_median"],
+        "alpha": float(np.median([r.alpha for r in records[len(records) // 4 :]])),
+    }
 
 
 def main() -> None:
@@ -54,12 +58,18 @@ def main() -> None:
         for mm in args.noise:
             sigma = mm * 1e-3
             clouds = noisy(case, noise=sigma)
-            for setting, config in (("default alpha", base), ("noise given", dataclasses.replace(base, noise=sigma)),
-                                    ("noise x2 given", dataclasses.replace(base, noise=2 * sigma))):
+            for setting, config in (
+                ("default alpha", base),
+                ("noise given", dataclasses.replace(base, noise=sigma)),
+                ("noise x2 given", dataclasses.replace(base, noise=2 * sigma)),
+            ):
                 row = {"sequence": case.name, "noise_mm": mm, "setting": setting, **stream(model, clouds, config)}
                 rows.append(row)
-                print("{sequence:<28} {noise_mm:4.1f} mm  {setting:<15} TRE {tre_mm:.3f} mm  "
-                      "force {force_error_pct:5.1f} %  {ms:6.1f} ms  alpha {alpha:.1e}".format(**row), flush=True)
+                print(
+                    "{sequence:<28} {noise_mm:4.1f} mm  {setting:<15} TRE {tre_mm:.3f} mm  "
+                    "force {force_error_pct:5.1f} %  {ms:6.1f} ms  alpha {alpha:.1e}".format(**row),
+                    flush=True,
+                )
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     with open(out / "noise.csv", "w", newline="") as f:

@@ -213,12 +213,23 @@ class _Base:
 class Client(_Base):
     """The API over HTTP (httpx, one keep-alive connection pool) and WebSocket streams."""
 
-    def __init__(self, base_url: str = "http://127.0.0.1:8000", *, encoding: str = "msgpack",
-                 timeout: float = 60.0, token: str | None = None, verify=True) -> None:
+    def __init__(
+        self,
+        base_url: str = "http://127.0.0.1:8000",
+        *,
+        encoding: str = "msgpack",
+        timeout: float = 60.0,
+        token: str | None = None,
+        verify=True,
+    ) -> None:
         super().__init__(base_url, encoding, token, verify)
         self.timeout = timeout
-        self.http = httpx.Client(base_url=self.base_url, timeout=timeout, headers=self.headers,
-                                 verify=self.tls if self.tls is not None else True)
+        self.http = httpx.Client(
+            base_url=self.base_url,
+            timeout=timeout,
+            headers=self.headers,
+            verify=self.tls if self.tls is not None else True,
+        )
 
     def _call(self, method: str, path: str, body=None):
         content = None if body is None else encode(body, self.encoding)
@@ -239,8 +250,11 @@ class Client(_Base):
 
     def simulate(self, model: str, nodes, values, *, method: str = "network", E: float | None = None) -> dict:
         """Displacement (n, 3) under forces ``values`` (k, 3) on ``nodes`` (k,)."""
-        body = {"forces": {"nodes": np.asarray(nodes, np.int64), "values": np.asarray(values, np.float64)},
-                "method": method, "E": E}
+        body = {
+            "forces": {"nodes": np.asarray(nodes, np.int64), "values": np.asarray(values, np.float64)},
+            "method": method,
+            "E": E,
+        }
         return self._call("POST", f"/models/{model}/simulate", body)
 
     def open_session(self, model: str, **config) -> SessionHandle:
@@ -367,13 +381,25 @@ class Stream:
 class AsyncClient(_Base):
     """The same API for asyncio (httpx.AsyncClient and websockets' asyncio client)."""
 
-    def __init__(self, base_url: str = "http://127.0.0.1:8000", *, encoding: str = "msgpack",
-                 timeout: float = 60.0, max_connections: int = 100, token: str | None = None, verify=True) -> None:
+    def __init__(
+        self,
+        base_url: str = "http://127.0.0.1:8000",
+        *,
+        encoding: str = "msgpack",
+        timeout: float = 60.0,
+        max_connections: int = 100,
+        token: str | None = None,
+        verify=True,
+    ) -> None:
         super().__init__(base_url, encoding, token, verify)
         self.timeout = timeout
-        self.http = httpx.AsyncClient(base_url=self.base_url, timeout=timeout, headers=self.headers,
-                                      limits=httpx.Limits(max_connections=max_connections),
-                                      verify=self.tls if self.tls is not None else True)
+        self.http = httpx.AsyncClient(
+            base_url=self.base_url,
+            timeout=timeout,
+            headers=self.headers,
+            limits=httpx.Limits(max_connections=max_connections),
+            verify=self.tls if self.tls is not None else True,
+        )
 
     async def _call(self, method: str, path: str, body=None):
         content = None if body is None else encode(body, self.encoding)
@@ -392,8 +418,11 @@ class AsyncClient(_Base):
         return await self._call("GET", f"/models/{model}/mesh")
 
     async def simulate(self, model: str, nodes, values, *, method: str = "network", E: float | None = None) -> dict:
-        body = {"forces": {"nodes": np.asarray(nodes, np.int64), "values": np.asarray(values, np.float64)},
-                "method": method, "E": E}
+        body = {
+            "forces": {"nodes": np.asarray(nodes, np.int64), "values": np.asarray(values, np.float64)},
+            "method": method,
+            "E": E,
+        }
         return await self._call("POST", f"/models/{model}/simulate", body)
 
     async def open_session(self, model: str, **config) -> AsyncSessionHandle:
@@ -503,4 +532,3 @@ class AsyncStream:
 
     async def __aexit__(self, *exc) -> None:
         await self.close()
-

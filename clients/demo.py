@@ -68,8 +68,9 @@ def score_stream(
             est = r.get("error_estimate")
             estimates.append(np.inf if est is None else 1e3 * est)
             by_fem += r.get("method_used") == "fem"
+            by = " (fem)" if r.get("method_used") == "fem" else ""
             say(f"{t + 1:>5} {err:>9.3f} {estimates[-1]:>8.3f} {at_rest:>8.3f} {f_err:>8.1f} {latency[-1]:>11.1f} "
-                f"{solve[-1]:>9.1f} {r['iterations']:>6}  {r['status']}{' (fem)' if r.get('method_used') == 'fem' else ''}")  # fmt: skip
+                f"{solve[-1]:>9.1f} {r['iterations']:>6}  {r['status']}{by}")  # fmt: skip
     seconds = time.perf_counter() - t_stream
     n = len(errors)
     say(f"\n{n} frames in {seconds:.2f} s ({n / seconds:.1f} frames/s); {n - failed} converged")

@@ -67,23 +67,38 @@ class LoadReport:
 
     def as_dict(self) -> dict:
         return {
-            "streams": self.streams, "seconds": round(self.seconds, 3), "frames": self.frames,
-            "fps": round(self.fps, 2), "p50_ms": round(self.percentile(50), 2),
-            "p95_ms": round(self.percentile(95), 2), "p99_ms": round(self.percentile(99), 2),
+            "streams": self.streams,
+            "seconds": round(self.seconds, 3),
+            "frames": self.frames,
+            "fps": round(self.fps, 2),
+            "p50_ms": round(self.percentile(50), 2),
+            "p95_ms": round(self.percentile(95), 2),
+            "p99_ms": round(self.percentile(99), 2),
             "solve_p50_ms": round(float(np.median(self.solve_ms)), 2) if self.solve_ms.size else None,
             "errors": self.errors,
         }
 
     def text(self) -> str:
         d = self.as_dict()
-        return (f"{d['streams']} stream(s), {d['seconds']:.1f} s: {d['frames']} frames, {d['fps']:.1f} frames/s; "
-                f"latency p50 {d['p50_ms']:.1f} ms, p95 {d['p95_ms']:.1f} ms, p99 {d['p99_ms']:.1f} ms "
-                f"(server solve p50 {d['solve_p50_ms']} ms); errors {d['errors']}")
+        return (
+            f"{d['streams']} stream(s), {d['seconds']:.1f} s: {d['frames']} frames, {d['fps']:.1f} frames/s; "
+            f"latency p50 {d['p50_ms']:.1f} ms, p95 {d['p95_ms']:.1f} ms, p99 {d['p99_ms']:.1f} ms "
+            f"(server solve p50 {d['solve_p50_ms']} ms); errors {d['errors']}"
+        )
 
 
-async def run_load(url: str, model: str = "phantom", *, frames: list[np.ndarray], support: np.ndarray | None = None,
-                   streams: int = 4, seconds: float = 10.0, encoding: str = "msgpack", method: str = "network",
-                   warmup: int = 1) -> LoadReport:
+async def run_load(
+    url: str,
+    model: str = "phantom",
+    *,
+    frames: list[np.ndarray],
+    support: np.ndarray | None = None,
+    streams: int = 4,
+    seconds: float = 10.0,
+    encoding: str = "msgpack",
+    method: str = "network",
+    warmup: int = 1,
+) -> LoadReport:
     """Replay `frames` (clouds, (m, 3) each) over `streams` streams for `seconds`, bounded (see
     :func:`check_target`), and return the report. ``service/loadtest.py`` makes frames for a
     served model and runs this from the command line."""

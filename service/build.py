@@ -150,5 +150,7 @@ def build(
         rebuild=command,
         renumbered=loaded.kept is not None,
     )  # fmt: skip
-    log.info("wrote %s: validation mean %.3f mm, p95 %.3f mm", entry, result.metrics["mean_mm"], result.metrics["p95_mm"])
+    log.info(
+        "wrote %s: validation mean %.3f mm, p95 %.3f mm", entry, result.metrics["mean_mm"], result.metrics["p95_mm"]
+    )
     return BuildReport(entry, len(F), len(done), data_seconds, result.metrics["train_seconds"], result.metrics)

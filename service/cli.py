@@ -84,8 +84,16 @@ def _build_from(build, scene, config, command: str, args: argparse.Namespace):
 def _serve(args: argparse.Namespace) -> int:
     from .api.server import serve
 
-    serve(store=args.store, host=args.host, port=args.port, workers=args.workers, token_file=args.token_file,
-          insecure=args.insecure, ssl_certfile=args.ssl_certfile, ssl_keyfile=args.ssl_keyfile)
+    serve(
+        store=args.store,
+        host=args.host,
+        port=args.port,
+        workers=args.workers,
+        token_file=args.token_file,
+        insecure=args.insecure,
+        ssl_certfile=args.ssl_certfile,
+        ssl_keyfile=args.ssl_keyfile,
+    )
     return 0
 
 
@@ -100,13 +108,29 @@ def _demo(args: argparse.Namespace) -> int:
 def _igtl(args: argparse.Namespace) -> int:
     from .igtl.bridge import run
 
-    settings = {k: v for k, v in (("method", args.method), ("alpha", args.alpha), ("gtol", args.gtol),
-                                  ("max_iter", args.max_iter), ("force_bound", args.force_bound))
-                if v is not None}
+    settings = {
+        k: v
+        for k, v in (
+            ("method", args.method),
+            ("alpha", args.alpha),
+            ("gtol", args.gtol),
+            ("max_iter", args.max_iter),
+            ("force_bound", args.force_bound),
+        )
+        if v is not None
+    }
     if args.support:
         settings["support"] = [int(v) for v in Path(args.support).read_text().split()]
-    return run(args.model, host=args.host, port=args.port, server=args.server, store=args.store,
-               device=args.device, settings=settings, token=args.token or os.environ.get("ELASTREG_TOKEN"))
+    return run(
+        args.model,
+        host=args.host,
+        port=args.port,
+        server=args.server,
+        store=args.store,
+        device=args.device,
+        settings=settings,
+        token=args.token or os.environ.get("ELASTREG_TOKEN"),
+    )
 
 
 def _bench(args: argparse.Namespace) -> int:
@@ -127,11 +151,17 @@ def parser() -> argparse.ArgumentParser:
     )
     d.add_argument("--model", default="phantom", help="model id in the store (default: phantom)")
     d.add_argument("--frames", type=int, default=20)
-    d.add_argument("--method", choices=["network", "fem", "auto"], default="network",
-                   help="auto: the network, with frames whose error estimate is large redone by the FEM")
+    d.add_argument(
+        "--method",
+        choices=["network", "fem", "auto"],
+        default="network",
+        help="auto: the network, with frames whose error estimate is large redone by the FEM",
+    )
     d.add_argument("--encoding", choices=["msgpack", "json"], default="msgpack")
     d.add_argument("--store", default=None, help="model store (default: the project's model_store/)")
-    d.add_argument("--viewer", action="store_true", help="serve and open the live viewer's demo instead (Ctrl-C to stop)")
+    d.add_argument(
+        "--viewer", action="store_true", help="serve and open the live viewer's demo instead (Ctrl-C to stop)"
+    )
     d.add_argument("--port", type=int, default=None, help="with --viewer: the server's port (default: a free one)")
     d.set_defaults(func=_demo)
 
@@ -139,8 +169,12 @@ def parser() -> argparse.ArgumentParser:
     s.add_argument("--store", default=None, help="model store (default: $ELASTREG_STORE or the project's model_store/)")
     s.add_argument("--host", default="127.0.0.1")
     s.add_argument("--port", type=int, default=8000)
-    s.add_argument("--workers", type=int, default=1, help="server processes (sessions live in the process that made them)")
-    s.add_argument("--token-file", default=None, help="bearer tokens, one a line (or ELASTREG_API_TOKENS); see docs/deployment.md")
+    s.add_argument(
+        "--workers", type=int, default=1, help="server processes (sessions live in the process that made them)"
+    )
+    s.add_argument(
+        "--token-file", default=None, help="bearer tokens, one a line (or ELASTREG_API_TOKENS); see docs/deployment.md"
+    )
     s.add_argument("--insecure", action="store_true", help="serve a non-loopback address without tokens")
     s.add_argument("--ssl-certfile", default=None, help="TLS certificate (PEM): serve HTTPS and WSS")
     s.add_argument("--ssl-keyfile", default=None, help="the certificate's private key (PEM)")
@@ -151,24 +185,35 @@ def parser() -> argparse.ArgumentParser:
     t.add_argument("--store", default=None, help="model store (default: $ELASTREG_STORE or the project's model_store/)")
     t.add_argument("--name", default=None, help="model id in the store (default: the scene's name)")
     t.add_argument("--samples", type=int, default=None, help="samples to generate (default: the scene's)")
-    t.add_argument("--minutes", type=_positive, default=None,
-                   help="bound the whole build's wall time: FEM data for 60 %% of it, training in the rest")
+    t.add_argument(
+        "--minutes",
+        type=_positive,
+        default=None,
+        help="bound the whole build's wall time: FEM data for 60 %% of it, training in the rest",
+    )
     t.add_argument("--workers", type=int, default=2, help="local Dask worker processes (one per core)")
     t.add_argument("--scheduler", default=None, help="address of an existing Dask scheduler for the data generation")
     t.add_argument("--data", default=None, help="data folder root (default: $ELASTREG_DATA or ~/.cache/elastreg/data)")
     t.add_argument("--layout", choices=["reduced", "paper"], default="reduced")
     t.add_argument("--hidden", type=int, nargs="+", default=[512, 512], help="hidden layer widths (reduced layout)")
     t.add_argument("--rank", type=int, default=128, help="POD modes (reduced layout)")
-    t.add_argument("--members", type=_at_least_one, default=None,
-                   help="an ensemble of this many independently trained MLPs over one basis, averaged "
-                        "(reduced layout; default: the scene's [training] members, else 1)")
+    t.add_argument(
+        "--members",
+        type=_at_least_one,
+        default=None,
+        help="an ensemble of this many independently trained MLPs over one basis, averaged "
+        "(reduced layout; default: the scene's [training] members, else 1)",
+    )
     t.add_argument("--physics-skip", action="store_true", help="add the linear small-strain response as a skip path")
     t.add_argument("--epochs", type=int, default=200)
     t.add_argument("--seed", type=int, default=0)
     t.set_defaults(func=_train)
 
-    g = sub.add_parser("igtl", help="an OpenIGTLink bridge (3D Slicer connects as a client): clouds in, "
-                                     "the registered surface and a status out (docs/frontends.md)")
+    g = sub.add_parser(
+        "igtl",
+        help="an OpenIGTLink bridge (3D Slicer connects as a client): clouds in, "
+        "the registered surface and a status out (docs/frontends.md)",
+    )
     g.add_argument("--model", required=True, help="model id in the store")
     g.add_argument("--host", default="127.0.0.1")
     g.add_argument("--port", type=int, default=18944, help="OpenIGTLink port (default: 18944)")

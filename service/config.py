@@ -60,10 +60,24 @@ _TOKEN = r"^[A-Za-z0-9._~+/=-]{16,512}$"  # RFC 6750's token68 characters, at le
 
 #: the settings that bound what one client can make the server hold or do: /health lists them
 LIMITS = (
-    "max_points", "max_sessions", "session_ttl_s", "max_body_bytes", "max_message_bytes",
-    "max_array_elements", "stream_queue", "stream_queue_bytes", "max_sockets", "max_connections",
-    "first_message_timeout_s", "body_timeout_s", "send_timeout_s", "max_iter", "max_time_budget_ms",
-    "e_range", "solve_queue", "session_queue",
+    "max_points",
+    "max_sessions",
+    "session_ttl_s",
+    "max_body_bytes",
+    "max_message_bytes",
+    "max_array_elements",
+    "stream_queue",
+    "stream_queue_bytes",
+    "max_sockets",
+    "max_connections",
+    "first_message_timeout_s",
+    "body_timeout_s",
+    "send_timeout_s",
+    "max_iter",
+    "max_time_budget_ms",
+    "e_range",
+    "solve_queue",
+    "session_queue",
 )
 
 
@@ -87,7 +101,10 @@ class Settings(BaseSettings):
     """What a server process runs with."""
 
     model_config = SettingsConfigDict(
-        env_prefix="ELASTREG_", extra="ignore", frozen=True, hide_input_in_errors=True  # no token in a log
+        env_prefix="ELASTREG_",
+        extra="ignore",
+        frozen=True,
+        hide_input_in_errors=True,  # no token in a log
     )
 
     store: Path = Field(default_factory=default_store, description="the model store folder")
@@ -99,7 +116,9 @@ class Settings(BaseSettings):
     blas_threads: int = Field(
         1, ge=0, le=256, description="BLAS/OpenMP threads per solve (0: leave the process as it is)"
     )
-    max_body_bytes: int = Field(16 << 20, ge=1 << 10, le=1 << 31, description="bytes per HTTP request body (413 over it)")
+    max_body_bytes: int = Field(
+        16 << 20, ge=1 << 10, le=1 << 31, description="bytes per HTTP request body (413 over it)"
+    )
     stream_queue: int = Field(256, ge=1, le=100_000, description="frames a stream may queue before reads pause")
     # -- access (API.md, "Access") -----------------------------------------------------------------
     api_tokens: Annotated[tuple[str, ...], NoDecode] = Field(
@@ -111,7 +130,9 @@ class Settings(BaseSettings):
     )
     insecure: bool = Field(False, description="serve a non-loopback address without tokens")
     # -- limits: what one client can make the server hold or do ----------------------------------------
-    max_message_bytes: int = Field(16 << 20, ge=1 << 10, le=1 << 31, description="bytes per WebSocket message (closed 1009 over it)")
+    max_message_bytes: int = Field(
+        16 << 20, ge=1 << 10, le=1 << 31, description="bytes per WebSocket message (closed 1009 over it)"
+    )
     max_array_elements: int = Field(
         1_000_000, ge=1024, le=1 << 31, description="array elements decoded per body or message (413 over it)"
     )
@@ -120,20 +141,33 @@ class Settings(BaseSettings):
     )
     max_sockets: int = Field(128, ge=1, le=100_000, description="open WebSockets (HTTP 503 for the next handshake)")
     max_connections: int = Field(
-        512, ge=2, le=1_000_000, description="open TCP connections and requests in progress (uvicorn's limit_concurrency)"
+        512,
+        ge=2,
+        le=1_000_000,
+        description="open TCP connections and requests in progress (uvicorn's limit_concurrency)",
     )
-    first_message_timeout_s: float = Field(10.0, gt=0, le=3600, description="a socket without its first message is closed")
+    first_message_timeout_s: float = Field(
+        10.0, gt=0, le=3600, description="a socket without its first message is closed"
+    )
     body_timeout_s: float = Field(30.0, gt=0, le=3600, description="seconds to receive a request body (408 past it)")
-    send_timeout_s: float = Field(30.0, gt=0, le=3600, description="a stream whose client takes no reply for this long is closed")
+    send_timeout_s: float = Field(
+        30.0, gt=0, le=3600, description="a stream whose client takes no reply for this long is closed"
+    )
     ws_ping_interval_s: float = Field(10.0, gt=0, le=3600, description="WebSocket keepalive pings")
-    ws_ping_timeout_s: float = Field(10.0, gt=0, le=3600, description="a socket that answers no ping for this long is dropped")
+    ws_ping_timeout_s: float = Field(
+        10.0, gt=0, le=3600, description="a socket that answers no ping for this long is dropped"
+    )
     max_iter: int = Field(1000, ge=1, le=10_000, description="server-wide cap on a session's max_iter")
     max_time_budget_ms: float = Field(
         10_000.0, gt=0, le=3_600_000, description="server-wide cap on a frame's time_budget_ms (and its default)"
     )
     e_range: float = Field(1000.0, ge=1, le=1e6, description="a session's E within this factor of the model's own")
-    solve_queue: int = Field(16, ge=0, le=100_000, description="solves waiting for a thread (503 with Retry-After over it)")
-    session_queue: int = Field(2, ge=0, le=1000, description="HTTP frames of one session waiting behind its running one")
+    solve_queue: int = Field(
+        16, ge=0, le=100_000, description="solves waiting for a thread (503 with Retry-After over it)"
+    )
+    session_queue: int = Field(
+        2, ge=0, le=1000, description="HTTP frames of one session waiting behind its running one"
+    )
     retry_after_s: int = Field(1, ge=1, le=3600, description="Retry-After of a 503")
     drain_timeout_s: float = Field(30.0, ge=0, le=3600, description="at shutdown: seconds to finish frames in flight")
     instance_id: str = Field(
@@ -179,8 +213,10 @@ class Settings(BaseSettings):
                 f"({self.max_points}) points as nested lists: raise it to at least {4 * self.max_points + 1024}"
             )
         if self.stream_queue_bytes < self.max_message_bytes:
-            raise ValueError(f"stream_queue_bytes ({self.stream_queue_bytes}) must hold one message of "
-                             f"max_message_bytes ({self.max_message_bytes})")
+            raise ValueError(
+                f"stream_queue_bytes ({self.stream_queue_bytes}) must hold one message of "
+                f"max_message_bytes ({self.max_message_bytes})"
+            )
         if self.token_file is not None:  # read once, here: a bad file stops the server at startup
             extra = _check_tokens(read_token_file(self.token_file), str(self.token_file))
             object.__setattr__(self, "api_tokens", tuple(dict.fromkeys(self.api_tokens + extra)))
@@ -197,7 +233,8 @@ def _check_tokens(tokens: tuple[str, ...], where: str) -> tuple[str, ...]:
         if not re.fullmatch(_TOKEN, t):
             raise ValueError(
                 f"{where}: a token is 16 to 512 characters of A-Z a-z 0-9 . _ ~ + / = - "
-                f"(got one of {len(t)} characters); make one with: python -c 'import secrets; print(secrets.token_urlsafe(32))'"
+                f"(got one of {len(t)} characters); make one with: "
+                "python -c 'import secrets; print(secrets.token_urlsafe(32))'"
             )
     return tokens
 

@@ -78,12 +78,15 @@ def run(
         tool, support = patches(mesh, m["region_nodes"])
         max_force = float(summary["training"].get("load_distribution", {}).get("max_force", 1.0))
         peak = PEAK_FRACTION * max_force
-        say(f"model {model}: {mesh.n_nodes} nodes, {mesh.n_tets} tets; tool {tool.size} nodes, "
-            f"support {support.size} nodes, peak force {peak:.3g} N; method {method}, {encoding}")
+        say(
+            f"model {model}: {mesh.n_nodes} nodes, {mesh.n_tets} tets; tool {tool.size} nodes, "
+            f"support {support.size} nodes, peak force {peak:.3g} N; method {method}, {encoding}"
+        )
         say(f"making a synthetic sequence of {frames} frames (one FEM solve each) ...", end=" ")
         t0 = time.perf_counter()
-        seq = make_sequence(mesh, material, tool, n_frames=frames, peak_force=peak, n_points=n_points,
-                            noise=noise, seed=seed)
+        seq = make_sequence(
+            mesh, material, tool, n_frames=frames, peak_force=peak, n_points=n_points, noise=noise, seed=seed
+        )
         say(f"{len(seq.clouds)} frames in {time.perf_counter() - t0:.1f} s")
         if not seq.clouds:
             say("error: the FEM could not follow the first frame of the sequence")
@@ -94,8 +97,18 @@ def run(
             val = float(summary["training"].get("validation", {}).get("mean_mm", 0.5))
             settings = {"max_error": 2e-3 * val}
             say(f"auto: frames whose error estimate exceeds {2 * val:.3g} mm are registered again by the FEM")
-        return score_stream(api, model, seq.clouds, seq.positions, seq.net_forces, mesh.nodes,
-                            method=method, support=support, say=say, settings=settings)
+        return score_stream(
+            api,
+            model,
+            seq.clouds,
+            seq.positions,
+            seq.net_forces,
+            mesh.nodes,
+            method=method,
+            support=support,
+            say=say,
+            settings=settings,
+        )
 
 
 def viewer(model: str = "phantom", store=None, port: int | None = None, *, out=None) -> int:
@@ -108,13 +121,18 @@ def viewer(model: str = "phantom", store=None, port: int | None = None, *, out=N
     out = out or sys.stdout
     store = Path(store) if store else default_store()
     if not (store / model / "manifest.json").exists():
-        print(f"error: no model {model!r} in the store at {store}.\nBuild it first with:  elastreg train {model}",
-              file=out)
+        print(
+            f"error: no model {model!r} in the store at {store}.\nBuild it first with:  elastreg train {model}",
+            file=out,
+        )
         return 1
     with BackgroundServer(Settings(store=store), port=port) as server:
         url = f"{server.url}/viewer?model={model}&demo=1"
-        print(f"the viewer: {url}\n(watch any session with {server.url}/viewer?session=ID; Ctrl-C to stop)",
-              file=out, flush=True)
+        print(
+            f"the viewer: {url}\n(watch any session with {server.url}/viewer?session=ID; Ctrl-C to stop)",
+            file=out,
+            flush=True,
+        )
         try:
             webbrowser.open(url)
         except Exception:  # no browser here: the URL above is enough

@@ -30,7 +30,8 @@ A model that can give du/dg at g (for Levenberg-Marquardt, ``registration/levenb
 
 from __future__ import annotations
 
-from typing import Callable, Protocol
+from collections.abc import Callable
+from typing import Protocol
 
 import numpy as np
 
@@ -94,7 +95,7 @@ class ForwardModel(Protocol):
     mesh: TetMesh
     material: Material
 
-    def with_stiffness(self, E: float) -> "ForwardModel":
+    def with_stiffness(self, E: float) -> ForwardModel:
         """The same model for another Young's modulus (a new object)."""
 
     def restrict(self, support: Array, nodes: Array | None = None) -> ForwardOperator:

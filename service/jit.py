@@ -34,9 +34,7 @@ def available() -> bool:
     return _numba() is not None
 
 
-def kernels(
-    *functions: Kernel, helpers: tuple[Callable, ...] = ()
-) -> Callable[[], types.SimpleNamespace | None]:
+def kernels(*functions: Kernel, helpers: tuple[Callable, ...] = ()) -> Callable[[], types.SimpleNamespace | None]:
     """A cached getter of `functions` compiled by numba, by name, or of None without numba."""
 
     @functools.cache

@@ -24,8 +24,9 @@ from .registration.settings import METHODS
 from .synthetic import sample_surface
 
 
-async def make_frames(api: AsyncClient, model: str, *, n_frames: int = 8, n_points: int = 1000,
-                      seed: int = 0) -> tuple[list[np.ndarray], np.ndarray]:
+async def make_frames(
+    api: AsyncClient, model: str, *, n_frames: int = 8, n_points: int = 1000, seed: int = 0
+) -> tuple[list[np.ndarray], np.ndarray]:
     """Clouds to replay, and the support to register them with: the network's displacement
     under a growing pull on a patch (``/simulate``), sampled on the deformed surface."""
     m = await api.mesh(model)
@@ -48,8 +49,16 @@ async def make_frames(api: AsyncClient, model: str, *, n_frames: int = 8, n_poin
 async def _run(args: argparse.Namespace) -> LoadReport:
     async with AsyncClient(args.url, encoding=args.encoding) as api:
         frames, support = await make_frames(api, args.model, n_points=args.points)
-    return await run_load(args.url, args.model, frames=frames, support=support, streams=args.streams,
-                          seconds=args.seconds, encoding=args.encoding, method=args.method)
+    return await run_load(
+        args.url,
+        args.model,
+        frames=frames,
+        support=support,
+        streams=args.streams,
+        seconds=args.seconds,
+        encoding=args.encoding,
+        method=args.method,
+    )
 
 
 def main(argv: list[str] | None = None) -> int:

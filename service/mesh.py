@@ -83,7 +83,7 @@ class TetMesh:
         fixed: Array | None = None,
         *,
         rel_volume_tol: float = 1e-9,
-    ) -> tuple["TetMesh", Array | None]:
+    ) -> tuple[TetMesh, Array | None]:
         """Validate and repair raw arrays into a mesh.
 
         Inverted tets are re-oriented (logged); degenerate tets, several components and bad
@@ -145,11 +145,11 @@ class TetMesh:
             fixed = fixed[fixed >= 0]
         return cls(nodes, tets, fixed), kept
 
-    def with_fixed(self, fixed: Array) -> "TetMesh":
+    def with_fixed(self, fixed: Array) -> TetMesh:
         """The same mesh with other Dirichlet nodes (cached facts are recomputed)."""
         return TetMesh(self.nodes, self.tets, fixed)
 
-    def scaled(self, factor: float) -> "TetMesh":
+    def scaled(self, factor: float) -> TetMesh:
         return TetMesh(self.nodes * factor, self.tets, self.fixed)
 
     # -- sizes --------------------------------------------------------------------------------

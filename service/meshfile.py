@@ -32,18 +32,20 @@ SURFACE_SUFFIXES = frozenset({".stl", ".obj", ".ply", ".off"})
 #: strongest optimisation (flips, smoothing, insertion; 20 passes, aiming at dihedral <= 165 deg)
 #: to remove the slivers Delaunay refinement leaves. Passed as keywords: the switch-string path
 #: of the tetgen package writes to stdout. TetGen is deterministic for a given input.
-TETGEN_OPTIONS: Mapping[str, object] = MappingProxyType(dict(
-    plc=True,
-    quality=True,
-    minratio=1.5,
-    mindihedral=18.0,
-    nobisect=True,
-    opt_max_flip_level=10,
-    opt_scheme=7,
-    opt_iterations=20,
-    optmaxdihedral=165.0,
-    quiet=True,
-))
+TETGEN_OPTIONS: Mapping[str, object] = MappingProxyType(
+    dict(
+        plc=True,
+        quality=True,
+        minratio=1.5,
+        mindihedral=18.0,
+        nobisect=True,
+        opt_max_flip_level=10,
+        opt_scheme=7,
+        opt_iterations=20,
+        optmaxdihedral=165.0,
+        quiet=True,
+    )
+)
 
 #: A tet whose smallest dihedral angle is below this many degrees counts as a sliver.
 SLIVER_DEG = 5.0
@@ -186,10 +188,10 @@ def _read_gmsh1(path: Path) -> tuple[Array, Array]:
     try:
         i = next(k for k, line in enumerate(lines) if line.strip() == "$NOD")
         n = int(lines[i + 1])
-        node_rows = np.array([line.split() for line in lines[i + 2:i + 2 + n]], np.float64)
+        node_rows = np.array([line.split() for line in lines[i + 2 : i + 2 + n]], np.float64)
         j = next(k for k, line in enumerate(lines) if line.strip() == "$ELM")
         m = int(lines[j + 1])
-        rows = [line.split() for line in lines[j + 2:j + 2 + m]]
+        rows = [line.split() for line in lines[j + 2 : j + 2 + m]]
         tets = np.array([r[5:9] for r in rows if r[1] == "4"], np.int64)
     except (ValueError, IndexError, StopIteration) as exc:
         raise MeshError(f"{path}: not a readable gmsh v1 file ({exc})") from exc
@@ -223,9 +225,7 @@ def _read_tets(path: Path) -> tuple[Array, Array]:
     # cannot guess: neither may take the service down
     except (Exception, SystemExit) as exc:
         said = " ".join(chatter.getvalue().split())
-        raise MeshError(
-            f"{path}: meshio could not read it ({type(exc).__name__}: {said or exc})"
-        ) from exc
+        raise MeshError(f"{path}: meshio could not read it ({type(exc).__name__}: {said or exc})") from exc
     if chatter.getvalue().strip():
         log.debug("%s: meshio says: %s", path.name, " ".join(chatter.getvalue().split()))
     blocks = [c.data[:, :4] for c in m.cells if c.type in ("tetra", "tetra10")]
@@ -237,14 +237,11 @@ def _read_tets(path: Path) -> tuple[Array, Array]:
         )
     ignored = sum(len(c.data) for c in m.cells if c.type not in ("tetra", "tetra10"))
     if ignored:
-        log.info("%s: ignored %d non-tet cells (boundary triangles, lines, ...)", path.name,
-                 ignored)
+        log.info("%s: ignored %d non-tet cells (boundary triangles, lines, ...)", path.name, ignored)
     return np.asarray(m.points, np.float64)[:, :3], np.concatenate(blocks).astype(np.int64)
 
 
-def load_mesh(
-    path: str | Path, scale: float = 1.0, *, max_volume: float | None = None
-) -> LoadedMesh:
+def load_mesh(path: str | Path, scale: float = 1.0, *, max_volume: float | None = None) -> LoadedMesh:
     """Read a tetrahedral mesh or tetrahedralise a closed surface, scale it, and validate it.
 
     Shape: result.nodes (n, 3) = file coordinates x `scale`.
@@ -264,8 +261,13 @@ def load_mesh(
             nodes, tets = tetrahedralise(vertices, faces, max_volume=max_volume)
         except MeshError as exc:
             raise MeshError(f"{path}: {exc}") from exc
-        log.info("%s: tetrahedralised %d surface vertices into %d nodes, %d tets",
-                 path.name, len(vertices), len(nodes), len(tets))
+        log.info(
+            "%s: tetrahedralised %d surface vertices into %d nodes, %d tets",
+            path.name,
+            len(vertices),
+            len(nodes),
+            len(tets),
+        )
     else:
         nodes, tets = _read_tets(path)
         nodes = nodes * scale
@@ -276,10 +278,8 @@ def load_mesh(
     quality = mesh_quality(mesh.nodes, mesh.tets)
     if quality.n_slivers:  # a warning only when they are more than a stray few
         level = logging.WARNING if quality.n_slivers > 0.01 * mesh.n_tets else logging.INFO
-        log.log(level, "%s: %d sliver tets (min dihedral %.1f deg)", path.name,
-                quality.n_slivers, quality.min_dihedral)
-    log.info("%s: %d nodes, %d tets, min dihedral %.1f deg", path.name, mesh.n_nodes,
-             mesh.n_tets, quality.min_dihedral)
+        log.log(level, "%s: %d sliver tets (min dihedral %.1f deg)", path.name, quality.n_slivers, quality.min_dihedral)
+    log.info("%s: %d nodes, %d tets, min dihedral %.1f deg", path.name, mesh.n_nodes, mesh.n_tets, quality.min_dihedral)
     return LoadedMesh(
         nodes=mesh.nodes,
         tets=mesh.tets,

@@ -22,9 +22,7 @@ Array = np.ndarray
 #: numbered by bits (x + 2y + 4z); with the same split in every hex, neighbouring hexes cut their
 #: shared face along the same diagonal, so the mesh is conforming. Each tet is listed positively
 #: oriented (det[b-a, c-a, d-a] > 0), so TetMesh.build has nothing to repair.
-KUHN = np.array(
-    [[0, 1, 3, 7], [0, 5, 1, 7], [0, 3, 2, 7], [0, 2, 6, 7], [0, 4, 5, 7], [0, 6, 4, 7]]
-)
+KUHN = np.array([[0, 1, 3, 7], [0, 5, 1, 7], [0, 3, 2, 7], [0, 2, 6, 7], [0, 4, 5, 7], [0, 6, 4, 7]])
 
 #: Smooth deformations of the phantom's ellipsoid: (direction, relative amplitude, width).
 #: Von Mises bumps exp((d . c - 1) / w^2) on the unit sphere: low frequency by construction, and
@@ -56,8 +54,7 @@ def grid_tets(shape: tuple[int, int, int], cell: float) -> tuple[Array, Array]:
     idx = np.arange(len(nodes)).reshape(nx + 1, ny + 1, nz + 1)
     bits = np.arange(8)
     corner = np.stack(  # (nx, ny, nz, 8): node id of each hex corner
-        [idx[(b & 1):nx + (b & 1), (b >> 1 & 1):ny + (b >> 1 & 1), (b >> 2 & 1):nz + (b >> 2 & 1)]
-         for b in bits],
+        [idx[(b & 1) : nx + (b & 1), (b >> 1 & 1) : ny + (b >> 1 & 1), (b >> 2 & 1) : nz + (b >> 2 & 1)] for b in bits],
         axis=-1,
     ).reshape(-1, 8)
     tets = corner[:, KUHN].reshape(-1, 4)
@@ -89,9 +86,7 @@ def _phantom_radius(d: Array) -> Array:
     return r * (1.0 + bump)
 
 
-def phantom_surface(
-    subdivisions: int = PHANTOM_SUBDIVISIONS, relax: int = 100
-) -> tuple[Array, Array]:
+def phantom_surface(subdivisions: int = PHANTOM_SUBDIVISIONS, relax: int = 100) -> tuple[Array, Array]:
     """The phantom's closed triangulated surface, outward oriented.
 
     Shape: vertices (v, 3), faces (f, 3).

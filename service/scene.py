@@ -91,8 +91,7 @@ Count = Annotated[int, Field(strict=True, ge=1)]
 def _check_box(box: tuple[Vec3, Vec3] | None) -> tuple[Vec3, Vec3] | None:
     if box is not None and any(lo > hi for lo, hi in zip(*box, strict=True)):
         raise ValueError(
-            "must be [[xmin, ymin, zmin], [xmax, ymax, zmax]] with min <= max, "
-            f"got {[list(corner) for corner in box]}"
+            f"must be [[xmin, ymin, zmin], [xmax, ymax, zmax]] with min <= max, got {[list(corner) for corner in box]}"
         )
     return box
 
@@ -119,7 +118,7 @@ class MeshSpec(_Table):
     scale: Annotated[float, Field(gt=0.0, allow_inf_nan=False)] = 1.0
 
     @model_validator(mode="after")
-    def _one_source(self) -> "MeshSpec":
+    def _one_source(self) -> MeshSpec:
         if (self.path is None) == (self.generator is None):
             raise ValueError("give exactly one of path, generator")
         return self
@@ -145,12 +144,10 @@ class BoundarySpec(_Table):
     free_nodes: list[NodeId] = []
 
     @model_validator(mode="after")
-    def _at_most_one(self) -> "BoundarySpec":
+    def _at_most_one(self) -> BoundarySpec:
         given = _given(self, FIXED_KEYS)
         if len(given) > 1:
-            raise ValueError(
-                f"give exactly one of {', '.join(FIXED_KEYS)} (got {', '.join(given)})"
-            )
+            raise ValueError(f"give exactly one of {', '.join(FIXED_KEYS)} (got {', '.join(given)})")
         return self
 
 
@@ -188,12 +185,10 @@ class TrainingSpec(_Table):
         return v
 
     @model_validator(mode="after")
-    def _at_most_one(self) -> "TrainingSpec":
+    def _at_most_one(self) -> TrainingSpec:
         given = _given(self, REGION_KEYS)
         if len(given) > 1:
-            raise ValueError(
-                f"give at most one of {', '.join(REGION_KEYS)} (got {', '.join(given)})"
-            )
+            raise ValueError(f"give at most one of {', '.join(REGION_KEYS)} (got {', '.join(given)})")
         return self
 
 
@@ -215,12 +210,13 @@ class RegistrationSpec(BaseModel):
             return data
         return {
             k: str((Path(base) / v).resolve())
-            if k.endswith("_file") and k not in cls.model_fields and isinstance(v, str) else v
+            if k.endswith("_file") and k not in cls.model_fields and isinstance(v, str)
+            else v
             for k, v in data.items()
         }
 
     @model_validator(mode="after")
-    def _at_most_one(self) -> "RegistrationSpec":
+    def _at_most_one(self) -> RegistrationSpec:
         if self.support is not None and self.support_file is not None:
             raise ValueError("give at most one of support, support_file")
         return self
@@ -243,7 +239,7 @@ class Scene(_Table):
     _loaded: dict = PrivateAttr(default_factory=dict)  # mesh.hash -> LoadedMesh, from build_mesh
 
     @model_validator(mode="after")
-    def _boundary_needed(self) -> "Scene":
+    def _boundary_needed(self) -> Scene:
         if self.mesh.path is not None and not _given(self.boundary, FIXED_KEYS):
             raise ValueError(
                 "[boundary]: give exactly one of fixed_nodes, fixed_nodes_file, fixed_box "
@@ -313,19 +309,16 @@ class Scene(_Table):
             free = self._map_ids(b.free_nodes, "[boundary] free_nodes", loaded)
             stray = np.setdiff1d(free, fixed)
             if stray.size:
-                log.warning("%s: free_nodes %s were not fixed anyway", self._origin,
-                            stray.tolist()[:10])
+                log.warning("%s: free_nodes %s were not fixed anyway", self._origin, stray.tolist()[:10])
             fixed = np.setdiff1d(fixed, free)
         if np.unique(fixed).size == 0:
             raise self._error(
                 "[boundary]",
-                "no node is fixed, so the static problem is singular (rigid motions are free): "
-                "fix at least one node",
+                "no node is fixed, so the static problem is singular (rigid motions are free): fix at least one node",
             )
         mesh = loaded.to_mesh(fixed)
         self._loaded[mesh.hash] = loaded
-        log.info("%s: %d nodes, %d tets, %d fixed", self._origin, mesh.n_nodes, mesh.n_tets,
-                 mesh.fixed.size)
+        log.info("%s: %d nodes, %d tets, %d fixed", self._origin, mesh.n_nodes, mesh.n_tets, mesh.fixed.size)
         return mesh, loaded
 
     # -- node sets ----------------------------------------------------------------------------
@@ -346,8 +339,9 @@ class Scene(_Table):
             bad = np.setdiff1d(ids, free_surface)
             if bad.size:
                 raise self._error(
-                    key, f"{bad.size} nodes are not free surface nodes (interior or fixed): "
-                    f"{bad.tolist()[:10]}{' ...' if bad.size > 10 else ''}"
+                    key,
+                    f"{bad.size} nodes are not free surface nodes (interior or fixed): "
+                    f"{bad.tolist()[:10]}{' ...' if bad.size > 10 else ''}",
                 )
             return ids
         if t.region_box is not None:
@@ -392,9 +386,7 @@ class Scene(_Table):
         except (OSError, ValueError) as exc:
             raise self._error(key, f"cannot read {r.matching_file}: {exc}") from exc
         if faces.ndim != 2 or faces.shape[1] != 3 or not np.issubdtype(faces.dtype, np.integer):
-            raise self._error(
-                key, f"must hold an (f, 3) integer array, got {faces.dtype} {faces.shape}"
-            )
+            raise self._error(key, f"must hold an (f, 3) integer array, got {faces.dtype} {faces.shape}")
         ids = self._map_ids(faces.ravel(), key, self._loaded_for(mesh, loaded))
         return ids.reshape(-1, 3)
 
@@ -414,16 +406,16 @@ class Scene(_Table):
             raise self._error(key, f"node ids must lie in 0..{n - 1}, got {out.tolist()[:10]}")
         mapped = loaded.source_to_mesh()[ids]
         if (mapped < 0).any():
-            raise self._error(
-                key, f"nodes {ids[mapped < 0].tolist()[:10]} belong to no tet (dropped on loading)"
-            )
+            raise self._error(key, f"nodes {ids[mapped < 0].tolist()[:10]} belong to no tet (dropped on loading)")
         return mapped
 
     def _read_ids(self, path: Path, key: str) -> Array:
         """Node ids from a .npy int array, or a text file with one id a line ('#' comments)."""
         try:
-            ids = np.load(path, allow_pickle=False) if path.suffix == ".npy" else np.loadtxt(
-                path, dtype=np.int64, ndmin=1, comments="#"
+            ids = (
+                np.load(path, allow_pickle=False)
+                if path.suffix == ".npy"
+                else np.loadtxt(path, dtype=np.int64, ndmin=1, comments="#")
             )
         except (OSError, ValueError) as exc:
             raise self._error(key, f"cannot read node ids from {path}: {exc}") from exc
@@ -457,8 +449,12 @@ def _describe(err: dict) -> str:
     elif kind == "extra_forbidden":
         what = "unknown table" if isinstance(err.get("input"), dict) else "unknown key"
     elif kind in ("greater_than", "greater_than_equal", "less_than", "less_than_equal"):
-        op, bound = {"greater_than": (">", "gt"), "greater_than_equal": (">=", "ge"),
-                     "less_than": ("<", "lt"), "less_than_equal": ("<=", "le")}[kind]
+        op, bound = {
+            "greater_than": (">", "gt"),
+            "greater_than_equal": (">=", "ge"),
+            "less_than": ("<", "lt"),
+            "less_than_equal": ("<=", "le"),
+        }[kind]
         what = f"must be {op} {ctx[bound]}, got {got}"
     elif kind == "literal_error":
         what = f"must be {ctx['expected']}, got {got}"
@@ -522,8 +518,7 @@ def resolve_scene(arg: str | Path) -> Scene:
     if str(arg) in BUILTIN_SCENES:
         return builtin_scene(str(arg))
     raise SceneError(
-        f"{arg}: no such scene file, and no builtin scene of that name "
-        f"(builtins: {', '.join(BUILTIN_SCENES)})"
+        f"{arg}: no such scene file, and no builtin scene of that name (builtins: {', '.join(BUILTIN_SCENES)})"
     )
 
 

@@ -107,8 +107,9 @@ def network_from_manifest(spec: dict, state: dict[str, torch.Tensor]) -> torch.n
     layout = spec.get("layout")
     if layout == "reduced":
         basis = state["basis"]
-        net = ReducedSurrogate(int(spec["n_in"]), basis, [int(h) for h in spec["hidden"]],
-                               members=int(spec.get("members", 1)))
+        net = ReducedSurrogate(
+            int(spec["n_in"]), basis, [int(h) for h in spec["hidden"]], members=int(spec.get("members", 1))
+        )
     elif layout == "paper":
         net = PaperSurrogate(int(spec["n_in"]), int(spec["n_out"]), depth=len(spec["hidden"]) + 1)
     else:
@@ -203,8 +204,10 @@ def _check_manifest(manifest, name: str) -> None:
     files = manifest.get("files")
     if not isinstance(files, dict) or set(files) != {MESH, WEIGHTS}:
         listed = sorted(files)[:4] if isinstance(files, dict) else files
-        raise StoreError(f"{name}: the manifest must list {MESH} and {WEIGHTS} under files, and nothing else "
-                         f"(it lists {listed!r:.200})")
+        raise StoreError(
+            f"{name}: the manifest must list {MESH} and {WEIGHTS} under files, and nothing else "
+            f"(it lists {listed!r:.200})"
+        )
     if not all(isinstance(d, str) and re.fullmatch(r"[0-9a-f]{64}", d) for d in files.values()):
         raise StoreError(f"{name}: each file's checksum must be a SHA-256 hex digest")
     entry_id = manifest.get("id")
@@ -214,8 +217,9 @@ def _check_manifest(manifest, name: str) -> None:
         if not isinstance(manifest.get(key), dict):
             raise StoreError(f"{name}: the manifest has no {key!r} object")
     material = manifest["material"]
-    if not all(isinstance(material.get(k), (int, float)) and not isinstance(material.get(k), bool)
-               for k in ("E", "nu")):
+    if not all(
+        isinstance(material.get(k), (int, float)) and not isinstance(material.get(k), bool) for k in ("E", "nu")
+    ):
         raise StoreError(f"{name}: the manifest's material needs numbers E and nu")
 
 

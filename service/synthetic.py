@@ -49,9 +49,7 @@ def visible_faces(mesh: TetMesh, view: Array, max_angle_deg: float = 75.0) -> Ar
     return np.flatnonzero(mesh.face_normals @ v >= np.cos(np.radians(max_angle_deg)))
 
 
-def sample_surface(
-    nodes: Array, faces: Array, n_points: int, rng: np.random.Generator
-) -> tuple[Array, Array, Array]:
+def sample_surface(nodes: Array, faces: Array, n_points: int, rng: np.random.Generator) -> tuple[Array, Array, Array]:
     """Points uniformly distributed over the area of `faces` at node positions `nodes`.
 
     Shape: nodes (n, 3), faces (f, 3) -> points (m, 3), face index (m,), barycentric (m, 3).
@@ -65,7 +63,9 @@ def sample_surface(
     return np.einsum("mk,mkd->md", bary, x[face]), face, bary
 
 
-def perturb(points: Array, rng: np.random.Generator, noise: float = 0.0, outliers: float = 0.0, spread: float = 0.0) -> Array:
+def perturb(
+    points: Array, rng: np.random.Generator, noise: float = 0.0, outliers: float = 0.0, spread: float = 0.0
+) -> Array:
     """Gaussian noise (std `noise`, m) and a fraction of outliers scattered within `spread` of
     the cloud's bounding box."""
     p = points + rng.normal(scale=noise, size=points.shape) if noise > 0 else points.copy()

@@ -99,8 +99,15 @@ def bar_store(tmp_path_factory, bar):
     # 54 training samples: the physics skip path (the small-strain response) is what makes so
     # little data usable (without it the force error of registration exceeds 100%)
     config = TrainConfig(hidden=(64, 64), rank=24, epochs=60, batch=32, lr=3e-3, patience=60, physics_skip=True)
-    report = build(scene, root / "store", workers=0, data_root=root / "data", config=config,
-                   command="elastreg train bar.toml", progress=False)
+    report = build(
+        scene,
+        root / "store",
+        workers=0,
+        data_root=root / "data",
+        config=config,
+        command="elastreg train bar.toml",
+        progress=False,
+    )
     return root / "store", report
 
 

@@ -153,11 +153,7 @@ def test_the_architecture_page_names_every_module():
     missing = []
     for path in SERVICE.values():
         rel = path.relative_to(ROOT / "service")
-        if (
-            rel.name == "__init__.py"
-            or rel.parts[0] in ("bench", "scenes")
-            or "routes" in rel.parts
-        ):
+        if rel.name == "__init__.py" or rel.parts[0] in ("bench", "scenes") or "routes" in rel.parts:
             continue  # packages described as a whole
         if f"`{rel.as_posix()}`" not in page:
             missing.append(rel.as_posix())

@@ -47,8 +47,12 @@ def folder(tmp_path) -> Path:
     return tmp_path
 
 
-def write(folder: Path, boundary: str = "fixed_box = [[-1, -1, -1], [0.001, 1, 1]]",
-          training: str = "", text: str | None = None) -> Path:
+def write(
+    folder: Path,
+    boundary: str = "fixed_box = [[-1, -1, -1], [0.001, 1, 1]]",
+    training: str = "",
+    text: str | None = None,
+) -> Path:
     path = folder / "scene.toml"
     path.write_text(text if text is not None else GOOD.format(boundary=boundary, training=training))
     return path
@@ -117,7 +121,10 @@ def test_regions(folder):
     scene = load_scene(write(folder, training=sphere))
     mesh, _ = scene.build_mesh()
     assert sorted(map(tuple, mesh.nodes[scene.region_nodes(mesh)].round(3))) == [
-        (0.03, 0.01, 0.02), (0.04, 0.0, 0.02), (0.04, 0.01, 0.01), (0.04, 0.01, 0.02),
+        (0.03, 0.01, 0.02),
+        (0.04, 0.0, 0.02),
+        (0.04, 0.01, 0.01),
+        (0.04, 0.01, 0.02),
         (0.04, 0.02, 0.02),
     ]
     ids = mesh.free_surface_nodes[:4].tolist()
@@ -129,8 +136,11 @@ def test_ids_are_mapped_when_unused_nodes_are_dropped(tmp_path):
     nodes, tets = grid_tets((2, 1, 1), 1.0)
     nodes = np.vstack([[[9.0, 9, 9]], nodes])  # an unused node 0 shifts every id by one
     meshio.write(tmp_path / "m.vtu", meshio.Mesh(nodes, [("tetra", tets + 1)]))
-    text = GOOD.replace("meshes/block.vtu", "m.vtu").replace("scale = 0.001", "").format(
-        boundary="fixed_nodes = [1, 2, 3, 4]", training="region = [12]")
+    text = (
+        GOOD.replace("meshes/block.vtu", "m.vtu")
+        .replace("scale = 0.001", "")
+        .format(boundary="fixed_nodes = [1, 2, 3, 4]", training="region = [12]")
+    )
     scene = load_scene(write(tmp_path, text=text))
     mesh, loaded = scene.build_mesh()
     assert loaded.kept is not None and mesh.fixed.tolist() == [0, 1, 2, 3]
@@ -199,8 +209,7 @@ def test_region_not_on_surface(folder):
     nodes, _ = grid_tets((4, 2, 2), 10.0)
     interior = int(np.flatnonzero((nodes == [20.0, 10.0, 10.0]).all(axis=1))[0])
     msg = error_of(folder, training=f"region = [{interior}]")
-    assert (f"[training] region: 1 nodes are not free surface nodes (interior or fixed): "
-            f"[{interior}]") in msg
+    assert (f"[training] region: 1 nodes are not free surface nodes (interior or fixed): [{interior}]") in msg
     assert "[training] region: " in error_of(folder, training="region = [0]")  # fixed by the box
 
 

@@ -36,7 +36,10 @@ BAD = {
     "no_network_key": (lambda p: _edit(p, network=None), "no 'network'"),
     "no_material_E": (lambda p: _edit(p, material={"nu": 0.45}), "E and nu"),
     "dev_zero": (lambda p: _files(p, **{"../../../dev/zero": DIGEST, "mesh.npz": DIGEST}), "must list"),
-    "extra_file": (lambda p: _files(p, **{"mesh.npz": DIGEST, "weights.safetensors": DIGEST, "x": DIGEST}), "nothing else"),
+    "extra_file": (
+        lambda p: _files(p, **{"mesh.npz": DIGEST, "weights.safetensors": DIGEST, "x": DIGEST}),
+        "nothing else",
+    ),
     "bad_digest": (lambda p: _files(p, **{"mesh.npz": "abc", "weights.safetensors": DIGEST}), "SHA-256"),
     "mesh_is_a_device": (lambda p: (p / "mesh.npz").unlink() or os.symlink("/dev/zero", p / "mesh.npz"), "outside"),
     "mesh_is_a_fifo": (lambda p: (p / "mesh.npz").unlink() or os.mkfifo(p / "mesh.npz"), "not a regular file"),

@@ -31,6 +31,7 @@ from .work import SolvePool
 
 log = logging.getLogger(__name__)
 
+
 def _warm_up() -> None:
     """Compile (or load) the distance kernel now rather than in the first session."""
     import numpy as np
@@ -57,15 +58,22 @@ async def lifespan(app: FastAPI):
     if settings.blas_threads:
         limit_threads(settings.blas_threads)
     await asyncio.to_thread(_warm_up)
-    log.info("instance %s: %d model(s) from %s (%d refused)",
-             settings.instance_id, len(entries), settings.store, len(refused))
+    log.info(
+        "instance %s: %d model(s) from %s (%d refused)",
+        settings.instance_id,
+        len(entries),
+        settings.store,
+        len(refused),
+    )
     if not entries:
         log.error("no model loaded from %s: /health reports degraded (503)", settings.store)
     if settings.api_tokens:
         log.info("access: %d bearer token(s) required on every endpoint but GET /health", len(settings.api_tokens))
     else:
-        log.warning("access: NO TOKENS - this server is open to anyone who can reach it (set "
-                    "ELASTREG_API_TOKENS or --token-file before it leaves loopback)")
+        log.warning(
+            "access: NO TOKENS - this server is open to anyone who can reach it (set "
+            "ELASTREG_API_TOKENS or --token-file before it leaves loopback)"
+        )
     app.state.models = entries
     app.state.store_errors = refused
     app.state.mesh_cache = {}
@@ -99,8 +107,12 @@ async def drain(app: FastAPI, timeout: float) -> bool:
     while (state.streams or state.pool.in_flight) and loop.time() < deadline:
         await asyncio.sleep(0.02)
     done = not state.streams and not state.pool.in_flight
-    log.info("drained %d stream(s) and %d solve(s) in flight%s", n_streams, n_jobs,
-             "" if done else f"; gave up after {timeout:g} s")
+    log.info(
+        "drained %d stream(s) and %d solve(s) in flight%s",
+        n_streams,
+        n_jobs,
+        "" if done else f"; gave up after {timeout:g} s",
+    )
     return done
 
 
@@ -146,12 +158,17 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(InstanceHeader, instance_id=settings.instance_id)
     if settings.allowed_origins:  # preflights of the listed origins (the guard refuses the rest)
         app.add_middleware(
-            CORSMiddleware, allow_origins=list(settings.allowed_origins), allow_methods=["GET", "POST", "DELETE"],
+            CORSMiddleware,
+            allow_origins=list(settings.allowed_origins),
+            allow_methods=["GET", "POST", "DELETE"],
             allow_headers=["authorization", "content-type", "accept"],
             expose_headers=["x-elastreg-instance", "retry-after"],
         )
-    app.add_middleware(OriginGuard, allowed_origins=settings.allowed_origins,
-                       loopback_only=not settings.api_tokens and not settings.insecure)
+    app.add_middleware(
+        OriginGuard,
+        allowed_origins=settings.allowed_origins,
+        loopback_only=not settings.api_tokens and not settings.insecure,
+    )
     errors.install(app)
     authorized = [Depends(deps.owner)]
     app.include_router(health.router)  # the one endpoint without a token
@@ -175,6 +192,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     app.openapi = openapi
     if closed:
+
         @app.get("/openapi.json", include_in_schema=False, dependencies=authorized)
         async def openapi_document():
             return JSONResponse(app.openapi())

@@ -10,9 +10,9 @@ literals refused, packed arrays checked against their declared shape before they
 the body: an empty list is one byte of MessagePack and 64 bytes of Python, so the containers a
 body may hold are bounded by its size (one per ``_BYTES_PER_CONTAINER`` bytes, beyond a few
 thousand) and its array elements by ``max_elements``; JSON is counted before it is parsed (a
-scan of its bytes), MessagePack as it is built, refused at the first container over a bound. JSON goes through orjson when it is
-installed (arrays written from NumPy directly), else the standard library; both give the same
-bodies and refuse the same inputs.
+scan of its bytes), MessagePack as it is built, refused at the first container over a
+bound. JSON goes through orjson when it is installed (arrays written from NumPy directly), else
+the standard library; both give the same bodies and refuse the same inputs.
 
 >>> body = encode({"points": np.zeros((2, 3))}, MSGPACK)
 >>> decode(body, MSGPACK)["points"].shape
@@ -277,8 +277,10 @@ def decode(data: bytes | str, kind: str, *, max_bytes: int = 64 << 20, max_eleme
             raise
         except ValueError as exc:
             if "exceeds max_" in str(exc):  # a declared length over the limits, refused before allocating
-                raise TooLarge(f"the body declares an array or map beyond its own size or this server's limit of "
-                               f"{max_elements} array elements ({exc})") from None
+                raise TooLarge(
+                    f"the body declares an array or map beyond its own size or this server's limit of "
+                    f"{max_elements} array elements ({exc})"
+                ) from None
             raise DecodeError(f"not valid MessagePack: {exc}") from None
         except (msgpack.ExtraData, msgpack.FormatError, msgpack.StackError, RecursionError) as exc:
             raise DecodeError(f"not valid MessagePack: {exc}") from None

@@ -158,8 +158,12 @@ async def websocket_slot(websocket: WebSocket) -> AsyncIterator[bool]:
     state = websocket.app.state
     settings = state.settings
     if state.sockets >= settings.max_sockets:
-        await deny_websocket(websocket, 503, f"this server has its maximum of {settings.max_sockets} open WebSockets",
-                             {"Retry-After": str(settings.retry_after_s)})
+        await deny_websocket(
+            websocket,
+            503,
+            f"this server has its maximum of {settings.max_sockets} open WebSockets",
+            {"Retry-After": str(settings.retry_after_s)},
+        )
         yield False
         return
     state.sockets += 1
@@ -284,5 +288,9 @@ def reply(body, kind: str, status: int = 200) -> Response:
 def request_body(model: type[BaseModel]) -> dict:
     """``openapi_extra`` for a route that reads its body itself: the schema, both encodings."""
     ref = {"$ref": f"#/components/schemas/{model.__name__}"}
-    return {"requestBody": {"required": True, "content": {"application/json": {"schema": ref},
-                                                          "application/msgpack": {"schema": ref}}}}
+    return {
+        "requestBody": {
+            "required": True,
+            "content": {"application/json": {"schema": ref}, "application/msgpack": {"schema": ref}},
+        }
+    }

@@ -112,8 +112,18 @@ def install(app: FastAPI) -> None:
         log.error("unhandled error on %s %s", request.method, request.url.path, exc_info=exc)
         return error_response(request, 500, f"internal error ({type(exc).__name__}); it has been logged")
 
-    for cls in (ApiError, ValidationError, codec.DecodeError, TooManyPoints, codec.UnsupportedMedia,
-                SessionNotFound, WrongKind, RegistryFull, Overloaded, Dropped):
+    for cls in (
+        ApiError,
+        ValidationError,
+        codec.DecodeError,
+        TooManyPoints,
+        codec.UnsupportedMedia,
+        SessionNotFound,
+        WrongKind,
+        RegistryFull,
+        Overloaded,
+        Dropped,
+    ):
         app.add_exception_handler(cls, api_error)
     app.add_exception_handler(RequestValidationError, validation)
     app.add_exception_handler(StarletteHTTPException, http_error)

@@ -77,14 +77,18 @@ class OriginGuard:
         host = headers.get("host", "")
         if self.loopback_only and not is_loopback(host_name(host)):
             return await self._refuse(
-                scope, receive, send,
+                scope,
+                receive,
+                send,
                 f"this server has no tokens and answers loopback names only (not {host!r}): "
                 "start it with tokens (ELASTREG_API_TOKENS) to serve a network",
             )
         origin = headers.get("origin")
         if origin is not None and not self.allows(origin, scope, host):
             return await self._refuse(
-                scope, receive, send,
+                scope,
+                receive,
+                send,
                 f"cross-origin request from {origin!r} refused: that origin is not in ELASTREG_ALLOWED_ORIGINS",
             )
         return await self.app(scope, receive, send)

@@ -59,11 +59,22 @@ class SolvePool:
 
     def counts(self) -> dict[str, int | None]:
         with self._lock:
-            return {"in_flight": self.in_flight, "running": self.running, "capacity": self.capacity,
-                    "refused": self.refused, "dropped": self.dropped}
+            return {
+                "in_flight": self.in_flight,
+                "running": self.running,
+                "capacity": self.capacity,
+                "refused": self.refused,
+                "dropped": self.dropped,
+            }
 
-    async def run(self, fn: Callable, *args, cancelled: Callable[[], bool] | None = None,
-                  done: Callable[[], None] | None = None, **kwargs) -> Any:
+    async def run(
+        self,
+        fn: Callable,
+        *args,
+        cancelled: Callable[[], bool] | None = None,
+        done: Callable[[], None] | None = None,
+        **kwargs,
+    ) -> Any:
         """``fn(*args, **kwargs)`` on a pool thread. ``cancelled()`` is asked when a thread takes
         the job (True: :class:`Dropped`, not run); ``done()`` is called once the job is over:
         refused, run, dropped or failed (from the thread that ended it)."""
@@ -72,8 +83,10 @@ class SolvePool:
             if self.draining:
                 refusal = "the server is shutting down"
             elif self.capacity is not None and self.in_flight >= self.capacity:
-                refusal = (f"the server is at capacity ({self.threads} solves running, {self.queue} "
-                           f"waiting); retry in {self.retry_after} s")
+                refusal = (
+                    f"the server is at capacity ({self.threads} solves running, {self.queue} "
+                    f"waiting); retry in {self.retry_after} s"
+                )
             if refusal is None:
                 self.in_flight += 1
             else:

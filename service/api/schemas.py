@@ -265,9 +265,7 @@ def error_list(exc: ValidationError, prefix: tuple = ("body",)) -> list[dict]:
 
 def error_text(errors: list[dict]) -> str:
     """The same errors as one line (WebSocket error messages)."""
-    return "; ".join(
-        f"{'.'.join(str(p) for p in e['loc'] if p != 'body') or 'body'}: {e['msg']}" for e in errors
-    )
+    return "; ".join(f"{'.'.join(str(p) for p in e['loc'] if p != 'body') or 'body'}: {e['msg']}" for e in errors)
 
 
 # -- replies -------------------------------------------------------------------------------------
@@ -295,7 +293,9 @@ class SessionCount(_Reply):
 
 
 class Health(_Reply):
-    status: Literal["ok", "degraded"] = Field(description="degraded (HTTP 503): no model loaded, or the solve queue is full")
+    status: Literal["ok", "degraded"] = Field(
+        description="degraded (HTTP 503): no model loaded, or the solve queue is full"
+    )
     reasons: list[str] = Field([], description="why it is degraded")
     models: int
     device: str
@@ -395,7 +395,8 @@ class FrameResult(_Reply):
     net_force: Vec3
     alpha: float | None = Field(None, description="the regularisation weight the frame ran with")
     error_estimate: float | None = Field(
-        None, description="estimated mean nodal error of the displacement, m, without ground truth: the "
+        None,
+        description="estimated mean nodal error of the displacement, m, without ground truth: the "
         "forward model's residual error plus the misfit the declared noise does not explain (null: none could be made)",
     )
     method_used: ForwardMethod | None = Field(None, description="the forward model that produced this frame")

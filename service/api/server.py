@@ -72,8 +72,17 @@ def _draining_server(config, app):
     return DrainingServer(config)
 
 
-def serve(store=None, host: str = "127.0.0.1", port: int = 8000, workers: int = 1, *, token_file=None,
-          insecure: bool = False, ssl_certfile=None, ssl_keyfile=None) -> None:
+def serve(
+    store=None,
+    host: str = "127.0.0.1",
+    port: int = 8000,
+    workers: int = 1,
+    *,
+    token_file=None,
+    insecure: bool = False,
+    ssl_certfile=None,
+    ssl_keyfile=None,
+) -> None:
     """Run the server until interrupted. ``store`` overrides ELASTREG_STORE; ``token_file`` and
     ``insecure`` override ELASTREG_TOKEN_FILE and ELASTREG_INSECURE (set in the environment, so
     that worker processes read them too)."""
@@ -107,8 +116,11 @@ def serve(store=None, host: str = "127.0.0.1", port: int = 8000, workers: int = 
         **uvicorn_options(settings),
     )
     if workers > 1:
-        log.warning("%d worker processes: an HTTP session's requests must reach the process that opened it "
-                    "(WebSocket streams are fine); no drain at shutdown. See docs/deployment.md", workers)
+        log.warning(
+            "%d worker processes: an HTTP session's requests must reach the process that opened it "
+            "(WebSocket streams are fine); no drain at shutdown. See docs/deployment.md",
+            workers,
+        )
         uvicorn.run("service.api.app:create_app", factory=True, workers=workers, **common)
     else:
         from .app import create_app
@@ -136,9 +148,17 @@ class BackgroundServer:
     ...     Client(server.url).health()
     """
 
-    def __init__(self, settings=None, *, host: str = "127.0.0.1", port: int | None = None,
-                 log_level: str = "warning", startup_timeout: float = 120.0,
-                 ssl_certfile=None, ssl_keyfile=None) -> None:
+    def __init__(
+        self,
+        settings=None,
+        *,
+        host: str = "127.0.0.1",
+        port: int | None = None,
+        log_level: str = "warning",
+        startup_timeout: float = 120.0,
+        ssl_certfile=None,
+        ssl_keyfile=None,
+    ) -> None:
         import uvicorn
 
         from .app import create_app
@@ -152,8 +172,14 @@ class BackgroundServer:
         self.startup_timeout = startup_timeout
         options = {**uvicorn_options(self.settings), "access_log": False}
         config = uvicorn.Config(
-            self.app, host=host, port=self.port, log_level=log_level, lifespan="on",
-            ssl_certfile=ssl_certfile, ssl_keyfile=ssl_keyfile, **options,
+            self.app,
+            host=host,
+            port=self.port,
+            log_level=log_level,
+            lifespan="on",
+            ssl_certfile=ssl_certfile,
+            ssl_keyfile=ssl_keyfile,
+            **options,
         )
         self.server = _draining_server(config, self.app)
         self.thread = None

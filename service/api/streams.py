@@ -163,8 +163,9 @@ class StreamRunner:
             self.queue.put_nowait(_DRAIN)  # wakes the worker
 
     def _decode(self, data, kind: str):
-        return codec.decode(data, kind, max_bytes=self.settings.max_message_bytes,
-                            max_elements=self.settings.max_array_elements)
+        return codec.decode(
+            data, kind, max_bytes=self.settings.max_message_bytes, max_elements=self.settings.max_array_elements
+        )
 
     async def _open(self, kind: str, data) -> bool:
         try:
@@ -179,8 +180,15 @@ class StreamRunner:
             entry = self.models.get(create.model)
             if entry is None:
                 raise not_found_model(create.model, self.models)
-            self.held = await open_session(entry, create, kind="stream", registry=self.registry, pool=self.pool,
-                                           settings=self.settings, owner=owner)
+            self.held = await open_session(
+                entry,
+                create,
+                kind="stream",
+                registry=self.registry,
+                pool=self.pool,
+                settings=self.settings,
+                owner=owner,
+            )
         except RegistryFull as exc:
             await self._error(kind, ApiError(503, str(exc)))
             await self._close(TRY_LATER, "server at its session limit")
@@ -298,11 +306,21 @@ class StreamRunner:
         held, registry = self.held, self.registry
         try:
             registry.begin(held)
-            solve = asyncio.ensure_future(self.pool.run(
-                solve_frame, held, frame, kind, {"decode": decode_ms},
-                t_received=t_received, t_submitted=time.perf_counter(), support=support, extra=extra,
-                cancelled=lambda: self.gone, done=lambda: registry.end(held),
-            ))
+            solve = asyncio.ensure_future(
+                self.pool.run(
+                    solve_frame,
+                    held,
+                    frame,
+                    kind,
+                    {"decode": decode_ms},
+                    t_received=t_received,
+                    t_submitted=time.perf_counter(),
+                    support=support,
+                    extra=extra,
+                    cancelled=lambda: self.gone,
+                    done=lambda: registry.end(held),
+                )
+            )
             left = asyncio.ensure_future(self._left.wait())
             await asyncio.wait({solve, left}, return_when=asyncio.FIRST_COMPLETED)
             left.cancel()

@@ -106,9 +106,7 @@ class Channel:
     def watchers(self) -> int:
         return len(self._boxes)
 
-    def publish(
-        self, points: np.ndarray, payload: dict[str, Any], timing: dict[str, float]
-    ) -> None:
+    def publish(self, points: np.ndarray, payload: dict[str, Any], timing: dict[str, float]) -> None:
         """A frame was solved: hand it to every watcher (references only, no copies)."""
         with self._lock:  # frames of one session are solved one at a time; the lock is cheap
             self._seq += 1

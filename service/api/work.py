@@ -77,8 +77,12 @@ def build_session(entry, create: SessionCreate, reservation: Reservation, budget
 
 def config_of(held: Held) -> dict:
     """The session's effective config now (its current support included)."""
-    return {"model": held.model, "method": held.config["method"], "support": held.session.support,
-            **{k: v for k, v in held.config.items() if k not in ("model", "method")}}
+    return {
+        "model": held.model,
+        "method": held.config["method"],
+        "support": held.session.support,
+        **{k: v for k, v in held.config.items() if k not in ("model", "method")},
+    }
 
 
 def model_E(entry) -> float:
@@ -94,7 +98,9 @@ def check_E(E: float | None, entry, settings) -> None:
     if not E0 / k <= E <= E0 * k:
         raise unprocessable(
             f"E = {E:g} Pa is outside this server's range for model {entry.id!r}: within a factor of "
-            f"{k:g} of its own {E0:g} Pa ({E0 / k:g} to {E0 * k:g})", "E", type_="less_than_equal"
+            f"{k:g} of its own {E0:g} Pa ({E0 / k:g} to {E0 * k:g})",
+            "E",
+            type_="less_than_equal",
         )
 
 
@@ -102,16 +108,30 @@ def admit_config(create: SessionCreate, entry, settings) -> None:
     """The server-wide caps: 422 for a max_iter or time_budget_ms over them, or an E out of
     range (a session without a time budget runs under the cap: :func:`build_session`)."""
     if create.max_iter is not None and create.max_iter > settings.max_iter:
-        raise unprocessable(f"max_iter {create.max_iter} is over this server's cap of {settings.max_iter}",
-                            "max_iter", type_="less_than_equal")
+        raise unprocessable(
+            f"max_iter {create.max_iter} is over this server's cap of {settings.max_iter}",
+            "max_iter",
+            type_="less_than_equal",
+        )
     if create.time_budget_ms is not None and create.time_budget_ms > settings.max_time_budget_ms:
-        raise unprocessable(f"time_budget_ms {create.time_budget_ms:g} is over this server's cap of "
-                            f"{settings.max_time_budget_ms:g}", "time_budget_ms", type_="less_than_equal")
+        raise unprocessable(
+            f"time_budget_ms {create.time_budget_ms:g} is over this server's cap of {settings.max_time_budget_ms:g}",
+            "time_budget_ms",
+            type_="less_than_equal",
+        )
     check_E(create.E, entry, settings)
 
 
-async def open_session(entry, create: SessionCreate, *, kind: str, registry: SessionRegistry, pool: SolvePool,
-                       settings, owner: str | None = None) -> Held:
+async def open_session(
+    entry,
+    create: SessionCreate,
+    *,
+    kind: str,
+    registry: SessionRegistry,
+    pool: SolvePool,
+    settings,
+    owner: str | None = None,
+) -> Held:
     """Caps applied (422), a slot reserved (RegistryFull at the limit), built, registered."""
     admit_config(create, entry, settings)
     reservation = registry.reserve(kind)
@@ -184,8 +204,17 @@ def flag_non_finite(payload: dict) -> None:
         payload["message"] = f"non-finite values in {', '.join(bad)} (solver: {payload.get('message') or ''})"
 
 
-def solve_frame(held: Held, frame: FrameIn, kind: str, timing: dict, *, t_received: float,
-                t_submitted: float, support=None, extra: dict | None = None) -> bytes:
+def solve_frame(
+    held: Held,
+    frame: FrameIn,
+    kind: str,
+    timing: dict,
+    *,
+    t_received: float,
+    t_submitted: float,
+    support=None,
+    extra: dict | None = None,
+) -> bytes:
     """One frame in the pool: solve, build the reply, encode it (timing filled in)."""
     timing["queue"] = _ms(t_submitted)
     support = frame.support if support is None else support
@@ -208,15 +237,26 @@ def solve_frame(held: Held, frame: FrameIn, kind: str, timing: dict, *, t_receiv
     return body
 
 
-async def http_frame(held: Held, frame: FrameIn, kind: str, *, decode_ms: float, t_received: float,
-                     registry: SessionRegistry, pool: SolvePool, session_queue: int,
-                     gone: Callable[[], bool] = lambda: False) -> bytes:
+async def http_frame(
+    held: Held,
+    frame: FrameIn,
+    kind: str,
+    *,
+    decode_ms: float,
+    t_received: float,
+    registry: SessionRegistry,
+    pool: SolvePool,
+    session_queue: int,
+    gone: Callable[[], bool] = lambda: False,
+) -> bytes:
     """A frame posted over HTTP: frames of one session run one at a time, in arrival order;
     at most ``session_queue`` wait behind the running one (503 beyond). A frame whose session
     closed, or whose client left (``gone()``), while it waited is dropped, not solved."""
     if held.lock.locked() and held.waiting >= session_queue:
-        raise Overloaded(f"session {held.id!r} already has {held.waiting} frame(s) waiting behind the one "
-                         "being solved", pool.retry_after)
+        raise Overloaded(
+            f"session {held.id!r} already has {held.waiting} frame(s) waiting behind the one being solved",
+            pool.retry_after,
+        )
     held.waiting += 1
     try:
         await held.lock.acquire()  # asyncio.Lock wakes waiters first come, first served
@@ -224,9 +264,17 @@ async def http_frame(held: Held, frame: FrameIn, kind: str, *, decode_ms: float,
         held.waiting -= 1
     try:
         registry.begin(held)  # SessionNotFound if it closed while this frame waited
-        return await pool.run(solve_frame, held, frame, kind, {"decode": decode_ms},
-                              t_received=t_received, t_submitted=time.perf_counter(),
-                              cancelled=lambda: held.closed or gone(), done=lambda: registry.end(held))
+        return await pool.run(
+            solve_frame,
+            held,
+            frame,
+            kind,
+            {"decode": decode_ms},
+            t_received=t_received,
+            t_submitted=time.perf_counter(),
+            cancelled=lambda: held.closed or gone(),
+            done=lambda: registry.end(held),
+        )
     finally:
         held.lock.release()
 
@@ -247,8 +295,12 @@ def simulate(entry, body: SimulateIn, kind: str, timing: dict, t_received: float
             model = entry.fem if body.E is None else entry.fem.with_stiffness(body.E)
             res = model.solve(values, nodes)
             u = res.u
-            result = {"converged": bool(res.converged), "status": res.status,
-                      "iterations": int(res.iterations), "residual": float(res.residual)}
+            result = {
+                "converged": bool(res.converged),
+                "status": res.status,
+                "iterations": int(res.iterations),
+                "residual": float(res.residual),
+            }
     except ValueError as exc:
         raise unprocessable(str(exc), "forces") from None
     if not np.isfinite(u).all():  # never a converged field of NaN (E far from the model's did it)

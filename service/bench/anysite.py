@@ -47,8 +47,9 @@ def tool_size(mesh) -> int:
     return int(np.clip(round(0.02 * mesh.surface_nodes.size), 8, 35))
 
 
-def anysite_cases(entry, *, sites: int = 6, frames: int = 8, n_points: int = 800, noise: float = 0.0,
-                  seed: int = SITE_SEED) -> list[Case]:
+def anysite_cases(
+    entry, *, sites: int = 6, frames: int = 8, n_points: int = 800, noise: float = 0.0, seed: int = SITE_SEED
+) -> list[Case]:
     """Sequences at `sites` tool sites over the entry's load region, truth from the finer mesh."""
     mesh, material = entry.mesh, entry.fem.material
     fine = subdivide(mesh)
@@ -65,21 +66,44 @@ def anysite_cases(entry, *, sites: int = 6, frames: int = 8, n_points: int = 800
         tool, support = np.sort(patch[:k]), np.sort(patch[: 3 * k])
         peak = float(rng.uniform(0.4, 0.9)) * max_force
         turn = float(rng.uniform(15.0, 45.0))
-        seq = make_sequence(fine, material, fine_patch(mesh, fine, tool), n_frames=frames, peak_force=peak,
-                            turn_deg=turn, n_points=n_points, noise=noise, seed=seed + i)
+        seq = make_sequence(
+            fine,
+            material,
+            fine_patch(mesh, fine, tool),
+            n_frames=frames,
+            peak_force=peak,
+            turn_deg=turn,
+            n_points=n_points,
+            noise=noise,
+            seed=seed + i,
+        )
         if not seq.clouds:
             log.warning("site %d: the fine mesh's FEM could not follow the first frame; skipped", site)
             continue
         n = mesh.n_nodes
-        cases.append(Case(f"site {i + 1} (node {int(site)}, {peak:.2g} N)", mesh, support, None, seq.clouds,
-                          seq.positions[:, :n], seq.net_forces))
-        log.info("%s: %d frames, largest displacement %.1f mm", cases[-1].name, len(seq.clouds),
-                 1e3 * np.linalg.norm(seq.positions[-1, :n] - mesh.nodes, axis=1).max())
+        cases.append(
+            Case(
+                f"site {i + 1} (node {int(site)}, {peak:.2g} N)",
+                mesh,
+                support,
+                None,
+                seq.clouds,
+                seq.positions[:, :n],
+                seq.net_forces,
+            )
+        )
+        log.info(
+            "%s: %d frames, largest displacement %.1f mm",
+            cases[-1].name,
+            len(seq.clouds),
+            1e3 * np.linalg.norm(seq.positions[-1, :n] - mesh.nodes, axis=1).max(),
+        )
     return cases
 
 
-def anysite_part(entry, *, sites: int = 6, frames: int = 8, max_error: float | None = None, fem: bool = True,
-                 noise: float = 0.0) -> dict:
+def anysite_part(
+    entry, *, sites: int = 6, frames: int = 8, max_error: float | None = None, fem: bool = True, noise: float = 0.0
+) -> dict:
     """Records, per-case summaries and the estimates' honesty for network, auto and fem.
 
     `max_error` (m) for method auto: by default twice the model's validation mean error, a
@@ -92,8 +116,11 @@ def anysite_part(entry, *, sites: int = 6, frames: int = 8, max_error: float | N
     records: list[FrameRecord] = []
     summaries = []
     for case in cases:
-        runs = [rest_baseline(case), run_case(entry.network, case, NETWORK),
-                run_case(entry.network, case, auto, "auto", corrector=entry.fem)]
+        runs = [
+            rest_baseline(case),
+            run_case(entry.network, case, NETWORK),
+            run_case(entry.network, case, auto, "auto", corrector=entry.fem),
+        ]
         if fem:
             runs.append(run_case(entry.fem, case, FEM))
         for recs in runs:
@@ -103,8 +130,13 @@ def anysite_part(entry, *, sites: int = 6, frames: int = 8, max_error: float | N
                 s["fem_share"] = float(np.mean([r.method_used == "fem" for r in recs]))
             summaries.append(s)
             log.info("%s / %s: %s", case.name, recs[0].method, s)
-    return {"records": records, "summaries": summaries, "honesty": honesty(records),
-            "max_error_mm": 1e3 * max_error, "tool_nodes": tool_size(entry.mesh)}
+    return {
+        "records": records,
+        "summaries": summaries,
+        "honesty": honesty(records),
+        "max_error_mm": 1e3 * max_error,
+        "tool_nodes": tool_size(entry.mesh),
+    }
 
 
 def honesty(records: list[FrameRecord]) -> list[dict]:
@@ -118,8 +150,15 @@ def honesty(records: list[FrameRecord]) -> list[dict]:
         est = np.array([r.error_estimate_mm for r in rs])
         tre = np.array([r.tre_mm for r in rs])
         rho = float(spearmanr(est, tre)[0]) if len(rs) > 2 else float("nan")
-        out.append({"method": method, "frames": len(rs), "spearman": rho,
-                    "under_half": float(np.mean(est < 0.5 * tre)), "median_ratio": float(np.median(est / tre))})
+        out.append(
+            {
+                "method": method,
+                "frames": len(rs),
+                "spearman": rho,
+                "under_half": float(np.mean(est < 0.5 * tre)),
+                "median_ratio": float(np.median(est / tre)),
+            }
+        )
     return out
 
 
@@ -137,11 +176,15 @@ def plot_honesty(records: list[FrameRecord], path) -> None:
     lo = min(r.tre_mm for r in records if r.finite and r.tre_mm > 0)
     hi = max(max(r.tre_mm, r.error_estimate_mm or 0) for r in records if r.finite)
     ax.plot([lo, hi], [lo, hi], "k--", lw=0.8, label="estimate = error")
-    ax.set(xscale="log", yscale="log", xlabel="true mean nodal error (mm)", ylabel="error_estimate (mm)",
-           title="how far to trust a frame: any tool site")
+    ax.set(
+        xscale="log",
+        yscale="log",
+        xlabel="true mean nodal error (mm)",
+        ylabel="error_estimate (mm)",
+        title="how far to trust a frame: any tool site",
+    )
     ax.legend(fontsize=8)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
-

@@ -109,9 +109,18 @@ def repeated(model, cases: list[dict], config: SessionConfig, passes: int) -> li
     return runs[0]
 
 
-def beam_pareto(entry, cases: list[dict], *, gtols=(1e-2, 1e-3, 3e-4, 1e-4, 1e-5), caps=(5, 10, 20, 40), points=(50, 150),
-                fem_gtols=(1e-3, 1e-4), fem_cases: int = 6, lbfgsb_gtols=(1e-2, 1e-3, 1e-4),
-                fem_lm_gtols=(1e-3, 1e-4)) -> list[dict]:
+def beam_pareto(
+    entry,
+    cases: list[dict],
+    *,
+    gtols=(1e-2, 1e-3, 3e-4, 1e-4, 1e-5),
+    caps=(5, 10, 20, 40),
+    points=(50, 150),
+    fem_gtols=(1e-3, 1e-4),
+    fem_cases: int = 6,
+    lbfgsb_gtols=(1e-2, 1e-3, 1e-4),
+    fem_lm_gtols=(1e-3, 1e-4),
+) -> list[dict]:
     """The beam's sweep: the liver's knobs over these cases (the Newton method on the first
     `fem_cases`, 10 s per registration at most, with L-BFGS-B and with Levenberg-Marquardt),
     and the network's tolerance with L-BFGS-B."""
@@ -130,8 +139,15 @@ def beam_pareto(entry, cases: list[dict], *, gtols=(1e-2, 1e-3, 3e-4, 1e-4, 1e-5
                  other_optimizer_gtols=lbfgsb_gtols, fem_other_optimizer_gtols=fem_lm_gtols)  # fmt: skip
 
 
-def beam_part(entry, n_cases: int = 60, n_points: int = 500, seed: int = 0, config: SessionConfig | None = None,
-              sweep: dict | None = None, passes: int = 3) -> dict:
+def beam_part(
+    entry,
+    n_cases: int = 60,
+    n_points: int = 500,
+    seed: int = 0,
+    config: SessionConfig | None = None,
+    sweep: dict | None = None,
+    passes: int = 3,
+) -> dict:
     """The paper's experiment on `n_cases` cases, then the error-against-time sweep on the
     first 20 (`sweep`: beam_pareto's knobs; False skips it). The cases are registered
     `passes` times (the same steps each time): a case's time is its median over the passes,
@@ -147,7 +163,9 @@ def beam_part(entry, n_cases: int = 60, n_points: int = 500, seed: int = 0, conf
                    "points": n_points, "optimizer": config.optimizer},
     })  # fmt: skip
     if config.optimizer != "lbfgsb":  # the paper's optimizer on the same cases
-        summary["lbfgsb"] = _summarise(repeated(entry.network, cases, dataclasses.replace(config, optimizer="lbfgsb"), passes))
+        summary["lbfgsb"] = _summarise(
+            repeated(entry.network, cases, dataclasses.replace(config, optimizer="lbfgsb"), passes)
+        )
     log.info("beam: %s", summary)
     out = {"rows": rows, "summary": summary}
     if sweep is not False:

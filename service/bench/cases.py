@@ -49,7 +49,7 @@ class Case:
     def frames(self) -> int:
         return len(self.clouds)
 
-    def with_clouds(self, clouds: list[Array], name: str | None = None) -> "Case":
+    def with_clouds(self, clouds: list[Array], name: str | None = None) -> Case:
         return dataclasses.replace(self, clouds=clouds, name=name or self.name)
 
 
@@ -107,7 +107,9 @@ def synthetic_case(
 ) -> Case:
     """A sequence made the way the paper made its own: a local force grows on `tool`, the FEM
     gives each frame, a camera sees part of the deformed surface."""
-    seq = make_sequence(mesh, material, tool, n_frames=frames, peak_force=peak_force, n_points=n_points, seed=seed, **kwargs)
+    seq = make_sequence(
+        mesh, material, tool, n_frames=frames, peak_force=peak_force, n_points=n_points, seed=seed, **kwargs
+    )
     return Case(name, mesh, np.asarray(support, np.int64), matching, seq.clouds, seq.positions, seq.net_forces)
 
 
@@ -144,8 +146,24 @@ def run_case(model, case: Case, config: SessionConfig, method: str | None = None
         true_f = case.net_forces[k]
         fe = float(np.linalg.norm(r.net_force - true_f) / max(np.linalg.norm(true_f), 1e-300) * 100)
         est = 1e3 * r.error_estimate if np.isfinite(r.error_estimate) else float("inf")
-        out.append(FrameRecord(case.name, method or model.method, k, tre, fe, ms, r.iterations, r.evaluations, r.status,
-                               r.converged, finite, r.alpha, est, r.method_used))
+        out.append(
+            FrameRecord(
+                case.name,
+                method or model.method,
+                k,
+                tre,
+                fe,
+                ms,
+                r.iterations,
+                r.evaluations,
+                r.status,
+                r.converged,
+                finite,
+                r.alpha,
+                est,
+                r.method_used,
+            )
+        )
     return out
 
 
@@ -163,7 +181,9 @@ def same_steps(run: Callable[[], list], passes: int, steps: Callable[[Any], int]
     return runs
 
 
-def run_passes(model, case: Case, config: SessionConfig, passes: int, method: str | None = None) -> tuple[list[FrameRecord], list[float]]:
+def run_passes(
+    model, case: Case, config: SessionConfig, passes: int, method: str | None = None
+) -> tuple[list[FrameRecord], list[float]]:
     """run_case() `passes` times (same_steps): the first pass's records, each frame's time its
     median over the passes, and each pass's median warm-frame time."""
     runs = same_steps(lambda: run_case(model, case, config, method), passes, lambda r: r.iterations, case.name)

@@ -79,8 +79,11 @@ def liver_part(entry, *, frames: int | None = None, own_frames: int = 20, fem: b
     cases = [paper] + own_sequences(paper, entry.region, entry.fem.material, own_frames)
     records, summaries = [], []
     for case in cases:
-        runs = [(rest_baseline(case), None), run_passes(entry.network, case, NETWORK, passes),
-                run_passes(entry.network, case, NETWORK_LM, passes, LM_LABEL)]
+        runs = [
+            (rest_baseline(case), None),
+            run_passes(entry.network, case, NETWORK, passes),
+            run_passes(entry.network, case, NETWORK_LM, passes, LM_LABEL),
+        ]
         if fem:
             runs += [(run_case(entry.fem, case, FEM), None), (run_case(entry.fem, case, FEM_LM, FEM_LM_LABEL), None)]
         for recs, each in runs:

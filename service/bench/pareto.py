@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -42,9 +42,24 @@ POINTS = (50, 100, 250, 500)
 Score = Callable[[object, SessionConfig, "int | None", bool], dict]
 
 
-def sweep(score: Score, network_model, fem_model, network: SessionConfig, fem: SessionConfig, *, gtols, caps,
-          points, max_points: int, fem_gtols, alphas=(), variants: dict | None = None,
-          tuned: dict | None = None, other_optimizer_gtols=(), fem_other_optimizer_gtols=()) -> list[dict]:
+def sweep(
+    score: Score,
+    network_model,
+    fem_model,
+    network: SessionConfig,
+    fem: SessionConfig,
+    *,
+    gtols,
+    caps,
+    points,
+    max_points: int,
+    fem_gtols,
+    alphas=(),
+    variants: dict | None = None,
+    tuned: dict | None = None,
+    other_optimizer_gtols=(),
+    fem_other_optimizer_gtols=(),
+) -> list[dict]:
     """One row per knob setting, the same knobs for every scene: the gradient tolerance, the
     iteration cap and the regularisation weight (network), the cloud's size (up to
     `max_points`), the surrogate (each of `variants`, a name to another trained network; again
@@ -145,16 +160,29 @@ def plot(rows: list[dict], path, title: str) -> None:
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
     markers = {"gtol": "o", "max_iter": "s", "points": "^", "surrogate": "D", "alpha": "v"}
-    colours = {"network": "tab:blue", "network, levenberg-marquardt": "tab:green", "fem": "tab:red",
-               "fem, levenberg-marquardt": "tab:purple"}
-    for ax, key, label in ((axes[0], "tre_mm", "mean TRE (mm)"), (axes[1], "force_error_pct", "resultant-force error (%)")):
+    colours = {
+        "network": "tab:blue",
+        "network, levenberg-marquardt": "tab:green",
+        "fem": "tab:red",
+        "fem, levenberg-marquardt": "tab:purple",
+    }
+    for ax, key, label in (
+        (axes[0], "tre_mm", "mean TRE (mm)"),
+        (axes[1], "force_error_pct", "resultant-force error (%)"),
+    ):
         for r in rows:
             marker = "*" if str(r["knob"]).startswith("surrogate @") else markers.get(r["knob"], "o")
             ax.scatter(r["ms"], r[key], marker=marker, color=colours.get(r["method"], "k"), alpha=0.75)
         for method in colours:
             front = pareto_front([r for r in rows if r["method"] == method], key)
             if front:
-                ax.plot([r["ms"] for r in front], [r[key] for r in front], color=colours[method], lw=1, label=f"{method}: Pareto front")
+                ax.plot(
+                    [r["ms"] for r in front],
+                    [r[key] for r in front],
+                    color=colours[method],
+                    lw=1,
+                    label=f"{method}: Pareto front",
+                )
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_xlabel("milliseconds per frame (median, warm)")

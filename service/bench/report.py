@@ -31,13 +31,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--store", default=None, help="model store holding liver_paper and beam (default: the project's)")
     p.add_argument("--liver-model", default="liver_paper")
     p.add_argument("--beam-model", default="beam")
-    p.add_argument("--anysite-model", default="phantom", help="a whole-surface model for the anysite part (default: phantom)")
+    p.add_argument(
+        "--anysite-model", default="phantom", help="a whole-surface model for the anysite part (default: phantom)"
+    )
     p.add_argument("--sites", type=int, default=6, help="anysite: tool sites (sequences)")
     p.add_argument("--out", default="reports/latest", help="report folder (default: reports/latest)")
     p.add_argument("--quick", action="store_true", help="fewer frames and sweep points (minutes, not an hour)")
     p.add_argument("--no-fem", action="store_true", help="skip the Newton-based method where it is slow")
-    p.add_argument("--smoke", metavar="MODEL", default=None,
-                   help="every part on a tiny model of --store (seconds; for the tests)")
+    p.add_argument(
+        "--smoke", metavar="MODEL", default=None, help="every part on a tiny model of --store (seconds; for the tests)"
+    )
 
 
 def _jsonable(x):
@@ -61,7 +64,9 @@ def _write_csv(path: Path, rows: list[dict]) -> None:
         w = csv.DictWriter(f, fieldnames=keys)
         w.writeheader()
         for r in rows:
-            w.writerow({k: json.dumps(v, default=_jsonable) if isinstance(v, (list, dict)) else v for k, v in r.items()})
+            w.writerow(
+                {k: json.dumps(v, default=_jsonable) if isinstance(v, (list, dict)) else v for k, v in r.items()}
+            )
 
 
 def _fmt(v, digits: int = 3) -> str:
@@ -111,7 +116,11 @@ def main(args: argparse.Namespace) -> int:
     store = Path(args.store) if args.store else default_store()
     out = Path(args.out)
     (out / "figures").mkdir(parents=True, exist_ok=True)
-    results: dict = {"machine": {**machine.describe(), "blas_threads": blas_threads}, "started": time.strftime("%Y-%m-%d %H:%M:%S"), "parts": {}}
+    results: dict = {
+        "machine": {**machine.describe(), "blas_threads": blas_threads},
+        "started": time.strftime("%Y-%m-%d %H:%M:%S"),
+        "parts": {},
+    }
     quick = args.quick or args.smoke is not None
     fem_on = not args.no_fem
     parts = [p for p in args.parts if p in PARTS]
@@ -165,7 +174,9 @@ def main(args: argparse.Namespace) -> int:
                       fem_lm_gtols=(1e-2,))
                  if args.smoke is not None else None)  # fmt: skip
         results["parts"]["beam"] = beam_part(beam_entry, n_cases=n, n_points=150 if args.smoke else 500, sweep=sweep)
-        plot(results["parts"]["beam"]["pareto"], out / "figures" / "beam_pareto.png", "error against run time: the beam")
+        plot(
+            results["parts"]["beam"]["pareto"], out / "figures" / "beam_pareto.png", "error against run time: the beam"
+        )
 
     if "pareto" in parts:
         from ..store import open_store
@@ -176,14 +187,35 @@ def main(args: argparse.Namespace) -> int:
         variants = {}
         if args.smoke is None:
             entries, _ = open_store(store)
-            named = {args.liver_model: liver_entry, **{k: e for k, e in entries.items() if k.startswith(args.liver_model + "_")}}
+            named = {
+                args.liver_model: liver_entry,
+                **{k: e for k, e in entries.items() if k.startswith(args.liver_model + "_")},
+            }
             variants = {_surrogate_label(k, e.manifest["network"]): e.network for k, e in named.items()}
         if args.smoke is not None:
-            sweep = dict(gtols=(1e-2, 1e-4), caps=(5,), points=(50,), fem_gtols=(1e-2,), fem_frames=2, alphas=(1e-6,),
-                         lm_gtols=(1e-3,), fem_lm_gtols=(1e-2,), passes=2)
+            sweep = dict(
+                gtols=(1e-2, 1e-4),
+                caps=(5,),
+                points=(50,),
+                fem_gtols=(1e-2,),
+                fem_frames=2,
+                alphas=(1e-6,),
+                lm_gtols=(1e-3,),
+                fem_lm_gtols=(1e-2,),
+                passes=2,
+            )
         elif quick:
-            sweep = dict(gtols=(1e-2, 1e-3, 1e-4, 1e-5), caps=(5, 20), points=(100, 500), fem_gtols=(1e-3, 1e-4), fem_frames=4,
-                         alphas=(3e-8,), lm_gtols=(1e-3, 1e-4), fem_lm_gtols=(1e-3, 1e-4), passes=1)
+            sweep = dict(
+                gtols=(1e-2, 1e-3, 1e-4, 1e-5),
+                caps=(5, 20),
+                points=(100, 500),
+                fem_gtols=(1e-3, 1e-4),
+                fem_frames=4,
+                alphas=(3e-8,),
+                lm_gtols=(1e-3, 1e-4),
+                fem_lm_gtols=(1e-3, 1e-4),
+                passes=1,
+            )
         else:
             sweep = {}
         rows = pareto_part(liver_entry, case, variants=variants, **sweep)
@@ -199,7 +231,9 @@ def main(args: argparse.Namespace) -> int:
                                                            peak_force=0.3 * float(entry.manifest["training"]["load_distribution"]["max_force"]),
                                                            far=0.25 * entry.mesh.size)  # fmt: skip
         else:
-            results["parts"]["stability"] = stability_part(liver_entry, liver_paper_case(), frames=6 if quick else 12, fem=fem_on)
+            results["parts"]["stability"] = stability_part(
+                liver_entry, liver_paper_case(), frames=6 if quick else 12, fem=fem_on
+            )
 
     if "anysite" in parts:
         from .anysite import anysite_part, plot_honesty
@@ -269,7 +303,9 @@ def _paper_material():
 
 
 def _first(case, frames: int):
-    return dataclasses.replace(case, clouds=case.clouds[:frames], positions=case.positions[:frames], net_forces=case.net_forces[:frames])
+    return dataclasses.replace(
+        case, clouds=case.clouds[:frames], positions=case.positions[:frames], net_forces=case.net_forces[:frames]
+    )
 
 
 def write_report(results: dict, out: Path) -> None:
@@ -306,10 +342,14 @@ def write_report(results: dict, out: Path) -> None:
                                           ("tre_max_mm", "worst frame TRE (mm)"), ("force_error_mean_pct", "force error (%)"),
                                           ("ms_median", "ms / frame"), ("ms_median_passes", "each pass (ms)"), ("ms_p90", "p90 ms"),
                                           ("iterations_mean", "iterations"), ("converged_fraction", "converged")]))  # fmt: skip
-        md.append("\nThe network's times: the median over warm frames of each frame's median over the passes, each pass's "
-                  "median beside it; the Newton method's: one pass.\n")
-        md.append("\nThe paper (Titan RTX GPU): network 0.5-3.5 mm TRE at about 140 ms per frame; Newton-based "
-                  "about 0.1 mm at 14 minutes per frame; force error of the Newton method 10%.\n")
+        md.append(
+            "\nThe network's times: the median over warm frames of each frame's median over the passes, each pass's "
+            "median beside it; the Newton method's: one pass.\n"
+        )
+        md.append(
+            "\nThe paper (Titan RTX GPU): network 0.5-3.5 mm TRE at about 140 ms per frame; Newton-based "
+            "about 0.1 mm at 14 minutes per frame; force error of the Newton method 10%.\n"
+        )
         _write_csv(out / "liver_frames.csv", L["records"])
         _write_csv(out / "liver_summary.csv", L["summaries"])
         _plot_frames(L["records"], out / "figures" / "liver_frames.png")
@@ -317,9 +357,11 @@ def write_report(results: dict, out: Path) -> None:
     if "anysite" in parts:
         A = parts["anysite"]
         md.append(f"\n## Any tool site ({A['model']}): sites the build never aimed at, truth from a finer mesh\n")
-        md.append(f"Tool patches of {A['tool_nodes']} nodes, supports three times that, sites spread over the whole "
-                  f"load region; truth: the Neo-Hookean solution on the mesh subdivided once; method auto corrects "
-                  f"frames whose estimate exceeds {A['max_error_mm']:.3g} mm (twice the build's validation error).\n\n")
+        md.append(
+            f"Tool patches of {A['tool_nodes']} nodes, supports three times that, sites spread over the whole "
+            f"load region; truth: the Neo-Hookean solution on the mesh subdivided once; method auto corrects "
+            f"frames whose estimate exceeds {A['max_error_mm']:.3g} mm (twice the build's validation error).\n\n"
+        )
         md.append(_table(A["summaries"], [("case", "case"), ("method", "method"), ("frames", "frames"),
                                           ("tre_mean_mm", "mean TRE (mm)"), ("force_error_median_pct", "force error, median (%)"),
                                           ("ms_median", "ms / frame"), ("fem_share", "frames by the FEM"),
@@ -383,8 +425,10 @@ def write_report(results: dict, out: Path) -> None:
 
         rows = parts["pareto"]
         md.append("\n## Error against run time\n")
-        md.append("![Pareto chart](figures/pareto.png)\n\nEvery point (numbers also in pareto.csv; ms / frame: the median over "
-                  "warm frames of each frame's median over the passes, each pass's own median beside it):\n\n")
+        md.append(
+            "![Pareto chart](figures/pareto.png)\n\nEvery point (numbers also in pareto.csv; ms / frame: the median over "
+            "warm frames of each frame's median over the passes, each pass's own median beside it):\n\n"
+        )
         md.append(_table(rows, [("method", "method"), ("knob", "knob"), ("value", "value"), ("tre_mm", "mean TRE (mm)"),
                                 ("force_error_pct", "force error (%)"), ("ms", "ms / frame"), ("ms_passes", "each pass (ms)"),
                                 ("iterations", "iterations"), ("converged", "converged")]))  # fmt: skip

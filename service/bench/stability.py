@@ -46,13 +46,21 @@ def _far_view(case: Case, tool_centre: np.ndarray, min_distance: float = 0.06) -
 
 
 def stability_cases(
-    paper: Case, region: np.ndarray, material: NeoHookean, frames: int, *, tool_size: int = 21,
-    peak_force: float = 3.0, far: float = 0.06,
+    paper: Case,
+    region: np.ndarray,
+    material: NeoHookean,
+    frames: int,
+    *,
+    tool_size: int = 21,
+    peak_force: float = 3.0,
+    far: float = 0.06,
 ) -> list[tuple[Case, dict]]:
     """(case, session overrides) pairs around a base case. Materials and loads that the trained
     network was not made for are registered by both methods: the point is what breaks, not who
     wins. New sequences put a tool of `tool_size` nodes at the middle of the base's support."""
-    base = dataclasses.replace(paper, clouds=paper.clouds[:frames], positions=paper.positions[:frames], net_forces=paper.net_forces[:frames])
+    base = dataclasses.replace(
+        paper, clouds=paper.clouds[:frames], positions=paper.positions[:frames], net_forces=paper.net_forces[:frames]
+    )
     mesh = paper.mesh
     in_region = np.zeros(mesh.n_nodes, bool)
     in_region[region] = True
@@ -73,15 +81,45 @@ def stability_cases(
     for frac in (0.1, 0.3):
         c = noisy(base, outliers=frac, seed=int(frac * 100))
         out.append((c.with_clouds(c.clouds, f"outliers {frac:.0%}"), {}))
-        out.append((c.with_clouds(c.clouds, f"outliers {frac:.0%}, trimmed loss"), {"loss": "trimmed", "loss_param": frac}))
+        out.append(
+            (c.with_clouds(c.clouds, f"outliers {frac:.0%}, trimmed loss"), {"loss": "trimmed", "loss_param": frac})
+        )
     c = noisy(base, points=30)
     out.append((c.with_clouds(c.clouds, "sparse cloud (30 points)"), {}))
     out.append((_far_view(base, tool_centre, far), {}))
     out.append((base.with_clouds(base.clouds, "cold start every frame"), {"warm_start": False}))
     stiff_mat = NeoHookean(material.E, 0.499)
-    out.append((synthetic_case("nu = 0.499", mesh, stiff_mat, tool, support, matching=paper.matching, frames=frames, peak_force=peak_force), {"material": stiff_mat}))
+    out.append(
+        (
+            synthetic_case(
+                "nu = 0.499",
+                mesh,
+                stiff_mat,
+                tool,
+                support,
+                matching=paper.matching,
+                frames=frames,
+                peak_force=peak_force,
+            ),
+            {"material": stiff_mat},
+        )
+    )
     e10 = material.with_stiffness(10 * material.E)
-    out.append((synthetic_case("E x 10, loads x 10", mesh, e10, tool, support, matching=paper.matching, frames=frames, peak_force=10 * peak_force), {"E": e10.E}))
+    out.append(
+        (
+            synthetic_case(
+                "E x 10, loads x 10",
+                mesh,
+                e10,
+                tool,
+                support,
+                matching=paper.matching,
+                frames=frames,
+                peak_force=10 * peak_force,
+            ),
+            {"E": e10.E},
+        )
+    )
     small = tool[: max(3, tool_size // 4)]
     push = -mesh.vertex_normals[small].sum(0)
     out.append((synthetic_case(f"near-inverting push ({small.size} nodes)", mesh, material, small, support,
@@ -90,7 +128,9 @@ def stability_cases(
     return out
 
 
-def stability_part(entry, base: Case, frames: int = 10, fem: bool = True, fem_budget_ms: float = FEM_BUDGET_MS, **case_options) -> dict:
+def stability_part(
+    entry, base: Case, frames: int = 10, fem: bool = True, fem_budget_ms: float = FEM_BUDGET_MS, **case_options
+) -> dict:
     rows, records = [], []
     fem_cfg = dataclasses.replace(FEM, time_budget_ms=fem_budget_ms)
     fem_lm_cfg = dataclasses.replace(FEM_LM, time_budget_ms=fem_budget_ms)

@@ -69,7 +69,7 @@ class Assembler:
     material: NeoHookean
     compiled: bool = dataclasses.field(default_factory=lambda: _kernels() is not None)
 
-    def with_material(self, material: NeoHookean) -> "Assembler":
+    def with_material(self, material: NeoHookean) -> Assembler:
         """Same mesh and precomputed pattern, another material (the pattern is shared)."""
         new = Assembler(self.mesh, material, self.compiled)
         for name in ("_pattern", "_slots"):
@@ -114,9 +114,7 @@ class Assembler:
         return np.stack([np.bincount(idx, weights=fe[:, i], minlength=n) for i in range(3)], axis=1)
 
     def element_stiffness(self, F: Array) -> Array:
-        return neo_hookean_element_stiffness(
-            self.material, F, self.mesh.shape_gradients, self.mesh.volumes
-        )
+        return neo_hookean_element_stiffness(self.material, F, self.mesh.shape_gradients, self.mesh.volumes)
 
     @cached_property
     def _pattern(self) -> tuple[Array, Array, Array, Array]:

@@ -113,7 +113,9 @@ def tangent_data(u, tets, grads, vol, mu, lam, slot, data):
         base = t * 144
         for a in range(4):
             for b in range(4):
-                gab = mv * (grads[t, a, 0] * grads[t, b, 0] + grads[t, a, 1] * grads[t, b, 1] + grads[t, a, 2] * grads[t, b, 2])
+                gab = mv * (
+                    grads[t, a, 0] * grads[t, b, 0] + grads[t, a, 1] * grads[t, b, 1] + grads[t, a, 2] * grads[t, b, 2]
+                )
                 for i in range(3):
                     for k in range(3):
                         s = slot[base + (a * 3 + i) * 12 + b * 3 + k]

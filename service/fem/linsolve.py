@@ -123,7 +123,10 @@ def _mkl_pardiso():
         fn = lib.pardiso
         i32p = ctypes.POINTER(ctypes.c_int32)
         fn.argtypes = (
-            [ctypes.POINTER(ctypes.c_int64)] + [i32p] * 5 + [ctypes.c_void_p] + [i32p] * 6
+            [ctypes.POINTER(ctypes.c_int64)]
+            + [i32p] * 5
+            + [ctypes.c_void_p]
+            + [i32p] * 6
             + [ctypes.c_void_p, ctypes.c_void_p, i32p]
         )
         fn.restype = None
@@ -196,10 +199,7 @@ class PardisoSolver:
         return np.ascontiguousarray(x)
 
     def factor(self, K: sp.csr_matrix) -> None:
-        if not (
-            np.array_equal(K.indptr, self._full_indptr)
-            and np.array_equal(K.indices, self._full_indices)
-        ):
+        if not (np.array_equal(K.indptr, self._full_indptr) and np.array_equal(K.indices, self._full_indices)):
             raise ValueError("matrix does not have the sparsity pattern this solver analysed")
         with self._lock:
             self._data[:] = K.data[self._take]

@@ -62,7 +62,7 @@ class NeoHookean:
     def lam(self) -> float:
         return self.E * self.nu / ((1.0 + self.nu) * (1.0 - 2.0 * self.nu))
 
-    def with_stiffness(self, E: float) -> "NeoHookean":
+    def with_stiffness(self, E: float) -> NeoHookean:
         return dataclasses.replace(self, E=float(E))
 
     # -- pointwise law ------------------------------------------------------------------------

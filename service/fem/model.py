@@ -37,7 +37,7 @@ class FEMModel:
     def assembler(self) -> Assembler:
         return Assembler(self.mesh, self.material)
 
-    def with_stiffness(self, E: float) -> "FEMModel":
+    def with_stiffness(self, E: float) -> FEMModel:
         return FEMModel(self.mesh, self.material.with_stiffness(E), self.options)
 
     def newton(self) -> NewtonSolver:
@@ -50,7 +50,7 @@ class FEMModel:
         g[check_support(self.mesh, support)] = forces
         return self.newton().solve(g, u0)
 
-    def restrict(self, support: Array, nodes: Array | None = None) -> "FEMOperator":
+    def restrict(self, support: Array, nodes: Array | None = None) -> FEMOperator:
         return FEMOperator(self, support, nodes)
 
 
@@ -195,7 +195,9 @@ class FEMOperator:
         J = np.zeros((rows.size, 3 * k))
         for lo in range(0, 3 * k, block):
             if lo and deadline is not None and time.perf_counter() > deadline:
-                raise ForwardFailed("time_limit", f"time budget spent forming the Jacobian, after {lo} of {3 * k} solves")
+                raise ForwardFailed(
+                    "time_limit", f"time budget spent forming the Jacobian, after {lo} of {3 * k} solves"
+                )
             hi = min(lo + block, 3 * k)
             rhs = np.zeros((free.size, hi - lo))
             rhs[cols[lo:hi], np.arange(hi - lo)] = 1.0

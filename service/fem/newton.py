@@ -268,8 +268,12 @@ class NewtonSolver:
                 break
         converged = status == "converged"
         if not converged:
-            log.info("Newton stopped: %s after %d iterations (residual %.2e)", status, iterations,
-                     residuals[-1] if residuals else np.nan)
+            log.info(
+                "Newton stopped: %s after %d iterations (residual %.2e)",
+                status,
+                iterations,
+                residuals[-1] if residuals else np.nan,
+            )
         res = self._result(x, converged, status, iterations, steps, residuals, t0)
         res.solver = self.solver if have_factor else None
         res.shifted = shifts

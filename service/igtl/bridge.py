@@ -96,11 +96,7 @@ class Bridge:
                 p.pack(
                     "STRING",
                     STATUS,
-                    p.encode_string(
-                        json.dumps(
-                            {"error": "this bridge serves one client at a time; one is connected"}
-                        )
-                    ),
+                    p.encode_string(json.dumps({"error": "this bridge serves one client at a time; one is connected"})),
                 )
             )
             await _close(writer)

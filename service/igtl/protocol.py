@@ -50,9 +50,7 @@ _TABLE = _crc_table()
 def _crc64(data, table):
     crc = np.uint64(0)
     for b in data:
-        crc = table[np.uint64((crc >> np.uint64(56)) ^ np.uint64(b)) & np.uint64(0xFF)] ^ (
-            crc << np.uint64(8)
-        )
+        crc = table[np.uint64((crc >> np.uint64(56)) ^ np.uint64(b)) & np.uint64(0xFF)] ^ (crc << np.uint64(8))
     return crc
 
 
@@ -90,9 +88,7 @@ def parse_header(raw: bytes) -> tuple[int, str, str, float, int, int]:
     return version, _name(mtype), _name(device), sec + frac / 2**32, size, crc
 
 
-def parse_body(
-    version: int, mtype: str, device: str, timestamp: float, body: bytes, crc: int | None
-) -> Message:
+def parse_body(version: int, mtype: str, device: str, timestamp: float, body: bytes, crc: int | None) -> Message:
     """The message a header and its body make; ProtocolError when they do not fit."""
     if crc is not None and crc != 0 and crc64(body) != crc:
         raise ProtocolError(f"{mtype} {device!r}: CRC mismatch (the body is corrupt)")
@@ -117,9 +113,7 @@ def _metadata(raw: bytes, header_size: int, what: str) -> dict[str, str]:
     try:
         (count,) = struct.unpack_from(">H", raw)
         if header_size != 2 + 8 * count:
-            raise ProtocolError(
-                f"{what}: metadata header of {header_size} bytes for {count} entries"
-            )
+            raise ProtocolError(f"{what}: metadata header of {header_size} bytes for {count} entries")
         out, at = {}, header_size
         for i in range(count):
             klen, encoding, vlen = struct.unpack_from(">HHI", raw, 2 + 8 * i)
@@ -158,9 +152,7 @@ def pack(
     t = time.time() if timestamp is None else timestamp
     sec = int(t)
     frac = min(int((t - sec) * 2**32), 2**32 - 1)
-    header = HEADER.pack(
-        version, mtype.encode()[:12], device.encode()[:20], sec, frac, len(body), crc64(body)
-    )
+    header = HEADER.pack(version, mtype.encode()[:12], device.encode()[:20], sec, frac, len(body), crc64(body))
     return header + body
 
 
@@ -202,9 +194,7 @@ def _cells(raw: bytes, count: int, n_points: int, what: str) -> list[np.ndarray]
     if at != a.size:
         raise ProtocolError(f"POLYDATA: {what} section holds more than its {count} cells")
     if cells and (max(int(c.max(initial=0)) for c in cells) >= n_points):
-        raise ProtocolError(
-            f"POLYDATA: a {what} cell refers to a point beyond the {n_points} points"
-        )
+        raise ProtocolError(f"POLYDATA: a {what} cell refers to a point beyond the {n_points} points")
     return cells
 
 
@@ -234,9 +224,7 @@ def decode_polydata(content: bytes) -> PolyData:
     at = POLY_HEADER.size
     need = at + 12 * npts + sv + sl + spoly + sstrip
     if len(content) < need:
-        raise ProtocolError(
-            f"POLYDATA: {len(content)} bytes, but its header announces at least {need}"
-        )
+        raise ProtocolError(f"POLYDATA: {len(content)} bytes, but its header announces at least {need}")
     points = np.frombuffer(content, ">f4", 3 * npts, at).astype(np.float32).reshape(npts, 3)
     at += 12 * npts
     sections = []
@@ -274,9 +262,7 @@ def _attributes(content: bytes, at: int, count: int) -> dict[str, np.ndarray]:
             size = 4 * width * n
             if at + size > len(content):
                 raise ProtocolError(f"POLYDATA: attribute {name!r} runs past the body")
-            out[name] = (
-                np.frombuffer(content, ">f4", width * n, at).astype(np.float32).reshape(n, width)
-            )
+            out[name] = np.frombuffer(content, ">f4", width * n, at).astype(np.float32).reshape(n, width)
             at += size
         return out
     except (struct.error, ValueError) as exc:
@@ -314,9 +300,7 @@ def decode_string(content: bytes) -> str:
     encoding, length = struct.unpack_from(">HH", content)
     if 4 + length > len(content):
         raise ProtocolError(f"STRING: {length} bytes announced, {len(content) - 4} present")
-    return content[4 : 4 + length].decode(
-        "ascii" if encoding == ASCII else "utf-8", errors="replace"
-    )
+    return content[4 : 4 + length].decode("ascii" if encoding == ASCII else "utf-8", errors="replace")
 
 
 def encode_string(text: str) -> bytes:

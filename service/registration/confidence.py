@@ -96,8 +96,18 @@ def node_rotations(assembler: Assembler, u: Array, iterations: int = 8) -> Array
     mesh = assembler.mesh
     F = assembler.F(u) * mesh.volumes[:, None, None]  # (t, 3, 3)
     idx = mesh.tets.ravel()
-    X = np.stack([np.bincount(idx, weights=np.repeat(F[:, i, j], 4), minlength=mesh.n_nodes)
-                  for i in range(3) for j in range(3)], axis=1).reshape(-1, 3, 3)
+    X: Array = (
+        np.stack(
+            [
+                np.bincount(idx, weights=np.repeat(F[:, i, j], 4), minlength=mesh.n_nodes)
+                for i in range(3)
+                for j in range(3)
+            ],
+            axis=1,
+        )
+        .reshape(-1, 3, 3)
+        .astype(np.float64)
+    )
     det = np.linalg.det(X)
     X[~(det > 0)] = np.eye(3)  # a node whose tets average to a fold: no rotation to undo
     X /= np.cbrt(np.where(det > 0, det, 1.0))[:, None, None]  # scale out the volume: same factor

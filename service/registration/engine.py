@@ -115,8 +115,12 @@ class Timing:
     total: float = 0.0
 
     def as_ms(self) -> dict[str, float]:
-        d = {"forward": 1e3 * self.forward, "distance": 1e3 * self.distance, "gradient": 1e3 * self.gradient,
-             "total": 1e3 * self.total}  # by hand: dataclasses.asdict costs 10 us a frame
+        d = {
+            "forward": 1e3 * self.forward,
+            "distance": 1e3 * self.distance,
+            "gradient": 1e3 * self.gradient,
+            "total": 1e3 * self.total,
+        }  # by hand: dataclasses.asdict costs 10 us a frame
         d["optimizer"] = max(0.0, d["total"] - d["forward"] - d["distance"] - d["gradient"])
         return d
 
@@ -157,7 +161,9 @@ class Objective:
     """Phi(g) = J(x0 + u_g) + alpha/2 |g|^2 and its gradient (the adjoint), timed, with the
     best iterate remembered. Shape: g (k, 3); x0 (p, 3) rest positions of `op.nodes`."""
 
-    def __init__(self, op: ForwardOperator, distance, rest_positions: Array, alpha: float, timing: Timing | None = None):
+    def __init__(
+        self, op: ForwardOperator, distance, rest_positions: Array, alpha: float, timing: Timing | None = None
+    ):
         self.op, self.distance, self.rest, self.alpha = op, distance, rest_positions, float(alpha)
         self.timing = timing or Timing()
         self.evaluations = 0
@@ -300,9 +306,13 @@ def solve_frame(
             raise _Done()
         begin = _Start(start, v0, grad0, u0)
         if options.optimizer == "levenberg-marquardt":
-            status, message, nit = _levenberg_marquardt(op, distance, evaluate, begin, g_tol, options, max_eval, deadline)
+            status, message, nit = _levenberg_marquardt(
+                op, distance, evaluate, begin, g_tol, options, max_eval, deadline
+            )
         else:
-            status, message, nit = _lbfgsb(op, distance, evaluate, begin, v_rest, g_tol, options, curvature, max_eval, deadline)
+            status, message, nit = _lbfgsb(
+                op, distance, evaluate, begin, v_rest, g_tol, options, curvature, max_eval, deadline
+            )
     except _Done:
         status, message = "converged", "the cloud lies on the rest surface: no force needed"
         evaluate.best_g, evaluate.best_value, evaluate.best_J = np.zeros((k, 3)), v_rest, v_rest
@@ -345,8 +355,18 @@ class _Start:
         return not np.any(self.g)
 
 
-def _lbfgsb(op, distance: PointToSurface, evaluate: Objective, begin: _Start, v_rest: float, g_tol: float,
-            options: SolveOptions, curvature: Curvature | None, max_eval: int, deadline: float | None) -> tuple[str, str, int]:
+def _lbfgsb(
+    op,
+    distance: PointToSurface,
+    evaluate: Objective,
+    begin: _Start,
+    v_rest: float,
+    g_tol: float,
+    options: SolveOptions,
+    curvature: Curvature | None,
+    max_eval: int,
+    deadline: float | None,
+) -> tuple[str, str, int]:
     """SciPy's L-BFGS-B from `begin` in whitened variables (the module docstring, step 2-3),
     stopped by the force-space gradient test. (status, message, iterations)."""
     k = len(op.support)
@@ -431,8 +451,16 @@ def _lbfgsb(op, distance: PointToSurface, evaluate: Objective, begin: _Start, v_
     return status, message, nit
 
 
-def _levenberg_marquardt(op, distance: PointToSurface, evaluate: Objective, begin: _Start, g_tol: float,
-                         options: SolveOptions, max_eval: int, deadline: float | None) -> tuple[str, str, int]:
+def _levenberg_marquardt(
+    op,
+    distance: PointToSurface,
+    evaluate: Objective,
+    begin: _Start,
+    g_tol: float,
+    options: SolveOptions,
+    max_eval: int,
+    deadline: float | None,
+) -> tuple[str, str, int]:
     """Damped Gauss-Newton steps (levenberg.py) from `begin`, Nielsen's damping update (faster
     from rest, see _COLD_SHRINK); the objective only decreases, so the current point is the
     best. (status, message, iterations)."""

@@ -136,9 +136,15 @@ def _rows_loop(U, x, faces, face, W, r, weight, out):
         r0, r1, r2 = 3 * i0, 3 * i1, 3 * i2
         for k in range(k_r):  # each entry written once, its nine terms summed in one order
             out[j, k] = (
-                c00 * U[r0, k] + c01 * U[r0 + 1, k] + c02 * U[r0 + 2, k]
-                + c10 * U[r1, k] + c11 * U[r1 + 1, k] + c12 * U[r1 + 2, k]
-                + c20 * U[r2, k] + c21 * U[r2 + 1, k] + c22 * U[r2 + 2, k]
+                c00 * U[r0, k]
+                + c01 * U[r0 + 1, k]
+                + c02 * U[r0 + 2, k]
+                + c10 * U[r1, k]
+                + c11 * U[r1 + 1, k]
+                + c12 * U[r1 + 2, k]
+                + c20 * U[r2, k]
+                + c21 * U[r2 + 1, k]
+                + c22 * U[r2 + 2, k]
             )
 
 

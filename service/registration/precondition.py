@@ -122,8 +122,17 @@ class LowRankPreconditioner(_Whitened):
         return (self.root * g + (self.Q @ (self._fwd @ a)).astype(np.float64)) / self.c
 
 
-def gauss_newton(U: Array, Q: Array, faces: Array, bary: Array, normals: Array, alpha: float,
-                 weights: Array | None = None, damping: float = 0.3, null: float = 0.3) -> LowRankPreconditioner:
+def gauss_newton(
+    U: Array,
+    Q: Array,
+    faces: Array,
+    bary: Array,
+    normals: Array,
+    alpha: float,
+    weights: Array | None = None,
+    damping: float = 0.3,
+    null: float = 0.3,
+) -> LowRankPreconditioner:
     """The damped Gauss-Newton model at the points' current closest triangles.
 
     S = (1/m) N^T W N + (alpha + damping s) I,  lam = alpha + null s,  s = tr(N^T W N / m) / r:
@@ -201,7 +210,7 @@ class Curvature:
             self.B = dger(-1.0 / sBs, Bs, Bs, a=self.B, overwrite_a=True)
             self.pairs += 1
 
-    def preconditioner(self, grad: Array) -> "Preconditioner | None":
+    def preconditioner(self, grad: Array) -> Preconditioner | None:
         if self.B is None:
             return None
         try:

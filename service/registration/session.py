@@ -101,7 +101,9 @@ class Session:
         self.mesh = model.mesh
         faces = self.mesh.surface_faces if config.matching is None else _check_faces(self.mesh, config.matching)
         self.distance = PointToSurface(faces, loss=config.loss, loss_param=config.loss_param)
-        support = default_support(model) if config.support is None else check_support(self.mesh, np.asarray(config.support))
+        support = (
+            default_support(model) if config.support is None else check_support(self.mesh, np.asarray(config.support))
+        )
         gtol = config.gtol if config.gtol is not None else DEFAULT_GTOL.get(model.method, 1e-4)
         alpha = config.alpha if config.alpha is not None else DEFAULT_ALPHA * (E_model / float(model.material.E)) ** 2
         self.alpha_tracker: AlphaTracker | None = None
@@ -219,12 +221,15 @@ class Session:
         if self._corrector_op is None:
             self._corrector_op = self.corrector.restrict(self.support, self.distance.nodes)
         # L-BFGS-B from a warm start: Levenberg-Marquardt would form the FEM's Jacobian first
-        fem_options = dataclasses.replace(options, gtol=DEFAULT_GTOL[self.corrector.method],
-                                          optimizer="lbfgsb", precondition=False)
+        fem_options = dataclasses.replace(
+            options, gtol=DEFAULT_GTOL[self.corrector.method], optimizer="lbfgsb", precondition=False
+        )
         start = self.g if sol.status in FAILED else sol.g
         return solve_frame(self._corrector_op, self.distance, self._rest, start, fem_options, None, fallbacks)
 
-    def _outputs(self, op: ForwardOperator, model: ForwardModel, g: Array, rms: float) -> tuple[dict[str, Array], float, float]:
+    def _outputs(
+        self, op: ForwardOperator, model: ForwardModel, g: Array, rms: float
+    ) -> tuple[dict[str, Array], float, float]:
         """The requested fields at the frame's forces, the RMS point-to-surface distance (the
         solve's at g, or searched for if it has none: the best iterate was never evaluated), and
         the error estimate (the whole field is read for it, requested or not)."""

@@ -66,23 +66,19 @@ class SessionConfig:
     )
     alpha: float | None = setting(
         None,
-        "regularisation weight on |g|^2 (default: 1e-7 at the model's E, "
-        "x (E_model / E)^2 at another E)",
+        "regularisation weight on |g|^2 (default: 1e-7 at the model's E, x (E_model / E)^2 at another E)",
         per_model=True,
         gt=0,
     )
     gtol: float | None = setting(
         None,
-        "relative tolerance on the projected gradient "
-        "(default: 3e-4 for the network, 1e-4 for the FEM)",
+        "relative tolerance on the projected gradient (default: 3e-4 for the network, 1e-4 for the FEM)",
         per_model=True,
         gt=0,
         le=1,
     )
     max_iter: int = setting(200, "L-BFGS-B iterations per frame", ge=1, le=10_000)
-    force_bound: float | None = setting(
-        None, "bound on each force component, N (none by default)", gt=0
-    )
+    force_bound: float | None = setting(None, "bound on each force component, N (none by default)", gt=0)
     time_budget_ms: float | None = setting(
         None,
         "per frame: past it the frame returns its best iterate with status time_limit",
@@ -100,21 +96,14 @@ class SessionConfig:
     matching: FaceList | None = setting(
         None, "triangles the points may lie on (default: the whole boundary)", per_model=True
     )
-    outputs: Outputs = setting(
-        ("displacement", "forces"), "fields each frame result carries", max_length=4
-    )
+    outputs: Outputs = setting(("displacement", "forces"), "fields each frame result carries", max_length=4)
     warm_start: bool = setting(True, "start each frame from the previous frame's forces")
-    E: float | None = setting(
-        None, "Young's modulus for this session, Pa (default: the model's)", per_model=True, gt=0
-    )
+    E: float | None = setting(None, "Young's modulus for this session, Pa (default: the model's)", per_model=True, gt=0)
     loss: Loss = setting("squared", "point-to-surface loss")
-    loss_param: float | None = setting(
-        None, "huber: threshold (length); trimmed: fraction ignored", gt=0
-    )
+    loss_param: float | None = setting(None, "huber: threshold (length); trimmed: fraction ignored", gt=0)
     carry_curvature: bool = setting(
         True,
-        "precondition each frame with the curvature the previous frames measured "
-        "(unbounded solves)",
+        "precondition each frame with the curvature the previous frames measured (unbounded solves)",
     )
     precondition: bool = setting(
         False,

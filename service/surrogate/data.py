@@ -17,9 +17,9 @@ import logging
 import os
 import re
 import time
+from collections.abc import Generator
 from functools import lru_cache
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 
@@ -192,7 +192,7 @@ def generate(
     workers: int = 2,
     scheduler: str | None = None,
     progress: bool = True,
-) -> Iterator[dict]:
+) -> Generator[dict, None, None]:
     """Solve paths 0..n_paths-1 that are not on disk yet, in parallel; yields each as written.
 
     With `scheduler` the work goes to that Dask cluster; otherwise a LocalCluster of `workers`
@@ -223,7 +223,10 @@ def generate(
     if scheduler is None:
         one_thread = {k: "1" for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
         cluster = LocalCluster(
-            n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
+            n_workers=workers,
+            threads_per_worker=1,
+            processes=True,
+            dashboard_address=":0",
             env=one_thread,
         )
     client = Client(scheduler or cluster)
@@ -245,7 +248,9 @@ def generate(
 
 
 def _progress(total: int, initial: int, enabled: bool):
-    bar = need("tqdm.auto", "the trainer's progress bar").tqdm(total=total, initial=initial, desc="load paths", unit="path", disable=not enabled)
+    bar = need("tqdm.auto", "the trainer's progress bar").tqdm(
+        total=total, initial=initial, desc="load paths", unit="path", disable=not enabled
+    )
     bar.samples = 0
     return bar
 

@@ -15,7 +15,7 @@ energy at fixed nu, folded into the first layer.
 from __future__ import annotations
 
 import dataclasses
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -47,7 +47,7 @@ class NetworkModel:
         pos[self.region] = np.arange(len(self.region))
         object.__setattr__(self, "_region_pos", pos)
 
-    def with_stiffness(self, E: float) -> "NetworkModel":
+    def with_stiffness(self, E: float) -> NetworkModel:
         return dataclasses.replace(self, material=self.material.with_stiffness(E))
 
     @property
@@ -67,7 +67,7 @@ class NetworkModel:
             )
         return (3 * pos[:, None] + np.arange(3)).ravel()
 
-    def restrict(self, support: Array, nodes: Array | None = None) -> "NetworkOperator":
+    def restrict(self, support: Array, nodes: Array | None = None) -> NetworkOperator:
         return NetworkOperator(self, support, nodes)
 
     def predict(self, forces: Array, support: Array) -> Array:
@@ -324,13 +324,15 @@ class NetworkOperator:
         if self._jac is None:
             W1 = self._layers[0][0]
             _, tape, _ = self._hidden(np.zeros(W1.shape[1], np.float32))
-            C = _above_first(self._layers[-1][0], tape, np.float64) @ W1.astype(np.float64) + self._skip  # dc/dg (r, 3k)
+            C = (
+                _above_first(self._layers[-1][0], tape, np.float64) @ W1.astype(np.float64) + self._skip
+            )  # dc/dg (r, 3k)
             Q, Rt = np.linalg.qr(C.T)  # C = Rt^T Q^T
             U = self._readout.astype(np.float64) @ Rt.T
             self._jac = (U.astype(np.float32), np.ascontiguousarray(Q, np.float32))
         return self._jac
 
-    def jacobian(self, g: Array) -> "CoefficientJacobian | None":
+    def jacobian(self, g: Array) -> CoefficientJacobian | None:
         """dc/dg at g, c the basis coefficients (u = readout c): the Levenberg-Marquardt
         driver's model. None for the paper's layout (no basis). Reuses the last evaluation's
         slopes when g is where it was."""
@@ -515,8 +517,9 @@ class CoefficientJacobian:
     R = dc/dz (r, h) the layers above the first (see :class:`_AnchoredGram`). ``U`` (3p, r)
     is the readout of the operator's nodes (du/dc, constant), so du/dg = U C."""
 
-    def __init__(self, readout: Array, R: Array, gram: Array, stacked: Array,
-                 pulled: tuple[Array, Array] | None = None) -> None:
+    def __init__(
+        self, readout: Array, R: Array, gram: Array, stacked: Array, pulled: tuple[Array, Array] | None = None
+    ) -> None:
         self.R = R  # (r, h)
         self.U = readout
         self._P = stacked  # [W1; S] (h + r, K): C = [R, I] P

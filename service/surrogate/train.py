@@ -105,16 +105,22 @@ def build_model(config: TrainConfig, asm: Assembler, region: Array, F: Array, U:
     force_scale = float(np.sqrt((F.reshape(len(F), -1) ** 2).sum(1).mean() / n_in)) or 1.0
     if config.layout == "paper":  # TrainConfig holds a paper layout to one member
         u_scale = float(np.sqrt((U.reshape(len(U), -1) ** 2).mean())) or 1.0
-        return PaperSurrogate(n_in, U.shape[1] * U.shape[2], depth=max(2, len(config.hidden) + 1),
-                              force_scale=force_scale, u_scale=u_scale)
+        return PaperSurrogate(
+            n_in,
+            U.shape[1] * U.shape[2],
+            depth=max(2, len(config.hidden) + 1),
+            force_scale=force_scale,
+            u_scale=u_scale,
+        )
     basis, _ = pod_basis(U.reshape(len(U), -1), config.rank, config.seed)
     coefs = U.reshape(len(U), -1) @ basis
     coef_scale = torch.full((basis.shape[1],), float(np.sqrt((coefs**2).mean())) or 1.0)
     skip = None
     if config.physics_skip:
         skip = torch.from_numpy(basis.T @ linear_response(asm, region))  # (r, 3R)
-    return ReducedSurrogate(n_in, torch.from_numpy(basis), list(config.hidden), skip, force_scale, coef_scale,
-                            members=config.members or 1)
+    return ReducedSurrogate(
+        n_in, torch.from_numpy(basis), list(config.hidden), skip, force_scale, coef_scale, members=config.members or 1
+    )
 
 
 def targets(model: torch.nn.Module, U: Array) -> Array:
@@ -182,7 +188,9 @@ def train(
             fits = int(config.max_seconds / max(elapsed, 1e-9))
             sched.T_max = max(1, min(config.epochs, fits))
         history.append({"epoch": epoch, "loss": total / len(Xtr), **metrics, "seconds": time.perf_counter() - t0})
-        bar.set_postfix(loss=f"{total / len(Xtr):.2e}", val_mm=f"{metrics['mean_mm']:.3f}", p95=f"{metrics['p95_mm']:.2f}")
+        bar.set_postfix(
+            loss=f"{total / len(Xtr):.2e}", val_mm=f"{metrics['mean_mm']:.3f}", p95=f"{metrics['p95_mm']:.2f}"
+        )
         if metrics["mean_mm"] < best:
             best, best_state, stale = metrics["mean_mm"], copy.deepcopy(model.state_dict()), 0
         else:
@@ -190,7 +198,9 @@ def train(
             if stale >= config.patience:
                 log.info("early stop at epoch %d", epoch)
                 break
-        if config.max_seconds is not None and elapsed * (epoch + 2) / (epoch + 1) > config.max_seconds:  # no room for one more
+        if (
+            config.max_seconds is not None and elapsed * (epoch + 2) / (epoch + 1) > config.max_seconds
+        ):  # no room for one more
             log.info("training stops at epoch %d: its %.0f s are spent", epoch, config.max_seconds)
             break
     bar.close()

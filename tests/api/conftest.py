@@ -48,8 +48,13 @@ def start(store, **overrides) -> BackgroundServer:
     # blas_threads=0: the server shares this process with the rest of the test session; leave
     # its BLAS and torch threads alone. session_queue=8: test_concurrency posts 6 frames of one
     # session at once (the default, 2, would answer some of them 503)
-    defaults = {"max_points": MAX_POINTS, "max_body_bytes": 1 << 20, "max_message_bytes": 1 << 20,
-                "blas_threads": 0, "session_queue": 8}
+    defaults = {
+        "max_points": MAX_POINTS,
+        "max_body_bytes": 1 << 20,
+        "max_message_bytes": 1 << 20,
+        "blas_threads": 0,
+        "session_queue": 8,
+    }
     settings = Settings(store=store, **{**defaults, **overrides})
     return BackgroundServer(settings).start()
 
@@ -131,8 +136,9 @@ def occupied(pool, n: int = 1, timeout: float = 60.0):
     """``n`` jobs admitted to a server's solve pool as solves are, each holding a solver thread
     (or a queue place) until the block ends: a stand-in for long FEM frames."""
     release = threading.Event()
-    threads = [threading.Thread(target=lambda: asyncio.run(pool.run(release.wait, timeout)), daemon=True)
-               for _ in range(n)]
+    threads = [
+        threading.Thread(target=lambda: asyncio.run(pool.run(release.wait, timeout)), daemon=True) for _ in range(n)
+    ]
     before = pool.in_flight
     for t in threads:
         t.start()

@@ -42,8 +42,9 @@ def guarded(bar_store, tmp_path_factory):
     and one allowed browser origin."""
     token_file = tmp_path_factory.mktemp("tokens") / "tokens.txt"
     token_file.write_text(f"# the second client\n{TOKEN_B}\n\n")
-    server = start(bar_store[0], instance_id="guarded", api_tokens=TOKEN_A, token_file=token_file,
-                   allowed_origins=ORIGIN)
+    server = start(
+        bar_store[0], instance_id="guarded", api_tokens=TOKEN_A, token_file=token_file, allowed_origins=ORIGIN
+    )
     yield Live(server)
     server.stop()
 
@@ -103,8 +104,12 @@ def test_every_endpoint_but_health_refuses_a_missing_or_unknown_token(guarded, m
     media = "application/json" if encoding == "json" else "application/msgpack"
     content = None if body is None else (json.dumps(body).encode() if encoding == "json" else mp(body))
     with httpx.Client(base_url=guarded.url, headers={"content-type": media, "accept": media}) as c:
-        for headers in ({}, auth("unknown-token-0123456789"), {"authorization": f"Basic {TOKEN_A}"},
-                        {"authorization": "Bearer"}):
+        for headers in (
+            {},
+            auth("unknown-token-0123456789"),
+            {"authorization": f"Basic {TOKEN_A}"},
+            {"authorization": "Bearer"},
+        ):
             r = c.request(method, path, content=content, headers=headers)
             assert r.status_code == 401, (path, headers, r.status_code, r.text[:200])
             assert r.headers["www-authenticate"].startswith("Bearer")
@@ -126,9 +131,11 @@ def test_a_session_belongs_to_the_token_that_opened_it(guarded, support, clouds)
     with a, b:
         sid = a.post("/sessions", json={"model": "bar", "support": support.tolist()}).json()["session"]
         unknown = sid[:-4] + "zzzz"
-        for method, path, content in [("GET", f"/sessions/{sid}", None),
-                                      ("POST", f"/sessions/{sid}/frames", mp({"points": packed(clouds[0])})),
-                                      ("DELETE", f"/sessions/{sid}", None)]:
+        for method, path, content in [
+            ("GET", f"/sessions/{sid}", None),
+            ("POST", f"/sessions/{sid}/frames", mp({"points": packed(clouds[0])})),
+            ("DELETE", f"/sessions/{sid}", None),
+        ]:
             r = b.request(method, path, content=content)
             assert r.status_code == 404, (method, r.status_code)
             # exactly what a session that does not exist gets: nothing says it is someone else's
@@ -214,12 +221,18 @@ def test_unlisted_origins_are_refused_listed_and_same_origin_ones_pass(guarded):
     assert httpx.get(guarded.url + "/health", headers={"origin": "null"}).status_code == 403
     ok = httpx.get(guarded.url + "/models", headers={**h, "origin": ORIGIN})
     assert ok.status_code == 200 and ok.headers["access-control-allow-origin"] == ORIGIN
-    pre = httpx.options(guarded.url + "/sessions", headers={
-        "origin": ORIGIN, "access-control-request-method": "POST",
-        "access-control-request-headers": "authorization, content-type"})
+    pre = httpx.options(
+        guarded.url + "/sessions",
+        headers={
+            "origin": ORIGIN,
+            "access-control-request-method": "POST",
+            "access-control-request-headers": "authorization, content-type",
+        },
+    )
     assert pre.status_code == 200 and "authorization" in pre.headers["access-control-allow-headers"].lower()
-    pre = httpx.options(guarded.url + "/sessions", headers={
-        "origin": "https://evil.example", "access-control-request-method": "POST"})
+    pre = httpx.options(
+        guarded.url + "/sessions", headers={"origin": "https://evil.example", "access-control-request-method": "POST"}
+    )
     assert pre.status_code == 403
     same = httpx.get(guarded.url + "/models", headers={**h, "origin": guarded.url})
     assert same.status_code == 200
@@ -234,9 +247,15 @@ def test_websocket_handshakes_from_unlisted_origins_are_refused(guarded):
         assert "session" in recv(ws)
 
 
-@pytest.mark.parametrize("headers", [{"content-type": "text/plain"}, {},
-                                     {"content-type": "application/x-www-form-urlencoded"},
-                                     {"content-type": "multipart/form-data; boundary=x"}])
+@pytest.mark.parametrize(
+    "headers",
+    [
+        {"content-type": "text/plain"},
+        {},
+        {"content-type": "application/x-www-form-urlencoded"},
+        {"content-type": "multipart/form-data; boundary=x"},
+    ],
+)
 def test_bodies_a_page_can_send_without_a_preflight_are_415(live, http, headers):
     """On the open test server too: a text/plain body of valid JSON is not taken as JSON."""
     body = json.dumps({"model": "bar"}).encode()
@@ -279,11 +298,30 @@ def test_an_open_server_says_so_and_binds_loopback_only(bar_store, caplog, tmp_p
 
 def test_serve_refuses_a_network_address_without_tokens(bar_store):
     port = free_port()
-    r = subprocess.run([sys.executable, "-m", "service.cli", "serve", "--store", str(bar_store[0]), "--host",
-                        "0.0.0.0", "--port", str(port)], capture_output=True, text=True, timeout=120)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "service.cli",
+            "serve",
+            "--store",
+            str(bar_store[0]),
+            "--host",
+            "0.0.0.0",
+            "--port",
+            str(port),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert r.returncode != 0 and "refusing to serve 0.0.0.0 without tokens" in r.stderr
-    r = subprocess.run([sys.executable, "-m", "service.cli", "serve", "--store", str(bar_store[0]),
-                        "--ssl-certfile", "cert.pem"], capture_output=True, text=True, timeout=120)
+    r = subprocess.run(
+        [sys.executable, "-m", "service.cli", "serve", "--store", str(bar_store[0]), "--ssl-certfile", "cert.pem"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert r.returncode != 0 and "go together" in r.stderr
 
 
@@ -295,16 +333,42 @@ def certificate(tmp_path_factory):
     """A self-signed certificate for 127.0.0.1, made here with the openssl command."""
     folder = tmp_path_factory.mktemp("tls")
     cert, key = folder / "cert.pem", folder / "key.pem"
-    subprocess.run(["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1",
-                    "-subj", "/CN=127.0.0.1", "-addext", "subjectAltName=IP:127.0.0.1",
-                    "-keyout", str(key), "-out", str(cert)], check=True, capture_output=True, timeout=60)
+    subprocess.run(
+        [
+            "openssl",
+            "req",
+            "-x509",
+            "-newkey",
+            "rsa:2048",
+            "-nodes",
+            "-days",
+            "1",
+            "-subj",
+            "/CN=127.0.0.1",
+            "-addext",
+            "subjectAltName=IP:127.0.0.1",
+            "-keyout",
+            str(key),
+            "-out",
+            str(cert),
+        ],
+        check=True,
+        capture_output=True,
+        timeout=60,
+    )
     return cert, key
 
 
 def test_https_and_wss_with_a_certificate(bar_store, certificate, support, clouds):
     cert, key = certificate
-    settings = Settings(store=bar_store[0], blas_threads=0, api_tokens=TOKEN_A, max_body_bytes=1 << 20,
-                        max_message_bytes=1 << 20, max_points=3000)
+    settings = Settings(
+        store=bar_store[0],
+        blas_threads=0,
+        api_tokens=TOKEN_A,
+        max_body_bytes=1 << 20,
+        max_message_bytes=1 << 20,
+        max_points=3000,
+    )
     with BackgroundServer(settings, ssl_certfile=str(cert), ssl_keyfile=str(key)) as server:
         assert server.url.startswith("https://")
         context = ssl.create_default_context(cafile=str(cert))
@@ -342,8 +406,11 @@ def test_a_watcher_with_the_sessions_token_sees_its_frames(guarded, support, clo
         if how == "first message":
             ws.send(json.dumps({"token": TOKEN_A}))
         assert recv(ws)["watching"] == sid
-        r = httpx.post(f"{guarded.url}/sessions/{sid}/frames", json={"points": clouds[1].tolist(), "frame_id": 7},
-                       headers=auth(TOKEN_A))
+        r = httpx.post(
+            f"{guarded.url}/sessions/{sid}/frames",
+            json={"points": clouds[1].tolist(), "frame_id": 7},
+            headers=auth(TOKEN_A),
+        )
         assert r.status_code == 200
         assert recv(ws)["result"]["frame_id"] == 7
 

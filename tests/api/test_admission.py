@@ -29,8 +29,7 @@ from .conftest import MSGPACK, Live, mp, occupied, packed, start, unpack, wait_f
 def narrow(bar_store):
     """One solver thread, one place in its queue, no HTTP frame waiting behind another of its
     session, two sessions at most."""
-    server = start(bar_store[0], instance_id="narrow", solver_threads=1, solve_queue=1, session_queue=0,
-                   max_sessions=2)
+    server = start(bar_store[0], instance_id="narrow", solver_threads=1, solve_queue=1, session_queue=0, max_sessions=2)
     yield Live(server)
     server.stop()
 
@@ -61,8 +60,10 @@ def test_a_saturated_server_answers_503_at_once(narrow, api, clouds):
         ws.send(mp({"model": "bar", "max_iter": 20}))
         recv(ws)
         with occupied(pool, pool.threads + pool.queue):  # every thread and queue place taken
-            for body, headers in [(json.dumps({"points": clouds[0].tolist()}).encode(), {"content-type": "application/json"}),
-                                  (mp({"points": packed(clouds[0])}), MSGPACK)]:
+            for body, headers in [
+                (json.dumps({"points": clouds[0].tolist()}).encode(), {"content-type": "application/json"}),
+                (mp({"points": packed(clouds[0])}), MSGPACK),
+            ]:
                 t0 = time.perf_counter()
                 r = api.post(f"/sessions/{sid}/frames", content=body, headers=headers)
                 assert r.status_code == 503 and r.headers["retry-after"] == "1"
@@ -161,8 +162,13 @@ def test_non_finite_results_are_never_converged(live, http, support, clouds):
     a = http.post(f"/sessions/{sid}/frames", json={"points": clouds[1].tolist()}).json()
     b = http.post(f"/sessions/{ref}/frames", json={"points": clouds[1].tolist()}).json()
     np.testing.assert_allclose(a["forces"], b["forces"], rtol=1e-9, atol=1e-12)
-    payload = {"converged": True, "status": "converged", "message": "", "objective": 1.0,
-               "displacement": np.array([[0.0, np.nan, 0.0]])}
+    payload = {
+        "converged": True,
+        "status": "converged",
+        "message": "",
+        "objective": 1.0,
+        "displacement": np.array([[0.0, np.nan, 0.0]]),
+    }
     flag_non_finite(payload)
     assert payload["converged"] is False and payload["status"] == "non_finite" and "displacement" in payload["message"]
 

@@ -83,9 +83,15 @@ def test_loadtest_bounds():
     check_target("http://127.0.0.1:8000", 4, 10)
     check_target("http://localhost:1", 1, 1)
     check_target("http://[::1]:8000", 64, 600)
-    for url, n, s in [("http://example.com", 1, 1), ("http://10.0.0.1:8000", 1, 1), ("ftp://127.0.0.1", 1, 1),
-                      ("http://127.0.0.1", 65, 1), ("http://127.0.0.1", 0, 1), ("http://127.0.0.1", 1, 601),
-                      ("http://127.0.0.1", 1, 0)]:
+    for url, n, s in [
+        ("http://example.com", 1, 1),
+        ("http://10.0.0.1:8000", 1, 1),
+        ("ftp://127.0.0.1", 1, 1),
+        ("http://127.0.0.1", 65, 1),
+        ("http://127.0.0.1", 0, 1),
+        ("http://127.0.0.1", 1, 601),
+        ("http://127.0.0.1", 1, 0),
+    ]:
         with pytest.raises(ValueError):
             check_target(url, n, s)
     assert loadtest_main(["--url", "http://192.168.1.1:8000", "--seconds", "1"]) == 2

@@ -36,10 +36,25 @@ def test_packed_round_trip(dtype):
 
 
 def test_json_lists_and_scalars():
-    body = codec.encode({"a": np.eye(2), "n": np.int64(3), "x": np.float32(0.5), "t": np.eye(3)[:, 0],
-                         "i": np.arange(3, dtype=np.int32), "h": np.ones(2, np.float16)}, JSON)
-    assert json.loads(body) == {"a": [[1.0, 0.0], [0.0, 1.0]], "n": 3, "x": 0.5, "t": [1.0, 0.0, 0.0],
-                                "i": [0, 1, 2], "h": [1.0, 1.0]}
+    body = codec.encode(
+        {
+            "a": np.eye(2),
+            "n": np.int64(3),
+            "x": np.float32(0.5),
+            "t": np.eye(3)[:, 0],
+            "i": np.arange(3, dtype=np.int32),
+            "h": np.ones(2, np.float16),
+        },
+        JSON,
+    )
+    assert json.loads(body) == {
+        "a": [[1.0, 0.0], [0.0, 1.0]],
+        "n": 3,
+        "x": 0.5,
+        "t": [1.0, 0.0, 0.0],
+        "i": [0, 1, 2],
+        "h": [1.0, 1.0],
+    }
 
 
 def test_overflowing_json_numbers_are_refused_or_infinite():

@@ -21,7 +21,11 @@ def run_stream(url: str, config: dict, frames: list[np.ndarray], binary: bool) -
         ws.recv(timeout=30)
         out = []
         for t, pts in enumerate(frames):
-            ws.send(mp({"points": packed(pts), "frame_id": t}) if binary else json.dumps({"points": pts.tolist(), "frame_id": t}))
+            ws.send(
+                mp({"points": packed(pts), "frame_id": t})
+                if binary
+                else json.dumps({"points": pts.tolist(), "frame_id": t})
+            )
             m = ws.recv(timeout=120)
             out.append(unpack(m) if isinstance(m, bytes) else json.loads(m))
         return out
@@ -32,8 +36,13 @@ def test_concurrent_streams_match_one_at_a_time(live, support, clouds):
     for i in range(6):  # different supports, orders and encodings per stream
         s = support[i % 3 :: 1 + i % 2]
         order = [clouds[(i + t) % len(clouds)] for t in range(5)]
-        config = {"model": "bar", "support": s.tolist(), "outputs": ["displacement", "forces"],
-                  "method": "fem" if i == 5 else "network", "max_iter": 40}
+        config = {
+            "model": "bar",
+            "support": s.tolist(),
+            "outputs": ["displacement", "forces"],
+            "method": "fem" if i == 5 else "network",
+            "max_iter": 40,
+        }
         jobs.append((config, order, i % 2 == 0))
     alone = [run_stream(live.ws, *job) for job in jobs]
     with concurrent.futures.ThreadPoolExecutor(len(jobs)) as ex:
@@ -55,10 +64,12 @@ def test_health_answers_while_every_solver_thread_is_busy(live, http, support, c
     blockers = [pool._pool.submit(release.wait, 30) for _ in range(pool.threads)]
     try:
         with concurrent.futures.ThreadPoolExecutor(1) as ex:
+
             def frame():  # opening a session and its frame both wait for a solver thread
                 with httpx.Client(base_url=live.url, timeout=60) as c:
                     s = c.post("/sessions", json={"model": "bar", "support": support.tolist()}).json()["session"]
                     return c.post(f"/sessions/{s}/frames", json={"points": clouds[0].tolist()})
+
             pending = ex.submit(frame)
             for _ in range(5):
                 t0 = time.perf_counter()

@@ -49,8 +49,14 @@ def test_mesh_json_and_msgpack_agree(http, entry):
     MeshOut.model_validate(j)
     m = unpack(http.get("/models/bar/mesh", headers=MSGPACK).content)
     mesh = entry.mesh
-    for key, ref in [("nodes", mesh.nodes), ("tets", mesh.tets), ("surface_faces", mesh.surface_faces),
-                     ("surface_nodes", mesh.surface_nodes), ("fixed_nodes", mesh.fixed), ("region_nodes", entry.region)]:
+    for key, ref in [
+        ("nodes", mesh.nodes),
+        ("tets", mesh.tets),
+        ("surface_faces", mesh.surface_faces),
+        ("surface_nodes", mesh.surface_nodes),
+        ("fixed_nodes", mesh.fixed),
+        ("region_nodes", entry.region),
+    ]:
         np.testing.assert_array_equal(np.asarray(j[key]), ref)
         np.testing.assert_array_equal(m[key], ref)
     assert m["nodes"].dtype == np.float64 and m["tets"].dtype == np.int64
@@ -65,20 +71,27 @@ def test_simulate_network_matches_in_process(http, entry, support):
     np.testing.assert_allclose(np.asarray(body.displacement), want, rtol=1e-12, atol=1e-15)
     np.testing.assert_allclose(body.net_force, g.sum(0))
     assert body.converged and {"solve", "decode", "encode"} <= set(body.timing_ms)
-    r = http.post("/models/bar/simulate", headers=MSGPACK,
-                  content=mp({"forces": {"nodes": packed(support, "<i8"), "values": packed(g, "<f8")}}))
+    r = http.post(
+        "/models/bar/simulate",
+        headers=MSGPACK,
+        content=mp({"forces": {"nodes": packed(support, "<i8"), "values": packed(g, "<f8")}}),
+    )
     np.testing.assert_allclose(unpack(r.content)["displacement"], want, rtol=1e-12, atol=1e-15)
 
 
 def test_simulate_fem_and_stiffness(http, entry, support):
     g = np.tile([0.0, 0.0, 10.0 / support.size], (support.size, 1))
-    r = http.post("/models/bar/simulate", json={"method": "fem", "forces": {"nodes": support.tolist(), "values": g.tolist()}})
+    r = http.post(
+        "/models/bar/simulate", json={"method": "fem", "forces": {"nodes": support.tolist(), "values": g.tolist()}}
+    )
     body = r.json()
     assert r.status_code == 200 and body["converged"] and body["method"] == "fem" and body["iterations"] >= 1
     u = np.asarray(body["displacement"])
     np.testing.assert_allclose(u, entry.fem.solve(g, support).u, rtol=1e-8, atol=1e-12)
-    stiff = http.post("/models/bar/simulate", json={"method": "fem", "E": 9000.0,
-                                                  "forces": {"nodes": support.tolist(), "values": g.tolist()}}).json()
+    stiff = http.post(
+        "/models/bar/simulate",
+        json={"method": "fem", "E": 9000.0, "forces": {"nodes": support.tolist(), "values": g.tolist()}},
+    ).json()
     assert np.abs(stiff["displacement"]).max() < np.abs(u).max()
 
 
@@ -102,15 +115,25 @@ def test_simulate_refuses_bad_forces(http, forces, words):
 
 
 def test_simulate_unknown_model_and_method(http):
-    assert http.post("/models/nope/simulate", json={"forces": {"nodes": [70], "values": [[0, 0, 1]]}}).status_code == 404
+    assert (
+        http.post("/models/nope/simulate", json={"forces": {"nodes": [70], "values": [[0, 0, 1]]}}).status_code == 404
+    )
     r = http.post("/models/bar/simulate", json={"method": "magic", "forces": {"nodes": [70], "values": [[0, 0, 1]]}})
     assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", "method"]
 
 
 def test_openapi_and_docs(http):
     spec = http.get("/openapi.json").json()
-    for path in ("/health", "/models", "/models/{model}", "/models/{model}/mesh", "/models/{model}/simulate",
-                 "/sessions", "/sessions/{session_id}/frames", "/sessions/{session_id}"):
+    for path in (
+        "/health",
+        "/models",
+        "/models/{model}",
+        "/models/{model}/mesh",
+        "/models/{model}/simulate",
+        "/sessions",
+        "/sessions/{session_id}/frames",
+        "/sessions/{session_id}",
+    ):
         assert path in spec["paths"]
     body = spec["paths"]["/sessions/{session_id}/frames"]["post"]["requestBody"]["content"]
     assert set(body) == {"application/json", "application/msgpack"}

@@ -97,20 +97,11 @@ def test_bridge_surface_equals_the_http_api(live, http, bridge, entry, support, 
             assert (status.type, status.device) == ("STRING", "status")
             got = p.decode_polydata(surf.content)
             st = json.loads(p.decode_string(status.content))
-            assert (
-                st["frame_id"] == t
-                and isinstance(st["converged"], bool)
-                and len(st["net_force"]) == 3
-            )
+            assert st["frame_id"] == t and isinstance(st["converged"], bool) and len(st["net_force"]) == 3
             assert {"status", "error_estimate", "timing_ms"} <= set(st)
 
-            want = http.post(
-                f"/sessions/{sid}/frames", json={"points": pts.astype(float).tolist()}
-            ).json()
-            x = (
-                mesh.nodes[mesh.surface_nodes]
-                + np.asarray(want["displacement"])[mesh.surface_nodes]
-            )
+            want = http.post(f"/sessions/{sid}/frames", json={"points": pts.astype(float).tolist()}).json()
+            x = mesh.nodes[mesh.surface_nodes] + np.asarray(want["displacement"])[mesh.surface_nodes]
             np.testing.assert_allclose(got.points, x.astype(np.float32), rtol=0, atol=1e-6)
             np.testing.assert_allclose(st["net_force"], want["net_force"], rtol=1e-6, atol=1e-9)
             # outward triangles: the model's surface faces, renumbered onto the surface nodes

@@ -20,10 +20,22 @@ from service.config import LIMITS
 
 from .conftest import MSGPACK, Live, mp, occupied, packed, start, unpack, wait_for
 
-SMALL = dict(max_points=1000, max_body_bytes=64 << 10, max_message_bytes=32 << 10, stream_queue_bytes=64 << 10,
-             max_array_elements=8192, body_timeout_s=1.0, first_message_timeout_s=1.0, max_sockets=4,
-             max_iter=50, max_time_budget_ms=2000.0, solver_threads=1, solve_queue=1, session_queue=0,
-             send_timeout_s=5.0)
+SMALL = dict(
+    max_points=1000,
+    max_body_bytes=64 << 10,
+    max_message_bytes=32 << 10,
+    stream_queue_bytes=64 << 10,
+    max_array_elements=8192,
+    body_timeout_s=1.0,
+    first_message_timeout_s=1.0,
+    max_sockets=4,
+    max_iter=50,
+    max_time_budget_ms=2000.0,
+    solver_threads=1,
+    solve_queue=1,
+    session_queue=0,
+    send_timeout_s=5.0,
+)
 
 
 @pytest.fixture(scope="module")
@@ -67,7 +79,7 @@ def _peak(fn) -> tuple[int, BaseException | None]:
     err = None
     try:
         fn()
-    except BaseException as exc:  # noqa: BLE001 - returned to the caller
+    except BaseException as exc:
         err = exc
     peak = tracemalloc.get_traced_memory()[1]
     tracemalloc.stop()
@@ -80,8 +92,10 @@ MAP_BOMB = b"\xdd" + (200_000).to_bytes(4, "big") + b"\x80" * 200_000  # empty m
 PAIR_BOMB = b"\xdd" + (100_000).to_bytes(4, "big") + b"\x91\x00" * 100_000  # [[0], [0], ...]: counted as built
 
 
-@pytest.mark.parametrize("body, kind", [(MSGPACK_BOMB, codec.MSGPACK), (MAP_BOMB, codec.MSGPACK),
-                                        (PAIR_BOMB, codec.MSGPACK), (JSON_BOMB, codec.JSON)])
+@pytest.mark.parametrize(
+    "body, kind",
+    [(MSGPACK_BOMB, codec.MSGPACK), (MAP_BOMB, codec.MSGPACK), (PAIR_BOMB, codec.MSGPACK), (JSON_BOMB, codec.JSON)],
+)
 def test_a_decoding_bomb_costs_a_small_multiple_of_its_size(body, kind):
     """An empty list is 1 byte of MessagePack and 64 bytes of Python: decoding 200 kB of them
     used to cost 13 MB. Now the body is refused once its lists outnumber one per 6 bytes."""
@@ -109,8 +123,11 @@ def test_bombs_over_http_and_the_websocket_are_413_and_change_nothing(tight, clo
     json_bomb = b'{"points": [' + b"[]," * 15_000 + b"[]]}"
     with httpx.Client(base_url=tight.url, timeout=60) as c:
         sid = c.post("/sessions", json={"model": "bar", "max_iter": 20}).json()["session"]
-        for body, headers in [(msgpack_bomb, MSGPACK), (json_bomb, {"content-type": "application/json"}),
-                              (mp({"points": list(range(9000))}), MSGPACK)]:
+        for body, headers in [
+            (msgpack_bomb, MSGPACK),
+            (json_bomb, {"content-type": "application/json"}),
+            (mp({"points": list(range(9000))}), MSGPACK),
+        ]:
             r = c.post(f"/sessions/{sid}/frames", content=body, headers=headers)
             assert r.status_code == 413, r.text[:200]
         r = c.post(f"/sessions/{sid}/frames", json={"points": clouds[0][:200].tolist()})

@@ -93,7 +93,9 @@ configs = st.fixed_dictionaries(
         "alpha": st.floats(allow_nan=False) | json_values,
         "gtol": st.floats(-1, 2),
         "max_iter": st.integers(-2, 20_000) | st.floats(0, 5),
-        "outputs": st.lists(st.sampled_from(["displacement", "surface_displacement", "forces", "stress", "x"]), max_size=5),
+        "outputs": st.lists(
+            st.sampled_from(["displacement", "surface_displacement", "forces", "stress", "x"]), max_size=5
+        ),
         "loss": st.sampled_from(["squared", "huber", "trimmed", "l1"]),
         "loss_param": st.floats(-1, 2) | st.none(),
         "matching": st.lists(node_ids, max_size=3),
@@ -108,7 +110,11 @@ configs = st.fixed_dictionaries(
 def test_arbitrary_frames_never_500(live, session_id, body, binary):
     with httpx.Client(base_url=live.url, timeout=60) as c:
         if binary:
-            r = c.post(f"/sessions/{session_id}/frames", content=msgpack.packb(body), headers={"content-type": "application/msgpack"})
+            r = c.post(
+                f"/sessions/{session_id}/frames",
+                content=msgpack.packb(body),
+                headers={"content-type": "application/msgpack"},
+            )
         else:
             r = c.post(f"/sessions/{session_id}/frames", json=body)
     assert r.status_code in {200, 413, 422}, r.text[:500]
@@ -124,8 +130,12 @@ def test_arbitrary_session_configs_never_500(live, body):
             c.delete(f"/sessions/{r.json()['session']}")
 
 
-@given(body=st.fixed_dictionaries({"forces": st.fixed_dictionaries({"nodes": node_ids, "values": points}) | json_values},
-                                  optional={"method": st.sampled_from(["network", "fem", "?"]), "E": st.floats(-1, 1e4)}))
+@given(
+    body=st.fixed_dictionaries(
+        {"forces": st.fixed_dictionaries({"nodes": node_ids, "values": points}) | json_values},
+        optional={"method": st.sampled_from(["network", "fem", "?"]), "E": st.floats(-1, 1e4)},
+    )
+)
 @FUZZ
 def test_arbitrary_simulate_bodies_never_500(live, body):
     with httpx.Client(base_url=live.url, timeout=60) as c:
@@ -140,8 +150,14 @@ def test_websocket_garbage_and_arbitrary_frames(live, support):
         ws.send(json.dumps({"model": "bar", "support": support.tolist(), "max_iter": 10}))
         json.loads(ws.recv(timeout=30))
 
-        @given(message=st.one_of(st.binary(max_size=64), st.text(max_size=64), frames.map(json.dumps),
-                                 frames.map(lambda f: msgpack.packb(f))))
+        @given(
+            message=st.one_of(
+                st.binary(max_size=64),
+                st.text(max_size=64),
+                frames.map(json.dumps),
+                frames.map(lambda f: msgpack.packb(f)),
+            )
+        )
         @FUZZ
         def check(message):
             ws.send(message)

@@ -42,9 +42,17 @@ def test_open_echoes_every_setting(http, entry):
 def test_frames_match_in_process_session(http, entry, support, clouds):
     """The API adds nothing to the numbers: the same frames give the same results, JSON or
     MessagePack, as a Session called in-process."""
-    config = dict(support=support.tolist(), alpha=1e-6, outputs=["displacement", "forces", "stress", "surface_displacement"])
-    ref = Session(entry.network, SessionConfig(support=tuple(support.tolist()), alpha=1e-6,
-                                               outputs=("displacement", "forces", "stress", "surface_displacement")))
+    config = dict(
+        support=support.tolist(), alpha=1e-6, outputs=["displacement", "forces", "stress", "surface_displacement"]
+    )
+    ref = Session(
+        entry.network,
+        SessionConfig(
+            support=tuple(support.tolist()),
+            alpha=1e-6,
+            outputs=("displacement", "forces", "stress", "surface_displacement"),
+        ),
+    )
     sid_json = open_session(http, **config)["session"]
     sid_mp = open_session(http, **config)["session"]
     for t, pts in enumerate(clouds[:4]):
@@ -52,8 +60,11 @@ def test_frames_match_in_process_session(http, entry, support, clouds):
         j = http.post(f"/sessions/{sid_json}/frames", json={"points": pts.tolist(), "frame_id": t})
         assert j.status_code == 200
         got = FrameResult.model_validate(j.json())
-        m = unpack(http.post(f"/sessions/{sid_mp}/frames", headers=MSGPACK,
-                             content=mp({"points": packed(pts), "frame_id": f"f{t}"})).content)
+        m = unpack(
+            http.post(
+                f"/sessions/{sid_mp}/frames", headers=MSGPACK, content=mp({"points": packed(pts), "frame_id": f"f{t}"})
+            ).content
+        )
         assert got.frame_id == t and m["frame_id"] == f"f{t}"
         for key in ("displacement", "forces", "stress", "surface_displacement"):
             np.testing.assert_allclose(np.asarray(getattr(got, key)), want.outputs[key], rtol=1e-9, atol=1e-14)
@@ -69,13 +80,22 @@ def test_frames_match_in_process_session(http, entry, support, clouds):
 
 def test_msgpack_nested_lists_and_float32(http, support, clouds):
     sid = open_session(http, support=support.tolist(), outputs=["forces"])["session"]
-    a = unpack(http.post(f"/sessions/{sid}/frames", headers=MSGPACK, content=mp({"points": clouds[0].tolist()})).content)
+    a = unpack(
+        http.post(f"/sessions/{sid}/frames", headers=MSGPACK, content=mp({"points": clouds[0].tolist()})).content
+    )
     assert set(a) >= {"forces", "support", "net_force"} and "displacement" not in a
-    b = unpack(http.post(f"/sessions/{sid}/frames", headers=MSGPACK,
-                         content=mp({"points": packed(clouds[1], "<f4"), "support": packed(support, "<i4")})).content)
+    b = unpack(
+        http.post(
+            f"/sessions/{sid}/frames",
+            headers=MSGPACK,
+            content=mp({"points": packed(clouds[1], "<f4"), "support": packed(support, "<i4")}),
+        ).content
+    )
     assert b["forces"].shape == (support.size, 3)
     # JSON request, MessagePack reply: Accept wins
-    r = http.post(f"/sessions/{sid}/frames", json={"points": clouds[2].tolist()}, headers={"accept": "application/msgpack"})
+    r = http.post(
+        f"/sessions/{sid}/frames", json={"points": clouds[2].tolist()}, headers={"accept": "application/msgpack"}
+    )
     assert r.headers["content-type"] == "application/msgpack"
     http.delete(f"/sessions/{sid}")
 
@@ -118,7 +138,11 @@ def test_get_counts_and_delete(http, clouds, support):
     assert info.counters.frames == 2 and info.kind == "http" and info.instance == "alpha"
     assert 0 < info.expires_in_s <= 600
     assert http.delete(f"/sessions/{sid}").status_code == 204
-    for method, path in [("GET", f"/sessions/{sid}"), ("DELETE", f"/sessions/{sid}"), ("POST", f"/sessions/{sid}/frames")]:
+    for method, path in [
+        ("GET", f"/sessions/{sid}"),
+        ("DELETE", f"/sessions/{sid}"),
+        ("POST", f"/sessions/{sid}/frames"),
+    ]:
         r = http.request(method, path, json={"points": clouds[0].tolist()})
         assert r.status_code == 404 and "closed" in r.json()["detail"]
 
@@ -179,7 +203,9 @@ def test_levenberg_marquardt_over_the_api(http, support, clouds):
         r = http.post(f"/sessions/{sid}/frames", json={"points": cloud.tolist()})
         assert r.status_code == 200 and r.json()["converged"], r.text
     http.delete(f"/sessions/{sid}")
-    body = open_session(http, method="fem", support=support.tolist(), optimizer="levenberg-marquardt", outputs=["forces"])
+    body = open_session(
+        http, method="fem", support=support.tolist(), optimizer="levenberg-marquardt", outputs=["forces"]
+    )
     assert body["config"]["optimizer"] == "levenberg-marquardt" and body["config"]["method"] == "fem"
     r = http.post(f"/sessions/{body['session']}/frames", json={"points": clouds[1].tolist()})
     assert r.status_code == 200 and r.json()["converged"], r.text
@@ -250,11 +276,15 @@ def test_auto_sessions_correct_frames_past_max_error_and_say_so(http, entry, sup
     threshold = 0.5 * first["error_estimate"]
     opened = open_session(http, method="auto", max_error=threshold, support=support.tolist())
     assert opened["config"]["method"] == "auto" and opened["config"]["max_error"] == threshold
-    ref = Session(entry.network, SessionConfig(method="auto", max_error=threshold, support=tuple(support.tolist())),
-                  corrector=entry.fem)
+    ref = Session(
+        entry.network,
+        SessionConfig(method="auto", max_error=threshold, support=tuple(support.tolist())),
+        corrector=entry.fem,
+    )
     want = ref.frame(clouds[2])
-    got = FrameResult.model_validate(http.post(f"/sessions/{opened['session']}/frames",
-                                               json={"points": clouds[2].tolist()}).json())
+    got = FrameResult.model_validate(
+        http.post(f"/sessions/{opened['session']}/frames", json={"points": clouds[2].tolist()}).json()
+    )
     assert got.method_used == want.method_used == "fem"
     assert got.error_estimate == pytest.approx(want.error_estimate, rel=1e-6)
     np.testing.assert_allclose(np.asarray(got.forces), want.outputs["forces"], rtol=1e-6, atol=1e-12)

@@ -31,8 +31,11 @@ def test_shutdown_answers_the_frames_in_flight(bar_store, support, clouds):
                 for t in range(4):  # frame 0 is admitted and waits for the thread; 1-3 wait in the stream
                     ws.send(mp({"points": packed(clouds[t]), "frame_id": t}))
                 assert wait_for(lambda: registry.get(stream_sid).busy == 1)
-                posted = ex.submit(lambda: httpx.post(f"{server.url}/sessions/{sid}/frames",
-                                                      json={"points": clouds[0].tolist()}, timeout=60))
+                posted = ex.submit(
+                    lambda: httpx.post(
+                        f"{server.url}/sessions/{sid}/frames", json={"points": clouds[0].tolist()}, timeout=60
+                    )
+                )
                 assert wait_for(lambda: pool.in_flight == 3)
                 stopper.start()
                 assert wait_for(lambda: pool.draining)

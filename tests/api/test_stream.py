@@ -156,8 +156,18 @@ def test_client_vanishing_mid_solve(live, http, support, clouds):
 def test_skip_stale_solves_the_newest(live, support, clouds):
     smaller = support[::2]
     with connect(live.ws) as ws:
-        ws.send(json.dumps({"model": "bar", "method": "fem", "max_iter": 30, "support": support.tolist(),
-                            "skip_stale": True, "outputs": ["forces"]}))
+        ws.send(
+            json.dumps(
+                {
+                    "model": "bar",
+                    "method": "fem",
+                    "max_iter": 30,
+                    "support": support.tolist(),
+                    "skip_stale": True,
+                    "outputs": ["forces"],
+                }
+            )
+        )
         assert recv(ws)["config"]["skip_stale"] is True
         n = 8
         for t in range(n):

@@ -15,9 +15,7 @@ import pytest
 
 playwright = pytest.importorskip("playwright.sync_api")
 CHROMIUM = shutil.which("chromium")
-pytestmark = pytest.mark.skipif(
-    CHROMIUM is None, reason="Debian's chromium is not installed (.ci/run installs it)"
-)
+pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed (.ci/run installs it)")
 ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking"]
 
 
@@ -75,9 +73,7 @@ def test_demo_mode_renders_frames(live, browser, tmp_path):
 
 
 def test_watch_mode_follows_a_session(live, http, browser, support, clouds, tmp_path):
-    sid = http.post("/sessions", json={"model": "bar", "support": support.tolist()}).json()[
-        "session"
-    ]
+    sid = http.post("/sessions", json={"model": "bar", "support": support.tolist()}).json()["session"]
     page = browser.new_page(viewport={"width": 960, "height": 640})
     page.goto(f"{live.url}/viewer?session={sid}#token=not-needed-here")
     page.wait_for_function(

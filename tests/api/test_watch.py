@@ -145,9 +145,7 @@ def test_mailbox_keeps_only_the_newest():
         channel = Channel()
         channel.subscribe(box)
         pts = np.zeros((1, 3))
-        t = threading.Thread(
-            target=lambda: [channel.publish(pts, {"frame_id": i}, {}) for i in range(50)]
-        )
+        t = threading.Thread(target=lambda: [channel.publish(pts, {"frame_id": i}, {}) for i in range(50)])
         t.start()
         t.join()
         item = await box.get(5)
@@ -170,8 +168,7 @@ def test_lagging_watcher_skips_to_the_newest_frame(live, http, support, entry):
         mp(
             {
                 "points": packed(
-                    mesh.nodes[rng.integers(0, mesh.n_nodes, MAX_POINTS)]
-                    + rng.normal(0, 1e-3, (MAX_POINTS, 3))
+                    mesh.nodes[rng.integers(0, mesh.n_nodes, MAX_POINTS)] + rng.normal(0, 1e-3, (MAX_POINTS, 3))
                 ),
                 "frame_id": t,
             }

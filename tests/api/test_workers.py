@@ -20,9 +20,22 @@ from service.api.server import free_port
 def test_two_worker_processes(bar_store, clouds, support):
     port = free_port()
     url = f"http://127.0.0.1:{port}"
-    proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--store", str(bar_store[0]),
-                             "--port", str(port), "--workers", "2"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "service.cli",
+            "serve",
+            "--store",
+            str(bar_store[0]),
+            "--port",
+            str(port),
+            "--workers",
+            "2",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     try:
         deadline = time.monotonic() + 120
         seen = collections.Counter()
@@ -43,7 +56,9 @@ def test_two_worker_processes(bar_store, clouds, support):
             owner = session.id.split("-")[0]
             replies = collections.Counter()
             for _ in range(20):
-                with httpx.Client(base_url=url, headers={"content-type": "application/msgpack", "accept": "application/json"}) as c:
+                with httpx.Client(
+                    base_url=url, headers={"content-type": "application/msgpack", "accept": "application/json"}
+                ) as c:
                     r = c.post(f"/sessions/{session.id}/frames", content=encode({"points": clouds[1]}, "msgpack"))
                     replies[r.status_code] += 1
                     assert (r.status_code == 200) == (r.headers["x-elastreg-instance"] == owner)

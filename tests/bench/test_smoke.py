@@ -14,7 +14,14 @@ def test_bench_smoke_writes_the_whole_report(bar_store, tmp_path):
     results = json.loads((out / "results.json").read_text())
     assert set(results["parts"]) == {"fem", "liver", "beam", "pareto", "stability", "anysite"}
     report = (out / "report.md").read_text()
-    for heading in ("FEM (Newton)", "Registration", "beam experiment", "Error against run time", "Stability", "Any tool site"):
+    for heading in (
+        "FEM (Newton)",
+        "Registration",
+        "beam experiment",
+        "Error against run time",
+        "Stability",
+        "Any tool site",
+    ):
         assert heading in report
     assert (out / "figures" / "pareto.png").stat().st_size > 1000
     assert (out / "figures" / "liver_frames.png").stat().st_size > 1000
@@ -23,7 +30,12 @@ def test_bench_smoke_writes_the_whole_report(bar_store, tmp_path):
     assert {r["method"] for r in beam} == {"network, levenberg-marquardt", "network", "fem", "fem, levenberg-marquardt"}
     assert "on the beam" in report
     liver = results["parts"]["pareto"]
-    assert {r["method"] for r in liver} == {"network", "network, levenberg-marquardt", "fem", "fem, levenberg-marquardt"}
+    assert {r["method"] for r in liver} == {
+        "network",
+        "network, levenberg-marquardt",
+        "fem",
+        "fem, levenberg-marquardt",
+    }
     # each point timed over passes (two in the smoke run), each pass's median kept beside it
     assert all(len(r["ms_passes"]) == 2 for r in liver) and "each pass (ms)" in report
     summary = results["parts"]["beam"]["summary"]  # Levenberg-Marquardt, and L-BFGS-B beside it

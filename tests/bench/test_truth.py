@@ -11,7 +11,7 @@ def test_subdivision_keeps_the_body_and_its_nodes(bar):
     edges = coarse_edges(bar)
     assert fine.n_tets == 8 * bar.n_tets and fine.n_nodes == bar.n_nodes + len(edges)
     np.testing.assert_array_equal(fine.nodes[: bar.n_nodes], bar.nodes)  # coarse ids unchanged
-    np.testing.assert_allclose(fine.nodes[bar.n_nodes:], bar.nodes[edges].mean(axis=1))
+    np.testing.assert_allclose(fine.nodes[bar.n_nodes :], bar.nodes[edges].mean(axis=1))
     assert np.isclose(fine.volumes.sum(), bar.volumes.sum(), rtol=1e-12) and (fine.volumes > 0).all()
     # children of one tet are not all alike: the octahedron's four are smaller than a corner's
     assert fine.volumes.max() / fine.volumes.min() < 10

@@ -32,9 +32,7 @@ def surface():
 def test_polydata_packed_by_pyigtl_decodes(surface, version):
     points, tris = surface
     polygons = np.c_[np.full(len(tris), 3), tris].ravel()
-    msg = pyigtl.PolyDataMessage(
-        points=points, polygons=polygons, device_name="cloud", timestamp=1234.5
-    )
+    msg = pyigtl.PolyDataMessage(points=points, polygons=polygons, device_name="cloud", timestamp=1234.5)
     msg.header_version = version
     if version == 2:
         msg.metadata = {"frame": "7", "origin": "slicer"}
@@ -52,11 +50,7 @@ def test_polydata_with_quads_and_lines():
     polygons = np.array([4, 0, 1, 2, 3, 3, 3, 4, 5])
     lines = np.array([2, 0, 5])
     poly = p.decode_polydata(
-        split(
-            pyigtl.PolyDataMessage(
-                points=pts, polygons=polygons, lines=lines, device_name="m"
-            ).pack()
-        ).content
+        split(pyigtl.PolyDataMessage(points=pts, polygons=polygons, lines=lines, device_name="m").pack()).content
     )
     assert [c.tolist() for c in poly.polygons] == [[0, 1, 2, 3], [3, 4, 5]]
     assert [c.tolist() for c in poly.lines] == [[0, 5]]
@@ -66,15 +60,11 @@ def test_polydata_with_quads_and_lines():
 
 def test_our_polydata_and_string_read_back_by_pyigtl(surface):
     points, tris = surface
-    data = p.pack(
-        "POLYDATA", "registered", p.encode_polydata(points, tris), version=2, metadata={"a": "b"}
-    )
+    data = p.pack("POLYDATA", "registered", p.encode_polydata(points, tris), version=2, metadata={"a": "b"})
     header = pyigtl.MessageBase.parse_header(data[: p.HEADER_SIZE])
     assert header["message_type"] == "POLYDATA" and header["device_name"] == "registered"
     assert struct.unpack(">Q", data[50:58])[0] == pyigtl.messages.CRC64(data[p.HEADER_SIZE :])
-    back = (
-        pyigtl.MessageBase()
-    )  # its POLYDATA decoder is broken: read the framing and metadata only
+    back = pyigtl.MessageBase()  # its POLYDATA decoder is broken: read the framing and metadata only
     back.unpack(header, data[p.HEADER_SIZE :])
     assert back.metadata == {"a": "b"}
     poly = p.decode_polydata(split(data).content)

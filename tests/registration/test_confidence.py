@@ -74,7 +74,7 @@ def test_every_frame_says_how_far_to_trust_it(entry, hard_sequence):
     tool, seq = hard_sequence
     net = _errors(entry, Session(entry.network, SessionConfig(support=_support(entry, tool))), seq)
     fem = _errors(entry, Session(entry.fem, SessionConfig(method="fem", support=_support(entry, tool))), seq)
-    for (rn, en), (rf, ef) in zip(net, fem):
+    for (rn, en), (rf, ef) in zip(net, fem, strict=True):
         assert rn.method_used == "network" and rf.method_used == "fem"
         assert np.isfinite(rn.error_estimate) and np.isfinite(rf.error_estimate)
         # the network's frames are worse here, and their estimates say so
@@ -91,11 +91,13 @@ def test_auto_corrects_the_frames_past_max_error(entry, hard_sequence):
     support = _support(entry, tool)
     net = _errors(entry, Session(entry.network, SessionConfig(support=support)), seq)
     threshold = float(np.median([r.error_estimate for r, _ in net]))
-    auto = Session(entry.network, SessionConfig(method="auto", max_error=threshold, support=support), corrector=entry.fem)
+    auto = Session(
+        entry.network, SessionConfig(method="auto", max_error=threshold, support=support), corrector=entry.fem
+    )
     done = _errors(entry, auto, seq)
     used = [r.method_used for r, _ in done]
     assert "fem" in used
-    for (r, e), (rn, en) in zip(done, net):
+    for (r, e), (_, en) in zip(done, net, strict=True):
         if r.method_used == "fem":
             assert "correction" in r.timing_ms
             assert e < 0.5 * en  # the physics' frame is the better one

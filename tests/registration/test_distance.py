@@ -49,9 +49,7 @@ def reference_closest(p, a, b, c):
     gram = np.einsum("nia,nib->nab", G, G)
     ok = np.linalg.det(gram) > 1e-9 * np.einsum("naa->n", gram) ** 2
     st = np.zeros((len(p), 2))
-    st[ok] = np.linalg.solve(gram[ok], np.einsum("nia,ni->na", G[ok], (p - a)[ok])[..., None])[
-        ..., 0
-    ]
+    st[ok] = np.linalg.solve(gram[ok], np.einsum("nia,ni->na", G[ok], (p - a)[ok])[..., None])[..., 0]
     inside = ok & (st >= 0).all(1) & (st.sum(1) <= 1)
     proj = a + np.einsum("nia,na->ni", G, st)
     return np.where(inside[:, None], proj, best)
@@ -134,9 +132,7 @@ def test_closest_point_matches_reference_on_random_points():
     p = 2.0 * rng.normal(size=(n, 3))
     closest, bary = closest_point_on_triangles(p, a, b, c)
     ref = reference_closest(p, a, b, c)
-    np.testing.assert_allclose(
-        np.linalg.norm(closest - p, axis=1), np.linalg.norm(ref - p, axis=1), atol=1e-12
-    )
+    np.testing.assert_allclose(np.linalg.norm(closest - p, axis=1), np.linalg.norm(ref - p, axis=1), atol=1e-12)
     np.testing.assert_allclose(closest, ref, atol=1e-9)
     assert (bary >= -1e-12).all() and np.allclose(bary.sum(1), 1.0)
     supports = {tuple(row) for row in (bary > 1e-12)}
@@ -184,9 +180,7 @@ def test_degenerate_triangles_give_finite_exact_answers():
 
 def test_closest_point_refuses_mismatched_shapes():
     with pytest.raises(ValueError):
-        closest_point_on_triangles(
-            np.zeros((2, 3)), np.zeros((3, 3)), np.zeros((3, 3)), np.zeros((3, 3))
-        )
+        closest_point_on_triangles(np.zeros((2, 3)), np.zeros((3, 3)), np.zeros((3, 3)), np.zeros((3, 3)))
 
 
 # -- a cloud against a surface --------------------------------------------------------------------
@@ -234,14 +228,10 @@ def test_indexed_distance_equals_brute_force_while_the_surface_moves(backend):
     assert S.n_builds == 2
 
     x_big = x + 0.05 * rng.normal(size=x.shape) + [0.02, 0.0, -0.03]  # forces a refresh
-    np.testing.assert_allclose(
-        S.closest(x_big).distance, brute_distance(faces, x_big, y), atol=1e-12
-    )
+    np.testing.assert_allclose(S.closest(x_big).distance, brute_distance(faces, x_big, y), atol=1e-12)
     assert S.n_builds == 3
     S.bind(y[::2])  # a new frame rebuilds
-    np.testing.assert_allclose(
-        S.closest(x_big).distance, brute_distance(faces, x_big, y[::2]), atol=1e-12
-    )
+    np.testing.assert_allclose(S.closest(x_big).distance, brute_distance(faces, x_big, y[::2]), atol=1e-12)
     assert S.n_builds == 4
 
 
@@ -350,9 +340,7 @@ def test_spatial_structure_is_kept_across_frames_and_small_motion(backend):
         x_k = x + 0.005 * k * rng.normal(size=x.shape)
         y = cloud_near(x_k, faces, rng, 80)
         S.bind(y)
-        np.testing.assert_allclose(
-            S.closest(x_k).distance, brute_distance(faces, x_k, y), atol=1e-12
-        )
+        np.testing.assert_allclose(S.closest(x_k).distance, brute_distance(faces, x_k, y), atol=1e-12)
         assert_exact_candidates(S, x_k)
     assert (S.n_builds, S.n_layouts) == (4, 1)
 
@@ -432,9 +420,7 @@ def test_lone_evaluations_get_one_off_indices(backend):
     x_near = x_far + 1e-3 * rng.normal(size=x.shape)  # a one-off serves its own x only
     S(x_far)
     assert S.n_builds - n == 2
-    np.testing.assert_allclose(
-        S.closest(x_near).distance, brute_distance(faces, x_near, y), atol=1e-12
-    )
+    np.testing.assert_allclose(S.closest(x_near).distance, brute_distance(faces, x_near, y), atol=1e-12)
     assert S.n_builds - n == 3 and S._index.margin > 0  # the surface came back near it
     with pytest.raises(ValueError):
         PointToSurface(faces, keep=0)
@@ -471,9 +457,7 @@ def test_surface_with_zero_area_triangles_equals_brute_force(backend):
     assert np.isfinite(J) and np.isfinite(grad).all()
     d = S.closest(x).distance
     np.testing.assert_allclose(d, brute_distance(S.faces, x, y), atol=1e-12)
-    assert (
-        d[100:] <= np.linalg.norm(segment_closest(y[100:], a, b) - y[100:], axis=1) + 1e-12
-    ).all()
+    assert (d[100:] <= np.linalg.norm(segment_closest(y[100:], a, b) - y[100:], axis=1) + 1e-12).all()
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
@@ -482,9 +466,7 @@ def test_points_on_slivers_are_on_the_surface(backend):
     rng = np.random.default_rng(13)
     x, faces = blob(subdivisions=2)
     i, j = faces[:40, 0], faces[:40, 1]
-    tip = (x[i] + x[j]) / 2 + 1e-6 * np.linalg.norm(x[j] - x[i], axis=1)[:, None] * rng.normal(
-        size=(40, 3)
-    )
+    tip = (x[i] + x[j]) / 2 + 1e-6 * np.linalg.norm(x[j] - x[i], axis=1)[:, None] * rng.normal(size=(40, 3))
     slivers = np.stack([i, len(x) + np.arange(40), j], 1)
     x = np.concatenate([x, tip])
     y = np.einsum("k,nki->ni", [0.3, 0.4, 0.3], x[slivers])
@@ -666,9 +648,7 @@ def test_liver_cloud_against_brute_force():
         local = np.searchsorted(S.nodes, tris)
         for frame in (0, 9, 10):
             x = np.asarray(positions[frame])[S.nodes]
-            np.testing.assert_allclose(
-                S.closest(x).distance, brute_distance(local, x, y), atol=1e-12
-            )
+            np.testing.assert_allclose(S.closest(x).distance, brute_distance(local, x, y), atol=1e-12)
     assert S.closest(np.asarray(positions[10])[S.nodes]).rms < 1e-9  # the cloud lies on it
 
 

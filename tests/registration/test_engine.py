@@ -67,7 +67,9 @@ def test_full_objective_gradient_matches_finite_differences(method, entry):
         d = rng.normal(size=g.shape)
         d /= np.linalg.norm(d)
         fd = (phi(g + h * d)[0] - phi(g - h * d)[0]) / (2 * h)
-        assert np.sum(grad * d) == pytest.approx(fd, rel=2e-3 if method == "fem" else 5e-2, abs=1e-3 * np.abs(grad).max())
+        assert np.sum(grad * d) == pytest.approx(
+            fd, rel=2e-3 if method == "fem" else 5e-2, abs=1e-3 * np.abs(grad).max()
+        )
 
 
 @pytest.mark.parametrize("method", ["fem", "network"])
@@ -86,13 +88,17 @@ def test_known_loads_are_recovered(method, entry):
     op = model.restrict(support, dist.nodes)
     # gtol 1e-6 lies below the float32 network's gradient noise (it stalls there): 1e-5 for it
     gtol = 1e-6 if method == "fem" else 1e-5
-    sol = solve_frame(op, dist, mesh.nodes[dist.nodes], np.zeros_like(g_true), SolveOptions(alpha=1e-9, gtol=gtol, max_iter=300))
+    sol = solve_frame(
+        op, dist, mesh.nodes[dist.nodes], np.zeros_like(g_true), SolveOptions(alpha=1e-9, gtol=gtol, max_iter=300)
+    )
     u = model.restrict(support).displacement(sol.g)
     tre = np.linalg.norm(u - u_true, axis=1).mean()
     disp = np.linalg.norm(u_true, axis=1).mean()
     force_err = np.linalg.norm(sol.g.sum(0) - g_true.sum(0)) / np.linalg.norm(g_true.sum(0))
-    print(f"{method}: TRE {tre:.2e} m ({tre / disp:.1%} of the mean displacement), "
-          f"force error {force_err:.1%}, {sol.iterations} iterations")
+    print(
+        f"{method}: TRE {tre:.2e} m ({tre / disp:.1%} of the mean displacement), "
+        f"force error {force_err:.1%}, {sol.iterations} iterations"
+    )
     assert sol.status == "converged" and sol.converged
     if method == "fem":
         assert tre < 0.002 * disp and force_err < 0.01
@@ -104,7 +110,9 @@ def test_bounds_are_respected(entry):
     mesh, support, g_true, pts, dist = tip_pull(entry)
     bound = 0.5 * np.abs(g_true).max()
     op = entry.fem.restrict(support, dist.nodes)
-    sol = solve_frame(op, dist, mesh.nodes[dist.nodes], np.zeros_like(g_true), SolveOptions(force_bound=bound, alpha=1e-9))
+    sol = solve_frame(
+        op, dist, mesh.nodes[dist.nodes], np.zeros_like(g_true), SolveOptions(force_bound=bound, alpha=1e-9)
+    )
     assert np.abs(sol.g).max() <= bound * (1 + 1e-12)
     assert np.isclose(np.abs(sol.g).max(), bound)  # the bound is active: the true load exceeds it
 
@@ -123,7 +131,9 @@ def test_a_cloud_on_the_rest_surface_needs_no_force(entry):
     pts, _, _ = sample_surface(mesh.nodes, mesh.surface_faces, 200, np.random.default_rng(0))
     dist = PointToSurface(mesh.surface_faces)
     dist.bind(pts)
-    sol = solve_frame(entry.fem.restrict(support, dist.nodes), dist, mesh.nodes[dist.nodes], np.zeros((support.size, 3)))
+    sol = solve_frame(
+        entry.fem.restrict(support, dist.nodes), dist, mesh.nodes[dist.nodes], np.zeros((support.size, 3))
+    )
     assert sol.converged
     assert np.abs(sol.g).max() < 1e-6
 
@@ -194,4 +204,8 @@ def test_a_frame_stopped_by_a_limit_reports_its_iterations(entry):
         op = model.restrict(support, dist.nodes)
         sol = solve_frame(op, dist, mesh.nodes[dist.nodes], np.zeros_like(g_true),
                           SolveOptions(alpha=1e-9, gtol=1e-12, max_evaluations=8))  # fmt: skip
-        assert sol.status == "max_iter" and 1 <= sol.iterations < sol.evaluations, (model.method, sol.status, sol.iterations)
+        assert sol.status == "max_iter" and 1 <= sol.iterations < sol.evaluations, (
+            model.method,
+            sol.status,
+            sol.iterations,
+        )

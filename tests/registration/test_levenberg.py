@@ -43,7 +43,9 @@ def test_step_solves_the_damped_gauss_newton_system(loaded):
     H = C.T @ model.A @ C + 1e-6 * np.eye(g.size)
     for mu in (1e-3 * model.scale, model.scale):
         d = model.step(mu)
-        np.testing.assert_allclose((H + mu * np.eye(g.size)) @ d, -grad, rtol=1e-4, atol=1e-4 * np.abs(grad).max())  # float32 C
+        np.testing.assert_allclose(
+            (H + mu * np.eye(g.size)) @ d, -grad, rtol=1e-4, atol=1e-4 * np.abs(grad).max()
+        )  # float32 C
         # the predicted decrease is the quadratic model's
         assert model.predicted(d, mu) == pytest.approx(-(grad @ d + 0.5 * d @ H @ d), rel=1e-4)
         assert model.predicted(d, mu) > 0
@@ -98,8 +100,10 @@ def test_registers_as_lbfgsb_does_in_fewer_evaluations(entry, method, loss):
         assert s.status == "converged", (opt, s.status, s.message)
         err[opt] = np.linalg.norm(op.displacement(s.g) - u_true, axis=1).mean()
     lm, lb = sol["levenberg-marquardt"][0], sol["lbfgsb"][0]
-    print(f"{method}, {loss}: L-BFGS-B {lb.evaluations} evaluations, TRE {err['lbfgsb']:.3e}; "
-          f"LM {lm.evaluations}, {err['levenberg-marquardt']:.3e}")
+    print(
+        f"{method}, {loss}: L-BFGS-B {lb.evaluations} evaluations, TRE {err['lbfgsb']:.3e}; "
+        f"LM {lm.evaluations}, {err['levenberg-marquardt']:.3e}"
+    )
     assert lm.evaluations < lb.evaluations
     assert err["levenberg-marquardt"] <= 1.2 * err["lbfgsb"] + 1e-3 * np.linalg.norm(u_true, axis=1).mean()
     assert lm.value <= lb.value * (1 + 1e-3)
@@ -254,7 +258,9 @@ def test_session_checks_the_optimizer(entry):
 
     op = NoJacobian(entry.network.restrict(support, dist.nodes))  # called directly, the engine refuses
     with pytest.raises(ValueError, match="needs a forward model with a Jacobian"):
-        solve_frame(op, dist, mesh.nodes[dist.nodes], np.zeros((support.size, 3)), SolveOptions(optimizer="levenberg-marquardt"))
+        solve_frame(
+            op, dist, mesh.nodes[dist.nodes], np.zeros((support.size, 3)), SolveOptions(optimizer="levenberg-marquardt")
+        )
     with pytest.raises(ValueError, match="no force bounds"):  # nor bounds, called directly
         solve_frame(op.op, dist, mesh.nodes[dist.nodes], np.zeros((support.size, 3)),
                     SolveOptions(optimizer="levenberg-marquardt", force_bound=1.0))  # fmt: skip

@@ -37,8 +37,10 @@ def test_forces_that_say_nothing_leave_alpha():
         assert t.update(g, 500) == a
 
 
-@pytest.mark.parametrize("floor, noise, ceiling", [(1e-7, 0.0, 100), (1e-7, -1e-3, 100), (1e-7, float("nan"), 100),
-                                                   (0.0, 1e-3, 100), (1e-7, 1e-3, 0.5)])
+@pytest.mark.parametrize(
+    "floor, noise, ceiling",
+    [(1e-7, 0.0, 100), (1e-7, -1e-3, 100), (1e-7, float("nan"), 100), (0.0, 1e-3, 100), (1e-7, 1e-3, 0.5)],
+)
 def test_bad_settings_are_refused(floor, noise, ceiling):
     with pytest.raises(ValueError):
         AlphaTracker(floor, noise, ceiling=ceiling)

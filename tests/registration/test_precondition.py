@@ -52,7 +52,9 @@ def test_cold_start_with_gauss_newton_registers_as_well(entry, method):
     gtol = 1e-4 if method == "network" else 1e-5
     out = {}
     for pc in (False, True):
-        s = Session(model, SessionConfig(method=method, warm_start=False, precondition=pc, gtol=gtol, outputs=("displacement",)))
+        s = Session(
+            model, SessionConfig(method=method, warm_start=False, precondition=pc, gtol=gtol, outputs=("displacement",))
+        )
         assert s.config.precondition is pc
         out[pc] = [s.frame(c) for c in seq.clouds[1::2]]
     for plain, gn, truth in zip(out[False], out[True], seq.positions[1::2], strict=True):

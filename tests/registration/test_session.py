@@ -30,7 +30,9 @@ def test_warm_start_cuts_iterations(entry, sequence, method):
     model = entry.network if method == "network" else entry.fem
     counts = {}
     for warm in (True, False):  # cold: from zero force, with no memory of earlier frames
-        config = SessionConfig(method=method, support=_support(entry, tool), warm_start=warm, carry_curvature=warm, gtol=1e-5)
+        config = SessionConfig(
+            method=method, support=_support(entry, tool), warm_start=warm, carry_curvature=warm, gtol=1e-5
+        )
         s = Session(model, config)
         counts[warm] = [s.frame(c).iterations for c in seq.clouds]
     print(method, "warm", counts[True], "cold", counts[False])
@@ -46,7 +48,9 @@ def test_cold_starts_ignore_the_carried_curvature(entry, sequence):
     tool, seq = sequence
     results = {}
     for carry in (True, False):
-        s = Session(entry.network, SessionConfig(support=_support(entry, tool), warm_start=False, carry_curvature=carry))
+        s = Session(
+            entry.network, SessionConfig(support=_support(entry, tool), warm_start=False, carry_curvature=carry)
+        )
         results[carry] = [s.frame(c) for c in seq.clouds[::4]]
     assert s.curvature is None and all(r.converged for r in results[False])
     for a, b in zip(results[True], results[False], strict=True):
@@ -99,7 +103,9 @@ def test_forces_stay_on_the_support_and_outputs_are_only_those_asked(entry, sequ
     assert np.allclose(u, rf.outputs["displacement"], atol=1e-9 * max(1.0, np.abs(u).max()))
 
 
-@pytest.mark.parametrize("loss, outputs", [("squared", ("forces",)), ("trimmed", ("displacement",)), ("huber", ("forces",))])
+@pytest.mark.parametrize(
+    "loss, outputs", [("squared", ("forces",)), ("trimmed", ("displacement",)), ("huber", ("forces",))]
+)
 def test_the_reported_rms_is_at_the_returned_forces(entry, sequence, loss, outputs):
     """The frame's RMS distance comes from the solve's own evaluation of its best iterate (no
     search after it): it must be the RMS of every point, trimmed ones too, against the surface
@@ -107,7 +113,9 @@ def test_the_reported_rms_is_at_the_returned_forces(entry, sequence, loss, outpu
     from service.registration.distance import PointToSurface
 
     tool, seq = sequence
-    config = SessionConfig(support=_support(entry, tool), outputs=outputs, loss=loss, loss_param=1e-3 if loss == "huber" else None)
+    config = SessionConfig(
+        support=_support(entry, tool), outputs=outputs, loss=loss, loss_param=1e-3 if loss == "huber" else None
+    )
     s = Session(entry.network, config)
     cloud = seq.clouds[-1].copy()
     cloud[:10] += 0.02  # a few outliers, for the robust losses to leave out
@@ -118,7 +126,6 @@ def test_the_reported_rms_is_at_the_returned_forces(entry, sequence, loss, outpu
         ref.bind(cloud)
         expected = ref.closest((entry.mesh.nodes + u)[ref.nodes]).rms
         assert r.distance_rms == pytest.approx(expected, rel=1e-5)
-
 
 
 @pytest.mark.parametrize("method", ["network", "fem"])
@@ -155,13 +162,20 @@ def test_noise_sets_alpha_from_the_forces_prior(entry, method):
     clouds = [c + rng.normal(scale=sigma, size=c.shape) for c in seq.clouds]
     base = SessionConfig(method=method, outputs=("displacement",))
     tre, alphas = {}, {}
-    for label, config in (("default", base), ("noise", dataclasses.replace(base, noise=sigma)),
-                          ("tiny", dataclasses.replace(base, noise=1e-6))):
+    for label, config in (
+        ("default", base),
+        ("noise", dataclasses.replace(base, noise=sigma)),
+        ("tiny", dataclasses.replace(base, noise=1e-6)),
+    ):
         s = Session(model, config)
         results = [s.frame(c) for c in clouds]
         alphas[label] = [r.alpha for r in results]
-        tre[label] = np.mean([np.linalg.norm(mesh.nodes + r.outputs["displacement"] - x, axis=1).mean()
-                              for r, x in zip(results[6:], seq.positions[6:], strict=True)])
+        tre[label] = np.mean(
+            [
+                np.linalg.norm(mesh.nodes + r.outputs["displacement"] - x, axis=1).mean()
+                for r, x in zip(results[6:], seq.positions[6:], strict=True)
+            ]
+        )
     print(method, {k: round(v * 1e3, 1) for k, v in tre.items()}, alphas["noise"][::3])
     default = alphas["default"][0]
     assert alphas["default"] == [default] * len(clouds) and alphas["noise"][0] == default

@@ -114,8 +114,15 @@ def test_an_ensemble_trains_and_round_trips_through_the_store(bar_store, tmp_pat
 
     root, scene = _bar_scene_with_members(bar_store, 2)
     config = TrainConfig(hidden=(32, 32), rank=24, epochs=30, batch=32, lr=3e-3, physics_skip=True)
-    report = build(scene, tmp_path / "store", workers=0, data_root=root / "data", config=config,
-                   command="elastreg train bar.toml", progress=False)
+    report = build(
+        scene,
+        tmp_path / "store",
+        workers=0,
+        data_root=root / "data",
+        config=config,
+        command="elastreg train bar.toml",
+        progress=False,
+    )
     entry = load_entry(tmp_path / "store" / "bar")
     assert entry.manifest["network"]["members"] == 2
     assert entry.manifest["training"]["config"]["members"] == 2
@@ -146,9 +153,11 @@ def test_a_bad_ensemble_size_is_refused_before_any_work(capsys):
 
 @pytest.mark.parametrize(
     ("kwargs", "message"),
-    [({"layout": "paper", "members": 3}, "needs the reduced layout"),
-     ({"members": 0}, "members must be a whole number >= 1"),
-     ({"layout": "dense"}, "unknown layout 'dense'")],
+    [
+        ({"layout": "paper", "members": 3}, "needs the reduced layout"),
+        ({"members": 0}, "members must be a whole number >= 1"),
+        ({"layout": "dense"}, "unknown layout 'dense'"),
+    ],
 )
 def test_train_config_refuses_what_no_build_can_take(kwargs, message):
     """One place holds the rule, so the library, the CLI and a scene build refuse alike."""
@@ -166,8 +175,14 @@ def test_the_papers_layout_leaves_a_scenes_ensemble_out(bar_store, tmp_path):
     from service.surrogate.train import TrainConfig
 
     root, scene = _bar_scene_with_members(bar_store, 2)
-    build(scene, tmp_path / "store", workers=0, data_root=root / "data",
-          config=TrainConfig(layout="paper", hidden=(16,), epochs=2, batch=32), progress=False)
+    build(
+        scene,
+        tmp_path / "store",
+        workers=0,
+        data_root=root / "data",
+        config=TrainConfig(layout="paper", hidden=(16,), epochs=2, batch=32),
+        progress=False,
+    )
     entry = load_entry(tmp_path / "store" / "bar")
     assert entry.manifest["network"]["layout"] == "paper" and entry.manifest["network"]["members"] == 1
 
@@ -185,8 +200,15 @@ def test_a_timed_build_keeps_to_its_minutes_and_still_learns(tmp_path, bar):
     minutes = 0.25
     config = TrainConfig(hidden=(64, 64), rank=24, epochs=100_000, batch=32, lr=3e-3, physics_skip=True)
     t0 = time.perf_counter()
-    report = build(scene, tmp_path / "store", workers=0, data_root=tmp_path / "data", config=config,
-                   progress=False, minutes=minutes)
+    report = build(
+        scene,
+        tmp_path / "store",
+        workers=0,
+        data_root=tmp_path / "data",
+        config=config,
+        progress=False,
+        minutes=minutes,
+    )
     wall = time.perf_counter() - t0
     assert 2 <= report.paths < 10_000
     assert report.data_seconds < DATA_SHARE * 60 * minutes + 5  # one path past the share at most
@@ -213,6 +235,10 @@ def test_the_command_line_refuses_a_budget_that_is_not_positive():
     import subprocess
     import sys
 
-    r = subprocess.run([sys.executable, "-m", "service.cli", "train", "beam", "--minutes", "-1"],
-                       capture_output=True, text=True, timeout=120)
+    r = subprocess.run(
+        [sys.executable, "-m", "service.cli", "train", "beam", "--minutes", "-1"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert r.returncode == 2 and "must be a positive number" in r.stderr

@@ -29,8 +29,15 @@ def model(request, bar):
     if request.param in ("reduced", "ensemble"):
         rng = np.random.default_rng(0)
         basis, _ = pod_basis(rng.normal(size=(40, 3 * bar.n_nodes)), 12)
-        net = ReducedSurrogate(n_in, torch.from_numpy(basis), [32, 16], torch.randn(12, n_in), 2.0,
-                               torch.full((12,), 0.5), members=3 if request.param == "ensemble" else 1)
+        net = ReducedSurrogate(
+            n_in,
+            torch.from_numpy(basis),
+            [32, 16],
+            torch.randn(12, n_in),
+            2.0,
+            torch.full((12,), 0.5),
+            members=3 if request.param == "ensemble" else 1,
+        )
     else:
         net = PaperSurrogate(n_in, 3 * bar.n_nodes, depth=3, force_scale=2.0, u_scale=0.1)
     return NetworkModel(bar, MAT, region, randomised(net), E0=MAT.E)
@@ -136,7 +143,9 @@ def test_pullback_matches_finite_differences(model):
 def test_stiffness_scales_the_input(model):
     support, nodes, g = case(model)
     stiff = model.with_stiffness(3 * MAT.E)
-    np.testing.assert_allclose(stiff.restrict(support, nodes)(3 * g)[0], model.restrict(support, nodes)(g)[0], rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(
+        stiff.restrict(support, nodes)(3 * g)[0], model.restrict(support, nodes)(g)[0], rtol=1e-4, atol=1e-6
+    )
     assert model.material.E == MAT.E
 
 
@@ -178,7 +187,9 @@ def test_low_rank_jacobian_is_the_network_jacobian_at_rest(model):
     assert U.shape == (3 * nodes.size, 12) and Q.shape == (3 * support.size, 12)
     np.testing.assert_allclose(Q.T @ Q, np.eye(12), atol=1e-5)
     g0 = torch.zeros(3 * support.size)
-    ref = torch.autograd.functional.jacobian(lambda g: torch_reference_at(model, support, g)[torch.as_tensor(np.array(nodes))].reshape(-1), g0)
+    ref = torch.autograd.functional.jacobian(
+        lambda g: torch_reference_at(model, support, g)[torch.as_tensor(np.array(nodes))].reshape(-1), g0
+    )
     np.testing.assert_allclose(U @ Q.T, ref.numpy(), rtol=1e-3, atol=1e-4 * float(ref.abs().max()))
 
 
@@ -191,7 +202,11 @@ def _torch_coefficient_jacobian(model, support, g):
         x = torch.zeros(3 * model.region.size, dtype=torch.float32).index_put((cols,), gt * model.stiffness_factor)
         return net.coefficients(x[None])[0]
 
-    return torch.autograd.functional.jacobian(coef, torch.tensor(g.ravel(), dtype=torch.float32)).numpy().astype(np.float64)
+    return (
+        torch.autograd.functional.jacobian(coef, torch.tensor(g.ravel(), dtype=torch.float32))
+        .numpy()
+        .astype(np.float64)
+    )
 
 
 def _random_reduced(bar, hidden, rng, seed, members=1):
@@ -199,8 +214,9 @@ def _random_reduced(bar, hidden, rng, seed, members=1):
     region = bar.free_surface_nodes[bar.nodes[bar.free_surface_nodes, 0] > 1.0]
     basis, _ = pod_basis(rng.normal(size=(40, 3 * bar.n_nodes)), 12)
     n_in = 3 * region.size
-    net = ReducedSurrogate(n_in, torch.from_numpy(basis), hidden, torch.randn(12, n_in), 2.0, torch.full((12,), 0.5),
-                           members=members)
+    net = ReducedSurrogate(
+        n_in, torch.from_numpy(basis), hidden, torch.randn(12, n_in), 2.0, torch.full((12,), 0.5), members=members
+    )
     return NetworkModel(bar, MAT, region, randomised(net, seed=seed), E0=MAT.E)
 
 
@@ -224,12 +240,18 @@ def test_coefficient_jacobian_is_torch_jacobian(bar, hidden, members):
         np.testing.assert_allclose(jac.matvec(v), C @ v, rtol=1e-4, atol=1e-5 * np.abs(C @ v).max())
         np.testing.assert_allclose(jac.rmatvec(w), C.T @ w, rtol=1e-4, atol=1e-5 * np.abs(C.T @ w).max())
     gt = torch.tensor(g1.ravel(), dtype=torch.float32)
-    ref = torch.autograd.functional.jacobian(lambda q: torch_reference_at(model, support, q)[torch.as_tensor(np.array(nodes))].reshape(-1), gt)
+    ref = torch.autograd.functional.jacobian(
+        lambda q: torch_reference_at(model, support, q)[torch.as_tensor(np.array(nodes))].reshape(-1), gt
+    )
     C = _torch_coefficient_jacobian(model, support, g1)
-    np.testing.assert_allclose(op.jacobian(g1).U.astype(np.float64) @ C, ref.numpy(), rtol=1e-3, atol=1e-4 * float(ref.abs().max()))
+    np.testing.assert_allclose(
+        op.jacobian(g1).U.astype(np.float64) @ C, ref.numpy(), rtol=1e-3, atol=1e-4 * float(ref.abs().max())
+    )
 
 
-@pytest.mark.parametrize("hidden,members", [([48, 40], 1), ([40], 1), ([24, 20, 16], 1), ([48, 40], 3), ([24, 20, 16], 2)])
+@pytest.mark.parametrize(
+    "hidden,members", [([48, 40], 1), ([40], 1), ([24, 20, 16], 1), ([48, 40], 3), ([24, 20, 16], 2)]
+)
 def test_coefficient_jacobian_along_a_path_is_the_fresh_one(bar, hidden, members):
     """Levenberg-Marquardt asks one operator for the Jacobian at point after point: its R and
     C C^T are kept and corrected by the PReLU units that flipped since the last call, refreshed

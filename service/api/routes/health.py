@@ -17,11 +17,17 @@ from ..schemas import Health
 router = APIRouter(tags=["health"])
 
 
-@router.get("/health", response_model=Health,
-            responses={200: {"content": ALT_MSGPACK},
-                       503: {"model": Health, "description": "degraded: no model loaded, or the solve queue is full"}})
-async def health(request: Request, settings: SettingsDep, models: ModelsDep, registry: RegistryDep, pool: PoolDep,
-                 kind: ReplyKind):
+@router.get(
+    "/health",
+    response_model=Health,
+    responses={
+        200: {"content": ALT_MSGPACK},
+        503: {"model": Health, "description": "degraded: no model loaded, or the solve queue is full"},
+    },
+)
+async def health(
+    request: Request, settings: SettingsDep, models: ModelsDep, registry: RegistryDep, pool: PoolDep, kind: ReplyKind
+):
     reasons = []
     if not models:
         reasons.append(f"no model loaded from the store ({len(request.app.state.store_errors)} refused)")
@@ -43,4 +49,3 @@ async def health(request: Request, settings: SettingsDep, models: ModelsDep, reg
         "skipped_models": request.app.state.store_errors,
     }
     return reply(body, kind, status=503 if reasons else 200)
-

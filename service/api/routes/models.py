@@ -44,8 +44,12 @@ async def get_mesh(request: Request, entry: EntryDep, pool: PoolDep, kind: Reply
 @router.post(
     "/{model}/simulate",
     response_model=SimulateOut,
-    responses={**NOT_FOUND, 200: {"content": ALT_MSGPACK}, 422: {"model": ErrorOut},
-               503: {"model": ErrorOut, "description": "at capacity: retry after Retry-After seconds"}},
+    responses={
+        **NOT_FOUND,
+        200: {"content": ALT_MSGPACK},
+        422: {"model": ErrorOut},
+        503: {"model": ErrorOut, "description": "at capacity: retry after Retry-After seconds"},
+    },
     openapi_extra=request_body(SimulateIn),
 )
 async def simulate(entry: EntryDep, body: SimulateBody, pool: PoolDep, settings: SettingsDep, kind: ReplyKind):

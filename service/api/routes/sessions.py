@@ -26,8 +26,12 @@ from ..deps import (
 from ..schemas import ErrorOut, FrameIn, FrameResult, SessionCreate, SessionInfo, SessionOpened
 
 router = APIRouter(prefix="/sessions", tags=["sessions"])
-NOT_FOUND = {404: {"model": ErrorOut, "description": "no such session in this process (see session affinity), "
-                                                    "or another token's"}}
+NOT_FOUND = {
+    404: {
+        "model": ErrorOut,
+        "description": "no such session in this process (see session affinity), or another token's",
+    }
+}
 BUSY = {503: {"model": ErrorOut, "description": "at capacity: retry after Retry-After seconds"}}
 INVALID = {422: {"model": ErrorOut, "description": "a body that does not validate"}}
 
@@ -36,33 +40,66 @@ INVALID = {422: {"model": ErrorOut, "description": "a body that does not validat
     "",
     status_code=201,
     response_model=SessionOpened,
-    responses={201: {"content": ALT_MSGPACK}, 404: {"model": ErrorOut, "description": "unknown model"},
-               503: {"model": ErrorOut, "description": "at the session limit, or at capacity"}, **INVALID},
+    responses={
+        201: {"content": ALT_MSGPACK},
+        404: {"model": ErrorOut, "description": "unknown model"},
+        503: {"model": ErrorOut, "description": "at the session limit, or at capacity"},
+        **INVALID,
+    },
     openapi_extra=request_body(SessionCreate),
 )
-async def open_session(body: CreateBody, models: ModelsDep, registry: RegistryDep, pool: PoolDep,
-                       settings: SettingsDep, kind: ReplyKind, owner: Owner):
+async def open_session(
+    body: CreateBody,
+    models: ModelsDep,
+    registry: RegistryDep,
+    pool: PoolDep,
+    settings: SettingsDep,
+    kind: ReplyKind,
+    owner: Owner,
+):
     create = body.value
     entry = models.get(create.model)
     if entry is None:
         raise work.not_found_model(create.model, models)
-    held = await work.open_session(entry, create, kind="http", registry=registry, pool=pool, settings=settings,
-                                   owner=owner)
+    held = await work.open_session(
+        entry, create, kind="http", registry=registry, pool=pool, settings=settings, owner=owner
+    )
     return reply(work.opened(held, settings.instance_id), kind, status=201)
 
 
 @router.post(
     "/{session_id}/frames",
     response_model=FrameResult,
-    responses={200: {"content": ALT_MSGPACK}, **NOT_FOUND, **INVALID, **BUSY,
-               413: {"model": ErrorOut, "description": "a point cloud over the limit"}},
+    responses={
+        200: {"content": ALT_MSGPACK},
+        **NOT_FOUND,
+        **INVALID,
+        **BUSY,
+        413: {"model": ErrorOut, "description": "a point cloud over the limit"},
+    },
     openapi_extra=request_body(FrameIn),
 )
-async def post_frame(request: Request, held: HttpSessionDep, body: FrameBody, registry: RegistryDep, pool: PoolDep,
-                     settings: SettingsDep, kind: ReplyKind):
+async def post_frame(
+    request: Request,
+    held: HttpSessionDep,
+    body: FrameBody,
+    registry: RegistryDep,
+    pool: PoolDep,
+    settings: SettingsDep,
+    kind: ReplyKind,
+):
     with client_gone(request) as gone:
-        data = await work.http_frame(held, body.value, kind, decode_ms=body.decode_ms, t_received=body.t_received,
-                                     registry=registry, pool=pool, session_queue=settings.session_queue, gone=gone)
+        data = await work.http_frame(
+            held,
+            body.value,
+            kind,
+            decode_ms=body.decode_ms,
+            t_received=body.t_received,
+            registry=registry,
+            pool=pool,
+            session_queue=settings.session_queue,
+            gone=gone,
+        )
     return reply(data, kind)
 
 

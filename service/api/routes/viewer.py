@@ -36,9 +36,7 @@ PEAK_FRACTION = 0.7  # of the model's training max_force, as in `elastreg demo`
 
 @router.get("/viewer", include_in_schema=False)
 async def viewer_page() -> FileResponse:
-    return FileResponse(
-        HERE / "index.html", media_type="text/html", headers={"cache-control": "no-cache"}
-    )
+    return FileResponse(HERE / "index.html", media_type="text/html", headers={"cache-control": "no-cache"})
 
 
 @router.get("/viewer/static/{name:path}", include_in_schema=False)
@@ -56,9 +54,7 @@ def demo_sequence(entry, frames: int, points: int, seed: int) -> dict:
 
     mesh = entry.mesh
     tool, support = tool_patches(mesh, entry.region)
-    max_force = float(
-        entry.manifest.get("training", {}).get("load_distribution", {}).get("max_force", 1.0)
-    )
+    max_force = float(entry.manifest.get("training", {}).get("load_distribution", {}).get("max_force", 1.0))
     seq = make_sequence(
         mesh,
         entry.fem.material,

@@ -79,9 +79,7 @@ class Watcher:
             return False, None
         raw = msg.get("bytes") if msg.get("bytes") is not None else (msg.get("text") or "")
         try:
-            obj = codec.decode(
-                raw, codec.MSGPACK if isinstance(raw, bytes) else codec.JSON, max_bytes=1 << 16
-            )
+            obj = codec.decode(raw, codec.MSGPACK if isinstance(raw, bytes) else codec.JSON, max_bytes=1 << 16)
         except Exception:
             obj = None
         return True, obj if isinstance(obj, dict) else None

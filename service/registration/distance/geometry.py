@@ -19,9 +19,7 @@ _THIN = 1e-6
 _TINY = np.finfo(np.float64).tiny
 
 
-def _region_weights(
-    d1: Array, d2: Array, g00: Array, g01: Array, g11: Array
-) -> tuple[Array, Array]:
+def _region_weights(d1: Array, d2: Array, g00: Array, g01: Array, g11: Array) -> tuple[Array, Array]:
     """Barycentric weights (v, w) on (b, c) of the closest point, by Ericson's Voronoi regions.
 
     Shape: all (n,) -> (n,), (n,). With ab = b - a, ac = c - a, ap = p - a: d1 = ab.ap,
@@ -74,9 +72,7 @@ def _region_weights(
     return v, w
 
 
-def _squared_distance(
-    pp: Array, d1: Array, d2: Array, g00: Array, g01: Array, g11: Array, v: Array, w: Array
-) -> Array:
+def _squared_distance(pp: Array, d1: Array, d2: Array, g00: Array, g01: Array, g11: Array, v: Array, w: Array) -> Array:
     """|ap - v ab - w ac|^2 from dot products. Shape: all (n,) -> (n,).
 
     Loses about eps * |ap|^2 to cancellation, which only matters for choosing between two
@@ -86,9 +82,7 @@ def _squared_distance(
     return pp - v * (2.0 * d1 - v * g00 - 2.0 * w * g01) - w * (2.0 * d2 - w * g11)
 
 
-def _segment_weights(
-    pp: Array, d1: Array, d2: Array, g00: Array, g01: Array, g11: Array
-) -> tuple[Array, Array, Array]:
+def _segment_weights(pp: Array, d1: Array, d2: Array, g00: Array, g01: Array, g11: Array) -> tuple[Array, Array, Array]:
     """Weights (v, w) and squared distance of the closest point on the three edges.
 
     Shape: all (n,) -> 3 x (n,). A zero-area triangle is the union of its edges, so this is
@@ -118,9 +112,7 @@ def _is_thin(g00: Array, g01: Array, g11: Array) -> Array:
     return g00 * g11 - g01 * g01 <= _THIN * trace * trace
 
 
-def _weights(
-    pp: Array, d1: Array, d2: Array, g00: Array, g01: Array, g11: Array
-) -> tuple[Array, Array, Array]:
+def _weights(pp: Array, d1: Array, d2: Array, g00: Array, g01: Array, g11: Array) -> tuple[Array, Array, Array]:
     """Weights (v, w) and squared distance for any triangle, degenerate ones included.
 
     Shape: all (n,) -> 3 x (n,). Thin triangles take the better of the region answer and the

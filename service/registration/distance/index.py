@@ -98,8 +98,9 @@ class Candidates:
     candidate list is exact, and how a build finds one: docs/distance.md.
     """
 
-    def __init__(self, faces: Array, columns: Array, kernels, *, margin: float | None,
-                 margin_factor: float, keep: int) -> None:
+    def __init__(
+        self, faces: Array, columns: Array, kernels, *, margin: float | None, margin_factor: float, keep: int
+    ) -> None:
         self.faces, self._columns, self._kernels = faces, columns, kernels
         self.n_nodes = int(faces.max()) + 1
         self.margin, self.margin_factor, self.keep = margin, margin_factor, keep
@@ -214,8 +215,9 @@ class Candidates:
             active, tri = np.empty(face.size, np.intp), np.empty(face.size, np.intp)
             n = self._kernels.activate(face, np.empty(len(self.faces), np.intp), active, tri)
             active = active[:n]
-            return Index(x0=x.copy(), margin=M, face=face, start=start, tri=tri, active=active,
-                          nodes=self._nodes_of(active))
+            return Index(
+                x0=x.copy(), margin=M, face=face, start=start, tri=tri, active=active, nodes=self._nodes_of(active)
+            )
         count = np.diff(start)
         rows = np.repeat(np.arange(m), count)
         width = int(count.max())
@@ -243,9 +245,7 @@ class Candidates:
         mark[self.faces.take(active, axis=0)] = True
         return np.flatnonzero(mark)
 
-    def _candidates_compiled(
-        self, x: Array, h: Hierarchy, M: float, hint: Array
-    ) -> tuple[Array, Array]:
+    def _candidates_compiled(self, x: Array, h: Hierarchy, M: float, hint: Array) -> tuple[Array, Array]:
         """Face (P,) and start (m + 1,) of a build, from the hierarchy refitted at x."""
         K = self._kernels
         K.refit(x, self.faces, h.order, h.span, h.box, h.tri)

@@ -161,9 +161,7 @@ def nearest(x, faces, active, tri, start, y, T, face_out, W, r):
             h = apx * T[t, 9] + apy * T[t, 10] + apz * T[t, 11]
             if h * h >= q_best:
                 continue
-            q, v, w = _triangle_q(
-                apx, apy, apz, T[t, 3], T[t, 4], T[t, 5], T[t, 6], T[t, 7], T[t, 8]
-            )
+            q, v, w = _triangle_q(apx, apy, apz, T[t, 3], T[t, 4], T[t, 5], T[t, 6], T[t, 7], T[t, 8])
             if q < q_best:
                 q_best, t_best, v_best, w_best = q, t, v, w
         f = active[t_best]

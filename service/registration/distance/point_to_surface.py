@@ -152,8 +152,9 @@ class PointToSurface:
         self.points: Array | None = None
         self._yt: Array | None = None  # the points, coordinates first (3, m)
         self.keep = int(keep)
-        self.candidates = Candidates(self.faces, self._columns, self._kernels, margin=margin,
-                                     margin_factor=margin_factor, keep=self.keep)
+        self.candidates = Candidates(
+            self.faces, self._columns, self._kernels, margin=margin, margin_factor=margin_factor, keep=self.keep
+        )
         self._last: tuple | None = None  # the last evaluation's match, as last_match gives it
         self._uniform: Array | None = None  # the points' one weight (squared loss), per cloud
         self._hint = _NO_HINT  # each point's last closest face this frame (compiled builds)
@@ -304,9 +305,7 @@ class PointToSurface:
         if self._kernels is not None:
             face = np.empty(m, np.intp)
             T = np.empty((ix.active.size, _ROW))
-            self._kernels.nearest(
-                x, self.faces, ix.active, ix.tri, ix.start, self.points, T, face, W, r
-            )
+            self._kernels.nearest(x, self.faces, ix.active, ix.tri, ix.start, self.points, T, face, W, r)
             self._hint = face  # the next build's first guesses
             return face, W, r
         face, v, w = self._nearest_numpy(x, ix)
