@@ -41,7 +41,9 @@ def _train(args: argparse.Namespace) -> int:
             hidden=tuple(args.hidden),
             rank=args.rank,
             members=args.members,
-            physics_skip=args.physics_skip,
+            # a timed build has little data, and learning only the nonlinear remainder over the
+            # linear response needs far less (docs/performance.md, "Timed builds")
+            physics_skip=args.physics_skip if args.physics_skip is not None else args.minutes is not None,
             epochs=args.epochs,
             seed=args.seed,
         )
@@ -204,7 +206,12 @@ def parser() -> argparse.ArgumentParser:
         help="an ensemble of this many independently trained MLPs over one basis, averaged "
         "(reduced layout; default: the scene's [training] members, else 1)",
     )
-    t.add_argument("--physics-skip", action="store_true", help="add the linear small-strain response as a skip path")
+    t.add_argument(
+        "--physics-skip",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="add the linear small-strain response as a skip path (default: on for a timed build)",
+    )
     t.add_argument("--epochs", type=int, default=200)
     t.add_argument("--seed", type=int, default=0)
     t.set_defaults(func=_train)

@@ -142,6 +142,7 @@ def train(
 ) -> TrainResult:
     """Fit a surrogate to samples F (N, R, 3) -> U (N, n, 3), validating on held-out paths."""
     tqdm = need("tqdm.auto", "the trainer's progress bar").tqdm
+    t_start = time.perf_counter()  # a capped training counts its model's making (a skip path's solves)
     if config.threads:
         torch.set_num_threads(config.threads)
     device = config.device or ("cuda" if torch.cuda.is_available() else "cpu")
@@ -170,6 +171,7 @@ def train(
     best, best_state, history, stale = np.inf, None, [], 0
     bar = tqdm(range(config.epochs), desc="training", unit="epoch", disable=not progress)
     t0 = time.perf_counter()
+    loop_budget = None if config.max_seconds is None else config.max_seconds - (t0 - t_start)
     for epoch in bar:
         model.train()
         order = torch.randperm(len(Xtr), generator=gen).to(device)
@@ -184,8 +186,8 @@ def train(
         sched.step()
         metrics = evaluate(model, F[va], U[va], device)
         elapsed = time.perf_counter() - t0
-        if config.max_seconds is not None and epoch == 0:  # the schedule ends where the clock does
-            fits = int(config.max_seconds / max(elapsed, 1e-9))
+        if loop_budget is not None and epoch == 0:  # the schedule ends where the clock does
+            fits = int(loop_budget / max(elapsed, 1e-9))
             sched.T_max = max(1, min(config.epochs, fits))
         history.append({"epoch": epoch, "loss": total / len(Xtr), **metrics, "seconds": time.perf_counter() - t0})
         bar.set_postfix(
@@ -198,9 +200,7 @@ def train(
             if stale >= config.patience:
                 log.info("early stop at epoch %d", epoch)
                 break
-        if (
-            config.max_seconds is not None and elapsed * (epoch + 2) / (epoch + 1) > config.max_seconds
-        ):  # no room for one more
+        if loop_budget is not None and elapsed * (epoch + 2) / (epoch + 1) > loop_budget:  # no room for one more
             log.info("training stops at epoch %d: its %.0f s are spent", epoch, config.max_seconds)
             break
     bar.close()
