@@ -41,10 +41,13 @@ def _ms(t0: float) -> float:
 # -- sessions ------------------------------------------------------------------------------------
 
 
-def build_session(entry, create: SessionCreate, reservation: Reservation, budget_ms: float | None = None) -> Held:
+def build_session(
+    entry, create: SessionCreate, reservation: Reservation, budget_ms: float | None = None, max_iter: int | None = None
+) -> Held:
     """The engine's Session for a validated config, wrapped for the registry (in the pool). A
     session without a time budget of its own runs under ``budget_ms`` (the server's cap, listed
-    in /health's limits); its echoed config keeps its own (null)."""
+    in /health's limits); its echoed config keeps its own (null). One that did not set max_iter
+    gets the default or the server's cap ``max_iter``, whichever is smaller."""
     # the engine: loaded by the app already
     from ..registration.session import Session, SessionConfig
 
@@ -56,6 +59,8 @@ def build_session(entry, create: SessionCreate, reservation: Reservation, budget
     given["outputs"] = tuple(create.outputs)
     if create.time_budget_ms is None and budget_ms is not None:
         given["time_budget_ms"] = budget_ms
+    if "max_iter" not in create.model_fields_set and max_iter is not None:
+        given["max_iter"] = min(create.max_iter, max_iter)
     try:
         if create.method == "auto":
             session = Session(entry.network, SessionConfig(**given), corrector=entry.fem)
@@ -107,7 +112,7 @@ def check_E(E: float | None, entry, settings) -> None:
 def admit_config(create: SessionCreate, entry, settings) -> None:
     """The server-wide caps: 422 for a max_iter or time_budget_ms over them, or an E out of
     range (a session without a time budget runs under the cap: :func:`build_session`)."""
-    if create.max_iter is not None and create.max_iter > settings.max_iter:
+    if "max_iter" in create.model_fields_set and create.max_iter is not None and create.max_iter > settings.max_iter:
         raise unprocessable(
             f"max_iter {create.max_iter} is over this server's cap of {settings.max_iter}",
             "max_iter",
@@ -136,7 +141,7 @@ async def open_session(
     admit_config(create, entry, settings)
     reservation = registry.reserve(kind)
     try:
-        held = await pool.run(build_session, entry, create, reservation, settings.max_time_budget_ms)
+        held = await pool.run(build_session, entry, create, reservation, settings.max_time_budget_ms, settings.max_iter)
     except BaseException:
         registry.cancel(reservation)
         raise
