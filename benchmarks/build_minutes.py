@@ -47,6 +47,8 @@ def main() -> int:
     for name in args.scenes:
         scene = load_scene(ROOT / "benchmarks" / "scenes" / f"{name}.toml")
         for minutes in args.minutes:
+            machine = describe()
+            started = time.strftime("%Y-%m-%d %H:%M:%S")
             with tempfile.TemporaryDirectory() as tmp:
                 t0 = time.perf_counter()
                 load0 = os.getloadavg()[0]
@@ -65,6 +67,8 @@ def main() -> int:
                 "scene": name,
                 "minutes": minutes,
                 "physics_skip": args.physics_skip,
+                "commit": machine["commit"],
+                "started": started,
                 "wall_s": round(wall, 1),
                 "samples": report.samples,
                 "paths": report.paths,
@@ -81,7 +85,7 @@ def main() -> int:
             key = (name, minutes, args.physics_skip)
             rows = [r for r in rows if (r["scene"], r["minutes"], r.get("physics_skip", False)) != key] + [row]
             print(json.dumps(row), flush=True)
-            out.write_text(json.dumps({"machine": describe(), "rows": rows}, indent=1))
+            out.write_text(json.dumps({"machine": machine, "rows": rows}, indent=1))
     return 0
 
 
