@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import json
 import threading
 import time
 
@@ -161,3 +162,12 @@ def wait_for(predicate, timeout: float = 10.0) -> bool:
             return False
         time.sleep(0.02)
     return True
+
+
+def ws_url(live: Live) -> str:
+    return live.url.replace("http://", "ws://") + "/stream"
+
+
+def recv(ws, timeout=60):
+    m = ws.recv(timeout=timeout)
+    return unpack(m) if isinstance(m, bytes) else json.loads(m)

@@ -25,7 +25,7 @@ from service.api.errors import ApiError
 from service.api.server import BackgroundServer, BindRefused, check_bind, free_port
 from service.config import Settings, read_token_file
 
-from .conftest import MSGPACK, Live, mp, packed, start, unpack
+from .conftest import MSGPACK, Live, mp, packed, recv, start, unpack, ws_url
 
 TOKEN_A = "alpha-token-0123456789abcdef"
 TOKEN_B = "bravo-token-0123456789abcdef"
@@ -47,15 +47,6 @@ def guarded(bar_store, tmp_path_factory):
     )
     yield Live(server)
     server.stop()
-
-
-def ws_url(live: Live) -> str:
-    return live.url.replace("http://", "ws://") + "/stream"
-
-
-def recv(ws, timeout=60):
-    m = ws.recv(timeout=timeout)
-    return unpack(m) if isinstance(m, bytes) else json.loads(m)
 
 
 def close_code(ws) -> int:

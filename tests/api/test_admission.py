@@ -22,7 +22,7 @@ from service.api.sessions import RegistryFull
 from service.api.work import flag_non_finite
 from service.config import Settings
 
-from .conftest import MSGPACK, Live, mp, occupied, packed, start, unpack, wait_for
+from .conftest import MSGPACK, Live, mp, occupied, packed, recv, start, wait_for, ws_url
 
 
 @pytest.fixture(scope="module")
@@ -42,15 +42,6 @@ def api(narrow):
     for sid in list(registry._held):  # every test leaves the server empty
         registry.close(sid)
     assert wait_for(lambda: registry.closing == 0 and narrow.app.state.pool.in_flight == 0)
-
-
-def ws_url(live: Live) -> str:
-    return live.url.replace("http://", "ws://") + "/stream"
-
-
-def recv(ws, timeout=60):
-    m = ws.recv(timeout=timeout)
-    return unpack(m) if isinstance(m, bytes) else json.loads(m)
 
 
 def test_a_saturated_server_answers_503_at_once(narrow, api, clouds):

@@ -18,7 +18,7 @@ from websockets.sync.client import connect
 from service.api import codec
 from service.config import LIMITS
 
-from .conftest import MSGPACK, Live, mp, occupied, packed, start, unpack, wait_for
+from .conftest import MSGPACK, Live, mp, occupied, packed, recv, start, unpack, wait_for, ws_url
 
 SMALL = dict(
     max_points=1000,
@@ -43,15 +43,6 @@ def tight(bar_store):
     server = start(bar_store[0], instance_id="tight", **SMALL)
     yield Live(server)
     server.stop()
-
-
-def ws_url(live: Live) -> str:
-    return live.url.replace("http://", "ws://") + "/stream"
-
-
-def recv(ws, timeout=60):
-    m = ws.recv(timeout=timeout)
-    return unpack(m) if isinstance(m, bytes) else json.loads(m)
 
 
 def close_code(ws, timeout=10) -> int:
