@@ -47,6 +47,7 @@ class ResidualEstimator:
         self._solver = make_solver(K0, backend)
         self._solver.factor(K0)
         self._lock = threading.Lock()  # a factorisation's solve is not reentrant (PARDISO)
+        self._scatter = tet_to_node(mesh)
 
     def correction(self, u: Array, forces: Array, support: Array) -> Array:
         """d = R K0^-1 R^T (f_int(u) - g) ~ u - u_eq(g): the linearised error of u, with each
@@ -58,7 +59,7 @@ class ResidualEstimator:
         np.subtract.at(f, support, forces)
         if not np.isfinite(f).all():
             return np.full_like(u, np.inf)
-        R = node_rotations(self.assembler, u)
+        R = node_rotations(self.assembler, u, scatter=self._scatter)
         r = self.assembler.pack(np.einsum("nji,nj->ni", R, f))  # into the rest frame: R^T f
         with self._lock:
             d = self._solver.solve(r)
@@ -99,27 +100,32 @@ def error_estimate(forward_error: float, distance_rms: float, noise: float | Non
     return float(forward_error + MISFIT_FACTOR * unexplained)
 
 
-def node_rotations(assembler: Assembler, u: Array, iterations: int = 8) -> Array:
-    """Each node's rotation: the polar factor of the volume-weighted mean of its tets'
-    deformation gradients (Newton's iteration X <- (X + X^-T) / 2). Shape: u (n, 3) -> (n, 3, 3)."""
+def node_rotations(assembler: Assembler, u: Array, iterations: int = 6, scatter=None) -> Array:
+    """Each node's rotation: the polar factor of the volume-weighted sum of its tets'
+    deformation gradients (Newton's iteration X <- (X + X^-T) / 2, from X scaled to unit
+    determinant). `scatter`: :func:`tet_to_node` of the mesh, if kept. Shape: u (n, 3) -> (n, 3, 3)."""
     mesh = assembler.mesh
-    F = assembler.F(u) * mesh.volumes[:, None, None]  # (t, 3, 3)
-    idx = mesh.tets.ravel()
-    X: Array = (
-        np.stack(
-            [
-                np.bincount(idx, weights=np.repeat(F[:, i, j], 4), minlength=mesh.n_nodes)
-                for i in range(3)
-                for j in range(3)
-            ],
-            axis=1,
-        )
-        .reshape(-1, 3, 3)
-        .astype(np.float64)
-    )
+    scatter = tet_to_node(mesh) if scatter is None else scatter
+    weighted = (assembler.F(u) * mesh.volumes[:, None, None]).reshape(-1, 9)  # (t, 9)
+    X: Array = np.asarray(scatter @ weighted, np.float64).reshape(-1, 3, 3)
     det = np.linalg.det(X)
     X[~(det > 0)] = np.eye(3)  # a node whose tets average to a fold: no rotation to undo
     X /= np.cbrt(np.where(det > 0, det, 1.0))[:, None, None]  # scale out the volume: same factor
     for _ in range(iterations):
-        X = 0.5 * (X + np.linalg.inv(X).transpose(0, 2, 1))
+        X = 0.5 * (X + _inverse_transpose(X))
     return X
+
+
+def tet_to_node(mesh: TetMesh):
+    """The sparse (n, t) sum of each tet's value into its four nodes."""
+    import scipy.sparse as sp
+
+    tets = np.arange(mesh.n_tets).repeat(4)
+    return sp.csr_matrix((np.ones(tets.size), (mesh.tets.ravel(), tets)), shape=(mesh.n_nodes, mesh.n_tets))
+
+
+def _inverse_transpose(X: Array) -> Array:
+    """X^-T of (n, 3, 3) matrices by cofactors (a batched inverse costs several times more)."""
+    r0, r1, r2 = X[:, 0], X[:, 1], X[:, 2]
+    C = np.stack([np.cross(r1, r2), np.cross(r2, r0), np.cross(r0, r1)], axis=1)
+    return C / np.einsum("ni,ni->n", r0, C[:, 0])[:, None, None]
