@@ -53,7 +53,7 @@ def watch(
     if encoding != "json":
         url += f"?encoding={encoding}"
     headers = {"Authorization": f"Bearer {token}"} if token else None
-    ws = connect(
+    with connect(
         url,
         additional_headers=headers,
         sock=sock,
@@ -61,15 +61,11 @@ def watch(
         max_queue=max_queue,
         compression=None,
         ping_interval=None,
-    )
-    try:
+    ) as ws:
         if token:
             with contextlib.suppress(ConnectionClosed):  # a refused watcher may be closed already
                 ws.send(json.dumps({"token": token}))
         yield ws
-    finally:
-        with contextlib.suppress(ConnectionClosed):
-            ws.close()
 
 
 def open_http(http, support) -> str:
