@@ -139,6 +139,8 @@ class Session:
         self.g = g
         self._anchor = g  # the last converged frame's forces: a fallback start after a bad frame
         self.curvature = Curvature(3 * support.size) if self.config.carry_curvature else None
+        # the corrector's frames teach their own: the FEM's curvature is not the network's
+        self._corrector_curvature = Curvature(3 * support.size) if self.config.carry_curvature else None
 
     def frame(self, points: Array, support: Array | None = None, frame_id=None) -> FrameResult:
         points = np.asarray(points, np.float64)
@@ -172,6 +174,8 @@ class Session:
                 timing["correction"] = 1e3 * (time.perf_counter() - t2)
                 if fem.status in FAILED:  # the network's frame stands; its estimate says how far
                     self._corrector_op.reset()
+                    if self._corrector_curvature is not None:
+                        self._corrector_curvature.reset()
                 else:
                     self._commit(fem, len(points), learn=False)
                     sol, method_used = fem, self.corrector.method
@@ -213,8 +217,9 @@ class Session:
         if learn and self.alpha_tracker is not None:
             before = self.alpha_tracker.alpha
             after = self.alpha_tracker.update(sol.g, n_points)
-            if self.curvature is not None:
-                self.curvature.shift(after - before)
+            for curvature in (self.curvature, self._corrector_curvature):
+                if curvature is not None:
+                    curvature.shift(after - before)
 
     def _correct(self, sol, options: SolveOptions, fallbacks: tuple):
         """The FEM's registration of the bound cloud, from the network's answer (or its start)."""
@@ -225,7 +230,9 @@ class Session:
             options, gtol=DEFAULT_GTOL[self.corrector.method], optimizer="lbfgsb", precondition=False
         )
         start = self.g if sol.status in FAILED else sol.g
-        return solve_frame(self._corrector_op, self.distance, self._rest, start, fem_options, None, fallbacks)
+        return solve_frame(
+            self._corrector_op, self.distance, self._rest, start, fem_options, self._corrector_curvature, fallbacks
+        )
 
     def _outputs(
         self, op: ForwardOperator, model: ForwardModel, g: Array, rms: float
