@@ -31,12 +31,8 @@ import base64
 import collections
 import json
 import multiprocessing
-import os
 import secrets
-import socket
-import subprocess
 import sys
-import tempfile
 import threading
 import time
 from pathlib import Path
@@ -48,6 +44,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from bench_server import start_server
+
 from clients.client import AsyncClient, StreamError
 from service.loadtest import make_frames
 
@@ -55,37 +53,6 @@ HOST = "127.0.0.1"
 MAX_SECONDS = 60.0
 GOOD_STREAMS = 4
 RATE_HZ = 10.0
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind((HOST, 0))
-        return s.getsockname()[1]
-
-
-def start_server(store: Path, token: str) -> tuple[subprocess.Popen, str, Path]:
-    port = free_port()
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "ELASTREG_API_TOKENS": token}
-    log = tempfile.NamedTemporaryFile("w+", prefix="elastreg-abuse-server-", suffix=".log", delete=False)
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "service.cli", "serve", "--store", str(store), "--host", HOST, "--port", str(port)],
-        env=env,
-        stdout=log,
-        stderr=subprocess.STDOUT,
-    )
-    url = f"http://{HOST}:{port}"
-    deadline = time.monotonic() + 180
-    while time.monotonic() < deadline:
-        if proc.poll() is not None:
-            raise RuntimeError(f"the server exited: {Path(log.name).read_text()[-2000:]}")
-        try:
-            if httpx.get(url + "/health", timeout=2).status_code == 200:
-                return proc, url, Path(log.name)
-        except httpx.HTTPError:
-            pass
-        time.sleep(0.2)
-    proc.kill()
-    raise RuntimeError("the server did not start")
 
 
 class RssSampler:
@@ -513,7 +480,7 @@ def main(argv=None) -> int:
     from service.bench.machine import describe
 
     token = secrets.token_urlsafe(24)
-    proc, url, log = start_server(Path(args.store), token)
+    proc, url, log = start_server(Path(args.store), {"ELASTREG_API_TOKENS": token}, "abuse")
     try:
         with RssSampler(proc.pid) as sampler:
             result = asyncio.run(run(url, token, args.seconds, sampler))

@@ -26,10 +26,8 @@ import argparse
 import asyncio
 import json
 import os
-import socket
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -38,47 +36,13 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from bench_server import start_server
+
 from clients.client import AsyncClient, Client
 from clients.loadtest import run_load
 from service.bench.machine import describe
 from service.loadtest import make_frames
 from service.optional import need
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def start_server(store: Path, threads: int) -> tuple[subprocess.Popen, str]:
-    port = free_port()
-    env = {
-        **os.environ,
-        "PYTHONPATH": str(ROOT),
-        "ELASTREG_SOLVER_THREADS": str(threads),
-        "ELASTREG_MAX_SESSIONS": "64",
-    }
-    log = tempfile.NamedTemporaryFile("w+", prefix="elastreg-bench-server-", suffix=".log", delete=False)
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "service.cli", "serve", "--store", str(store), "--port", str(port)],
-        env=env,
-        stdout=log,
-        stderr=subprocess.STDOUT,
-    )
-    url = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 180
-    while time.monotonic() < deadline:
-        if proc.poll() is not None:
-            raise RuntimeError(f"the server exited: {Path(log.name).read_text()[-2000:]}")
-        try:
-            with Client(url, encoding="json", timeout=2) as c:
-                c.health()
-            return proc, url
-        except Exception:
-            time.sleep(0.2)
-    proc.kill()
-    raise RuntimeError("the server did not start")
 
 
 def rss_mb(pid: int) -> float:
@@ -227,7 +191,9 @@ def main(argv=None) -> int:
     repeats, seconds = (40, 5.0) if args.quick else (200, 20.0)
     n_frames, n_sessions = (1000, 200) if args.quick else (10_000, 1000)
 
-    proc, url = start_server(store, args.threads)
+    proc, url, _ = start_server(
+        store, {"ELASTREG_SOLVER_THREADS": str(args.threads), "ELASTREG_MAX_SESSIONS": "64"}, "bench"
+    )
     report: dict = {
         "started": time.strftime("%Y-%m-%d %H:%M:%S"),
         "machine": describe(),
