@@ -135,11 +135,12 @@ def build(
     network = {
         "layout": config.layout,
         "hidden": list(net.hidden),
-        "n_in": 3 * len(region),
+        "n_in": int(net.skip.in_features) if hasattr(net, "skip") else 3 * len(region),
         "n_out": 3 * mesh.n_nodes,
         "rank": int(net.basis.shape[1]) if hasattr(net, "basis") else None,
         "members": int(getattr(net, "members", 1)),
-        "physics_skip": bool(config.physics_skip) if config.layout == "reduced" else False,
+        "physics_skip": bool(getattr(net, "physics", False)),
+        "features": int(net.feature_basis.shape[1]) if getattr(net, "physics", False) else None,
     }
     entry = write_entry(
         store, name or scene.name, mesh, region, net,

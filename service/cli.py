@@ -40,10 +40,9 @@ def _train(args: argparse.Namespace) -> int:
             layout=args.layout,
             hidden=tuple(args.hidden),
             rank=args.rank,
+            features=args.features,
             members=args.members,
-            # a timed build has little data, and learning only the nonlinear remainder over the
-            # linear response needs far less (docs/performance.md, "Timed builds")
-            physics_skip=args.physics_skip if args.physics_skip is not None else args.minutes is not None,
+            physics_skip=args.physics_skip,
             epochs=args.epochs,
             seed=args.seed,
         )
@@ -209,9 +208,11 @@ def parser() -> argparse.ArgumentParser:
     t.add_argument(
         "--physics-skip",
         action=argparse.BooleanOptionalAction,
-        default=None,
-        help="add the linear small-strain response as a skip path (default: on for a timed build)",
+        default=True,
+        help="the physics layout: the exact small-strain response outside the network, which "
+        "reads its features and learns the remainder (default: on; --no-physics-skip trains on raw forces)",
     )
+    t.add_argument("--features", type=int, default=256, help="linear-response POD modes the physics layout reads")
     t.add_argument("--epochs", type=int, default=200)
     t.add_argument("--seed", type=int, default=0)
     t.set_defaults(func=_train)

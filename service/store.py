@@ -108,8 +108,9 @@ def network_from_manifest(spec: dict, state: dict[str, torch.Tensor]) -> torch.n
     if layout == "reduced":
         basis = state["basis"]
         net = ReducedSurrogate(
-            int(spec["n_in"]), basis, [int(h) for h in spec["hidden"]], members=int(spec.get("members", 1))
-        )
+            int(spec["n_in"]), basis, [int(h) for h in spec["hidden"]], members=int(spec.get("members", 1)),
+            feature_basis=state.get("feature_basis"),  # the physics layout's (older entries: none)
+        )  # fmt: skip
     elif layout == "paper":
         net = PaperSurrogate(int(spec["n_in"]), int(spec["n_out"]), depth=len(spec["hidden"]) + 1)
     else:

@@ -7,7 +7,7 @@ import numpy as np
 import torch
 
 from ..fem.assembly import Assembler
-from ..fem.linsolve import make_solver
+from ..fem.rest import rest_compliance
 
 Array = np.ndarray
 
@@ -29,17 +29,6 @@ def linear_response(asm: Assembler, region: Array) -> Array:
     """Small-strain displacement of every node per unit force on each region dof.
 
     Shape: region (R,) -> (3n, 3R), column 3 a + i answers a unit force on node region[a], axis i.
-    One factorisation of the rest stiffness and 3R right-hand sides.
+    One (kept) factorisation of the rest stiffness and 3R right-hand sides.
     """
-    K = asm.stiffness_at_rest()
-    solver = make_solver(K)
-    solver.factor(K)
-    mesh = asm.mesh
-    R = len(region)
-    rhs = np.zeros((3 * mesh.n_nodes, 3 * R))
-    cols = np.arange(3 * R)
-    rhs[(3 * np.repeat(region, 3) + np.tile(np.arange(3), R)), cols] = 1.0
-    X = solver.solve(rhs[mesh.free_dofs])
-    out = np.zeros((3 * mesh.n_nodes, 3 * R))
-    out[mesh.free_dofs] = X
-    return out
+    return rest_compliance(asm.mesh, asm.material).response(region)

@@ -22,6 +22,7 @@ import torch
 from scipy.linalg.blas import strmm
 
 from ..fem.material import NeoHookean
+from ..fem.rest import RestCompliance, rest_compliance
 from ..forward import check_support
 from ..mesh import TetMesh
 from .network import Ensemble, PaperSurrogate, ReducedSurrogate
@@ -46,6 +47,15 @@ class NetworkModel:
         pos = np.full(self.mesh.n_nodes, -1, np.int64)
         pos[self.region] = np.arange(len(self.region))
         object.__setattr__(self, "_region_pos", pos)
+
+    @property
+    def physics(self) -> bool:
+        """The physics layout: linear response outside the network, its features inside."""
+        return bool(getattr(self.net, "physics", False))
+
+    def compliance(self) -> RestCompliance:
+        """K0^-1 at the trained E0 (shared by every model and session on this mesh)."""
+        return rest_compliance(self.mesh, self.material.with_stiffness(self.E0))
 
     def with_stiffness(self, E: float) -> NetworkModel:
         return dataclasses.replace(self, material=self.material.with_stiffness(E))
@@ -75,11 +85,38 @@ class NetworkModel:
         support = check_support(self.mesh, support)
         cols = self.region_columns(support)
         forces = np.asarray(forces, np.float32).reshape(len(forces), -1)
+        if self.physics:  # u = L g + remainder(features of L g)
+            lin = self.compliance().displacements(forces * self.stiffness_factor, support)
+            z = (lin @ self.net.feature_basis.double().numpy()).astype(np.float32)
+            with torch.no_grad():
+                rem = self.net(torch.from_numpy(z)).numpy()
+            return (lin + rem).reshape(len(forces), -1, 3)
         x = np.zeros((len(forces), 3 * len(self.region)), np.float32)
         x[:, cols] = forces * self.stiffness_factor
         with torch.no_grad():
             u = self.net(torch.from_numpy(x)).numpy()
         return u.reshape(len(forces), -1, 3).astype(np.float64)
+
+
+#: the physics layout's linear block joins a session's basis exactly up to this many support
+#: dofs; a larger support's block is truncated to its leading singular directions (the
+#: compliance's spectrum decays fast), which keeps the operator's basis at r + this at most
+LINEAR_RANK = 384
+
+
+def _physics_input(model: NetworkModel, support: Array, x_scale: float) -> tuple[Array, Array, Array]:
+    """For a physics-layout operator on `support` (k nodes): the map from the support's forces
+    to the network's input (q, 3k), and the linear response as basis columns (3n, s) with the
+    rows (s, 3k) that turn forces into their coefficients: identity for s = 3k, else the SVD's
+    leading LINEAR_RANK directions. The linear response is at the session's E (scaled from E0)."""
+    L = model.compliance().response(support) * model.stiffness_factor  # (3n, 3k), metres per newton
+    inmap = (model.net.feature_basis.double().numpy().T @ L) * (x_scale / model.stiffness_factor)
+    if L.shape[1] <= LINEAR_RANK:
+        rows = np.eye(L.shape[1])
+    else:
+        W, sv, Vt = np.linalg.svd(L, full_matrices=False)
+        L, rows = W[:, :LINEAR_RANK] * sv[:LINEAR_RANK], Vt[:LINEAR_RANK]
+    return inmap.astype(np.float32), L, rows
 
 
 def _mlp_layers(mlp: torch.nn.Sequential) -> list[tuple[Array, Array, Array | None]]:
@@ -189,8 +226,22 @@ class NetworkOperator:
             cs = net.coef_scale.numpy().astype(np.float32)
             W_last, b_last, _ = layers[-1]
             layers[-1] = (W_last * cs[:, None], b_last * cs, None)
-            self._skip = (net.skip.weight.detach().numpy()[:, cols] * (x_scale * cs[:, None])).astype(np.float32)
-            basis = net.basis.numpy().astype(np.float32).reshape(mesh.n_nodes, 3, -1)
+            basis = net.basis.numpy().astype(np.float32)
+            if model.physics:
+                inmap, lin_cols, lin_rows = _physics_input(model, self.support, x_scale)
+                layers[0] = (layers[0][0] @ inmap, *layers[0][1:])
+                skip = (net.skip.weight.detach().numpy() @ inmap) * cs[:, None]
+                # the linear response joins the basis: its coefficients are its inputs' images
+                W_last, b_last, _ = layers[-1]
+                n_lin = lin_rows.shape[0]
+                layers[-1] = (np.vstack((W_last, np.zeros((n_lin, W_last.shape[1]), np.float32))),
+                              np.concatenate((b_last, np.zeros(n_lin, np.float32))), None)  # fmt: skip
+                self._skip = np.vstack((skip, lin_rows)).astype(np.float32)
+                basis = np.hstack((basis, lin_cols.astype(np.float32)))
+            else:
+                self._skip = (net.skip.weight.detach().numpy()[:, cols] * (x_scale * cs[:, None])).astype(np.float32)
+                layers[0] = (layers[0][0][:, cols] * x_scale, *layers[0][1:])
+            basis = basis.reshape(mesh.n_nodes, 3, -1)
             self._readout = np.ascontiguousarray(basis[self.nodes].reshape(3 * self.nodes.size, -1))
             self._basis_all = basis.reshape(3 * mesh.n_nodes, -1)
         elif isinstance(net, PaperSurrogate):
@@ -202,10 +253,11 @@ class NetworkOperator:
             layers[-1] = (np.ascontiguousarray(W_last[rows] * us), b_last[rows] * us, None)
             self._skip = None
             self._readout = None
+            layers[0] = (layers[0][0][:, cols] * x_scale, *layers[0][1:])
         else:
             raise TypeError(f"unsupported network {type(net).__name__}")
         W0, b0, a0 = layers[0]
-        W0 = W0[:, cols] * x_scale
+        W0 = np.asarray(W0, np.float32)
         # the input's two readers, the first layer and the skip path, stacked: one product
         # with g serves both (the forward pass and C v); the transposed products stay two
         # (a stacked one sums in another order: other roundings, other iterations in the

@@ -10,6 +10,15 @@ Two layouts:
 - ``"paper"``: the paper's network, fully connected layers as wide as the number of degrees of
   freedom with PReLU activations, nodal forces in, nodal displacements out.
 
+With a ``feature_basis`` (the physics layout, built by default) the exact small-strain response
+K0^-1 g lies outside the network, added by the forward model over any support (fem/rest.py),
+and the network reads that response's coefficients in its own POD basis (the features), not
+the raw forces: its output is the nonlinear remainder, in a POD basis of remainders. A local
+load's response is a field the features describe at any site, so what is learnt at some sites
+carries to others; raw forces at unseen sites are inputs the network never saw (on the paper's
+liver, whole surface, 3,220 samples: linear alone 0.78 mm, the network on raw forces 1.15-1.46
+mm, on features 0.49 mm; docs/performance.md).
+
 The reduced layout may hold an ensemble of ``members`` MLPs over one basis and skip path, each
 trained on its own loss from its own initialisation; it answers their mean. One network's error
 depends on its training run (the liver's resultant-force error over three seeds: 7.8-10.3 %);
@@ -56,9 +65,11 @@ class Ensemble(nn.Module):
 
 
 class ReducedSurrogate(nn.Module):
-    """c = A g + MLP(g) in a POD basis; u = basis @ (c * scale).
+    """c = A x + MLP(x) in a POD basis; u = basis @ (c * scale). x: the region's forces, or in
+    the physics layout the features of their linear response (then u is the remainder).
 
-    `skip` (r, 3R) is the linear response in basis coordinates (trainable, physics-initialised).
+    `skip` (r, n_in) is a trainable linear map (zero, or the linear response in basis
+    coordinates for the older in-basis skip path).
     With `members` > 1 the MLP is an :class:`Ensemble` (the skip path stays one, shared).
     Inputs are divided by `force_scale` and coefficients multiplied by `coef_scale` so the
     network works with O(1) numbers.
@@ -75,6 +86,7 @@ class ReducedSurrogate(nn.Module):
         force_scale: float = 1.0,
         coef_scale: torch.Tensor | None = None,
         members: int = 1,
+        feature_basis: torch.Tensor | None = None,
     ) -> None:
         super().__init__()
         if members < 1:
@@ -93,6 +105,13 @@ class ReducedSurrogate(nn.Module):
         self.net = mlp(n_in, hidden, r) if members == 1 else Ensemble(n_in, hidden, r, members)
         self.hidden = list(hidden)
         self.members = members
+        if feature_basis is not None:  # (3n, q): the physics layout's input is K0^-1 g in it
+            self.register_buffer("feature_basis", feature_basis.float())
+
+    @property
+    def physics(self) -> bool:
+        """Whether the forward model adds the exact linear response and feeds its features."""
+        return "feature_basis" in self._buffers
 
     def coefficients(self, g: torch.Tensor) -> torch.Tensor:
         x = g / self.force_scale

@@ -22,11 +22,26 @@ def randomised(net: torch.nn.Module, seed: int = 0) -> torch.nn.Module:
     return net.eval()
 
 
-@pytest.fixture(scope="module", params=["reduced", "ensemble", "paper"])
+@pytest.fixture(scope="module", params=["reduced", "ensemble", "paper", "physics", "physics-ensemble"])
 def model(request, bar):
     region = bar.free_surface_nodes[bar.nodes[bar.free_surface_nodes, 0] > 1.0]
     n_in = 3 * region.size
-    if request.param in ("reduced", "ensemble"):
+    if request.param.startswith("physics"):
+        rng = np.random.default_rng(0)
+        lin = linear_response(Assembler(bar, MAT), region)  # (3n, 3R): features of real responses
+        features, _ = pod_basis((lin @ rng.normal(size=(3 * region.size, 40))).T, 10)
+        basis, _ = pod_basis(rng.normal(size=(40, 3 * bar.n_nodes)), 12)
+        net = ReducedSurrogate(
+            10,
+            torch.from_numpy(basis),
+            [32, 16],
+            torch.randn(12, 10),
+            1e-3,
+            torch.full((12,), 1e-3),
+            members=3 if request.param.endswith("ensemble") else 1,
+            feature_basis=torch.from_numpy(features),
+        )
+    elif request.param in ("reduced", "ensemble"):
         rng = np.random.default_rng(0)
         basis, _ = pod_basis(rng.normal(size=(40, 3 * bar.n_nodes)), 12)
         net = ReducedSurrogate(
@@ -57,6 +72,10 @@ def torch_reference(model, support, g):
 
 def torch_reference_at(model, support, gt):
     """The torch network's displacement (n, 3) for flat support forces gt (3k,)."""
+    if model.physics:  # the linear response (at E0, of the scaled forces) plus the remainder
+        L0 = torch.from_numpy(model.compliance().response(support)).float()
+        lin = L0 @ (gt * model.stiffness_factor)
+        return (lin + model.net((lin @ model.net.feature_basis)[None])[0]).reshape(-1, 3)
     x = torch.zeros(3 * model.region.size, dtype=torch.float32)
     cols = torch.from_numpy(model.region_columns(support))
     x = x.index_put((cols,), gt * model.stiffness_factor)
@@ -184,8 +203,9 @@ def test_low_rank_jacobian_is_the_network_jacobian_at_rest(model):
         assert jac is None
         return
     U, Q = jac
-    assert U.shape == (3 * nodes.size, 12) and Q.shape == (3 * support.size, 12)
-    np.testing.assert_allclose(Q.T @ Q, np.eye(12), atol=1e-5)
+    rank = 3 * support.size if model.physics else 12  # the linear block is full rank
+    assert U.shape == (3 * nodes.size, rank) and Q.shape == (3 * support.size, rank)
+    np.testing.assert_allclose(Q.T @ Q, np.eye(rank), atol=1e-5)
     g0 = torch.zeros(3 * support.size)
     ref = torch.autograd.functional.jacobian(
         lambda g: torch_reference_at(model, support, g)[torch.as_tensor(np.array(nodes))].reshape(-1), g0
@@ -357,3 +377,34 @@ def test_an_ensemble_answers_the_mean_of_its_members(bar):
     torch.testing.assert_close(net.coefficients(x), each.mean(0))
     with pytest.raises(ValueError, match="at least 1"):
         ReducedSurrogate(6, torch.eye(6, 2, dtype=torch.float64), [4], members=0)
+
+
+def test_a_large_support_keeps_the_leading_linear_directions(bar, monkeypatch):
+    """Past LINEAR_RANK support dofs the physics layout's linear block is its SVD's leading
+    directions: off the exact operator by at most the first dropped singular value per unit
+    force, and its pullback still its own forward's adjoint."""
+    import service.surrogate.model as model_module
+
+    rng = np.random.default_rng(8)
+    region = bar.free_surface_nodes
+    lin = linear_response(Assembler(bar, MAT), region)
+    features, _ = pod_basis((lin @ rng.normal(size=(3 * region.size, 30))).T, 8)
+    basis, _ = pod_basis(rng.normal(size=(30, 3 * bar.n_nodes)), 6)
+    net = ReducedSurrogate(
+        8, torch.from_numpy(basis), [16], torch.randn(6, 8), 1e-3, torch.full((6,), 1e-3),
+        feature_basis=torch.from_numpy(features),
+    )  # fmt: skip
+    model = NetworkModel(bar, MAT, region, randomised(net, seed=2), E0=MAT.E)
+    support, g = region[:20], rng.normal(size=(20, 3))
+    exact = model.restrict(support).displacement(g)
+    monkeypatch.setattr(model_module, "LINEAR_RANK", 12)
+    op = model.restrict(support)
+    assert op._readout.shape[1] == 6 + 12
+    sv = np.linalg.svd(model.compliance().response(support), compute_uv=False)
+    gap = np.linalg.norm(op.displacement(g) - exact)
+    assert 0 < gap <= 1.01 * sv[12] * np.linalg.norm(g)
+    u_bar = rng.normal(size=(bar.n_nodes, 3))
+    d = rng.normal(size=g.shape)
+    h = 1e-2
+    fd = (np.sum(u_bar * op(g + h * d)[0]) - np.sum(u_bar * op(g - h * d)[0])) / (2 * h)
+    assert np.sum(op(g)[1](u_bar) * d) == pytest.approx(fd, rel=2e-2, abs=1e-6)

@@ -1,0 +1,85 @@
+"""The rest compliance: the small-strain (linear) response K0^-1 of one mesh and material.
+
+Exact linear physics holds at any load site: one factorisation of the rest stiffness, then one
+back-substitution per loaded degree of freedom. The physics surrogate adds it outside its
+basis, and its network reads it (surrogate/network.py); one factorisation per mesh and
+material serves every model and session on it.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+
+import numpy as np
+
+from ..mesh import TetMesh
+from .assembly import Assembler
+from .linsolve import make_solver
+from .material import NeoHookean
+
+Array = np.ndarray
+
+#: factorisations kept, least recently used dropped: a few meshes per server
+_KEEP = 8
+_cache: OrderedDict[tuple, RestCompliance] = OrderedDict()
+_cache_lock = threading.Lock()
+
+
+class RestCompliance:
+    """K0^-1 on full-length (node-major, 3n) vectors, zero on fixed dofs. Thread-safe."""
+
+    def __init__(self, mesh: TetMesh, material: NeoHookean, backend: str | None = None) -> None:
+        self.mesh = mesh
+        self.material = material
+        K0 = Assembler(mesh, material).stiffness_at_rest()
+        self._solver = make_solver(K0, backend)
+        self._solver.factor(K0)
+        self._lock = threading.Lock()  # a factorisation's solve is not reentrant (PARDISO)
+
+    def solve(self, f: Array, chunk: int = 1024) -> Array:
+        """u = K0^-1 f for loads on every dof (fixed dofs' entries ignored), in column chunks
+        (PARDISO's workspace grows with the right-hand sides). Shape: (3n,) or (3n, m) -> same."""
+        f = np.asarray(f, np.float64)
+        free = self.mesh.free_dofs
+        out = np.zeros(f.shape)
+        if f.ndim == 1:
+            with self._lock:
+                out[free] = self._solver.solve(f[free])
+            return out
+        for i in range(0, f.shape[1], chunk):
+            with self._lock:
+                out[free, i : i + chunk] = self._solver.solve(np.ascontiguousarray(f[free, i : i + chunk]))
+        return out
+
+    def response(self, nodes: Array) -> Array:
+        """Displacement of every node per unit force on each of `nodes`' dofs: column 3 a + i
+        answers a unit force on nodes[a], axis i. Shape: (k,) -> (3n, 3k)."""
+        nodes = np.asarray(nodes, np.int64)
+        k = nodes.size
+        rhs = np.zeros((3 * self.mesh.n_nodes, 3 * k))
+        rhs[(3 * nodes[:, None] + np.arange(3)).ravel(), np.arange(3 * k)] = 1.0
+        return self.solve(rhs)
+
+    def displacements(self, forces: Array, nodes: Array) -> Array:
+        """Linear displacements for a batch of loads on `nodes`. Shape: (B, k, 3) -> (B, 3n)."""
+        forces = np.asarray(forces, np.float64).reshape(len(forces), -1)
+        rhs = np.zeros((3 * self.mesh.n_nodes, len(forces)))
+        rhs[(3 * np.asarray(nodes, np.int64)[:, None] + np.arange(3)).ravel()] = forces.T
+        return self.solve(rhs).T
+
+
+def rest_compliance(mesh: TetMesh, material: NeoHookean, backend: str | None = None) -> RestCompliance:
+    """The (kept) rest compliance of this mesh and material."""
+    key = (mesh.hash, float(material.E), float(material.nu), backend)
+    with _cache_lock:
+        hit = _cache.get(key)
+        if hit is not None:
+            _cache.move_to_end(key)
+            return hit
+    made = RestCompliance(mesh, material, backend)  # outside the lock: a factorisation takes time
+    with _cache_lock:
+        _cache[key] = made
+        while len(_cache) > _KEEP:
+            _cache.popitem(last=False)
+    return made
