@@ -135,7 +135,7 @@ def build(
     network = {
         "layout": config.layout,
         "hidden": list(net.hidden),
-        "n_in": int(net.skip.in_features) if hasattr(net, "skip") else 3 * len(region),
+        "n_in": int(net.feature_basis.shape[1]) if getattr(net, "physics", False) else 3 * len(region),
         "n_out": 3 * mesh.n_nodes,
         "rank": int(net.basis.shape[1]) if hasattr(net, "basis") else None,
         "members": int(getattr(net, "members", 1)),

@@ -60,7 +60,9 @@ def _train(args: argparse.Namespace) -> int:
     print(
         f"{args.name or scene.name}: {report.samples} samples ({report.data_seconds:.0f} s of FEM), "
         f"trained in {report.train_seconds:.0f} s; validation mean {m['mean_mm']:.3f} mm, "
-        f"p95 {m['p95_mm']:.3f} mm (u = 0: {m['zero_mean_mm']:.3f} mm) -> {report.entry}"
+        f"p95 {m['p95_mm']:.3f} mm (u = 0: {m['zero_mean_mm']:.3f} mm"
+        + (f"; linear alone: {m['linear_mean_mm']:.3f} mm" if "linear_mean_mm" in m else "")
+        + f") -> {report.entry}"
     )
     return 0
 

@@ -12,8 +12,8 @@ import numpy as np
 import torch
 
 from ..fem.assembly import Assembler
-from ..optional import need
 from ..fem.rest import rest_compliance
+from ..optional import need
 from .basis import pod_basis
 from .network import PaperSurrogate, ReducedSurrogate
 

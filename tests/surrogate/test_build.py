@@ -23,6 +23,9 @@ def test_training_produces_a_loadable_entry_that_learnt(bar_store):
     assert m["material"] == {"law": "neo-hookean", "E": 4500.0, "nu": 0.45}
     val = m["training"]["validation"]
     assert val["mean_mm"] < 0.15 * report.metrics["zero_mean_mm"]  # far better than u = 0 (6 % when written)
+    # the physics layout (the default) starts from the linear response and never ships worse
+    assert m["network"]["physics_skip"] and m["network"]["features"] > 0
+    assert val["mean_mm"] <= val["linear_mean_mm"] < val["zero_mean_mm"]
     # the network and the FEM agree on a fresh load like the training ones (a surface patch)
     tip = entry.region[np.argmax(entry.mesh.nodes[entry.region, 0])]
     support = np.intersect1d(entry.mesh.surface_patch(tip, 5), entry.region)
