@@ -27,6 +27,14 @@ from service.build import build
 from service.scene import load_scene
 from service.surrogate.train import TrainConfig
 
+#: rows before the physics layout (commit 380b65b) had only the skip flag: the skip path then
+#: lay inside the POD basis
+_LAYOUT = {True: "physics", False: "raw"}
+
+
+def layout_of(row: dict) -> str:
+    return row.get("layout") or ("basis-skip" if row.get("physics_skip") else "raw")
+
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -37,7 +45,7 @@ def main() -> int:
         "--physics-skip",
         action=argparse.BooleanOptionalAction,
         default=True,
-        help="the network learns the remainder over the linear response (elastreg train's timed default)",
+        help="the physics layout (elastreg train's default); --no-physics-skip: the raw-force network",
     )
     p.add_argument("--out", default=str(ROOT / "reports" / "build-minutes" / "build_minutes.json"))
     args = p.parse_args()
@@ -67,6 +75,7 @@ def main() -> int:
                 "scene": name,
                 "minutes": minutes,
                 "physics_skip": args.physics_skip,
+                "layout": _LAYOUT[args.physics_skip],
                 "commit": machine["commit"],
                 "started": started,
                 "wall_s": round(wall, 1),
@@ -79,11 +88,12 @@ def main() -> int:
                 "val_p95_mm": m["p95_mm"],
                 "val_relative": m.get("relative"),
                 "zero_mean_mm": m["zero_mean_mm"],
+                "linear_mean_mm": m.get("linear_mean_mm"),
                 "load_before": load0,
                 "load_after": os.getloadavg()[0],
             }
-            key = (name, minutes, args.physics_skip)
-            rows = [r for r in rows if (r["scene"], r["minutes"], r.get("physics_skip", False)) != key] + [row]
+            key = (name, minutes, row["layout"])
+            rows = [r for r in rows if (r["scene"], r["minutes"], layout_of(r)) != key] + [row]
             print(json.dumps(row), flush=True)
             out.write_text(json.dumps({"machine": machine, "rows": rows}, indent=1))
     return 0

@@ -80,8 +80,12 @@ def nodal_errors(pred: Array, true: Array) -> Array:
     return np.sqrt((d**2).sum(-1))
 
 
-def evaluate(model: torch.nn.Module, F: Array, U: Array, device: str = "cpu", chunk: int = 512) -> dict:
-    """Mean and 95th-percentile nodal error (mm), and mean relative error, over samples."""
+def evaluate(
+    model: torch.nn.Module, F: Array, U: Array, device: str = "cpu", chunk: int = 512, norms: Array | None = None
+) -> dict:
+    """Mean and 95th-percentile nodal error (mm), and mean relative error, over samples.
+    `norms`: each sample's displacement norm, for the relative error, where U holds only part
+    of it (the physics layout's remainders)."""
     errs, rel = [], []
     model.eval()
     with torch.no_grad():
@@ -91,7 +95,8 @@ def evaluate(model: torch.nn.Module, F: Array, U: Array, device: str = "cpu", ch
             true = U[i : i + chunk].reshape(len(pred), -1)
             e = nodal_errors(pred, true)
             errs.append(e)
-            rel.append(np.linalg.norm(pred - true, axis=1) / np.maximum(np.linalg.norm(true, axis=1), 1e-12))
+            size = np.linalg.norm(true, axis=1) if norms is None else norms[i : i + chunk]
+            rel.append(np.linalg.norm(pred - true, axis=1) / np.maximum(size, 1e-12))
     e = np.concatenate(errs)
     return {
         "mean_mm": float(e.mean() * 1e3),
@@ -176,6 +181,7 @@ def train(
     va = np.isin(path_ids, val_paths) if val_paths.size else tr
     F = F.reshape(len(F), -1).astype(np.float32)
     zero_mm = float(np.linalg.norm(U[va], axis=-1).mean() * 1e3)  # the u = 0 baseline
+    norms = np.linalg.norm(U.reshape(len(U), -1), axis=1)[va]  # the relative error's yardstick
     linear_mm = None
     if config.layout == "reduced" and config.physics_skip:
         # the network sees features of the linear response and fits what it leaves: every
@@ -204,7 +210,7 @@ def train(
     gen = torch.Generator().manual_seed(config.seed)
     # the untrained model (the linear response alone in the physics layout) is a candidate too:
     # a build never ships a network worse on held-out paths than where it started
-    start = evaluate(model, F[va], U[va], device)
+    start = evaluate(model, F[va], U[va], device, norms=norms)
     best, best_state, history, stale = start["mean_mm"], copy.deepcopy(model.state_dict()), [], 0
     bar = tqdm(range(config.epochs), desc="training", unit="epoch", disable=not progress)
     t0 = time.perf_counter()
@@ -221,7 +227,7 @@ def train(
             opt.step()
             total += loss.item() * len(idx)
         sched.step()
-        metrics = evaluate(model, F[va], U[va], device)
+        metrics = evaluate(model, F[va], U[va], device, norms=norms)
         elapsed = time.perf_counter() - t0
         if loop_budget is not None and epoch == 0:  # the schedule ends where the clock does
             fits = int(loop_budget / max(elapsed, 1e-9))
@@ -243,7 +249,7 @@ def train(
     bar.close()
     model.load_state_dict(best_state)
     model.cpu().eval()
-    final = evaluate(model, F[va], U[va])
+    final = evaluate(model, F[va], U[va], norms=norms)
     final["zero_mean_mm"] = zero_mm
     if linear_mm is not None:
         final["linear_mean_mm"] = linear_mm  # the linear response alone (the physics layout's start)
