@@ -99,9 +99,11 @@ class NetworkModel:
 
 
 #: the physics layout's linear block joins a session's basis exactly up to this many support
-#: dofs; a larger support's block is truncated to its leading singular directions (the
-#: compliance's spectrum decays fast), which keeps the operator's basis at r + this at most
-LINEAR_RANK = 384
+#: dofs; a larger support's block keeps its leading singular directions (the compliance's
+#: spectrum decays fast), so the operator's basis is r + this at most. On the liver's 105-node
+#: supports 64 registered as the exact block did at half its readout (calibration sites,
+#: reports/layout-study/linear_rank.json)
+LINEAR_RANK = 64
 
 
 def _physics_input(model: NetworkModel, support: Array, x_scale: float) -> tuple[Array, Array, Array]:

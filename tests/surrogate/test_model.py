@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import torch
 
+import service.surrogate.model as model_module
 from service.fem.assembly import Assembler
 from service.fem.material import NeoHookean
 from service.surrogate.basis import linear_response, pod_basis
@@ -11,6 +12,13 @@ from service.surrogate.model import BlockDiagonal, NetworkModel
 from service.surrogate.network import Ensemble, PaperSurrogate, ReducedSurrogate
 
 MAT = NeoHookean(4500.0, 0.45)
+
+
+@pytest.fixture(autouse=True)
+def exact_linear_block(monkeypatch):
+    """The operator against torch: the physics layout's linear block exact at these supports
+    (the truncation has its own test)."""
+    monkeypatch.setattr(model_module, "LINEAR_RANK", 10**6)
 
 
 def randomised(net: torch.nn.Module, seed: int = 0) -> torch.nn.Module:
@@ -203,7 +211,7 @@ def test_low_rank_jacobian_is_the_network_jacobian_at_rest(model):
         assert jac is None
         return
     U, Q = jac
-    rank = 3 * support.size if model.physics else 12  # the linear block is full rank
+    rank = 3 * support.size if model.physics else 12  # the (exact) linear block's own rank
     assert U.shape == (3 * nodes.size, rank) and Q.shape == (3 * support.size, rank)
     np.testing.assert_allclose(Q.T @ Q, np.eye(rank), atol=1e-5)
     g0 = torch.zeros(3 * support.size)
@@ -383,8 +391,6 @@ def test_a_large_support_keeps_the_leading_linear_directions(bar, monkeypatch):
     """Past LINEAR_RANK support dofs the physics layout's linear block is its SVD's leading
     directions: off the exact operator by at most the first dropped singular value per unit
     force, and its pullback still its own forward's adjoint."""
-    import service.surrogate.model as model_module
-
     rng = np.random.default_rng(8)
     region = bar.free_surface_nodes
     lin = linear_response(Assembler(bar, MAT), region)
