@@ -116,12 +116,9 @@ def anysite_part(
     records: list[FrameRecord] = []
     summaries = []
     for case in cases:
-        runs = [
-            rest_baseline(case),
-            run_case(entry.network, case, NETWORK),
-            run_case(entry.network, case, auto, "auto", corrector=entry.fem),
-        ]
-        if fem:
+        runs = [rest_baseline(case), run_case(entry.network, case, NETWORK)]
+        if fem:  # auto's corrections are the Newton method's: both go with --no-fem
+            runs.append(run_case(entry.network, case, auto, "auto", corrector=entry.fem))
             runs.append(run_case(entry.fem, case, FEM))
         for recs in runs:
             records += recs

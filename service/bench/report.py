@@ -37,7 +37,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sites", type=int, default=6, help="anysite: tool sites (sequences)")
     p.add_argument("--out", default="reports/latest", help="report folder (default: reports/latest)")
     p.add_argument("--quick", action="store_true", help="fewer frames and sweep points (minutes, not an hour)")
-    p.add_argument("--no-fem", action="store_true", help="skip the Newton-based method where it is slow")
+    p.add_argument(
+        "--no-fem",
+        action="store_true",
+        help="skip the Newton-based method (and anysite's auto, whose corrections it makes) where it is slow",
+    )
     p.add_argument(
         "--smoke", metavar="MODEL", default=None, help="every part on a tiny model of --store (seconds; for the tests)"
     )
