@@ -363,8 +363,13 @@ def write_report(results: dict, out: Path) -> None:
         md.append(f"\n## Any tool site ({A['model']}): sites the build never aimed at, truth from a finer mesh\n")
         md.append(
             f"Tool patches of {A['tool_nodes']} nodes, supports three times that, sites spread over the whole "
-            f"load region; truth: the Neo-Hookean solution on the mesh subdivided once; method auto corrects "
-            f"frames whose estimate exceeds {A['max_error_mm']:.3g} mm (twice the build's validation error).\n\n"
+            f"load region; truth: the Neo-Hookean solution on the mesh subdivided once"
+            + (
+                f"; method auto corrects frames whose estimate exceeds {A['max_error_mm']:.3g} mm (twice the "
+                "build's validation error).\n\n"
+                if any(s.get("method") == "auto" for s in A["summaries"])
+                else " (network only: run with --no-fem).\n\n"
+            )
         )
         md.append(_table(A["summaries"], [("case", "case"), ("method", "method"), ("frames", "frames"),
                                           ("tre_mean_mm", "mean TRE (mm)"), ("force_error_median_pct", "force error, median (%)"),
