@@ -37,7 +37,7 @@ class TrainConfig:
     batch: int = 128
     lr: float = 1e-3
     weight_decay: float = 0.0
-    patience: int = 40  # epochs without validation improvement before stopping
+    patience: int = 40  # epochs without validation improvement before stopping (not in a timed build)
     val_fraction: float = 0.1
     seed: int = 0
     device: str | None = None  # "cuda" when there is one, else "cpu"
@@ -240,7 +240,8 @@ def train(
             best, best_state, stale = metrics["mean_mm"], copy.deepcopy(model.state_dict()), 0
         else:
             stale += 1
-            if stale >= config.patience:
+            # a timed build spends its minutes: the best epoch is kept, so later ones cost only time
+            if stale >= config.patience and config.max_seconds is None:
                 log.info("early stop at epoch %d", epoch)
                 break
         if loop_budget is not None and elapsed * (epoch + 2) / (epoch + 1) > loop_budget:  # no room for one more
