@@ -116,7 +116,8 @@ def build(
     F, U, P = load_dataset(data_dir, done)
     if deadline is not None:
         left = deadline - time.perf_counter() - WRITE_RESERVE_S
-        config = dataclasses.replace(config, max_seconds=max(left, 1.0))
+        # the clock bounds training, not an epoch count: as many epochs as fit
+        config = dataclasses.replace(config, max_seconds=max(left, 1.0), epochs=max(config.epochs, 100_000))
     if config.members is None:  # the scene's ensemble is the reduced layout's; the paper's has none
         config = dataclasses.replace(config, members=scene.training.members if config.layout == "reduced" else 1)
     result = train(F, U, P, Assembler(mesh, material), region, config, progress=progress)
