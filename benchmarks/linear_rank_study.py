@@ -47,7 +47,7 @@ def main() -> int:
             mesh, entry.fem.material, tool, n_frames=args.frames, peak_force=peak, n_points=800, seed=SEED + i
         )
         cases.append(Case(f"site {int(site)}", mesh, support, None, seq.clouds, seq.positions, seq.net_forces))
-    rows = []
+    rows: list[dict] = []
     for _ in range(2):  # two passes: the second's times are the warm ones
         rows = []
         for rank in args.ranks:
