@@ -27,7 +27,7 @@ from service.build import build
 from service.scene import load_scene
 from service.surrogate.train import TrainConfig
 
-#: rows before the physics layout (commit 380b65b) had only the skip flag: the skip path then
+#: rows before the physics layout (commit de1d114) had only the skip flag: the skip path then
 #: lay inside the POD basis
 _LAYOUT = {True: "physics", False: "raw"}
 
