@@ -16,9 +16,9 @@ import numpy as np
 from ..forward import ForwardFailed, check_support
 from ..mesh import TetMesh
 from .assembly import Assembler
-from .linsolve import make_solver
 from .material import NeoHookean
 from .newton import NewtonOptions, NewtonResult, NewtonSolver
+from .rest import RestCompliance, rest_compliance
 
 Array = np.ndarray
 
@@ -82,7 +82,7 @@ class FEMOperator:
         self.support = check_support(model.mesh, support)
         self.nodes = np.arange(model.mesh.n_nodes) if nodes is None else np.asarray(nodes, np.int64)
         self._newton = model.newton()
-        self._rest = None
+        self._rest: RestCompliance | None = None
         self._low_rank: tuple[Array, Array] | None = None
         # (g, u) of recent equilibria, latest first; the first is the next solve's start
         self._kept: list[tuple[Array, Array]] = []
@@ -129,13 +129,11 @@ class FEMOperator:
                 return u_kept.copy()  # the caller's to change
         return self._solve(g).u.copy()
 
-    def _rest_solver(self):
-        """Factorisation of the rest stiffness, made on first use (the rest state's adjoint)."""
+    def _rest_solver(self) -> RestCompliance:
+        """The rest stiffness's factorisation (the rest state's adjoint), shared with every
+        model and session on this mesh and material, fetched on first use."""
         if self._rest is None:
-            K0 = self.model.assembler.stiffness_at_rest()
-            solver = make_solver(K0, self.model.options.backend)
-            solver.factor(K0)
-            self._rest = solver
+            self._rest = rest_compliance(self.mesh, self.model.assembler.material, self.model.options.backend)
         return self._rest
 
     def low_rank_jacobian(self, rank: int = 128) -> tuple[Array, Array]:
@@ -144,7 +142,7 @@ class FEMOperator:
         preconditioner's input; the compliance's spectrum decays fast, so r modes carry it).
         Cached. Shape: U (3p, r) node-major, Q (3k, r)."""
         if self._low_rank is None:
-            J = self._support_response(self._rest_solver().solve)
+            J = self._support_response(self._rest_solver().solve_free)
             W, sv, Vt = np.linalg.svd(J, full_matrices=False)
             r = max(1, min(rank, int(np.count_nonzero(sv > 1e-8 * sv[0]))))
             self._low_rank = (np.ascontiguousarray(W[:, :r] * sv[:r]), np.ascontiguousarray(Vt[:r].T))
@@ -164,7 +162,7 @@ class FEMOperator:
         g = np.asarray(g, np.float64)
         if not np.any(g):
             if self._rest_jacobian is None:
-                self._rest_jacobian = DenseJacobian(self._support_response(self._rest_solver().solve))
+                self._rest_jacobian = DenseJacobian(self._support_response(self._rest_solver().solve_free))
             return self._rest_jacobian
         if self._last_jacobian is not None and np.array_equal(self._last_jacobian[0], g):
             return self._last_jacobian[1]
@@ -214,7 +212,7 @@ class FEMOperator:
             def rest_pullback(u_bar: Array, rows: Array | None = None) -> Array:
                 rhs = np.zeros((mesh.n_nodes, 3))
                 np.add.at(rhs, nodes, u_bar)
-                return asm.unpack(solver.solve(asm.pack(rhs)))[support]
+                return asm.unpack(solver.solve_free(asm.pack(rhs)))[support]
 
             return np.zeros((nodes.size, 3)), rest_pullback
         res = self._solve(g)

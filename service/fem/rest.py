@@ -2,8 +2,9 @@
 
 Exact linear physics holds at any load site: one factorisation of the rest stiffness, then one
 back-substitution per loaded degree of freedom. The physics surrogate adds it outside its
-basis, and its network reads it (surrogate/network.py); one factorisation per mesh and
-material serves every model and session on it.
+basis, and its network reads it (surrogate/network.py); the FEM's rest state and the error
+estimate solve with it too. One factorisation per mesh, material and backend serves every
+model and session on it.
 """
 
 from __future__ import annotations
@@ -37,6 +38,11 @@ class RestCompliance:
         self._solver.factor(K0)
         self._lock = threading.Lock()  # a factorisation's solve is not reentrant (PARDISO)
 
+    def solve_free(self, b: Array) -> Array:
+        """K0^-1 b on the free dofs alone (the factorisation's own system). Shape: (f,) or (f, m)."""
+        with self._lock:
+            return self._solver.solve(b)
+
     def solve(self, f: Array, chunk: int = 1024) -> Array:
         """u = K0^-1 f for loads on every dof (fixed dofs' entries ignored), in column chunks
         (PARDISO's workspace grows with the right-hand sides). Shape: (3n,) or (3n, m) -> same."""
@@ -44,12 +50,10 @@ class RestCompliance:
         free = self.mesh.free_dofs
         out = np.zeros(f.shape)
         if f.ndim == 1:
-            with self._lock:
-                out[free] = self._solver.solve(f[free])
+            out[free] = self.solve_free(f[free])
             return out
         for i in range(0, f.shape[1], chunk):
-            with self._lock:
-                out[free, i : i + chunk] = self._solver.solve(np.ascontiguousarray(f[free, i : i + chunk]))
+            out[free, i : i + chunk] = self.solve_free(np.ascontiguousarray(f[free, i : i + chunk]))
         return out
 
     def response(self, nodes: Array) -> Array:

@@ -16,8 +16,9 @@ looks; a calibrated factor turns it into a mean over the nodes (MISFIT_FACTOR). 
 the sum of the two: it errs on the large side rather than the small one, which is the side a
 display can act on.
 
-The rest stiffness is factorised once per forward model (shared by its sessions, solves under a
-lock); one estimate costs an internal-force evaluation and a back-substitution.
+The rest stiffness is factorised once per mesh and material (fem/rest.py: shared with the
+forward models and their sessions, solves under a lock); one estimate costs an internal-force
+evaluation and a back-substitution.
 """
 
 from __future__ import annotations
@@ -27,8 +28,8 @@ import threading
 import numpy as np
 
 from ..fem.assembly import Assembler
-from ..fem.linsolve import make_solver
 from ..fem.material import NeoHookean
+from ..fem.rest import rest_compliance
 from ..mesh import TetMesh
 
 Array = np.ndarray
@@ -43,10 +44,7 @@ class ResidualEstimator:
     def __init__(self, mesh: TetMesh, material: NeoHookean, backend: str | None = None) -> None:
         self.mesh = mesh
         self.assembler = Assembler(mesh, material)
-        K0 = self.assembler.stiffness_at_rest()
-        self._solver = make_solver(K0, backend)
-        self._solver.factor(K0)
-        self._lock = threading.Lock()  # a factorisation's solve is not reentrant (PARDISO)
+        self._rest = rest_compliance(mesh, material, backend)  # shared with the models on this mesh
         self._scatter = tet_to_node(mesh)
 
     def correction(self, u: Array, forces: Array, support: Array) -> Array:
@@ -61,8 +59,7 @@ class ResidualEstimator:
             return np.full_like(u, np.inf)
         R = node_rotations(self.assembler, u, scatter=self._scatter)
         r = self.assembler.pack(np.einsum("nji,nj->ni", R, f))  # into the rest frame: R^T f
-        with self._lock:
-            d = self._solver.solve(r)
+        d = self._rest.solve_free(r)
         return np.einsum("nij,nj->ni", R, self.assembler.unpack(d))  # and back
 
     def forward_error(self, u: Array, forces: Array, support: Array) -> float:

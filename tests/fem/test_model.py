@@ -117,7 +117,7 @@ def test_a_jacobian_past_its_deadline_stops_between_blocks_of_solves(model):
     blocks once the deadline has passed; the first block is always made."""
     support, g = support_and_load(model.mesh)
     op = model.restrict(support)
-    solve = op._rest_solver().solve
+    solve = op._rest_solver().solve_free
     with pytest.raises(ForwardFailed, match="after 3 of") as info:
         op._support_response(solve, deadline=time.perf_counter(), block=3)
     assert info.value.status == "time_limit"
