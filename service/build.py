@@ -133,15 +133,16 @@ def build(
         "load_distribution": {k: v for k, v in dataclasses.asdict(spec).items() if k != "region"},
         "data_key": data_dir.name,
     }
+    features = int(net.feature_basis.shape[1]) if getattr(net, "physics", False) else None
     network = {
         "layout": config.layout,
         "hidden": list(net.hidden),
-        "n_in": int(net.feature_basis.shape[1]) if getattr(net, "physics", False) else 3 * len(region),
+        "n_in": features or 3 * len(region),
         "n_out": 3 * mesh.n_nodes,
         "rank": int(net.basis.shape[1]) if hasattr(net, "basis") else None,
         "members": int(getattr(net, "members", 1)),
-        "physics_skip": bool(getattr(net, "physics", False)),
-        "features": int(net.feature_basis.shape[1]) if getattr(net, "physics", False) else None,
+        "physics_skip": features is not None,
+        "features": features,
     }
     entry = write_entry(
         store, name or scene.name, mesh, region, net,

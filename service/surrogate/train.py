@@ -108,36 +108,32 @@ def evaluate(
 
 
 def build_model(
-    config: TrainConfig, asm: Assembler, region: Array, F: Array, U: Array, feature_basis: Array | None = None
+    config: TrainConfig, region: Array, F: Array, U: Array, feature_basis: Array | None = None
 ) -> torch.nn.Module:
-    """The untrained network, with its basis and physics prior computed from the training set.
+    """The untrained network, with its basis and input scale computed from the training set.
     With `feature_basis` (the physics layout) F holds the features and U the remainders."""
-    if feature_basis is not None:
-        basis, _ = pod_basis(U.reshape(len(U), -1), config.rank, config.seed)
-        coefs = U.reshape(len(U), -1) @ basis
-        coef_scale = torch.full((basis.shape[1],), float(np.sqrt((coefs**2).mean())) or 1.0)
+    if feature_basis is None:
+        n_in = 3 * len(region)
+        x_scale = float(np.sqrt((F.reshape(len(F), -1) ** 2).sum(1).mean() / n_in)) or 1.0
+    else:
+        n_in = F.shape[1]
         x_scale = float(np.sqrt((F**2).mean())) or 1.0
-        return ReducedSurrogate(
-            F.shape[1], torch.from_numpy(basis), list(config.hidden), None, x_scale, coef_scale,
-            members=config.members or 1, feature_basis=torch.from_numpy(feature_basis),
-        )  # fmt: skip
-    n_in = 3 * len(region)
-    force_scale = float(np.sqrt((F.reshape(len(F), -1) ** 2).sum(1).mean() / n_in)) or 1.0
     if config.layout == "paper":  # TrainConfig holds a paper layout to one member
         u_scale = float(np.sqrt((U.reshape(len(U), -1) ** 2).mean())) or 1.0
         return PaperSurrogate(
             n_in,
             U.shape[1] * U.shape[2],
             depth=max(2, len(config.hidden) + 1),
-            force_scale=force_scale,
+            force_scale=x_scale,
             u_scale=u_scale,
         )
     basis, _ = pod_basis(U.reshape(len(U), -1), config.rank, config.seed)
     coefs = U.reshape(len(U), -1) @ basis
     coef_scale = torch.full((basis.shape[1],), float(np.sqrt((coefs**2).mean())) or 1.0)
     return ReducedSurrogate(
-        n_in, torch.from_numpy(basis), list(config.hidden), None, force_scale, coef_scale, members=config.members or 1
-    )
+        n_in, torch.from_numpy(basis), list(config.hidden), None, x_scale, coef_scale, members=config.members or 1,
+        feature_basis=None if feature_basis is None else torch.from_numpy(feature_basis),
+    )  # fmt: skip
 
 
 def linear_features(asm: Assembler, region: Array, F: Array, train: Array, q: int, seed: int, chunk: int = 1024):
@@ -190,9 +186,9 @@ def train(
         U = (U.reshape(len(U), -1) - L).reshape(U.shape)
         del L
         linear_mm = float(np.linalg.norm(U[va], axis=-1).mean() * 1e3)
-        model = build_model(config, asm, region, F[tr], U[tr], feature_basis).to(device)
     else:
-        model = build_model(config, asm, region, F[tr], U[tr]).to(device)
+        feature_basis = None
+    model = build_model(config, region, F[tr], U[tr], feature_basis).to(device)
     Y = torch.from_numpy(targets(model.cpu(), U).astype(np.float32))
     model.to(device)
     X = torch.from_numpy(F)
