@@ -1,0 +1,111 @@
+"""How much stiffer the coarse liver is than its refinement: the force bias it puts on registration.
+
+The anysite part scores registration against the Neo-Hookean solution on the liver subdivided
+once. At nu = 0.49 linear tets lock (volumetric locking): the coarse mesh is stiffer, so a
+method that runs on it needs more force for the same displacement, whatever its forward model.
+This measures that bias without any registration: at each site, a load over the tool patch
+(outward normal, as the anysite generator pulls) on the coarse mesh and on the fine one, linear
+elasticity, and the compliance ratio kappa = <u_c, u_f> / <u_c, u_c> over the coarse nodes. A
+method exact on the coarse mesh overestimates the force by about kappa. With --registered it
+also registers the calibration sites' sequences (seed 3026, never reported) with the network
+and prints each frame's |f_est| / |f_true| and the angle between them.
+
+    python benchmarks/locking_study.py --model /path/to/store/liver_anysite [--registered]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from service.bench.anysite import NETWORK_LM, SITE_SEED, anysite_cases, spread_sites, tool_size
+from service.bench.machine import describe
+from service.bench.truth import fine_patch, subdivide
+from service.config import limit_threads
+from service.fem.rest import rest_compliance
+from service.registration.session import Session
+from service.store import load_entry
+
+#: the calibration sites' seed (linear_rank_study.py's): choices are made on these, never on SITE_SEED's
+CALIBRATION_SEED = 3026
+
+
+def tools(entry, sites: int, seed: int) -> list:
+    """The anysite generator's tool patches for `seed` (its draws, in its order)."""
+    mesh = entry.mesh
+    rng = np.random.default_rng(seed)
+    region = np.intersect1d(entry.region, mesh.free_surface_nodes)
+    inside = np.zeros(mesh.n_nodes, bool)
+    inside[region] = True
+    k = tool_size(mesh)
+    out = []
+    for site in spread_sites(mesh, region, sites, rng):
+        patch = mesh.surface_patch(int(site), 12 * k)
+        out.append((int(site), np.sort(patch[inside[patch]][:k])))
+        rng.uniform(0.4, 0.9), rng.uniform(15.0, 45.0)  # the generator's peak and turn
+    return out
+
+
+def compliance_ratios(entry, sites: int, seed: int) -> list[dict]:
+    mesh, material = entry.mesh, entry.fem.material
+    fine = subdivide(mesh)
+    coarse_c, fine_c = rest_compliance(mesh, material), rest_compliance(fine, material)
+    rows = []
+    for site, tool in tools(entry, sites, seed):
+        spread = fine_patch(mesh, fine, tool)
+        normal = mesh.vertex_normals[tool].sum(axis=0)
+        normal /= np.linalg.norm(normal)
+        u_c = coarse_c.displacements(np.tile(normal / tool.size, (1, tool.size, 1)), tool)[0]
+        u_f = fine_c.displacements(np.tile(normal / spread.size, (1, spread.size, 1)), spread)[0]
+        u_f = u_f[: 3 * mesh.n_nodes]  # the coarse nodes keep their ids on the fine mesh
+        rows.append({"seed": seed, "site": site, "kappa": float(u_c @ u_f / (u_c @ u_c))})
+    return rows
+
+
+def registered_ratios(entry, sites: int) -> list[dict]:
+    rows = []
+    for case in anysite_cases(entry, sites=sites, frames=8, seed=CALIBRATION_SEED):
+        config = dataclasses.replace(NETWORK_LM, support=tuple(int(i) for i in case.support))
+        session = Session(entry.network, config)
+        for k, cloud in enumerate(case.clouds):
+            f, t = session.frame(cloud).net_force, case.net_forces[k]
+            cos = float(f @ t / (np.linalg.norm(f) * np.linalg.norm(t)))
+            rows.append({"case": case.name, "frame": k, "ratio": float(np.linalg.norm(f) / np.linalg.norm(t)),
+                         "angle_deg": float(np.degrees(np.arccos(np.clip(cos, -1, 1))))})  # fmt: skip
+    return rows
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--model", required=True, help="a whole-surface store entry of the paper's liver")
+    p.add_argument("--registered", action="store_true", help="also register the calibration sites")
+    p.add_argument("--out", default=str(ROOT / "reports" / "locking" / "locking.json"))
+    args = p.parse_args()
+    limit_threads(1)
+    entry = load_entry(Path(args.model))
+    result: dict = {"machine": describe(), "model": Path(args.model).name}
+    result["kappa"] = compliance_ratios(entry, 4, CALIBRATION_SEED) + compliance_ratios(entry, 6, SITE_SEED)
+    for r in result["kappa"]:
+        which = "calibration" if r["seed"] == CALIBRATION_SEED else "anysite (reported)"
+        print(f"{which:>18} site node {r['site']:5d}: coarse mesh stiffer by kappa = {r['kappa']:.3f}")
+    if args.registered:
+        result["registered"] = registered_ratios(entry, 4)
+        for r in result["registered"]:
+            print(
+                f"{r['case']} frame {r['frame']}: |f_est| / |f_true| = {r['ratio']:.2f}, angle {r['angle_deg']:.1f} deg"
+            )
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(result, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
