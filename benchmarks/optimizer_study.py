@@ -19,6 +19,7 @@ import json
 import os
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -32,7 +33,7 @@ from service.config import limit_threads
 from service.store import load_entry
 
 CALIBRATION_SEED = 3026  # linear_rank_study.py's and locking_study.py's
-VARIANTS = {
+VARIANTS: dict[str, dict[str, Any]] = {
     "lbfgsb, gtol 3e-4 (default)": {},
     "lbfgsb, gtol 1e-3": {"gtol": 1e-3},
     "levenberg-marquardt, gtol 3e-4": {"optimizer": "levenberg-marquardt"},
