@@ -156,13 +156,15 @@ def main(args: argparse.Namespace) -> int:
         results["parts"]["fem"] = newton_benchmark(case, material, tool, repeats=1 if quick else 3)
 
     if "liver" in parts:
+        from . import liver as lv
         from .cases import rest_baseline, run_case, summarise
         from .liver import FEM, FEM_LM, FEM_LM_LABEL, LM_LABEL, NETWORK, NETWORK_LM, liver_part
 
         if args.smoke is not None:
             recs = (rest_baseline(base) + run_case(entry.network, base, NETWORK) + run_case(entry.network, base, NETWORK_LM, LM_LABEL)
+                    + run_case(entry.network, base, lv.WHOLE_SURFACE_LM, lv.WHOLE_LM_LABEL)
                     + run_case(entry.fem, base, FEM) + run_case(entry.fem, base, FEM_LM, FEM_LM_LABEL))  # fmt: skip
-            methods = ("none (rest shape)", "network", LM_LABEL, "fem", FEM_LM_LABEL)
+            methods = ("none (rest shape)", "network", LM_LABEL, lv.WHOLE_LM_LABEL, "fem", FEM_LM_LABEL)
             summaries = [summarise([r for r in recs if r.method == m]) for m in methods]
             results["parts"]["liver"] = {"records": recs, "summaries": summaries}
         else:
@@ -475,6 +477,7 @@ def _plot_frames(records, path: Path) -> None:
     fig, axes = plt.subplots(2, len(cases), figsize=(4.2 * len(cases), 6), squeeze=False)
     for j, case in enumerate(cases):
         for method, colour in (("none (rest shape)", "grey"), ("network", "tab:blue"), ("network, levenberg-marquardt", "tab:green"),
+                               ("network, levenberg-marquardt, gtol 3e-3", "tab:olive"),
                                ("fem", "tab:red"), ("fem, levenberg-marquardt", "tab:purple")):  # fmt: skip
             rs = [r for r in records if r.case == case and r.method == method]
             if not rs:

@@ -51,6 +51,8 @@ def test_bench_smoke_writes_the_whole_report(bar_store, tmp_path):
     rest = next(s for s in results["parts"]["liver"]["summaries"] if s["method"] == "none (rest shape)")
     assert net["tre_mean_mm"] < rest["tre_mean_mm"]  # registration beats doing nothing
     lm = next(s for s in results["parts"]["liver"]["summaries"] if s["method"] == "network, levenberg-marquardt")
+    whole = next(s for s in results["parts"]["liver"]["summaries"] if s["method"].endswith("gtol 3e-3"))
+    assert whole["frames"] == net["frames"] and whole["tre_mean_mm"] < rest["tre_mean_mm"]
     assert lm["frames"] == net["frames"] and lm["tre_mean_mm"] < rest["tre_mean_mm"]
     fem_lm = next(s for s in results["parts"]["liver"]["summaries"] if s["method"] == "fem, levenberg-marquardt")
     assert fem_lm["frames"] == net["frames"] and fem_lm["tre_mean_mm"] < rest["tre_mean_mm"]
