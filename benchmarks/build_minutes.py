@@ -143,8 +143,9 @@ def main() -> int:
                 "load_before": load0,
                 "load_after": os.getloadavg()[0],
             }
-            key = (name, minutes, row["layout"])
-            rows = [r for r in rows if (r["scene"], r["minutes"], layout_of(r)) != key] + [row]
+            # a rerun at the same commit replaces its row; rows of other commits are history
+            key = (name, minutes, row["layout"], row["commit"])
+            rows = [r for r in rows if (r["scene"], r["minutes"], layout_of(r), r.get("commit")) != key] + [row]
             print(json.dumps(row), flush=True)
             out.write_text(json.dumps({"machine": machine, "rows": rows}, indent=1))
     return 0
