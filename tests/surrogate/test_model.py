@@ -336,6 +336,40 @@ def test_gradient_image_is_the_jacobian_times_the_last_gradient(bar, hidden, mem
     assert op.jacobian(np.zeros_like(g1)).gradient_image(alpha) is None
 
 
+@pytest.mark.parametrize("members", [1, 3])
+def test_physics_coefficient_jacobian_is_torch_jacobian_along_a_path(bar, members):
+    """The physics layout's coefficients are the network's and the linear block's, whose
+    rows of the last layer are zero (its coefficients are the forces): along a path of loaded
+    states, C C^T, C v and C^T w agree with the dense C that C v gives column by column, and
+    U C with torch's du/dg, corrections and refreshes included."""
+    rng = np.random.default_rng(3)
+    region = bar.free_surface_nodes[bar.nodes[bar.free_surface_nodes, 0] > 1.0]
+    lin = linear_response(Assembler(bar, MAT), region)
+    features, _ = pod_basis((lin @ rng.normal(size=(3 * region.size, 40))).T, 10)
+    basis, _ = pod_basis(rng.normal(size=(40, 3 * bar.n_nodes)), 12)
+    net = ReducedSurrogate(10, torch.from_numpy(basis), [32, 16], torch.randn(12, 10), 1e-3, torch.full((12,), 1e-3),
+                           members=members, feature_basis=torch.from_numpy(features))  # fmt: skip
+    model = NetworkModel(bar, MAT, region, randomised(net, seed=7), E0=MAT.E)
+    support, nodes, g1 = case(model)
+    op = model.restrict(support, nodes)
+    corrected = 0
+    for t in np.linspace(0.05, 1.5, 40):
+        g = t * g1  # small steps: a few units flip at each
+        jac = op.jacobian(g)
+        corrected += op._anchored._anchor.corrections > 0
+        K = g.size
+        C = np.stack([jac.matvec(e) for e in np.eye(K)], axis=1)  # (r, K)
+        np.testing.assert_allclose(jac.gram(), C @ C.T, rtol=1e-4, atol=1e-5 * np.abs(C @ C.T).max())
+        w = rng.normal(size=C.shape[0])
+        np.testing.assert_allclose(jac.rmatvec(w), C.T @ w, rtol=1e-4, atol=1e-5 * np.abs(C.T @ w).max())
+        gt = torch.tensor(g.ravel(), dtype=torch.float32)
+        ref = torch.autograd.functional.jacobian(
+            lambda q: torch_reference_at(model, support, q)[torch.as_tensor(np.array(nodes))].reshape(-1), gt
+        ).numpy()
+        np.testing.assert_allclose(jac.U.astype(np.float64) @ C, ref, rtol=1e-3, atol=1e-4 * np.abs(ref).max())
+    assert corrected >= 3
+
+
 def test_paper_layout_offers_no_coefficient_jacobian(bar):
     region = bar.free_surface_nodes[bar.nodes[bar.free_surface_nodes, 0] > 1.0]
     net = PaperSurrogate(3 * region.size, 3 * bar.n_nodes, depth=3)
