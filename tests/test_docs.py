@@ -3,6 +3,7 @@ truth CI puts beside the checkout): a copy that drifts fails here."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import pytest
@@ -36,3 +37,26 @@ def test_missing_shared_data_fails_in_ci_and_skips_locally(monkeypatch, tmp_path
     with pytest.raises(outcome, match="needs ../shared"):
         require_shared(tmp_path / "nowhere")
     require_shared(tmp_path)  # present: nothing happens
+
+
+ROOT = DOCS.parent
+#: [text](target): the target up to a space, a closing parenthesis or an anchor
+LINK = re.compile(r"\]\(([^)\s#]+)(?:#[^)\s]*)?\)")
+
+
+def markdown_files() -> list[Path]:
+    skip = {".venv", ".git", "node_modules"}
+    return sorted(p for p in ROOT.rglob("*.md") if not skip & set(p.relative_to(ROOT).parts))
+
+
+def test_relative_links_in_markdown_resolve():
+    """Every link to a file of this repository names one that a clean checkout has: a report's
+    log that .gitignore kept out of the commit would fail here, not in a reader's browser."""
+    broken = []
+    for md in markdown_files():
+        for target in LINK.findall(md.read_text()):
+            if "://" in target or target.startswith(("mailto:", "/")):
+                continue
+            if not (md.parent / target).exists():
+                broken.append(f"{md.relative_to(ROOT)} -> {target}")
+    assert not broken, "broken links:\n" + "\n".join(broken)
