@@ -3,7 +3,8 @@
 Parts: ``fem`` (Newton and sparse solvers on the liver), ``liver`` (the paper's liver experiment,
 both methods), ``beam`` (the paper's beam experiment), ``pareto`` (error against run time),
 ``stability`` (stiff and extreme cases), ``anysite`` (tool sites the build never aimed at, truth
-from a finer mesh, the error estimates' honesty). ``--smoke`` runs every code path on a tiny model in
+from a finer mesh, the error estimates' honesty), and, asked for by name since it takes hours,
+``minutes`` (validation error against build minutes, :mod:`.minutes`). ``--smoke`` runs every code path on a tiny model in
 seconds (the default tests do), so the report cannot rot.
 """
 
@@ -23,11 +24,18 @@ from ..optional import need
 
 log = logging.getLogger(__name__)
 
-PARTS = ("fem", "liver", "beam", "pareto", "stability", "anysite")
+PARTS = ("fem", "liver", "beam", "pareto", "stability", "anysite", "minutes")
+#: what a bare ``elastreg bench`` runs: the build-minutes curve is hours of builds
+DEFAULT_PARTS = PARTS[:-1]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("parts", nargs="*", default=list(PARTS), help=f"parts to run (default: all of {', '.join(PARTS)})")
+    p.add_argument(
+        "parts",
+        nargs="*",
+        default=list(DEFAULT_PARTS),
+        help=f"parts to run (default: {', '.join(DEFAULT_PARTS)}; 'minutes' only when named)",
+    )
     p.add_argument("--store", default=None, help="model store holding liver_paper and beam (default: the project's)")
     p.add_argument("--liver-model", default="liver_paper")
     p.add_argument("--beam-model", default="beam")
@@ -42,6 +50,26 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="skip the Newton-based method (and anysite's auto, whose corrections it makes) where it is slow",
     )
+    g = p.add_argument_group("the minutes part (the build-minutes curve)")
+    g.add_argument(
+        "--build-minutes",
+        type=float,
+        nargs="*",
+        default=[5.0, 10.0, 30.0, 60.0],
+        metavar="M",
+        help="budgets to build each scene at (default: 5 10 30 60); none: redraw the report from the rows kept",
+    )
+    g.add_argument(
+        "--scenes",
+        nargs="+",
+        default=["benchmarks/scenes/liver_sofa.toml", "benchmarks/scenes/liver_deepphysx.toml"],
+        help="scene files to build (default: the SOFA and DeepPhysX livers)",
+    )
+    g.add_argument("--test-paths", type=int, default=40, help="held-out test paths per scene (5 samples each)")
+    g.add_argument(
+        "--test-data", default=None, help="where the test sets are kept (default: ~/.cache/elastreg/test-data)"
+    )
+    g.add_argument("--workers", type=int, default=2, help="FEM worker processes of each build")
     p.add_argument(
         "--smoke", metavar="MODEL", default=None, help="every part on a tiny model of --store (seconds; for the tests)"
     )
@@ -128,6 +156,8 @@ def main(args: argparse.Namespace) -> int:
     quick = args.quick or args.smoke is not None
     fem_on = not args.no_fem
     parts = [p for p in args.parts if p in PARTS]
+    if args.smoke is not None and "minutes" in parts:
+        raise SystemExit("error: the minutes part builds scenes (--scenes), not a --smoke model")
     unknown = set(args.parts) - set(PARTS)
     if unknown:
         raise SystemExit(f"error: unknown parts {sorted(unknown)}; choose from {list(PARTS)}")
@@ -241,6 +271,28 @@ def main(args: argparse.Namespace) -> int:
                 liver_entry, liver_paper_case(), frames=6 if quick else 12, fem=fem_on
             )
 
+    if "minutes" in parts:
+        from ..scene import load_scene
+        from .minutes import minutes_part
+        from .minutes import plot as plot_minutes
+
+        prior = _prior_part(out, "minutes")
+        test_data = Path(args.test_data) if args.test_data else Path.home() / ".cache" / "elastreg" / "test-data"
+
+        def keep(rows: list[dict]) -> None:  # an hour-long build's row survives a later failure
+            (out / "minutes_rows.json").write_text(json.dumps(rows, indent=1))
+
+        results["parts"]["minutes"] = minutes_part(
+            [load_scene(s) for s in args.scenes] if args.build_minutes else [],
+            args.build_minutes,
+            previous=(prior or {}).get("rows", []),
+            test_paths=args.test_paths,
+            test_data=test_data,
+            workers=args.workers,
+            on_row=keep,
+        )
+        plot_minutes(_latest_minutes(results["parts"]["minutes"]["rows"]), out / "figures" / "build_minutes.png")
+
     if "anysite" in parts:
         from .anysite import anysite_part, plot_honesty
 
@@ -294,6 +346,20 @@ def _merge_previous(results: dict, out: Path) -> dict:
         # a stamp from before stamps named the CPU: taken to be the prior run's machine
         results["made_by"][part] = {"cpu": machine.get("cpu"), **prior.get("made_by", {}).get(part, old_stamp)}
     return results
+
+
+def _prior_part(out: Path, part: str) -> dict | None:
+    """A part of the report already in `out`, or None."""
+    try:
+        return json.loads((out / "results.json").read_text()).get("parts", {}).get(part)
+    except (OSError, ValueError):
+        return None
+
+
+def _latest_minutes(rows: list[dict]) -> list[dict]:
+    from .minutes import latest
+
+    return latest(rows)
 
 
 def case_tool_file() -> Path:
@@ -383,6 +449,22 @@ def write_report(results: dict, out: Path) -> None:
                                         ("median_ratio", "median estimate / error")]))  # fmt: skip
         md.append("\n![estimate against true error](figures/anysite_estimates.png)\n")
         _write_csv(out / "anysite_frames.csv", A["records"])
+    if "minutes" in parts:
+        rows = _latest_minutes(parts["minutes"]["rows"])
+        md.append("\n## Validation error against build minutes\n")
+        md.append(
+            "`elastreg train SCENE --minutes M` from an empty data folder, the whole build on the clock; every "
+            "build scored on one held-out test set per scene (the same loads for every budget, a seed no build "
+            "uses). Relative error: a sample's displacement error over its displacement, mean and median over "
+            "the test samples. The newest row of each scene and budget; every earlier row, with its machine, "
+            "commit and load average, is in results.json.\n\n"
+        )
+        md.append(_table(rows, [("scene", "scene"), ("minutes", "minutes"), ("samples", "samples"), ("wall_s", "wall (s)"),
+                                ("test_mean_mm", "test mean (mm)"), ("test_relative", "relative, mean"),
+                                ("test_relative_median", "relative, median"), ("test_linear_relative", "linear alone, mean"),
+                                ("test_linear_relative_median", "linear alone, median"), ("test_zero_mean_mm", "u = 0 (mm)"),
+                                ("load_before", "load average"), ("cpu", "machine"), ("commit", "commit")]))  # fmt: skip
+        md.append("\n![relative error against build minutes](figures/build_minutes.png)\n")
     if "beam" in parts:
         b = parts["beam"]["summary"]
         md.append("\n## The beam experiment\n")

@@ -1,0 +1,193 @@
+"""The build-minutes curve: ``elastreg train SCENE --minutes M`` from nothing, scored on one
+held-out test set per scene.
+
+Each (scene, minutes) pair builds from an empty data folder into a scratch store, so the clock
+covers the whole build (FEM data and training). A build's own validation paths are a share of
+what its budget bought, so they differ from build to build (a few dozen samples on a slow
+mesh): every build is also scored on one test set per scene, the same for every budget, drawn
+from the scene's load distribution with a seed no build uses (TEST_SEED) and kept on disk. Rows
+accumulate over runs (a rerun of a pair at the same commit replaces its row; rows of other
+commits stay as history), each stamped with its machine, commit and load average.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..build import build, data_key, load_spec
+from ..fem.material import NeoHookean
+from ..optional import need
+from ..scene import Scene
+from ..store import load_entry
+from ..surrogate.data import done_indices, generate, load_dataset
+from ..surrogate.train import TrainConfig, nodal_errors
+from . import machine
+
+#: the test paths' seed: builds draw theirs from the scene's seed (0 in every benchmark scene)
+TEST_SEED = 7919
+#: the issue's aim: median relative error after 10 minutes on a 1-3k-node organ
+AIM_RELATIVE = 0.10
+
+#: rows before the physics layout (commit de1d114) had only the skip flag: the skip path then
+#: lay inside the POD basis
+_LAYOUT = {True: "physics", False: "raw"}
+
+
+def layout_of(row: dict) -> str:
+    return row.get("layout") or ("basis-skip" if row.get("physics_skip") else "raw")
+
+
+def test_set(scene: Scene, paths: int, root: Path, workers: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The scene's held-out test loads (B, k, 3) on its region (k,) and displacements (B, n, 3),
+    solved once and kept under `root`."""
+    mesh, loaded = scene.build_mesh()
+    region = scene.region_nodes(mesh, loaded)
+    material = NeoHookean(float(scene.material.E), float(scene.material.nu))
+    spec = dataclasses.replace(load_spec(scene, region), seed=TEST_SEED)
+    folder = root / f"{scene.name}-{data_key(mesh.hash, material, spec)}"
+    for _ in generate(mesh, material, spec, folder, paths, workers=workers, progress=False):
+        pass
+    F, U, _ = load_dataset(folder, sorted(i for i in done_indices(folder) if i < paths))
+    return F, U, region
+
+
+def score(entry_dir: Path, F: np.ndarray, U: np.ndarray, region: np.ndarray) -> dict:
+    """Mean and p95 nodal error (mm), mean and median relative error of an entry on a test set,
+    with linear physics alone on the same loads beside them."""
+    model = load_entry(entry_dir).network
+    pred = np.concatenate([model.predict(F[i : i + 256], region) for i in range(0, len(F), 256)])
+    pred, true = pred.reshape(len(pred), -1), U.reshape(len(U), -1).astype(np.float64)
+    e = nodal_errors(pred, true)
+    size = np.maximum(np.linalg.norm(true, axis=1), 1e-12)
+    linear = model.compliance().displacements(F, region)
+    rel = np.linalg.norm(pred - true, axis=1) / size
+    rel_linear = np.linalg.norm(linear - true, axis=1) / size
+    return {
+        "test_samples": len(F),
+        "test_seed": TEST_SEED,
+        "test_mean_mm": float(e.mean() * 1e3),
+        "test_p95_mm": float(np.percentile(e, 95) * 1e3),
+        "test_relative": float(rel.mean()),
+        "test_relative_median": float(np.median(rel)),
+        "test_zero_mean_mm": float(np.linalg.norm(U, axis=-1).mean() * 1e3),
+        "test_linear_mean_mm": float(nodal_errors(linear, true).mean() * 1e3),
+        "test_linear_relative": float(rel_linear.mean()),
+        "test_linear_relative_median": float(np.median(rel_linear)),
+    }
+
+
+def timed_build(scene: Scene, minutes: float, test: tuple, workers: int, physics_skip: bool = True) -> dict:
+    """One build of `scene` within `minutes` from an empty data folder, and its row."""
+    stamp = machine.describe()
+    started = time.strftime("%Y-%m-%d %H:%M:%S")
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        load0 = os.getloadavg()[0]
+        report = build(scene, Path(tmp) / "store", workers=workers, data_root=Path(tmp) / "data", progress=False,
+                       minutes=minutes, config=TrainConfig(physics_skip=physics_skip))  # fmt: skip
+        wall = time.perf_counter() - t0
+        tested = score(Path(tmp) / "store" / scene.name, *test)
+    m = report.metrics
+    return {
+        "scene": scene.name,
+        "minutes": minutes,
+        "physics_skip": physics_skip,
+        "layout": _LAYOUT[physics_skip],
+        "commit": stamp["commit"],
+        "cpu": stamp["cpu"],
+        "started": started,
+        "wall_s": round(wall, 1),
+        "samples": report.samples,
+        "paths": report.paths,
+        "data_s": round(report.data_seconds, 1),
+        "train_s": round(report.train_seconds, 1),
+        "epochs": m["epochs"],
+        "val_mean_mm": m["mean_mm"],
+        "val_p95_mm": m["p95_mm"],
+        "val_relative": m.get("relative"),
+        "zero_mean_mm": m["zero_mean_mm"],
+        "linear_mean_mm": m.get("linear_mean_mm"),
+        **tested,
+        "load_before": load0,
+        "load_after": os.getloadavg()[0],
+    }
+
+
+def merge(rows: list[dict], row: dict) -> list[dict]:
+    """`row` replaces a row of the same scene, minutes, layout and commit; the rest stay."""
+
+    def key(r: dict) -> tuple:
+        return r["scene"], r["minutes"], layout_of(r), r.get("commit")
+
+    return [r for r in rows if key(r) != key(row)] + [row]
+
+
+def minutes_part(
+    scenes: list[Scene],
+    minutes: list[float],
+    *,
+    previous: list[dict] | None = None,
+    test_paths: int = 40,
+    test_data: Path,
+    workers: int = 2,
+    physics_skip: bool = True,
+    on_row=None,
+) -> dict:
+    """Build every scene at every budget; the rows, after `previous` (earlier runs' rows)."""
+    rows = list(previous or [])
+    for scene in scenes:
+        if not minutes:
+            break
+        test = test_set(scene, test_paths, test_data, workers)
+        for m in minutes:
+            rows = merge(rows, timed_build(scene, m, test, workers, physics_skip))
+            if on_row is not None:  # a long run keeps what it has made
+                on_row(rows)
+    return {"rows": rows}
+
+
+def latest(rows: list[dict]) -> list[dict]:
+    """The newest row of each scene and budget, in the physics layout and scored on the test set."""
+    best: dict[tuple, dict] = {}
+    for r in rows:
+        if layout_of(r) == "physics" and "test_relative" in r:
+            k = (r["scene"], r["minutes"])
+            if k not in best or r["started"] > best[k]["started"]:
+                best[k] = r
+    return sorted(best.values(), key=lambda r: (r["scene"], r["minutes"]))
+
+
+def plot(rows: list[dict], path: Path) -> None:
+    """Test-set relative error against build minutes, per scene, linear physics alone dashed."""
+    matplotlib = need("matplotlib", "the benchmark's figures")
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8.4, 4.2))
+    for i, scene in enumerate(dict.fromkeys(r["scene"] for r in rows)):
+        rs = [r for r in rows if r["scene"] == scene]
+        colour = f"C{i}"
+        x = [r["minutes"] for r in rs]
+        ax.plot(x, [r["test_relative"] for r in rs], "o-", color=colour, label=f"{scene}: mean")
+        med = [r for r in rs if "test_relative_median" in r]
+        if med:
+            ax.plot([r["minutes"] for r in med], [r["test_relative_median"] for r in med], "s", mfc="none",
+                    color=colour, label=f"{scene}: median")  # fmt: skip
+        ax.axhline(rs[-1]["test_linear_relative"], ls="--", lw=1, color=colour, label=f"{scene}: linear physics alone")
+    ax.axhline(AIM_RELATIVE, ls=":", color="k", label="aim at 10 minutes")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xticks([5, 10, 30, 60], labels=["5", "10", "30", "60"])
+    ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+    ax.set_xlabel("build minutes (whole build, 2 workers)")
+    ax.set_ylabel("relative error on the held-out test set")
+    ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.0, 0.5))
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
