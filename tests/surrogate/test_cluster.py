@@ -1,0 +1,123 @@
+"""`elastreg train --scheduler`: the same command on a Dask cluster. A real scheduler and a real
+worker, separate processes on loopback, as a cluster's would be on other machines."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from service.store import load_entry
+from tests.conftest import write_bar_scene
+
+pytest.importorskip("distributed")
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture
+def cluster(tmp_path):
+    from distributed import Client
+
+    dask = shutil.which("dask", path=str(Path(sys.executable).parent)) or shutil.which("dask")
+    assert dask, "the dask command comes with distributed"
+    port = free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
+    log = open(tmp_path / "cluster.log", "w")
+    procs = [
+        subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", str(port), "--dashboard-address", ":0"],
+                         stdout=log, stderr=subprocess.STDOUT, env=env),
+        subprocess.Popen([dask, "worker", address, "--nworkers", "1", "--nthreads", "1", "--memory-limit", "0",
+                          "--local-directory", str(tmp_path / "worker")],
+                         stdout=log, stderr=subprocess.STDOUT, env=env, cwd=ROOT),
+    ]  # fmt: skip
+    try:
+        deadline = time.monotonic() + 90
+        while True:  # the scheduler may not be listening yet
+            try:
+                with Client(address, timeout=5) as client:
+                    client.wait_for_workers(1, timeout=60)
+                break
+            except OSError:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.5)
+        yield address
+    finally:
+        for p in procs[::-1]:
+            p.terminate()
+        for p in procs:
+            p.wait(timeout=30)
+        log.close()
+
+
+def tasks_run(address: str) -> dict:
+    """What the scheduler has seen, by task prefix: {prefix: {state: count}}."""
+    from distributed import Client
+
+    def prefixes(dask_scheduler):
+        return {k: dict(v.state_counts) for k, v in dask_scheduler.task_prefixes.items()}
+
+    with Client(address, timeout=10) as client:
+        return client.run_on_scheduler(prefixes)
+
+
+def test_train_on_a_dask_cluster_makes_the_same_data_as_locally(tmp_path, bar, cluster):
+    from service.build import build
+    from service.scene import load_scene
+    from service.surrogate.data import load_dataset
+
+    scene_file = write_bar_scene(tmp_path / "scene", bar, samples=24)
+    r = subprocess.run(
+        [sys.executable, "-m", "service.cli", "train", str(scene_file), "--scheduler", cluster,
+         "--store", str(tmp_path / "store"), "--data", str(tmp_path / "data"), "--hidden", "32", "--rank", "8"],
+        capture_output=True, text=True, timeout=600, cwd=ROOT,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr[-3000:]
+    entry = load_entry(tmp_path / "store" / "bar")  # a verified entry, from data the cluster made
+    paths = entry.manifest["training"]["paths"]
+    assert paths >= 2
+    solved = tasks_run(cluster)["solve_path"]  # the scheduler ran the paths, not this process
+    assert solved.get("memory", 0) + solved.get("released", 0) + solved.get("forgotten", 0) >= paths
+
+    # the same paths solved in this process: the cluster changes where, not what
+    local = build(load_scene(scene_file), tmp_path / "local-store", workers=0, data_root=tmp_path / "local",
+                  progress=False, samples=24)  # fmt: skip
+    (remote_dir,) = (tmp_path / "data").iterdir()
+    (local_dir,) = (tmp_path / "local").iterdir()
+    assert remote_dir.name == local_dir.name  # one data key: the same scene
+    F1, U1, _ = load_dataset(remote_dir, list(range(paths)))
+    F2, U2, _ = load_dataset(local_dir, list(range(local.paths)))
+    np.testing.assert_array_equal(F1, F2)
+    np.testing.assert_allclose(U1, U2, rtol=0, atol=1e-12)
+
+
+def test_a_timed_build_on_a_dask_cluster_keeps_to_its_minutes(tmp_path, bar, cluster):
+    """--minutes with --scheduler: the build stops asking the cluster for paths at its data share
+    and writes its entry inside the budget; the paths still queued are given back."""
+    scene_file = write_bar_scene(tmp_path / "scene", bar, samples=30_000)  # far too many
+    t0 = time.perf_counter()
+    r = subprocess.run(
+        [sys.executable, "-m", "service.cli", "train", str(scene_file), "--scheduler", cluster, "--minutes", "0.25",
+         "--store", str(tmp_path / "store"), "--data", str(tmp_path / "data"), "--hidden", "32", "--rank", "8"],
+        capture_output=True, text=True, timeout=600, cwd=ROOT,
+    )  # fmt: skip
+    wall = time.perf_counter() - t0
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert wall < 0.25 * 60 + 20  # the budget, plus the interpreter's start and a loaded machine
+    entry = load_entry(tmp_path / "store" / "bar")
+    assert entry.manifest["training"]["minutes"] == 0.25
+    assert 2 <= entry.manifest["training"]["paths"] < 10_000
