@@ -10,7 +10,12 @@ method exact on the coarse mesh overestimates the force by about kappa. With --r
 also registers the calibration sites' sequences (seed 3026, never reported) with the network
 and prints each frame's |f_est| / |f_true| and the angle between them.
 
+With --scene and --nu it needs no model: kappa at the calibration sites for each Poisson's ratio.
+Locking grows as nu nears 0.5, plain coarseness does not, so kappa against nu tells which of the
+two makes the coarse mesh stiff (and so whether a locking-free element would remove the bias).
+
     python benchmarks/locking_study.py --model /path/to/store/liver_anysite [--registered]
+    python benchmarks/locking_study.py --scene benchmarks/scenes/liver_paper.toml --nu 0.3 0.4 0.45 0.49
 """
 
 from __future__ import annotations
@@ -20,6 +25,7 @@ import dataclasses
 import json
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -30,8 +36,10 @@ from service.bench.anysite import NETWORK_LM, SITE_SEED, anysite_cases, spread_s
 from service.bench.machine import describe
 from service.bench.truth import fine_patch, subdivide
 from service.config import limit_threads
+from service.fem.material import NeoHookean
 from service.fem.rest import rest_compliance
 from service.registration.session import Session
+from service.scene import load_scene
 from service.store import load_entry
 
 #: the calibration sites' seed (linear_rank_study.py's): choices are made on these, never on SITE_SEED's
@@ -54,9 +62,17 @@ def tools(entry, sites: int, seed: int) -> list:
     return out
 
 
-def compliance_ratios(entry, sites: int, seed: int) -> list[dict]:
+def scene_entry(path: str, nu: float) -> SimpleNamespace:
+    """What tools() and compliance_ratios() read of an entry, from a scene at Poisson's ratio nu."""
+    scene = load_scene(path)
+    mesh, loaded = scene.build_mesh()
+    material = NeoHookean(float(scene.material.E), nu)
+    return SimpleNamespace(mesh=mesh, region=scene.region_nodes(mesh, loaded), fem=SimpleNamespace(material=material))
+
+
+def compliance_ratios(entry, sites: int, seed: int, fine=None) -> list[dict]:
     mesh, material = entry.mesh, entry.fem.material
-    fine = subdivide(mesh)
+    fine = subdivide(mesh) if fine is None else fine
     coarse_c, fine_c = rest_compliance(mesh, material), rest_compliance(fine, material)
     rows = []
     for site, tool in tools(entry, sites, seed):
@@ -85,11 +101,17 @@ def registered_ratios(entry, sites: int) -> list[dict]:
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--model", required=True, help="a whole-surface store entry of the paper's liver")
+    p.add_argument("--model", help="a whole-surface store entry of the paper's liver")
+    p.add_argument("--scene", help="instead of a model: a scene, for kappa against --nu")
+    p.add_argument("--nu", type=float, nargs="+", default=[0.3, 0.4, 0.45, 0.49])
     p.add_argument("--registered", action="store_true", help="also register the calibration sites")
     p.add_argument("--out", default=str(ROOT / "reports" / "locking" / "locking.json"))
     args = p.parse_args()
     limit_threads(1)
+    if args.scene:
+        return nu_study(args.scene, args.nu, Path(args.out).with_name("locking_nu.json"))
+    if not args.model:
+        p.error("--model or --scene is required")
     entry = load_entry(Path(args.model))
     result: dict = {"machine": describe(), "model": Path(args.model).name}
     result["kappa"] = compliance_ratios(entry, 4, CALIBRATION_SEED) + compliance_ratios(entry, 6, SITE_SEED)
@@ -104,6 +126,20 @@ def main() -> int:
             )
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(result, indent=1))
+    return 0
+
+
+def nu_study(scene: str, nus: list[float], out: Path) -> int:
+    result: dict = {"machine": describe(), "scene": scene, "seed": CALIBRATION_SEED, "rows": []}
+    fine = None
+    for nu in nus:
+        entry = scene_entry(scene, nu)
+        fine = subdivide(entry.mesh) if fine is None else fine
+        for r in compliance_ratios(entry, 4, CALIBRATION_SEED, fine):
+            result["rows"].append({"nu": nu, **r})
+            print(f"nu {nu:.3f}, calibration site node {r['site']:5d}: kappa = {r['kappa']:.3f}", flush=True)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=1))
     return 0
 
 
