@@ -272,7 +272,7 @@ def main(args: argparse.Namespace) -> int:
             )
 
     if "minutes" in parts:
-        from ..scene import load_scene
+        from ..scene import SceneError, load_scene
         from .minutes import minutes_part
         from .minutes import plot as plot_minutes
 
@@ -282,8 +282,12 @@ def main(args: argparse.Namespace) -> int:
         def keep(rows: list[dict]) -> None:  # an hour-long build's row survives a later failure
             (out / "minutes_rows.json").write_text(json.dumps(rows, indent=1))
 
+        try:
+            scenes = [load_scene(s) for s in args.scenes] if args.build_minutes else []
+        except SceneError as exc:
+            raise SystemExit(f"error: {exc} (the default scenes are relative to the repository's root)") from None
         results["parts"]["minutes"] = minutes_part(
-            [load_scene(s) for s in args.scenes] if args.build_minutes else [],
+            scenes,
             args.build_minutes,
             previous=(prior or {}).get("rows", []),
             test_paths=args.test_paths,

@@ -43,6 +43,9 @@ def test_a_rerun_replaces_its_commits_row_and_keeps_history():
     assert latest([{**row("c", "4", 0.1), "layout": "raw"}]) == []  # other layouts are history only
 
 
-def test_minutes_part_refuses_a_smoke_model(tmp_path):
+def test_minutes_part_refuses_a_smoke_model_and_a_missing_scene(tmp_path):
     with pytest.raises(SystemExit, match="minutes part builds scenes"):
         main(["bench", "minutes", "--smoke", "bar", "--out", str(tmp_path)])
+    with pytest.raises(SystemExit, match="cannot read the scene file"):
+        main(["bench", "minutes", "--scenes", str(tmp_path / "nowhere.toml"), "--out", str(tmp_path / "r")])
+    assert not (tmp_path / "r" / "results.json").exists()  # nothing written for a bad command
