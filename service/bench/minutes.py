@@ -82,17 +82,22 @@ def score(entry_dir: Path, F: np.ndarray, U: np.ndarray, region: np.ndarray) -> 
     }
 
 
-def timed_build(scene: Scene, minutes: float, test: tuple, workers: int, physics_skip: bool = True) -> dict:
-    """One build of `scene` within `minutes` from an empty data folder, and its row."""
+def timed_build(
+    scene: Scene, minutes: float, test: tuple, workers: int, physics_skip: bool = True, keep: Path | None = None
+) -> dict:
+    """One build of `scene` within `minutes` from an empty data folder, and its row. The entry
+    goes to the store `keep` when given (for the other parts to use), else it is discarded."""
     stamp = machine.describe()
     started = time.strftime("%Y-%m-%d %H:%M:%S")
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
         load0 = os.getloadavg()[0]
-        report = build(scene, Path(tmp) / "store", workers=workers, data_root=Path(tmp) / "data", progress=False,
-                       minutes=minutes, config=TrainConfig(physics_skip=physics_skip))  # fmt: skip
+        store = keep if keep is not None else Path(tmp) / "store"
+        report = build(scene, store, workers=workers, data_root=Path(tmp) / "data", progress=False,
+                       minutes=minutes, config=TrainConfig(physics_skip=physics_skip),
+                       command=f"elastreg train {scene.name}.toml --minutes {minutes:g}")  # fmt: skip
         wall = time.perf_counter() - t0
-        tested = score(Path(tmp) / "store" / scene.name, *test)
+        tested = score(store / scene.name, *test)
     m = report.metrics
     return {
         "scene": scene.name,
@@ -137,6 +142,7 @@ def minutes_part(
     test_data: Path,
     workers: int = 2,
     physics_skip: bool = True,
+    keep: Path | None = None,
     on_row=None,
 ) -> dict:
     """Build every scene at every budget; the rows, after `previous` (earlier runs' rows)."""
@@ -146,7 +152,7 @@ def minutes_part(
             break
         test = test_set(scene, test_paths, test_data, workers)
         for m in minutes:
-            rows = merge(rows, timed_build(scene, m, test, workers, physics_skip))
+            rows = merge(rows, timed_build(scene, m, test, workers, physics_skip, keep))
             if on_row is not None:  # a long run keeps what it has made
                 on_row(rows)
     return {"rows": rows}

@@ -70,6 +70,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--test-data", default=None, help="where the test sets are kept (default: ~/.cache/elastreg/test-data)"
     )
     g.add_argument("--workers", type=int, default=2, help="FEM worker processes of each build")
+    g.add_argument("--keep-store", default=None, help="keep each scene's last build in this store (default: discard)")
     p.add_argument(
         "--smoke", metavar="MODEL", default=None, help="every part on a tiny model of --store (seconds; for the tests)"
     )
@@ -293,6 +294,7 @@ def main(args: argparse.Namespace) -> int:
             test_paths=args.test_paths,
             test_data=test_data,
             workers=args.workers,
+            keep=Path(args.keep_store) if args.keep_store else None,
             on_row=keep,
         )
         plot_minutes(_latest_minutes(results["parts"]["minutes"]["rows"]), out / "figures" / "build_minutes.png")

@@ -6,6 +6,7 @@ import pytest
 
 from service.bench.minutes import TEST_SEED, latest, merge
 from service.cli import main
+from service.store import load_entry
 from tests.conftest import write_bar_scene
 
 
@@ -13,7 +14,12 @@ def test_minutes_part_builds_on_the_clock_and_keeps_its_rows(bar, tmp_path):
     scene = write_bar_scene(tmp_path / "scene", bar)
     out = tmp_path / "report"
     common = ["bench", "minutes", "--scenes", str(scene), "--test-data", str(tmp_path / "test"), "--out", str(out)]
-    assert main([*common, "--build-minutes", "0.2", "--test-paths", "3", "--workers", "0"]) == 0
+    kept = tmp_path / "kept"
+    assert (
+        main([*common, "--build-minutes", "0.2", "--test-paths", "3", "--workers", "0", "--keep-store", str(kept)]) == 0
+    )
+    entry = load_entry(kept / "bar")  # kept for the other parts, and verified on loading
+    assert entry.manifest["training"]["minutes"] == 0.2
     (row,) = json.loads((out / "results.json").read_text())["parts"]["minutes"]["rows"]
     assert row["scene"] == "bar" and row["minutes"] == 0.2 and row["test_seed"] == TEST_SEED
     assert row["wall_s"] <= 0.2 * 60 + 10  # the whole build on the clock (scoring is outside it)
