@@ -185,7 +185,12 @@ def plot(rows: list[dict], path: Path) -> None:
         if med:
             ax.plot([r["minutes"] for r in med], [r["test_relative_median"] for r in med], "s", mfc="none",
                     color=colour, label=f"{scene}: median")  # fmt: skip
-        ax.axhline(rs[-1]["test_linear_relative"], ls="--", lw=1, color=colour, label=f"{scene}: linear physics alone")
+        ax.axhline(
+            rs[-1]["test_linear_relative"], ls="--", lw=1, color=colour, label=f"{scene}: linear physics alone, mean"
+        )
+        lin_med = [r["test_linear_relative_median"] for r in rs if "test_linear_relative_median" in r]
+        if lin_med:
+            ax.axhline(lin_med[-1], ls="-.", lw=0.8, color=colour, label=f"{scene}: linear physics alone, median")
     ax.axhline(AIM_RELATIVE, ls=":", color="k", label="aim at 10 minutes")
     ax.set_xscale("log")
     ax.set_yscale("log")
