@@ -70,20 +70,27 @@ def scene_entry(path: str, nu: float) -> SimpleNamespace:
     return SimpleNamespace(mesh=mesh, region=scene.region_nodes(mesh, loaded), fem=SimpleNamespace(material=material))
 
 
+def patch_kappa(coarse, fine, coarse_c, fine_c, patch, normal) -> float:
+    """<u_c, u_f> / <u_c, u_c> over the coarse nodes, for a unit load along `normal` spread over
+    `patch` on the coarse mesh and over its area on the fine one."""
+    spread = fine_patch(coarse, fine, patch)
+    u_c = coarse_c.displacements(np.tile(normal / patch.size, (1, patch.size, 1)), patch)[0]
+    u_f = fine_c.displacements(np.tile(normal / spread.size, (1, spread.size, 1)), spread)[0]
+    u_f = u_f[: 3 * coarse.n_nodes]  # the coarse nodes keep their ids on the fine mesh
+    return float(u_c @ u_f / (u_c @ u_c))
+
+
+def outward(mesh, tool) -> np.ndarray:
+    normal = mesh.vertex_normals[tool].sum(axis=0)
+    return normal / np.linalg.norm(normal)
+
+
 def compliance_ratios(entry, sites: int, seed: int, fine=None) -> list[dict]:
     mesh, material = entry.mesh, entry.fem.material
     fine = subdivide(mesh) if fine is None else fine
     coarse_c, fine_c = rest_compliance(mesh, material), rest_compliance(fine, material)
-    rows = []
-    for site, tool in tools(entry, sites, seed):
-        spread = fine_patch(mesh, fine, tool)
-        normal = mesh.vertex_normals[tool].sum(axis=0)
-        normal /= np.linalg.norm(normal)
-        u_c = coarse_c.displacements(np.tile(normal / tool.size, (1, tool.size, 1)), tool)[0]
-        u_f = fine_c.displacements(np.tile(normal / spread.size, (1, spread.size, 1)), spread)[0]
-        u_f = u_f[: 3 * mesh.n_nodes]  # the coarse nodes keep their ids on the fine mesh
-        rows.append({"seed": seed, "site": site, "kappa": float(u_c @ u_f / (u_c @ u_c))})
-    return rows
+    return [{"seed": seed, "site": site, "kappa": patch_kappa(mesh, fine, coarse_c, fine_c, tool, outward(mesh, tool))}
+            for site, tool in tools(entry, sites, seed)]  # fmt: skip
 
 
 def truth_ratios(entry, sites: int, seed: int) -> list[dict]:
@@ -95,14 +102,9 @@ def truth_ratios(entry, sites: int, seed: int) -> list[dict]:
     fine_c, finer_c = rest_compliance(fine, material), rest_compliance(finer, material)
     rows = []
     for site, tool in tools(entry, sites, seed):
-        spread = fine_patch(mesh, fine, tool)
-        spread2 = fine_patch(fine, finer, spread)
-        normal = mesh.vertex_normals[tool].sum(axis=0)
-        normal /= np.linalg.norm(normal)
-        u_f = fine_c.displacements(np.tile(normal / spread.size, (1, spread.size, 1)), spread)[0]
-        u_ff = finer_c.displacements(np.tile(normal / spread2.size, (1, spread2.size, 1)), spread2)[0]
-        u_ff = u_ff[: 3 * fine.n_nodes]
-        rows.append({"seed": seed, "site": site, "kappa_truth": float(u_f @ u_ff / (u_f @ u_f))})
+        spread = fine_patch(mesh, fine, tool)  # the truth's load over the tool patch
+        kappa = patch_kappa(fine, finer, fine_c, finer_c, spread, outward(mesh, tool))
+        rows.append({"seed": seed, "site": site, "kappa_truth": kappa})
     return rows
 
 
@@ -130,9 +132,8 @@ def main() -> int:
     args = p.parse_args()
     limit_threads(1)
     if args.scene:
-        if args.truth:
-            return truth_study(args.scene, args.nu, Path(args.out).with_name("locking_truth.json"))
-        return nu_study(args.scene, args.nu, Path(args.out).with_name("locking_nu.json"))
+        name = "locking_truth.json" if args.truth else "locking_nu.json"
+        return scene_study(args.scene, args.nu, Path(args.out).with_name(name), args.truth)
     if not args.model:
         p.error("--model or --scene is required")
     entry = load_entry(Path(args.model))
@@ -152,27 +153,23 @@ def main() -> int:
     return 0
 
 
-def nu_study(scene: str, nus: list[float], out: Path) -> int:
+def scene_study(scene: str, nus: list[float], out: Path, truth: bool) -> int:
+    """kappa at the calibration sites for each nu: the scene's mesh against its refinement, or
+    (`truth`) that refinement against its own."""
     result: dict = {"machine": describe(), "scene": scene, "seed": CALIBRATION_SEED, "rows": []}
     fine = None
     for nu in nus:
         entry = scene_entry(scene, nu)
-        fine = subdivide(entry.mesh) if fine is None else fine
-        for r in compliance_ratios(entry, 4, CALIBRATION_SEED, fine):
+        if truth:
+            rows = truth_ratios(entry, 4, CALIBRATION_SEED)
+        else:
+            fine = subdivide(entry.mesh) if fine is None else fine  # the mesh is the same for every nu
+            rows = compliance_ratios(entry, 4, CALIBRATION_SEED, fine)
+        for r in rows:
             result["rows"].append({"nu": nu, **r})
-            print(f"nu {nu:.3f}, calibration site node {r['site']:5d}: kappa = {r['kappa']:.3f}", flush=True)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=1))
-    return 0
-
-
-def truth_study(scene: str, nus: list[float], out: Path) -> int:
-    result: dict = {"machine": describe(), "scene": scene, "seed": CALIBRATION_SEED, "rows": []}
-    for nu in nus:
-        for r in truth_ratios(scene_entry(scene, nu), 4, CALIBRATION_SEED):
-            result["rows"].append({"nu": nu, **r})
-            print(f"nu {nu:.3f}, calibration site node {r['site']:5d}: the truth's mesh stiffer than its refinement "
-                  f"by {r['kappa_truth']:.3f}", flush=True)  # fmt: skip
+            what = "the truth's mesh stiffer than its refinement by" if truth else "kappa ="
+            value = r["kappa_truth"] if truth else r["kappa"]
+            print(f"nu {nu:.3f}, calibration site node {r['site']:5d}: {what} {value:.3f}", flush=True)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=1))
     return 0

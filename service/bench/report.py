@@ -280,7 +280,7 @@ def main(args: argparse.Namespace) -> int:
         prior = _prior_part(out, "minutes")
         test_data = Path(args.test_data) if args.test_data else Path.home() / ".cache" / "elastreg" / "test-data"
 
-        def keep(rows: list[dict]) -> None:  # an hour-long build's row survives a later failure
+        def save_rows(rows: list[dict]) -> None:  # an hour-long build's row survives a later failure
             (out / "minutes_rows.json").write_text(json.dumps(rows, indent=1))
 
         try:
@@ -295,7 +295,7 @@ def main(args: argparse.Namespace) -> int:
             test_data=test_data,
             workers=args.workers,
             keep=Path(args.keep_store) if args.keep_store else None,
-            on_row=keep,
+            on_row=save_rows,
         )
         plot_minutes(_latest_minutes(results["parts"]["minutes"]["rows"]), out / "figures" / "build_minutes.png")
 
