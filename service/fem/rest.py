@@ -28,13 +28,14 @@ _cache_lock = threading.Lock()
 
 
 class RestCompliance:
-    """K0^-1 on full-length (node-major, 3n) vectors, zero on fixed dofs. Thread-safe."""
+    """K0^-1 on full-length (node-major, 3n) vectors, zero on fixed dofs. Thread-safe.
+    `single`: factored in float32 (linsolve.py), for the error estimate's solves alone."""
 
-    def __init__(self, mesh: TetMesh, material: NeoHookean, backend: str | None = None) -> None:
+    def __init__(self, mesh: TetMesh, material: NeoHookean, backend: str | None = None, single: bool = False) -> None:
         self.mesh = mesh
         self.material = material
         K0 = Assembler(mesh, material).stiffness_at_rest()
-        self._solver = make_solver(K0, backend)
+        self._solver = make_solver(K0, backend, single)
         self._solver.factor(K0)
         self._lock = threading.Lock()  # a factorisation's solve is not reentrant (PARDISO)
 
@@ -73,15 +74,17 @@ class RestCompliance:
         return self.solve(rhs).T
 
 
-def rest_compliance(mesh: TetMesh, material: NeoHookean, backend: str | None = None) -> RestCompliance:
+def rest_compliance(
+    mesh: TetMesh, material: NeoHookean, backend: str | None = None, single: bool = False
+) -> RestCompliance:
     """The (kept) rest compliance of this mesh and material."""
-    key = (mesh.hash, float(material.E), float(material.nu), backend)
+    key = (mesh.hash, float(material.E), float(material.nu), backend, single)
     with _cache_lock:
         hit = _cache.get(key)
         if hit is not None:
             _cache.move_to_end(key)
             return hit
-    made = RestCompliance(mesh, material, backend)  # outside the lock: a factorisation takes time
+    made = RestCompliance(mesh, material, backend, single)  # outside the lock: a factorisation takes time
     with _cache_lock:
         _cache[key] = made
         while len(_cache) > _KEEP:

@@ -33,3 +33,20 @@ def test_backend_flags_indefinite_matrix(bar, backend):
 def test_unknown_backend():
     with pytest.raises(ValueError, match="unknown solver backend"):
         make_solver(None, "magic")
+
+
+@pytest.mark.parametrize("backend", available_backends())
+def test_single_precision_solves_to_float32_accuracy(bar, backend):
+    """The error estimate's factor: float32 where the backend has it, answers in float64."""
+    K = Assembler(bar, NeoHookean(4500.0, 0.45)).stiffness_at_rest()
+    solver = make_solver(K, backend, single=True)
+    solver.factor(K)
+    b = np.random.default_rng(1).normal(size=(K.shape[0], 2))
+    x = solver.solve(b)
+    exact = make_solver(K, backend)
+    exact.factor(K)
+    assert x.dtype == np.float64
+    err = np.linalg.norm(x - exact.solve(b)) / np.linalg.norm(x)
+    assert err < 1e-3  # a few digits, which is all an estimate needs
+    if backend != "cholmod":  # CHOLMOD has no single precision: the same answer
+        assert err > 1e-12

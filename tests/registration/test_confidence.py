@@ -46,7 +46,8 @@ def test_the_estimate_adds_only_the_misfit_beyond_the_noise():
     from service.registration.confidence import MISFIT_FACTOR as k
 
     assert error_estimate(1e-4, 5e-4, 5e-4) == pytest.approx(1e-4)
-    assert error_estimate(1e-4, 8e-4, 5e-4) == pytest.approx(1e-4 + k * 3e-4)
+    assert error_estimate(1e-4, 4e-4, 5e-4) == pytest.approx(1e-4)  # less than the noise: all noise
+    assert error_estimate(1e-4, 5e-4, 3e-4) == pytest.approx(1e-4 + k * 4e-4)  # in quadrature
     assert error_estimate(1e-4, 8e-4, None) == pytest.approx(1e-4 + k * 8e-4)
     assert error_estimate(float("nan"), 1e-3, None) == float("inf")
 
