@@ -37,7 +37,7 @@ def main() -> int:
         scene = load_scene(path)
         mesh, loaded = scene.build_mesh()
         region = scene.region_nodes(mesh, loaded)
-        material = NeoHookean(float(scene.material.E), float(scene.material.nu))
+        material = NeoHookean.of(scene.material)
         spec = load_spec(scene, region)
         solve_path(mesh, material, spec, args.paths + 1)  # compile and warm, not counted
         rows = []

@@ -87,7 +87,7 @@ def main() -> None:
     scene = load_scene(ROOT / "benchmarks" / "scenes" / "liver_paper.toml")
     mesh, loaded = scene.build_mesh()
     region = scene.region_nodes(mesh, loaded)
-    asm = Assembler(mesh, NeoHookean(float(scene.material.E), float(scene.material.nu)))
+    asm = Assembler(mesh, NeoHookean.of(scene.material))
     F, U, P = load_dataset(args.data)
     train_paths, val_paths = split_paths(P, 0.1, 0)
     Ft, Ut = paper_test_set(mesh, region)

@@ -94,8 +94,7 @@ def build(
     deadline = None if minutes is None else t_start + 60.0 * minutes
     mesh, loaded = scene.build_mesh()
     region = scene.region_nodes(mesh, loaded)
-    mat = scene.material
-    material = NeoHookean(float(mat.E), float(mat.nu))
+    material = NeoHookean.of(scene.material)
     spec = load_spec(scene, region)
     n_samples = int(samples or scene.training.samples)
     n_paths = max(2, math.ceil(n_samples / spec.steps))

@@ -252,8 +252,7 @@ def load_entry(path: Path) -> Entry:
     if mesh.hash != manifest["mesh"].get("hash"):
         raise StoreError(f"{name}: the mesh does not match the hash recorded in the manifest")
     try:
-        mat = manifest["material"]
-        material = NeoHookean(float(mat["E"]), float(mat["nu"]))
+        material = NeoHookean.of(manifest["material"])
         state = load_file(str(path / WEIGHTS))
         net = network_from_manifest(manifest["network"], state)
     except StoreError:

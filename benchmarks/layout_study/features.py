@@ -23,7 +23,7 @@ def main():
     secs = float(sys.argv[2])
     mesh, loaded = scene.build_mesh()
     region = scene.region_nodes(mesh, loaded)
-    mat = NeoHookean(float(scene.material.E), float(scene.material.nu))
+    mat = NeoHookean.of(scene.material)
     spec = load_spec(scene, region)
     data_dir = default_data_root() / f"{scene.name}-{data_key(mesh.hash, mat, spec)}"
     F, U, P = load_dataset(data_dir, sorted(done_indices(data_dir)))

@@ -23,7 +23,7 @@ def main():
     train_s = float(sys.argv[3])
     mesh, loaded = scene.build_mesh()
     region = scene.region_nodes(mesh, loaded)
-    mat = NeoHookean(float(scene.material.E), float(scene.material.nu))
+    mat = NeoHookean.of(scene.material)
     spec = load_spec(scene, region)
     data_dir = default_data_root() / f"{scene.name}-{data_key(mesh.hash, mat, spec)}"
     print("nodes", mesh.n_nodes, "region", len(region), data_dir, flush=True)

@@ -48,7 +48,7 @@ def test_set(scene: Scene, paths: int, root: Path, workers: int) -> tuple[np.nda
     solved once and kept under `root`."""
     mesh, loaded = scene.build_mesh()
     region = scene.region_nodes(mesh, loaded)
-    material = NeoHookean(float(scene.material.E), float(scene.material.nu))
+    material = NeoHookean.of(scene.material)
     spec = dataclasses.replace(load_spec(scene, region), seed=TEST_SEED)
     folder = root / f"{scene.name}-{data_key(mesh.hash, material, spec)}"
     for _ in generate(mesh, material, spec, folder, paths, workers=workers, progress=False):

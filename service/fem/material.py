@@ -9,6 +9,7 @@ J <= 0 the energy is +inf: the line search reads that as "step too long", never 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 
 import numpy as np
 
@@ -61,6 +62,13 @@ class NeoHookean:
     @property
     def lam(self) -> float:
         return self.E * self.nu / ((1.0 + self.nu) * (1.0 - 2.0 * self.nu))
+
+    @classmethod
+    def of(cls, spec) -> NeoHookean:
+        """The law a scene's [material] table or a manifest's "material" names: anything with
+        E and nu, as attributes or keys."""
+        get = spec.__getitem__ if isinstance(spec, Mapping) else spec.__getattribute__
+        return cls(float(get("E")), float(get("nu")))
 
     def with_stiffness(self, E: float) -> NeoHookean:
         return dataclasses.replace(self, E=float(E))

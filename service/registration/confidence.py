@@ -11,10 +11,21 @@ warping" does), solved there, and turned back. Its mean nodal
 norm estimates the forward model's error (a network's; the FEM's is its Newton tolerance).
 
 The registration adds its own error: points it could not explain. The cloud's RMS distance to
-the registered surface, beyond the noise the session declared, measures it where the camera
-looks; a calibrated factor turns it into a mean over the nodes (MISFIT_FACTOR). The estimate is
-the sum of the two: it errs on the large side rather than the small one, which is the side a
-display can act on.
+the registered surface, beyond the noise the session declared (in quadrature: the two are
+independent), measures it where the camera looks; a calibrated factor turns it into a mean over
+the nodes (MISFIT_FACTOR).
+
+A session that declares its clouds' noise sigma also gets the noise carried into its answer,
+which no misfit shows (a fit inside the noise can still be off): linearised at the frame's
+optimum, the points' noise moves the basis coefficients by dc = -C H^-1 C^T N^T W eps, H =
+C^T A C + alpha I the Gauss-Newton Hessian (levenberg.py's notation), so their covariance is
+sigma^2 B (N^T W^2 N) B^T with B = C H^-1 C^T = M (A M + alpha I)^-1, M = C C^T: r x r algebra
+at the frame's Jacobian. Its RMS over the objective's nodes (U's rows: the matched surface,
+which moves more than the interior) is the third term. Only where the model has a low-rank
+Jacobian (the reduced network); the FEM's would cost a solve per force component.
+
+The estimate is the sum of the terms: it errs on the large side rather than the small one,
+which is the side a display can act on.
 
 The rest stiffness is factorised once per mesh and material, in single precision (fem/rest.py:
 shared by every session on the mesh, solves under a lock); one estimate costs an internal-force
@@ -33,6 +44,8 @@ from ..fem.material import NeoHookean
 from ..fem.rest import rest_compliance
 from ..jit import kernels
 from ..mesh import TetMesh
+from .distance import Match
+from .levenberg import weighted_rows
 
 Array = np.ndarray
 
@@ -91,16 +104,37 @@ def estimator_for(model) -> ResidualEstimator:
 MISFIT_FACTOR = 4.9
 
 
-def error_estimate(forward_error: float, distance_rms: float, noise: float | None) -> float:
+def noise_spread(jac, match: Match, faces: Array, alpha: float, noise: float, readout_gram: Array) -> float:
+    """The declared noise carried into the displacement (see the module): RMS over the
+    Jacobian's nodes. `jac` a low-rank Jacobian with ``gram()`` at the frame's forces, `match`
+    the distance's at its positions, `readout_gram` U^T U (r, r) of jac.U, in float64."""
+    Nw = weighted_rows(jac.U, match, faces)  # sqrt(w_j) N_j, in U's precision as the LM model's
+    w = np.asarray(match.weight, np.float64)
+    A = (Nw.T @ Nw).astype(np.float64)
+    if w.size and w.min() == w.max():  # the squared loss: one weight, N^T W^2 N = w A
+        A2 = w[0] * A
+    else:
+        A2 = (Nw.T @ (Nw * w[:, None].astype(Nw.dtype))).astype(np.float64)
+    M = np.asarray(jac.gram(), np.float64)
+    X = M @ A
+    X.flat[:: len(A) + 1] += alpha
+    Bt = np.linalg.solve(X, M)  # B^T = (M A + alpha I)^-1 M
+    cov = Bt.T @ (A2 @ Bt)  # of the coefficients, per unit noise variance
+    p = jac.U.shape[0] // 3
+    return float(noise) * math.sqrt(max(float(np.sum(cov * readout_gram)), 0.0) / p)
+
+
+def error_estimate(forward_error: float, distance_rms: float, noise: float | None, spread: float = 0.0) -> float:
     """The frame's estimate: forward error plus the misfit the declared noise does not explain,
-    scaled to a mean over the nodes (MISFIT_FACTOR). Noise and misfit are independent, so they
-    add in quadrature: subtracting the noise from the RMS instead hid a 0.3 mm misfit under
-    0.5 mm of noise (the demo's frames with their noise declared: estimates a third of the error)."""
+    scaled to a mean over the nodes (MISFIT_FACTOR), plus the noise's `spread` (:func:`noise_spread`).
+    Noise and misfit are independent, so they add in quadrature: subtracting the noise from the
+    RMS instead hid a 0.3 mm misfit under 0.5 mm of noise (the demo's frames with their noise
+    declared: estimates a third of the error)."""
     noise = noise or 0.0
     unexplained = math.sqrt(max(float(distance_rms) ** 2 - noise * noise, 0.0))
-    if not np.isfinite(forward_error) or not np.isfinite(unexplained):
+    if not (np.isfinite(forward_error) and np.isfinite(unexplained) and np.isfinite(spread)):
         return float("inf")
-    return float(forward_error + MISFIT_FACTOR * unexplained)
+    return float(forward_error + MISFIT_FACTOR * unexplained + spread)
 
 
 def node_rotations(assembler: Assembler, u: Array, iterations: int = 6, scatter=None) -> Array:

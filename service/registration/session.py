@@ -29,7 +29,7 @@ from ..fem.assembly import Assembler
 from ..fem.material import NeoHookean
 from ..forward import ForwardFailed, ForwardModel, ForwardOperator, check_support
 from ..mesh import TetMesh
-from .confidence import error_estimate, estimator_for
+from .confidence import error_estimate, estimator_for, noise_spread
 from .distance import PointToSurface
 from .engine import SolveOptions, check_optimizer, solve_frame
 from .noise_prior import AlphaTracker
@@ -115,6 +115,7 @@ class Session:
             self.alpha_tracker = AlphaTracker(alpha, config.noise)  # starts at the default
         self.config = dataclasses.replace(config, E=float(model.material.E), gtol=gtol, alpha=alpha)
         self._noise = config.noise
+        self._readout_gram: tuple[Array, Array] | None = None  # (jac.U, U^T U) for noise_spread
         self._options = SolveOptions.of(self.config)
         self._rest = self.mesh.nodes[self.distance.nodes]
         self._lock = threading.Lock()
@@ -164,7 +165,7 @@ class Session:
             sol = solve_frame(self.op, self.distance, self._rest, g0, options, self.curvature, fallbacks)
             self._commit(sol, len(points), learn=True)
             t1 = time.perf_counter()
-            outputs, rms, estimate = self._outputs(self.op, self.model, sol.g, sol.rms)
+            outputs, rms, estimate = self._outputs(self.op, self.model, sol.g, sol.rms, options.alpha)
             timing = sol.timing.as_ms()
             timing["outputs"] = 1e3 * (time.perf_counter() - t1)
             method_used, iterations, evaluations = self.model.method, sol.iterations, sol.evaluations
@@ -180,7 +181,9 @@ class Session:
                     self._commit(fem, len(points), learn=False)
                     sol, method_used = fem, self.corrector.method
                     iterations, evaluations = iterations + fem.iterations, evaluations + fem.evaluations
-                    outputs, rms, estimate = self._outputs(self._corrector_op, self.corrector, fem.g, fem.rms)
+                    outputs, rms, estimate = self._outputs(
+                        self._corrector_op, self.corrector, fem.g, fem.rms, options.alpha
+                    )
             timing["total"] = 1e3 * (time.perf_counter() - t0)
             self.frames += 1
             self.converged += int(sol.converged)
@@ -235,7 +238,7 @@ class Session:
         )
 
     def _outputs(
-        self, op: ForwardOperator, model: ForwardModel, g: Array, rms: float
+        self, op: ForwardOperator, model: ForwardModel, g: Array, rms: float, alpha: float
     ) -> tuple[dict[str, Array], float, float]:
         """The requested fields at the frame's forces, the RMS point-to-surface distance (the
         solve's at g, or searched for if it has none: the best iterate was never evaluated), and
@@ -252,7 +255,8 @@ class Session:
         estimate = float("inf")
         if u_all is not None and np.isfinite(u_all).all():
             forward = estimator_for(model).forward_error(u_all, g, self.support)
-            estimate = error_estimate(forward, rms, self._noise)
+            spread = self._noise_spread(op, model, g, u_all, alpha)
+            estimate = error_estimate(forward, rms, self._noise, spread)
             if "displacement" in want:
                 out["displacement"] = u_all
             if "surface_displacement" in want:
@@ -262,6 +266,25 @@ class Session:
         if "forces" in want:
             out["forces"] = g
         return out, rms, estimate
+
+    def _noise_spread(self, op: ForwardOperator, model: ForwardModel, g: Array, u_all: Array, alpha: float) -> float:
+        """The declared noise carried into the answer (confidence.noise_spread), for a model with
+        a low-rank Jacobian; 0 without declared noise or such a Jacobian."""
+        jacobian = getattr(op, "jacobian", None)
+        if not self._noise or model.method != "network" or jacobian is None:
+            return 0.0
+        jac = jacobian(g)
+        if jac is None or not hasattr(jac, "gram"):
+            return 0.0
+        x = self._rest + u_all[self.distance.nodes]
+        match = self.distance.last_match
+        if match is None or not np.array_equal(match.x, x):  # the answer was not the last evaluation
+            self.distance(x)
+            match = self.distance.last_match
+        if self._readout_gram is None or self._readout_gram[0] is not jac.U:
+            U = np.asarray(jac.U, np.float64)
+            self._readout_gram = (jac.U, U.T @ U)  # constant per operator: once per support
+        return noise_spread(jac, match, self.distance.faces, alpha, self._noise, self._readout_gram[1])
 
     def summary(self) -> dict:
         return {

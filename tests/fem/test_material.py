@@ -89,3 +89,15 @@ def test_lame_constants():
     m = NeoHookean(4500.0, 0.49)
     assert m.mu == pytest.approx(4500 / 2.98)
     assert m.lam == pytest.approx(4500 * 0.49 / (1.49 * 0.02))
+
+
+def test_the_law_of_a_scene_or_a_manifest():
+    from service.scene import MaterialSpec
+
+    spec = MaterialSpec(E=4500.0, nu=0.49)
+    assert NeoHookean.of(spec) == NeoHookean(4500.0, 0.49)
+    assert NeoHookean.of({"law": "neo-hookean", "E": 4500, "nu": 0.49}) == NeoHookean(4500.0, 0.49)
+    with pytest.raises(KeyError):
+        NeoHookean.of({"E": 4500.0})
+    with pytest.raises(ValueError, match="Poisson"):
+        NeoHookean.of({"E": 4500.0, "nu": 0.5})
