@@ -138,6 +138,9 @@ class Session:
             g[keep >= 0] = g_old[keep[keep >= 0]]
         self.support = support
         self.g = g
+        self._trend: Array | None = None  # the forces' change between the last two converged frames
+        self._converged = False  # whether the last frame's answer converged
+        self._before: tuple[Array, bool] = (g, False)  # the frame before's forces, and whether they did
         self._anchor = g  # the last converged frame's forces: a fallback start after a bad frame
         self.curvature = Curvature(3 * support.size) if self.config.carry_curvature else None
         # the corrector's frames teach their own: the FEM's curvature is not the network's
@@ -157,8 +160,7 @@ class Session:
                 if not np.array_equal(support, self.support):
                     self._set_support(support, self.g)
             self.distance.bind(points)
-            g0 = self.g if self.config.warm_start else np.zeros_like(self.g)
-            fallbacks = (self._anchor,) if self.config.warm_start else ()
+            g0, fallbacks = self._start()
             options = self._options
             if self.alpha_tracker is not None:
                 options = dataclasses.replace(options, alpha=self.alpha_tracker.alpha)
@@ -206,6 +208,17 @@ class Session:
                 message=sol.message,
             )
 
+    def _start(self) -> tuple[Array, tuple[Array, ...]]:
+        """The frame's starting forces and the fallbacks worth an evaluation each: zero cold; warm,
+        the last frame's forces plus their last change where the last two frames converged (a
+        tool moves steadily between frames: the optimizer starts nearer, at no evaluation more),
+        else the last frame's, with the last converged frame's as a fallback."""
+        if not self.config.warm_start:
+            return np.zeros_like(self.g), ()
+        if self.config.predict and self._trend is not None:
+            return self.g + self._trend, ()
+        return self.g, (self._anchor,)
+
     def _commit(self, sol, n_points: int, learn: bool) -> None:
         """Move the warm start to a frame's answer (a failed one leaves it as it was)."""
         if sol.status in FAILED:
@@ -213,7 +226,13 @@ class Session:
             if self.curvature is not None:
                 self.curvature.reset()
             self.failed += int(learn)
+            self._trend, self._converged = None, False
             return
+        if learn:  # a frame's first answer; the FEM's correction (learn False) replaces it
+            self._before = (self.g, self._converged)
+        prior, prior_converged = self._before
+        self._trend = sol.g - prior if (sol.converged and prior_converged) else None
+        self._converged = sol.converged
         self.g = sol.g
         if sol.converged:
             self._anchor = sol.g

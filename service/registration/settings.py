@@ -98,6 +98,11 @@ class SessionConfig:
     )
     outputs: Outputs = setting(("displacement", "forces"), "fields each frame result carries", max_length=4)
     warm_start: bool = setting(True, "start each frame from the previous frame's forces")
+    predict: bool = setting(
+        True,
+        "warm starts: add the forces' change between the last two frames (when both converged), "
+        "as a tool moves steadily from frame to frame; false: the previous frame's forces as they are",
+    )
     E: float | None = setting(None, "Young's modulus for this session, Pa (default: the model's)", per_model=True, gt=0)
     loss: Loss = setting("squared", "point-to-surface loss")
     loss_param: float | None = setting(None, "huber: threshold (length); trimmed: fraction ignored", gt=0)

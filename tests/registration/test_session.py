@@ -40,6 +40,52 @@ def test_warm_start_cuts_iterations(entry, sequence, method):
     assert sum(counts[True][1:]) < 0.8 * sum(counts[False][1:])
 
 
+@pytest.mark.parametrize("optimizer", ["lbfgsb", "levenberg-marquardt"])
+def test_a_steady_pull_is_predicted(entry, sequence, optimizer):
+    """A warm start adds the forces' last change: on a steadily growing pull the frames need
+    fewer evaluations, and land on the same answers."""
+    tool, seq = sequence
+    runs = {}
+    for predict in (True, False):
+        config = SessionConfig(support=_support(entry, tool), predict=predict, optimizer=optimizer, gtol=1e-4)
+        s = Session(entry.network, config)
+        runs[predict] = [s.frame(c) for c in seq.clouds]
+    evaluations = {p: sum(r.evaluations for r in rs[2:]) for p, rs in runs.items()}
+    print(optimizer, evaluations)
+    assert evaluations[True] < 0.95 * evaluations[False]  # 0.88-0.89 here
+    for a, b in zip(runs[True], runs[False], strict=True):
+        assert a.converged and b.converged
+        np.testing.assert_allclose(a.net_force, b.net_force, rtol=0.02, atol=0.02 * np.abs(b.net_force).max())
+
+
+def test_the_prediction_needs_two_converged_frames(entry, sequence):
+    """No trend before two answers, none across a support change, none after a failed frame;
+    warm_start false starts from zero whatever the trend."""
+    tool, seq = sequence
+    support = _support(entry, tool)
+    s = Session(entry.network, SessionConfig(support=support))
+    s.frame(seq.clouds[0])
+    g, fallbacks = s._start()
+    assert g is s.g and len(fallbacks) == 1  # one answer: the last forces as they are
+    first = s.g
+    s.frame(seq.clouds[1])
+    g, fallbacks = s._start()
+    np.testing.assert_allclose(g, 2 * s.g - first)
+    assert fallbacks == ()  # the prediction costs no evaluation more
+    s.frame(seq.clouds[2], support=np.array(support[:-1]))  # the support changes: the trend goes
+    assert s._start()[0] is s.g
+    stopped = Session(entry.network, SessionConfig(support=support, max_iter=1, gtol=1e-9))
+    results = [stopped.frame(c) for c in seq.clouds[:3]]
+    assert not any(r.converged for r in results)
+    g, fallbacks = stopped._start()  # frames cut short: no trend to trust
+    assert g is stopped.g and len(fallbacks) == 1
+    cold = Session(entry.network, SessionConfig(support=support, warm_start=False))
+    for c in seq.clouds[:3]:
+        cold.frame(c)
+    g, fallbacks = cold._start()
+    assert not g.any() and fallbacks == ()
+
+
 def test_cold_starts_ignore_the_carried_curvature(entry, sequence):
     """The curvature a stream carries models the Hessian near its last optima; a frame that
     starts from zero force runs without it (on the paper's liver it made cold frames 12 %
