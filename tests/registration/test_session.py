@@ -59,8 +59,8 @@ def test_a_steady_pull_is_predicted(entry, sequence, optimizer):
 
 
 def test_the_prediction_needs_two_converged_frames(entry, sequence):
-    """No trend before two answers, none across a support change, none after a failed frame;
-    warm_start false starts from zero whatever the trend."""
+    """No trend before two answers, none across a support change or after frames cut short,
+    none for the Newton method; warm_start false starts from zero whatever the trend."""
     tool, seq = sequence
     support = _support(entry, tool)
     s = Session(entry.network, SessionConfig(support=support))
@@ -79,6 +79,11 @@ def test_the_prediction_needs_two_converged_frames(entry, sequence):
     assert not any(r.converged for r in results)
     g, fallbacks = stopped._start()  # frames cut short: no trend to trust
     assert g is stopped.g and len(fallbacks) == 1
+    fem = Session(entry.fem, SessionConfig(method="fem", support=support))
+    for c in seq.clouds[:3]:
+        assert fem.frame(c).converged
+    g, fallbacks = fem._start()  # the Newton method keeps the start its solves have reached
+    assert g is fem.g and len(fallbacks) == 1
     cold = Session(entry.network, SessionConfig(support=support, warm_start=False))
     for c in seq.clouds[:3]:
         cold.frame(c)
