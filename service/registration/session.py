@@ -211,14 +211,16 @@ class Session:
     def _start(self) -> tuple[Array, tuple[Array, ...]]:
         """The frame's starting forces and the fallbacks worth an evaluation each: zero cold; warm,
         the network's last forces plus their last change where the last two frames converged (a
-        tool moves steadily between frames: the optimizer starts nearer, at no evaluation more),
-        else the last frame's, with the last converged frame's as a fallback."""
+        tool moves steadily between frames: the optimizer starts nearer), with the last forces
+        as they are for a fallback (on noisy clouds the change is noise, and the engine starts
+        from whichever fits the new cloud better); else the last frame's forces, with the last
+        converged frame's as a fallback."""
         if not self.config.warm_start:
             return np.zeros_like(self.g), ()
         # the network's forward cannot fail; the Newton method's can at a start no frame has
         # reached (an any-site liver frame did, docs/performance.md), so it keeps its start
         if self.config.predict and self._trend is not None and self.model.method == "network":
-            return self.g + self._trend, ()
+            return self.g + self._trend, (self.g,)
         return self.g, (self._anchor,)
 
     def _commit(self, sol, n_points: int, learn: bool) -> None:

@@ -42,17 +42,17 @@ def test_warm_start_cuts_iterations(entry, sequence, method):
 
 @pytest.mark.parametrize("optimizer", ["lbfgsb", "levenberg-marquardt"])
 def test_a_steady_pull_is_predicted(entry, sequence, optimizer):
-    """A warm start adds the forces' last change: on a steadily growing pull the frames need
-    fewer evaluations, and land on the same answers."""
+    """A warm start adds the forces' last change: on a steadily growing pull the frames start
+    nearer their answers (fewer iterations) and land on the same ones."""
     tool, seq = sequence
     runs = {}
     for predict in (True, False):
         config = SessionConfig(support=_support(entry, tool), predict=predict, optimizer=optimizer, gtol=1e-4)
         s = Session(entry.network, config)
         runs[predict] = [s.frame(c) for c in seq.clouds]
-    evaluations = {p: sum(r.evaluations for r in rs[2:]) for p, rs in runs.items()}
-    print(optimizer, evaluations)
-    assert evaluations[True] < 0.95 * evaluations[False]  # 0.88-0.89 here
+    iterations = {p: sum(r.iterations for r in rs[2:]) for p, rs in runs.items()}
+    print(optimizer, iterations, {p: sum(r.evaluations for r in rs[2:]) for p, rs in runs.items()})
+    assert iterations[True] < 0.95 * iterations[False]  # 0.87-0.89 here
     for a, b in zip(runs[True], runs[False], strict=True):
         assert a.converged and b.converged
         np.testing.assert_allclose(a.net_force, b.net_force, rtol=0.02, atol=0.02 * np.abs(b.net_force).max())
@@ -71,7 +71,7 @@ def test_the_prediction_needs_two_converged_frames(entry, sequence):
     s.frame(seq.clouds[1])
     g, fallbacks = s._start()
     np.testing.assert_allclose(g, 2 * s.g - first)
-    assert fallbacks == ()  # the prediction costs no evaluation more
+    assert len(fallbacks) == 1 and fallbacks[0] is s.g  # kept where the prediction fits worse
     s.frame(seq.clouds[2], support=np.array(support[:-1]))  # the support changes: the trend goes
     assert s._start()[0] is s.g
     stopped = Session(entry.network, SessionConfig(support=support, max_iter=1, gtol=1e-9))
