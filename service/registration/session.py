@@ -140,6 +140,8 @@ class Session:
         self.g = g
         self._trend: Array | None = None  # the forces' change between the last two converged frames
         self._converged = False  # whether the last frame's answer converged
+        self._trend_before: Array | None = None  # the trend one frame earlier
+        self._steady = False  # whether the last two trends agree (STEADY)
         self._before: tuple[Array, bool] = (g, False)  # the frame before's forces, and whether they did
         self._anchor = g  # the last converged frame's forces: a fallback start after a bad frame
         self.curvature = Curvature(3 * support.size) if self.config.carry_curvature else None
@@ -210,17 +212,21 @@ class Session:
 
     def _start(self) -> tuple[Array, tuple[Array, ...]]:
         """The frame's starting forces and the fallbacks worth an evaluation each: zero cold; warm,
-        the network's last forces plus their last change where the last two frames converged (a
-        tool moves steadily between frames: the optimizer starts nearer), with the last forces
-        as they are for a fallback (on noisy clouds the change is noise, and the engine starts
-        from whichever fits the new cloud better); else the last frame's forces, with the last
-        converged frame's as a fallback."""
+        for the network, the last forces plus their last change where the last two frames
+        converged (a tool moves steadily between frames: the optimizer starts nearer), alone
+        where that change agrees with the one before (steady motion), else beside the last forces
+        (on noisy clouds the change is noise: the engine starts from whichever fits the new
+        cloud better); else the last forces, with the last converged frame's as a fallback."""
         if not self.config.warm_start:
             return np.zeros_like(self.g), ()
         # the network's forward cannot fail; the Newton method's can at a start no frame has
         # reached (an any-site liver frame did, docs/performance.md), so it keeps its start
         if self.config.predict and self._trend is not None and self.model.method == "network":
-            return self.g + self._trend, (self.g,)
+            if self._steady:  # the last two changes agree: the motion, not noise
+                return self.g + self._trend, ()
+            # the prediction evaluated last: where it wins, the optimiser's first Jacobian and
+            # match reuse that evaluation's (first, they cost 8 ms a frame)
+            return self.g, (self.g + self._trend,)
         return self.g, (self._anchor,)
 
     def _commit(self, sol, n_points: int, learn: bool) -> None:
@@ -230,12 +236,15 @@ class Session:
             if self.curvature is not None:
                 self.curvature.reset()
             self.failed += int(learn)
-            self._trend, self._converged = None, False
+            self._trend, self._converged, self._steady = None, False, False
             return
         if learn:  # a frame's first answer; the FEM's correction (learn False) replaces it
             self._before = (self.g, self._converged)
+            self._trend_before = self._trend
         prior, prior_converged = self._before
-        self._trend = sol.g - prior if (sol.converged and prior_converged) else None
+        trend = sol.g - prior if (sol.converged and prior_converged) else None
+        self._steady = trend is not None and self._trend_before is not None and _agree(trend, self._trend_before)
+        self._trend = trend
         self._converged = sol.converged
         self.g = sol.g
         if sol.converged:
@@ -328,3 +337,13 @@ def _check_faces(mesh: TetMesh, faces) -> Array:
     if f.min() < 0 or f.max() >= mesh.n_nodes:
         raise ValueError(f"matching node ids must lie in 0..{mesh.n_nodes - 1}")
     return f.astype(np.int64)
+
+
+#: the cosine above which two successive changes of the forces count as one steady motion
+STEADY = 0.5
+
+
+def _agree(a: Array, b: Array) -> bool:
+    """Whether two changes of the forces point the same way (cosine above STEADY)."""
+    na, nb = float(np.linalg.norm(a)), float(np.linalg.norm(b))
+    return na > 0 and nb > 0 and float(np.vdot(a, b)) > STEADY * na * nb

@@ -100,10 +100,10 @@ class SessionConfig:
     warm_start: bool = setting(True, "start each frame from the previous frame's forces")
     predict: bool = setting(
         True,
-        "warm starts of the network: also try the previous frame's forces plus their change since "
-        "the frame before (when both converged), as a tool moves steadily from frame to frame, and "
-        "start from whichever fits the cloud better; false: the previous frame's forces as they are "
-        "(the fem method always starts there)",
+        "warm starts of the network: start from the previous frame's forces plus their change since "
+        "the frame before (when both converged), as a tool moves steadily from frame to frame; where "
+        "the change disagrees with the one before, the previous forces are tried beside it; false: "
+        "the previous frame's forces as they are (the fem method always starts there)",
     )
     E: float | None = setting(None, "Young's modulus for this session, Pa (default: the model's)", per_model=True, gt=0)
     loss: Loss = setting("squared", "point-to-surface loss")

@@ -59,8 +59,9 @@ def test_a_steady_pull_is_predicted(entry, sequence, optimizer):
 
 
 def test_the_prediction_needs_two_converged_frames(entry, sequence):
-    """No trend before two answers, none across a support change or after frames cut short,
-    none for the Newton method; warm_start false starts from zero whatever the trend."""
+    """No trend before two answers; one change is tried beside the last forces, two that agree
+    alone; none across a support change or after frames cut short, none for the Newton
+    method; warm_start false starts from zero whatever the trend."""
     tool, seq = sequence
     support = _support(entry, tool)
     s = Session(entry.network, SessionConfig(support=support))
@@ -70,20 +71,26 @@ def test_the_prediction_needs_two_converged_frames(entry, sequence):
     first = s.g
     s.frame(seq.clouds[1])
     g, fallbacks = s._start()
-    np.testing.assert_allclose(g, 2 * s.g - first)
-    assert len(fallbacks) == 1 and fallbacks[0] is s.g  # kept where the prediction fits worse
-    s.frame(seq.clouds[2], support=np.array(support[:-1]))  # the support changes: the trend goes
-    assert s._start()[0] is s.g
+    assert g is s.g and len(fallbacks) == 1  # one change: the last forces beside the prediction
+    np.testing.assert_allclose(fallbacks[0], 2 * s.g - first)
+    second = s.g
+    s.frame(seq.clouds[2])  # a steady pull: the next change agrees with this one
+    g, fallbacks = s._start()
+    np.testing.assert_allclose(g, 2 * s.g - second)
+    assert fallbacks == ()  # steady motion: the prediction alone, no evaluation more
+    s.frame(seq.clouds[3], support=np.array(support[:-1]))  # the support changes: the trend goes
+    g, fallbacks = s._start()
+    assert g is s.g and fallbacks[0] is s._anchor  # no prediction: the last converged forces
     stopped = Session(entry.network, SessionConfig(support=support, max_iter=1, gtol=1e-9))
     results = [stopped.frame(c) for c in seq.clouds[:3]]
     assert not any(r.converged for r in results)
     g, fallbacks = stopped._start()  # frames cut short: no trend to trust
-    assert g is stopped.g and len(fallbacks) == 1
+    assert g is stopped.g and len(fallbacks) == 1 and fallbacks[0] is stopped._anchor
     fem = Session(entry.fem, SessionConfig(method="fem", support=support))
     for c in seq.clouds[:3]:
         assert fem.frame(c).converged
     g, fallbacks = fem._start()  # the Newton method keeps the start its solves have reached
-    assert g is fem.g and len(fallbacks) == 1
+    assert g is fem.g and len(fallbacks) == 1 and fallbacks[0] is fem._anchor
     cold = Session(entry.network, SessionConfig(support=support, warm_start=False))
     for c in seq.clouds[:3]:
         cold.frame(c)
