@@ -34,9 +34,13 @@ def test_open_echoes_every_setting(http, entry):
     assert c["outputs"] == ["displacement", "forces"] and c["warm_start"] is True and c["skip_stale"] is False
     assert c["E"] == 4500.0 and c["force_bound"] is None and c["loss"] == "squared" and c["time_budget_ms"] is None
     assert c["precondition"] is False and c["noise"] is None and c["optimizer"] == "lbfgsb"
+    assert c["predict"] is True
     np.testing.assert_array_equal(c["support"], entry.region)  # the default: the load region
     np.testing.assert_array_equal(c["matching"], entry.mesh.surface_faces)
     assert http.delete(f"/sessions/{body['session']}").status_code == 204
+    off = open_session(http, predict=False)  # a setting beyond the contract, echoed as given
+    assert off["config"]["predict"] is False
+    assert http.delete(f"/sessions/{off['session']}").status_code == 204
 
 
 def test_frames_match_in_process_session(http, entry, support, clouds):
