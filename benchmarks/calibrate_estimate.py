@@ -22,13 +22,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from service.bench.anysite import FEM, NETWORK, SITE_SEED, anysite_cases
+from service.bench.anysite import CALIBRATION_SEED, FEM, NETWORK, anysite_cases
 from service.bench.cases import run_case
 from service.bench.machine import describe
 from service.config import default_store
 from service.store import load_entry
-
-CALIBRATION_SEED = SITE_SEED + 1000  # not the benchmark's sites
 
 
 def main() -> int:

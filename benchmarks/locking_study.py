@@ -7,7 +7,7 @@ This measures that bias without any registration: at each site, a load over the 
 (outward normal, as the anysite generator pulls) on the coarse mesh and on the fine one, linear
 elasticity, and the compliance ratio kappa = <u_c, u_f> / <u_c, u_c> over the coarse nodes. A
 method exact on the coarse mesh overestimates the force by about kappa. With --registered it
-also registers the calibration sites' sequences (seed 3026, never reported) with the network
+also registers the calibration sites' sequences (CALIBRATION_SEED, 3026, never reported) with the network
 and prints each frame's |f_est| / |f_true| and the angle between them.
 
 With --scene and --nu it needs no model: kappa at the calibration sites for each Poisson's ratio.
@@ -32,7 +32,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from service.bench.anysite import NETWORK_LM, SITE_SEED, anysite_cases, spread_sites, tool_size
+from service.bench.anysite import CALIBRATION_SEED, NETWORK_LM, SITE_SEED, anysite_cases, spread_sites, tool_size
 from service.bench.machine import describe
 from service.bench.truth import fine_patch, subdivide
 from service.config import limit_threads
@@ -41,9 +41,6 @@ from service.fem.rest import rest_compliance
 from service.registration.session import Session
 from service.scene import load_scene
 from service.store import load_entry
-
-#: the calibration sites' seed (linear_rank_study.py's): choices are made on these, never on SITE_SEED's
-CALIBRATION_SEED = 3026
 
 
 def tools(entry, sites: int, seed: int) -> list:

@@ -23,13 +23,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from service.bench.anysite import NETWORK, NETWORK_LM, anysite_cases
+from service.bench.anysite import CALIBRATION_SEED, NETWORK, NETWORK_LM, anysite_cases
 from service.bench.cases import noisy, run_case
 from service.bench.machine import describe
 from service.config import limit_threads
 from service.store import load_entry
 
-CALIBRATION_SEED = 3026  # optimizer_study.py's
 OPTIMIZERS = {"levenberg-marquardt": NETWORK_LM, "lbfgsb": NETWORK}
 
 

@@ -26,13 +26,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from service.bench.anysite import NETWORK, anysite_cases
+from service.bench.anysite import CALIBRATION_SEED, NETWORK, anysite_cases
 from service.bench.cases import run_case
 from service.bench.machine import describe
 from service.config import limit_threads
 from service.store import load_entry
 
-CALIBRATION_SEED = 3026  # linear_rank_study.py's and locking_study.py's
 VARIANTS: dict[str, dict[str, Any]] = {
     "lbfgsb, gtol 3e-4 (default)": {},
     "lbfgsb, gtol 1e-3": {"gtol": 1e-3},
