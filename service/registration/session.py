@@ -141,7 +141,6 @@ class Session:
         self._trend: Array | None = None  # the forces' change between the last two converged frames
         self._converged = False  # whether the last frame's answer converged
         self._trend_before: Array | None = None  # the trend one frame earlier
-        self._steady = False  # whether the last two trends agree (STEADY)
         self._before: tuple[Array, bool] = (g, False)  # the frame before's forces, and whether they did
         self._anchor = g  # the last converged frame's forces: a fallback start after a bad frame
         self.curvature = Curvature(3 * support.size) if self.config.carry_curvature else None
@@ -222,10 +221,10 @@ class Session:
         # the network's forward cannot fail; the Newton method's can at a start no frame has
         # reached (an any-site liver frame did, docs/performance.md), so it keeps its start
         if self.config.predict and self._trend is not None and self.model.method == "network":
-            if self._steady:  # the last two changes agree: the motion, not noise
-                return self.g + self._trend, ()
+            if self._trend_before is not None and _agree(self._trend, self._trend_before):
+                return self.g + self._trend, ()  # the last two changes agree: the motion, not noise
             # the prediction evaluated last: where it wins, the optimiser's first Jacobian and
-            # match reuse that evaluation's (first, they cost 8 ms a frame)
+            # match are that evaluation's, not made again
             return self.g, (self.g + self._trend,)
         return self.g, (self._anchor,)
 
@@ -236,15 +235,13 @@ class Session:
             if self.curvature is not None:
                 self.curvature.reset()
             self.failed += int(learn)
-            self._trend, self._converged, self._steady = None, False, False
+            self._trend, self._converged = None, False
             return
         if learn:  # a frame's first answer; the FEM's correction (learn False) replaces it
             self._before = (self.g, self._converged)
             self._trend_before = self._trend
         prior, prior_converged = self._before
-        trend = sol.g - prior if (sol.converged and prior_converged) else None
-        self._steady = trend is not None and self._trend_before is not None and _agree(trend, self._trend_before)
-        self._trend = trend
+        self._trend = sol.g - prior if (sol.converged and prior_converged) else None
         self._converged = sol.converged
         self.g = sol.g
         if sol.converged:
