@@ -261,7 +261,7 @@ def solve_frame(
     `curvature`, carried by a stream from frame to frame, preconditions unbounded solves and
     learns from this one. `fallbacks` are other starting forces (k, 3) worth one evaluation
     each (a stream's last converged forces); the frame starts from the lowest objective among
-    them, g0 and zero.
+    them, g0 and zero, skipping any whose forward solve fails.
     """
     _refuse_bounds(options)  # the Jacobian, Levenberg-Marquardt's other need, at its first use
     t_start = time.perf_counter()
@@ -297,7 +297,12 @@ def solve_frame(
             if any(np.array_equal(cand, t) for t in tried):
                 continue
             tried.append(cand)
-            v, grad, _ = evaluate(cand)
+            try:
+                v, grad, _ = evaluate(cand)
+            except _Stop as stop:
+                if stop.status == "time_limit":
+                    raise
+                continue  # a start the forward model cannot reach is no start; the others stand
             if v < v0:
                 start, v0, grad0, u0 = cand, v, grad, evaluate.last_u
         # the stopping test, in force space whatever variables the optimiser runs in

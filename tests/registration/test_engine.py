@@ -125,6 +125,36 @@ def test_forward_failure_is_a_result_not_an_exception(entry):
     assert np.isfinite(sol.g).all() and np.isfinite(sol.objective)
 
 
+def test_a_start_the_forward_model_cannot_solve_is_skipped(entry):
+    """A warm start or fallback whose Newton solve fails costs its evaluation, not the frame:
+    the frame goes on from the other starts (here rest) and converges."""
+    from service.forward import ForwardFailed
+
+    mesh, support, g_true, pts, dist = tip_pull(entry)
+    model = FEMModel(mesh, MAT, NewtonOptions(max_iter=8))
+    unreachable = 1e3 * g_true
+    with pytest.raises(ForwardFailed):
+        model.restrict(support, dist.nodes)(unreachable)
+    op, rest, zero = model.restrict(support, dist.nodes), mesh.nodes[dist.nodes], np.zeros_like(g_true)
+    plain = solve_frame(op, dist, rest, zero, SolveOptions(alpha=1e-9))
+    assert plain.converged
+    for g0, fallbacks in ((unreachable, ()), (zero, (unreachable,))):
+        op.reset()
+        sol = solve_frame(op, dist, rest, g0, SolveOptions(alpha=1e-9), fallbacks=fallbacks)
+        assert sol.converged, sol.message
+        assert sol.evaluations == plain.evaluations + 1  # the failed start's solve, nothing more
+        np.testing.assert_allclose(sol.g, plain.g, rtol=1e-9, atol=1e-12)
+
+
+def test_a_deadline_at_a_start_still_stops_the_frame(entry):
+    mesh, support, g_true, pts, dist = tip_pull(entry)
+    late = LateSolves(entry.fem.restrict(support, dist.nodes))
+    rest = mesh.nodes[dist.nodes]
+    late.op(np.zeros_like(g_true))  # the rest factor, as a session opening makes it
+    cut = solve_frame(late, dist, rest, 0.5 * g_true, SolveOptions(alpha=1e-9, time_budget=0.2))
+    assert cut.status == "time_limit" and "Newton solve" in cut.message and cut.evaluations == 2
+
+
 def test_a_cloud_on_the_rest_surface_needs_no_force(entry):
     mesh = entry.mesh
     support = tip_support(mesh)
