@@ -2,7 +2,7 @@
 seconds, kept steps and largest displacement, for the first paths of a scene (its own seed, the
 paths a build solves first; never the build-minutes test set's).
 
-    python benchmarks/path_cost.py benchmarks/scenes/liver_sofa.toml --paths 12
+    python benchmarks/path_cost.py benchmarks/scenes/liver_sofa.toml --paths 12 [--max-newton 24]
 """
 
 from __future__ import annotations
@@ -29,6 +29,9 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("scenes", nargs="+")
     p.add_argument("--paths", type=int, default=12)
+    p.add_argument(
+        "--max-newton", type=int, default=None, help="cap each step's Newton iterations (a timed build's cap)"
+    )
     p.add_argument("--out", default=str(ROOT / "reports" / "path-cost" / "path_cost.json"))
     args = p.parse_args()
     limit_threads(1)  # one worker's view: a build runs one single-threaded process per core
@@ -39,10 +42,10 @@ def main() -> int:
         region = scene.region_nodes(mesh, loaded)
         material = NeoHookean.of(scene.material)
         spec = load_spec(scene, region)
-        solve_path(mesh, material, spec, args.paths + 1)  # compile and warm, not counted
+        solve_path(mesh, material, spec, args.paths + 1, max_newton=args.max_newton)  # compile and warm, not counted
         rows = []
         for i in range(args.paths):
-            r = solve_path(mesh, material, spec, i)
+            r = solve_path(mesh, material, spec, i, max_newton=args.max_newton)
             kept = len(r["forces"])
             umax = float(np.linalg.norm(r["u"][-1], axis=1).max() * 1e3) if kept else 0.0
             rows.append(
@@ -70,7 +73,7 @@ def main() -> int:
             "failed_share_of_time": sum(r["seconds"] for r in failed) / float(seconds.sum()),
         }
         print(f"{scene.name}: {json.dumps(summary)}", flush=True)
-        result["scenes"][scene.name] = {"rows": rows, "summary": summary}
+        result["scenes"][scene.name] = {"max_newton": args.max_newton, "rows": rows, "summary": summary}
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(result, indent=1))
     return 0

@@ -19,6 +19,7 @@ import numpy as np
 
 from .fem.assembly import Assembler
 from .fem.material import NeoHookean
+from .fem.newton import NewtonOptions
 from .scene import Scene
 from .store import write_entry
 from .surrogate.data import LoadSpec, done_indices, generate, load_dataset
@@ -31,6 +32,10 @@ log = logging.getLogger(__name__)
 DATA_SHARE = 0.6
 #: seconds a timed build keeps back for the final evaluation and writing the entry
 WRITE_RESERVE_S = 5.0
+#: Newton iterations a timed build gives one step of a training path before it drops the rest of
+#: the path: two cuts' worth of a load step's own budget. The steps past it are extreme shapes
+#: that took half of a slow organ's FEM time (docs/performance.md); an untimed build keeps them
+TIMED_NEWTON_CAP = 2 * NewtonOptions.max_step_iter
 
 
 def load_spec(scene: Scene, region: np.ndarray) -> LoadSpec:
@@ -48,8 +53,12 @@ def load_spec(scene: Scene, region: np.ndarray) -> LoadSpec:
     )
 
 
-def data_key(mesh_hash: str, material: NeoHookean, spec: LoadSpec) -> str:
-    blob = json.dumps([mesh_hash, material.E, material.nu, dataclasses.asdict(spec)], sort_keys=True)
+def data_key(mesh_hash: str, material: NeoHookean, spec: LoadSpec, max_newton: int | None = None) -> str:
+    """The data folder's key; a Newton cap keeps a folder of its own (it changes which steps exist)."""
+    parts: list = [mesh_hash, material.E, material.nu, dataclasses.asdict(spec)]
+    if max_newton is not None:
+        parts.append({"max_newton": max_newton})
+    blob = json.dumps(parts, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:12]
 
 
@@ -86,7 +95,8 @@ def build(
     else the scene's name; variants of one scene share its data).
 
     With `minutes` the whole build keeps to that wall time: data until DATA_SHARE of it (the
-    paths finished by then, up to the scene's samples), training in what is left.
+    paths finished by then, up to the scene's samples, each step's Newton work capped at
+    TIMED_NEWTON_CAP), training in what is left.
     """
     t_start = time.perf_counter()
     if minutes is not None and minutes <= 0:
@@ -98,12 +108,17 @@ def build(
     spec = load_spec(scene, region)
     n_samples = int(samples or scene.training.samples)
     n_paths = max(2, math.ceil(n_samples / spec.steps))
-    data_dir = Path(data_root or default_data_root()) / f"{scene.name}-{data_key(mesh.hash, material, spec)}"
+    max_newton = None if minutes is None else TIMED_NEWTON_CAP
+    key = data_key(mesh.hash, material, spec, max_newton)
+    data_dir = Path(data_root or default_data_root()) / f"{scene.name}-{key}"
     log.info("data for %s in %s (%d paths)", scene.name, data_dir, n_paths)
 
     t0 = time.perf_counter()
     data_until = None if deadline is None else t_start + DATA_SHARE * (deadline - t_start)
-    paths = generate(mesh, material, spec, data_dir, n_paths, workers=workers, scheduler=scheduler, progress=progress)
+    paths = generate(
+        mesh, material, spec, data_dir, n_paths,
+        workers=workers, scheduler=scheduler, progress=progress, max_newton=max_newton,
+    )  # fmt: skip
     for _ in paths:
         if data_until is not None and time.perf_counter() > data_until:
             paths.close()  # cancels the paths still running; those written stay for a rerun
@@ -131,6 +146,7 @@ def build(
         "config": dataclasses.asdict(config),
         "load_distribution": {k: v for k, v in dataclasses.asdict(spec).items() if k != "region"},
         "data_key": data_dir.name,
+        "max_newton": max_newton,
     }
     features = int(net.feature_basis.shape[1]) if getattr(net, "physics", False) else None
     network = {

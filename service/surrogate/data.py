@@ -110,16 +110,23 @@ def _region_patch(mesh: TetMesh, centre: int, k: int, in_region: Array) -> Array
 
 
 @lru_cache(maxsize=2)
-def _solver(mesh: TetMesh, material: NeoHookean, rtol: float) -> NewtonSolver:
+def _solver(mesh: TetMesh, material: NeoHookean, rtol: float, max_newton: int | None) -> NewtonSolver:
     """One Newton solver per worker process and problem (it owns a factorisation)."""
-    return NewtonSolver(Assembler(mesh, material), NewtonOptions(rtol=rtol))
+    options = NewtonOptions(rtol=rtol) if max_newton is None else NewtonOptions(rtol=rtol, max_iter=max_newton)
+    return NewtonSolver(Assembler(mesh, material), options)
 
 
-def solve_path(mesh: TetMesh, material: NeoHookean, spec: LoadSpec, index: int, rtol: float = 1e-7) -> dict:
-    """Solve path `index` step by step; keeps the steps that converged (a pure function)."""
+def solve_path(
+    mesh: TetMesh, material: NeoHookean, spec: LoadSpec, index: int, rtol: float = 1e-7, max_newton: int | None = None
+) -> dict:
+    """Solve path `index` step by step; keeps the steps that converged (a pure function).
+
+    `max_newton`: Newton iterations one step may take before the path stops there (default
+    NewtonOptions.max_iter).
+    """
     rng = np.random.default_rng([spec.seed, index])
     g_region = sample_path_load(mesh, spec, rng)
-    solver = _solver(mesh, material, rtol)
+    solver = _solver(mesh, material, rtol, max_newton)
     region = np.asarray(spec.region)
     forces, us, its = [], [], []
     u = None
@@ -192,12 +199,15 @@ def generate(
     workers: int = 2,
     scheduler: str | None = None,
     progress: bool = True,
+    max_newton: int | None = None,
 ) -> Generator[dict, None, None]:
     """Solve paths 0..n_paths-1 that are not on disk yet, in parallel; yields each as written.
 
     With `scheduler` the work goes to that Dask cluster; otherwise a LocalCluster of `workers`
     single-threaded processes (one per core: the factorisation is the hot spot and threads
     would only fight over it). With workers=0 it runs in this process (tests, debugging).
+    `max_newton` caps each step's Newton iterations (solve_path); a data folder should hold
+    paths of one cap (build.data_key).
     """
     data_dir = Path(data_dir)
     data_dir.mkdir(parents=True, exist_ok=True)
@@ -208,7 +218,7 @@ def generate(
         return
     if workers == 0 and scheduler is None:
         for i in todo:
-            result = solve_path(mesh, material, spec, i)
+            result = solve_path(mesh, material, spec, i, max_newton=max_newton)
             write_path(data_dir, result)
             bar.update(1)
             bar.set_postfix(samples=_count(bar, result))
@@ -232,7 +242,9 @@ def generate(
     client = Client(scheduler or cluster)
     try:
         m, mat, s = client.scatter([mesh, material, spec], broadcast=True)
-        futures = client.map(solve_path, [m] * len(todo), [mat] * len(todo), [s] * len(todo), todo, pure=False)
+        futures = client.map(
+            solve_path, [m] * len(todo), [mat] * len(todo), [s] * len(todo), todo, max_newton=max_newton, pure=False
+        )
         for fut in as_completed(futures):
             result = fut.result()
             write_path(data_dir, result)

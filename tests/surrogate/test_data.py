@@ -51,6 +51,21 @@ def test_a_path_is_a_pure_function_of_its_index(bar, spec):
     np.testing.assert_allclose(a["forces"][0] * 3, a["forces"][2], rtol=1e-5)  # equal steps
 
 
+def test_a_newton_cap_stops_a_path_at_the_first_step_that_needs_more(bar, spec):
+    """A timed build's cap: the steps before the first costly one are kept, and they are the
+    uncapped path's samples to the bit."""
+    free = solve_path(bar, MAT, spec, 7)
+    its = free["newton_iterations"]
+    cap = int(its.max()) - 1  # the path's hardest step no longer fits
+    first_over = int(np.argmax(its > cap))
+    capped = solve_path(bar, MAT, spec, 7, max_newton=cap)
+    assert len(capped["forces"]) == first_over < len(free["forces"])
+    np.testing.assert_array_equal(capped["u"], free["u"][:first_over])
+    np.testing.assert_array_equal(capped["newton_iterations"], its[:first_over])
+    generous = solve_path(bar, MAT, spec, 7, max_newton=int(its.max()))
+    np.testing.assert_array_equal(generous["u"], free["u"])
+
+
 def test_generation_resumes_without_losing_or_redoing_paths(tmp_path, bar, spec):
     out = tmp_path / "data"
     assert len(list(generate(bar, MAT, spec, out, 6, workers=0, progress=False))) == 6
