@@ -126,6 +126,15 @@ class ReducedSurrogate(nn.Module):
     def forward(self, g: torch.Tensor) -> torch.Tensor:
         return self.coefficients(g) @ self.basis.T
 
+    @torch.no_grad()
+    def zero_at_rest_(self) -> None:
+        """Shift each MLP's last bias so that it answers 0 at zero load (rest is exact): the
+        trainer fits the outputs' change from rest, to which that bias is blind."""
+        mlps = self.net.members if isinstance(self.net, Ensemble) else [self.net]
+        for m in mlps:
+            assert isinstance(m, nn.Sequential)
+            m[-1].bias -= m(torch.zeros(1, m[0].in_features, device=m[-1].bias.device))[0]
+
 
 class PaperSurrogate(nn.Module):
     """The paper's layout: FC layers of width 3n (the dofs), PReLU, forces in, displacements out."""

@@ -35,6 +35,9 @@ def test_training_produces_a_loadable_entry_that_learnt(bar_store):
     u_fem = entry.fem.solve(g, support).u
     # 8 % when written (54 samples, 60 epochs): the bound leaves room for another CPU's roundoff
     assert np.linalg.norm(u_net - u_fem) < 0.12 * np.linalg.norm(u_fem)
+    # no load, no displacement: the network's remainder is zero at rest, as the physics' is
+    u_rest = entry.network.restrict(support).displacement(np.zeros_like(g))
+    assert np.abs(u_rest).max() < 1e-6 * np.abs(u_fem).max()
 
 
 def test_stiffness_scaling_matches_the_fem(bar_store):
@@ -196,11 +199,14 @@ def test_a_timed_build_keeps_to_its_minutes_and_still_learns(tmp_path, bar):
     rest, a loadable entry within the budget that beats u = 0."""
     import time
 
-    from service.build import DATA_SHARE, build
+    from service.build import DATA_SHARE, TIMED_NEWTON_CAP, build, data_key, load_spec
+    from service.fem.material import NeoHookean
     from service.scene import load_scene
     from service.surrogate.train import TrainConfig
 
     scene = load_scene(write_bar_scene(tmp_path / "scene", bar, samples=30_000))  # far too many
+    mesh, loaded = scene.build_mesh()
+    key = (mesh.hash, NeoHookean.of(scene.material), load_spec(scene, scene.region_nodes(mesh, loaded)))
     minutes = 0.25
     config = TrainConfig(hidden=(64, 64), rank=24, epochs=100_000, batch=32, lr=3e-3, physics_skip=True)
     t0 = time.perf_counter()
@@ -222,6 +228,10 @@ def test_a_timed_build_keeps_to_its_minutes_and_still_learns(tmp_path, bar):
     assert entry.manifest["training"]["minutes"] == minutes
     assert entry.manifest["training"]["paths"] == report.paths
     assert report.metrics["mean_mm"] < report.metrics["zero_mean_mm"]
+    # its paths' Newton work was capped, and capped data keep a folder of their own
+    assert entry.manifest["training"]["max_newton"] == TIMED_NEWTON_CAP
+    assert entry.manifest["training"]["data_key"] != f"{scene.name}-{data_key(*key)}"
+    assert entry.manifest["training"]["data_key"] == f"{scene.name}-{data_key(*key, TIMED_NEWTON_CAP)}"
 
 
 def test_a_build_too_short_for_two_paths_is_refused(tmp_path, bar):

@@ -421,6 +421,19 @@ def test_an_ensemble_answers_the_mean_of_its_members(bar):
         ReducedSurrogate(6, torch.eye(6, 2, dtype=torch.float64), [4], members=0)
 
 
+@pytest.mark.parametrize("members", [1, 3])
+def test_zero_at_rest_moves_each_member_by_a_constant_to_zero(bar, members):
+    rng = np.random.default_rng(4)
+    net = _random_reduced(bar, [16, 8], rng, seed=5, members=members).net
+    x = torch.randn(5, net.skip.in_features)
+    rest = torch.zeros(1, net.skip.in_features)
+    before, at_rest = net.member_coefficients(x), net.member_coefficients(rest)
+    assert at_rest.abs().max() > 1e-3  # random biases: not zero at rest to begin with
+    net.zero_at_rest_()
+    torch.testing.assert_close(net.member_coefficients(rest), torch.zeros_like(at_rest), atol=1e-6, rtol=0)
+    torch.testing.assert_close(net.member_coefficients(x), before - at_rest)
+
+
 def test_a_large_support_keeps_the_leading_linear_directions(bar, monkeypatch):
     """Past LINEAR_RANK support dofs the physics layout's linear block is its SVD's leading
     directions: off the exact operator by at most the first dropped singular value per unit
