@@ -256,6 +256,12 @@ class DenseJacobian:
     def __init__(self, U: Array) -> None:
         self.U = np.ascontiguousarray(U, np.float64)
 
+    def gram(self) -> Array:
+        """C C^T: the identity (K, K), float64, read-only."""
+        eye = np.eye(self.U.shape[1])
+        eye.flags.writeable = False
+        return eye
+
     def gram_product(self, A: Array) -> Array:
         """C C^T A = A, Fortran-ordered (A symmetric): no product with the identity."""
         return A.T

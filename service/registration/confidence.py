@@ -20,9 +20,11 @@ which no misfit shows (a fit inside the noise can still be off): linearised at t
 optimum, the points' noise moves the basis coefficients by dc = -C H^-1 C^T N^T W eps, H =
 C^T A C + alpha I the Gauss-Newton Hessian (levenberg.py's notation), so their covariance is
 sigma^2 B (N^T W^2 N) B^T with B = C H^-1 C^T = M (A M + alpha I)^-1, M = C C^T: r x r algebra
-at the frame's Jacobian. Its RMS over the objective's nodes (U's rows: the matched surface,
-which moves more than the interior) is the third term. Only where the model has a low-rank
-Jacobian (the reduced network); the FEM's would cost a solve per force component.
+at the frame's Jacobian. The prior that noise calls for (alpha) pulls the forces towards zero
+by alpha H^-1 g, a bias the truth does not have; it adds to that spread in quadrature. Their RMS
+over the objective's nodes (U's rows: the matched surface, which moves more than the interior)
+is the third term. The network's Jacobian is low-rank; the Newton method's is dense (C the
+identity) and costs 3 solves per support node, unless its last step made it at the answer.
 
 The estimate is the sum of the terms: it errs on the large side rather than the small one,
 which is the side a display can act on.
@@ -104,10 +106,13 @@ def estimator_for(model) -> ResidualEstimator:
 MISFIT_FACTOR = 4.9
 
 
-def noise_spread(jac, match: Match, faces: Array, alpha: float, noise: float, readout_gram: Array) -> float:
-    """The declared noise carried into the displacement (see the module): RMS over the
-    Jacobian's nodes. `jac` a low-rank Jacobian with ``gram()`` at the frame's forces, `match`
-    the distance's at its positions, `readout_gram` U^T U (r, r) of jac.U, in float64."""
+def noise_spread(jac, match: Match, faces: Array, alpha: float, noise: float, readout_gram: Array, Cg: Array) -> float:
+    """What the declared noise does to the displacement (see the module): its spread, and the
+    bias of the prior it calls for (alpha (C^T A C + alpha I)^-1 g: the MAP estimate's pull
+    towards zero force, which the truth does not have), added in quadrature; RMS over the
+    Jacobian's nodes. `jac` a low-rank Jacobian with ``gram()`` at the frame's forces g, `Cg`
+    its image C g (r,), `match` the distance's at its positions, `readout_gram` U^T U (r, r)
+    of jac.U, in float64."""
     Nw = weighted_rows(jac.U, match, faces)  # sqrt(w_j) N_j, in U's precision as the LM model's
     w = np.asarray(match.weight, np.float64)
     A = (Nw.T @ Nw).astype(np.float64)
@@ -118,10 +123,15 @@ def noise_spread(jac, match: Match, faces: Array, alpha: float, noise: float, re
     M = np.asarray(jac.gram(), np.float64)
     X = M @ A
     X.flat[:: len(A) + 1] += alpha
-    Bt = np.linalg.solve(X, M)  # B^T = (M A + alpha I)^-1 M
+    r = len(A)
+    # B^T = (M A + alpha I)^-1 M, and the prior's pull on the coefficients, alpha X^-1 C g: one solve
+    sol = np.linalg.solve(X, np.column_stack([M, np.asarray(Cg, np.float64)]))
+    Bt, pull = sol[:, :r], alpha * sol[:, r]
     cov = Bt.T @ (A2 @ Bt)  # of the coefficients, per unit noise variance
     p = jac.U.shape[0] // 3
-    return float(noise) * math.sqrt(max(float(np.sum(cov * readout_gram)), 0.0) / p)
+    spread2 = float(noise) ** 2 * max(float(np.sum(cov * readout_gram)), 0.0)
+    bias2 = max(float(pull @ (readout_gram @ pull)), 0.0)
+    return math.sqrt((spread2 + bias2) / p)
 
 
 def error_estimate(forward_error: float, distance_rms: float, noise: float | None, spread: float = 0.0) -> float:

@@ -285,7 +285,7 @@ class Session:
         estimate = float("inf")
         if u_all is not None and np.isfinite(u_all).all():
             forward = estimator_for(model).forward_error(u_all, g, self.support)
-            spread = self._noise_spread(op, model, g, u_all, alpha)
+            spread = self._noise_spread(op, g, u_all, alpha)
             estimate = error_estimate(forward, rms, self._noise, spread)
             if "displacement" in want:
                 out["displacement"] = u_all
@@ -297,13 +297,18 @@ class Session:
             out["forces"] = g
         return out, rms, estimate
 
-    def _noise_spread(self, op: ForwardOperator, model: ForwardModel, g: Array, u_all: Array, alpha: float) -> float:
-        """The declared noise carried into the answer (confidence.noise_spread), for a model with
-        a low-rank Jacobian; 0 without declared noise or such a Jacobian."""
+    def _noise_spread(self, op: ForwardOperator, g: Array, u_all: Array, alpha: float) -> float:
+        """The declared noise carried into the answer (confidence.noise_spread), through the
+        forward model's Jacobian at g (the Newton method's: 3 solves per support node, unless its
+        last step made it there); 0 without declared noise or a Jacobian (the Newton method past
+        MAX_JACOBIAN_SUPPORT support nodes)."""
         jacobian = getattr(op, "jacobian", None)
-        if not self._noise or model.method != "network" or jacobian is None:
+        if not self._noise or jacobian is None:
             return 0.0
-        jac = jacobian(g)
+        try:
+            jac = jacobian(g)
+        except ValueError:  # a support too large for the Newton method's dense Jacobian
+            return 0.0
         if jac is None or not hasattr(jac, "gram"):
             return 0.0
         x = self._rest + u_all[self.distance.nodes]
@@ -314,7 +319,8 @@ class Session:
         if self._readout_gram is None or self._readout_gram[0] is not jac.U:
             U = np.asarray(jac.U, np.float64)
             self._readout_gram = (jac.U, U.T @ U)  # constant per operator: once per support
-        return noise_spread(jac, match, self.distance.faces, alpha, self._noise, self._readout_gram[1])
+        Cg = jac.matvec(np.asarray(g, np.float64).ravel())
+        return noise_spread(jac, match, self.distance.faces, alpha, self._noise, self._readout_gram[1], Cg)
 
     def summary(self) -> dict:
         return {

@@ -167,3 +167,40 @@ def test_a_rotated_error_is_measured_in_the_rotated_frame(entry):
     measured = est.forward_error(rigid + delta @ R0.T, np.zeros((0, 3)), none)
     true = np.linalg.norm(delta, axis=1).mean()
     assert abs(measured - true) < 0.25 * true
+
+
+@pytest.mark.parametrize("method", ["network", "fem"])
+def test_noise_spread_is_the_linearised_covariance_and_the_priors_pull(entry, method):
+    """noise_spread's r x r algebra against the same quantities formed in force space (K x K):
+    the covariance sigma^2 J H^-1 (N^T W^2 N) H^-1 J^T and the pull alpha J H^-1 g, with J = U C
+    and H = C^T A C + alpha I, for the network's low-rank Jacobian and the FEM's dense one."""
+    from service.registration.confidence import noise_spread
+    from service.registration.levenberg import weighted_rows
+
+    tool = _tip(entry)
+    g_true = np.tile([0.0, 0.0, 5.0 / tool.size], (tool.size, 1))
+    seq = make_sequence(entry.mesh, entry.fem.material, tool, n_frames=1, peak_force=5.0, n_points=300, seed=2)
+    model = entry.network if method == "network" else entry.fem
+    session = Session(model, SessionConfig(support=tuple(int(i) for i in tool), noise=1e-4))
+    r = session.frame(seq.clouds[0])
+    g = r.outputs["forces"]
+    assert np.linalg.norm(g) > 0.1 * np.linalg.norm(g_true)
+    op, dist = session.op, session.distance
+    jac = op.jacobian(g)
+    dist(session._rest + op.displacement(g)[dist.nodes])
+    match = dist.last_match
+    K = 3 * tool.size
+    C = np.column_stack([jac.matvec(e) for e in np.eye(K)])  # (r, K)
+    U = np.asarray(jac.U, np.float64)
+    Nw = np.asarray(weighted_rows(jac.U, match, dist.faces), np.float64)
+    A, w, alpha, sigma = Nw.T @ Nw, float(match.weight[0]), 3e-7, 2e-4
+    H = C.T @ A @ C + alpha * np.eye(K)
+    J = U @ C
+    Hi = np.linalg.inv(H)
+    cov = sigma**2 * J @ Hi @ (w * C.T @ A @ C) @ Hi @ J.T
+    pull = alpha * J @ (Hi @ g.ravel())
+    p = U.shape[0] // 3
+    expected = np.sqrt((np.trace(cov) + pull @ pull) / p)
+    got = noise_spread(jac, match, dist.faces, alpha, sigma, U.T @ U, jac.matvec(g.ravel()))
+    assert got == pytest.approx(expected, rel=1e-3)
+    assert got > np.sqrt(np.trace(cov) / p) * (1 + 1e-6)  # the pull counts
