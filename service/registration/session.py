@@ -309,6 +309,8 @@ class Session:
             jac = jacobian(g)
         except ValueError:  # a support too large for the Newton method's dense Jacobian
             return 0.0
+        except ForwardFailed:  # g's equilibrium could not be solved again: the field is none either
+            return float("inf")
         if jac is None or not hasattr(jac, "gram"):
             return 0.0
         x = self._rest + u_all[self.distance.nodes]
