@@ -30,6 +30,11 @@ from service.store import load_entry
 from service.synthetic import make_sequence
 
 
+def _session(model, method, support) -> Session:
+    """A session with the demo's defaults (`model` either forward model of a store entry)."""
+    return Session(model, SessionConfig(method=method, support=support, outputs=("displacement",)))
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--store", default=str(ROOT / "model_store"))
@@ -47,9 +52,9 @@ def main() -> int:
         seq = make_sequence(
             mesh, entry.fem.material, tool, n_frames=20, peak_force=peak, n_points=1000, noise=5e-4, seed=seed
         )
-        for method, model in (("network", entry.network), ("fem", entry.fem)):
-            config = SessionConfig(method=method, support=tuple(int(i) for i in support), outputs=("displacement",))
-            session = Session(model, config)
+        sites = tuple(int(i) for i in support)
+        sessions = {"network": _session(entry.network, "network", sites), "fem": _session(entry.fem, "fem", sites)}
+        for method, session in sessions.items():
             force, tre = [], []
             for t, cloud in enumerate(seq.clouds):
                 r = session.frame(cloud, frame_id=t)
