@@ -21,18 +21,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from service.bench.cases import run_case, synthetic_case
 from service.bench.machine import describe
 from service.config import limit_threads
 from service.demo import PEAK_FRACTION, patches
-from service.registration.session import Session
 from service.registration.settings import SessionConfig
 from service.store import load_entry
-from service.synthetic import make_sequence
-
-
-def _session(model, method, support) -> Session:
-    """A session with the demo's defaults (`model` either forward model of a store entry)."""
-    return Session(model, SessionConfig(method=method, support=support, outputs=("displacement",)))
 
 
 def main() -> int:
@@ -44,31 +38,23 @@ def main() -> int:
     args = p.parse_args()
     limit_threads(1)
     entry = load_entry(Path(args.store) / args.model)
-    mesh = entry.mesh
-    tool, support = patches(mesh, entry.region)
+    tool, support = patches(entry.mesh, entry.region)
     peak = PEAK_FRACTION * entry.manifest["training"]["load_distribution"]["max_force"]
     rows = []
     for seed in args.seeds:
-        seq = make_sequence(
-            mesh, entry.fem.material, tool, n_frames=20, peak_force=peak, n_points=1000, noise=5e-4, seed=seed
-        )
-        sites = tuple(int(i) for i in support)
-        sessions = {"network": _session(entry.network, "network", sites), "fem": _session(entry.fem, "fem", sites)}
-        for method, session in sessions.items():
-            force, tre = [], []
-            for t, cloud in enumerate(seq.clouds):
-                r = session.frame(cloud, frame_id=t)
-                true = seq.net_forces[t]
-                force.append(100 * np.linalg.norm(r.net_force - true) / np.linalg.norm(true))
-                tre.append(
-                    1e3 * np.linalg.norm(mesh.nodes + r.outputs["displacement"] - seq.positions[t], axis=1).mean()
-                )
+        case = synthetic_case(
+            f"demo seed {seed}", entry.mesh, entry.fem.material, tool, support,
+            frames=20, peak_force=peak, n_points=1000, seed=seed, noise=5e-4,
+        )  # fmt: skip
+        runs = (("network", entry.network, SessionConfig()), ("fem", entry.fem, SessionConfig(method="fem")))
+        for method, model, config in runs:  # the demo's session: the defaults
+            records = run_case(model, case, config)
             row = {
                 "seed": seed,
                 "method": method,
-                "frames": len(seq.clouds),
-                "force_error_pct_median": float(np.median(force)),
-                "registration_error_mm_median": float(np.median(tre)),
+                "frames": len(records),
+                "force_error_pct_median": float(np.median([r.force_error_pct for r in records])),
+                "registration_error_mm_median": float(np.median([r.tre_mm for r in records])),
             }
             rows.append(row)
             print(json.dumps(row), flush=True)
