@@ -47,7 +47,7 @@ from ..fem.rest import rest_compliance
 from ..jit import kernels
 from ..mesh import TetMesh
 from .distance import Match
-from .levenberg import weighted_rows
+from .levenberg import distance_gram
 
 Array = np.ndarray
 
@@ -113,9 +113,8 @@ def noise_spread(jac, match: Match, faces: Array, alpha: float, noise: float, re
     Jacobian's nodes. `jac` a low-rank Jacobian with ``gram()`` at the frame's forces g, `Cg`
     its image C g (r,), `match` the distance's at its positions, `readout_gram` U^T U (r, r)
     of jac.U, in float64."""
-    Nw = weighted_rows(jac.U, match, faces)  # sqrt(w_j) N_j, in U's precision as the LM model's
+    Nw, A = distance_gram(jac.U, match, faces)  # in U's precision, as the LM model's
     w = np.asarray(match.weight, np.float64)
-    A = (Nw.T @ Nw).astype(np.float64)
     if w.size and w.min() == w.max():  # the squared loss: one weight, N^T W^2 N = w A
         A2 = w[0] * A
     else:

@@ -48,8 +48,7 @@ class GaussNewtonModel:
     """
 
     def __init__(self, jac, match: Match, faces: Array, grad: Array, alpha: float) -> None:
-        Nw = weighted_rows(jac.U, match, faces)  # (m, r): sqrt(w_j) N_j
-        A = (Nw.T @ Nw).astype(np.float64, copy=False)
+        _, A = distance_gram(jac.U, match, faces)
         self.CCA = jac.gram_product(A)  # (r, r), Fortran-ordered as LAPACK takes it
         self.A = A
         self.jac = jac
@@ -75,6 +74,13 @@ class GaussNewtonModel:
     def predicted(self, d: Array, mu: float) -> float:
         """The model's decrease for step d taken with damping mu: d^T (mu d - grad) / 2."""
         return 0.5 * float(d @ (mu * d + self.v))
+
+
+def distance_gram(U: Array, match: Match, faces: Array) -> tuple[Array, Array]:
+    """The rows sqrt(w_j) N_j (m, r), in U's dtype, and A = N^T diag(w) N (r, r), float64:
+    the distance's curvature seen through U (the Gauss-Newton model's, the noise term's)."""
+    Nw = weighted_rows(U, match, faces)
+    return Nw, (Nw.T @ Nw).astype(np.float64, copy=False)
 
 
 def weighted_rows(U: Array, match: Match, faces: Array) -> Array:
