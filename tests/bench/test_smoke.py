@@ -65,6 +65,9 @@ def test_bench_smoke_writes_the_whole_report(bar_store, tmp_path):
     assert {h["method"] for h in anysite["honesty"]} == {"network", lm, "auto", "fem"}
     assert all(-1 <= h["spearman"] <= 1 for h in anysite["honesty"])
     assert all(r["error_estimate_mm"] > 0 for r in anysite["records"] if r["method"] in ("network", lm))
+    timed = {s["method"]: s.get("ms_median_passes") for s in anysite["summaries"]}
+    assert len(timed["network"]) == 1 and len(timed[lm]) == 1  # the smoke run's one pass, recorded
+    assert timed["fem"] is None and timed["auto"] is None  # one pass of seconds-long frames: not listed
     assert (out / "figures" / "anysite_estimates.png").stat().st_size > 1000
 
 
