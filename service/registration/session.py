@@ -218,9 +218,9 @@ class Session:
         cloud better); else the last forces, with the last converged frame's as a fallback."""
         if not self.config.warm_start:
             return np.zeros_like(self.g), ()
-        # the Newton method keeps its start: it can fail at one no frame has reached (an
-        # any-site liver frame did, docs/performance.md), and though the engine then goes on
-        # from the others, that failed solve costs up to its whole iteration budget
+        # the Newton method keeps its start: at its gtol the prediction saved it no iterations
+        # (any-site calibration sites, docs/performance.md), and a start no frame has reached
+        # can fail its solve, which costs up to the solve's whole iteration budget
         if self.config.predict and self._trend is not None and self.model.method == "network":
             if self._trend_before is not None and _agree(self._trend, self._trend_before):
                 return self.g + self._trend, ()  # the last two changes agree: the motion, not noise
