@@ -144,7 +144,7 @@ def anysite_part(
             runs.append((run_case(entry.fem, case, FEM), None))
         for recs, each in runs:
             records += recs
-            s = summarise(recs) | ({"ms_median_passes": each} if each is not None else {})
+            s = summarise(recs, passes=each)
             if recs[0].method == "auto":
                 s["fem_share"] = float(np.mean([r.method_used == "fem" for r in recs]))
             summaries.append(s)

@@ -200,8 +200,9 @@ def rest_baseline(case: Case) -> list[FrameRecord]:
     return out
 
 
-def summarise(records: list[FrameRecord], skip_first: bool = True) -> dict:
-    """Medians and means over frames; time over warm frames (the first is a cold start)."""
+def summarise(records: list[FrameRecord], skip_first: bool = True, passes: list[float] | None = None) -> dict:
+    """Medians and means over frames; time over warm frames (the first is a cold start).
+    `passes`: each pass's median time (run_passes), kept as ``ms_median_passes``."""
     if not records:
         return {}
     tre = np.array([r.tre_mm for r in records])
@@ -226,4 +227,4 @@ def summarise(records: list[FrameRecord], skip_first: bool = True) -> dict:
         "converged_fraction": float(np.mean([r.converged for r in records])),
         "all_finite": bool(all(r.finite for r in records)),
         "statuses": sorted({r.status for r in records}),
-    }
+    } | ({"ms_median_passes": passes} if passes is not None else {})

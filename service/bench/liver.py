@@ -93,6 +93,6 @@ def liver_part(entry, *, frames: int | None = None, own_frames: int = 20, fem: b
             runs += [(run_case(entry.fem, case, FEM), None), (run_case(entry.fem, case, FEM_LM, FEM_LM_LABEL), None)]
         for recs, each in runs:
             records += recs
-            summaries.append(summarise(recs) | ({"ms_median_passes": each} if each is not None else {}))
+            summaries.append(summarise(recs, passes=each))
             log.info("%s / %s: %s", case.name, recs[0].method, summaries[-1])
     return {"records": records, "summaries": summaries}
