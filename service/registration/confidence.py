@@ -120,7 +120,9 @@ def noise_spread(jac, match: Match, faces: Array, alpha: float, noise: float, re
     else:
         A2 = (Nw.T @ (Nw * w[:, None].astype(Nw.dtype))).astype(np.float64)
     M = np.asarray(jac.gram(), np.float64)
-    X = M @ A
+    # M A as the Gauss-Newton model forms it (no product with the Newton method's identity M);
+    # a C-ordered copy, since alpha goes on its diagonal
+    X = np.array(jac.gram_product(A), np.float64, order="C")
     X.flat[:: len(A) + 1] += alpha
     r = len(A)
     # B^T = (M A + alpha I)^-1 M, and the prior's pull on the coefficients, alpha X^-1 C g: one solve
