@@ -36,6 +36,7 @@ evaluation and a back-substitution.
 
 from __future__ import annotations
 
+import functools
 import math
 import threading
 
@@ -48,6 +49,7 @@ from ..jit import kernels
 from ..mesh import TetMesh
 from .distance import Match
 from .levenberg import distance_gram
+from .spare import Beside
 
 Array = np.ndarray
 
@@ -71,11 +73,13 @@ class ResidualEstimator:
 
         Shape: u (n, 3), forces (k, 3) on support (k,) -> (n, 3), zero on fixed nodes.
         """
+        # the rotations on a spare core while the internal force is assembled: both read u only
+        rotations = Beside(functools.partial(node_rotations, self.assembler, u, scatter=self._scatter))
         f = self.assembler.internal_force(u)
+        R = rotations.result()
         np.subtract.at(f, support, forces)
         if not np.isfinite(f).all():
             return np.full_like(u, np.inf)
-        R = node_rotations(self.assembler, u, scatter=self._scatter)
         r = self.assembler.pack(np.einsum("nji,nj->ni", R, f))  # into the rest frame: R^T f
         d = self._rest.solve_free(r)
         return np.einsum("nij,nj->ni", R, self.assembler.unpack(d))  # and back

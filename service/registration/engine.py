@@ -6,7 +6,8 @@ distance; it never knows which method it drives. Each frame:
 1. evaluates the rest state g = 0: its gradient is the reference for the relative tolerance
    (how hard the cloud pulls on the undeformed organ, independent of where the frame starts,
    so a warm start that begins near the optimum stops early), and a cloud already on the rest
-   surface ends the frame at once;
+   surface ends the frame at once; a warm network frame evaluates it on a spare core beside
+   step 2 (:mod:`.spare`), on a distance of its own that only ever sees the rest surface;
 2. evaluates the warm start g0 (and any fallback starts; the lowest wins) and whitens the
    variables there (:mod:`.precondition`) with the curvature the stream carries, or, if asked
    and none applies, a damped Gauss-Newton model: L-BFGS-B then runs in variables where the
@@ -23,6 +24,7 @@ tests are absolute below 1.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import math
 import time
@@ -35,6 +37,7 @@ from .distance import PointToSurface
 from .levenberg import GaussNewtonModel, prepare
 from .precondition import Curvature, gauss_newton
 from .settings import DEFAULT_ALPHA, DEFAULT_GTOL, NAMES, OPTIMIZERS, Optimizer, SessionConfig
+from .spare import Beside
 
 log = logging.getLogger(__name__)
 
@@ -113,6 +116,7 @@ class Timing:
     distance: float = 0.0
     gradient: float = 0.0
     total: float = 0.0
+    beside: float = 0.0  # the rest state's evaluation on a spare core, overlapping the rest
 
     def as_ms(self) -> dict[str, float]:
         d = {
@@ -120,6 +124,7 @@ class Timing:
             "distance": 1e3 * self.distance,
             "gradient": 1e3 * self.gradient,
             "total": 1e3 * self.total,
+            "beside": 1e3 * self.beside,
         }  # by hand: dataclasses.asdict costs 10 us a frame
         d["optimizer"] = max(0.0, d["total"] - d["forward"] - d["distance"] - d["gradient"])
         return d
@@ -203,6 +208,18 @@ class Objective:
             self.best_rms = self.distance.last_rms
         return value, grad, J
 
+    def record_rest(self, J: float, grad: Array, u: Array, rms: float, seconds: float) -> tuple[float, Array]:
+        """Counts a rest-state evaluation made elsewhere (:func:`_rest_state`) as this one's own,
+        after the frame's other starts: (Phi, dPhi/dg) at g = 0, best if no start was lower."""
+        self.evaluations += 1
+        self.timing.beside += seconds
+        self.rest_u, self.rest_rms = u, rms
+        if not (math.isfinite(J) and _finite(grad)):
+            raise _Stop("non_finite", "the objective or its gradient is not finite")
+        if J <= self.best_value:  # ties to rest, as when it is evaluated first
+            self.best_value, self.best_g, self.best_J, self.best_rms = J, np.zeros_like(grad), J, rms
+        return J, grad
+
 
 def _finite(a: Array) -> bool:
     """Whether every entry is finite. A NaN or an infinity makes the sum so, so a finite sum
@@ -253,6 +270,7 @@ def solve_frame(
     options: SolveOptions = SolveOptions(),
     curvature: Curvature | None = None,
     fallbacks: tuple[Array, ...] = (),
+    rest_distance: PointToSurface | None = None,
 ) -> FrameSolution:
     """Register one frame.
 
@@ -261,16 +279,22 @@ def solve_frame(
     `curvature`, carried by a stream from frame to frame, preconditions unbounded solves and
     learns from this one. `fallbacks` are other starting forces (k, 3) worth one evaluation
     each (a stream's last converged forces); the frame starts from the lowest objective among
-    them, g0 and zero, skipping any whose forward solve fails.
+    them, g0 and zero, skipping any whose forward solve fails. `rest_distance`, the same
+    distance bound to the same cloud but evaluated only at rest, lets an operator with
+    ``at_rest()`` (the network) evaluate a warm frame's rest state beside its start (spare.py).
     """
     _refuse_bounds(options)  # the Jacobian, Levenberg-Marquardt's other need, at its first use
     t_start = time.perf_counter()
+    at_rest = getattr(op, "at_rest", None)
+    warm = any(np.any(start) for start in (g0, *fallbacks))
+    beside = None
+    if rest_distance is not None and at_rest is not None and warm:
+        beside = Beside(functools.partial(_rest_state, at_rest, rest_distance, rest_positions))
     timing = Timing()
     k = len(op.support)
     evaluate = Objective(op, distance, rest_positions, options.alpha, timing)
     evaluate.best_g = np.asarray(g0, np.float64).copy()
     max_eval = options.max_evaluations or 3 * options.max_iter
-    bounded = options.force_bound is not None
     deadline = None if options.time_budget is None else t_start + options.time_budget
 
     # an operator with slow solves (the FEM) stops inside one at the deadline, not after it
@@ -279,44 +303,35 @@ def solve_frame(
     try:
         if timed_op:
             op.deadline = deadline
-        # the rest state: the objective's scale, the gradient reference, the trivial answer
+        # the rest state: the objective's scale, the gradient reference, the trivial answer; a
+        # warm frame's is evaluated beside its start's, on a spare core where there is one
         zero = np.zeros((k, 3))
-        v_rest, grad_rest, _ = evaluate(zero)
-        # coordinates first: NumPy reduces a (p, 3) array along its long axis 9x slower
-        size = float(np.linalg.norm(np.ptp(np.ascontiguousarray(rest_positions.T), axis=1))) or 1.0
-        if v_rest <= 0.5 * (1e-9 * size) ** 2:  # the cloud lies on the rest surface
-            raise _Done()
-        # the start: the lowest of the warm start, the fallbacks and the rest state, so a
-        # start that a bad frame left far off costs one evaluation, not the frame
-        start, v0, grad0, u0 = zero, v_rest, grad_rest, evaluate.rest_u
-        tried = [zero]
-        for cand in (g0, *fallbacks):
-            cand = np.asarray(cand, np.float64)
-            if bounded:
-                cand = np.clip(cand, -options.force_bound, options.force_bound)
-            if any(np.array_equal(cand, t) for t in tried):
-                continue
-            tried.append(cand)
+        if beside is None:
+            v_rest, grad_rest, _ = evaluate(zero)
+            _check_rest(v_rest, rest_positions)
+            best = _best_start(evaluate, (g0, *fallbacks), options)
+        else:
             try:
-                v, grad, _ = evaluate(cand)
-            except _Stop as stop:
-                if stop.status == "time_limit":
-                    raise
-                continue  # a start the forward model cannot reach is no start; the others stand
-            if v < v0:
-                start, v0, grad0, u0 = cand, v, grad, evaluate.last_u
+                best = _best_start(evaluate, (g0, *fallbacks), options)
+            finally:  # never leave the job running on the session's rest distance
+                rest = beside.result()
+            v_rest, grad_rest = evaluate.record_rest(*rest)
+            _check_rest(v_rest, rest_positions)
+        # the start: the lowest of the warm start, the fallbacks and the rest state (ties to
+        # rest), so a start that a bad frame left far off costs one evaluation, not the frame
+        if best is None or v_rest <= best.value:
+            best = _Start(zero, v_rest, grad_rest, evaluate.rest_u)
         # the stopping test, in force space whatever variables the optimiser runs in
         g_tol = options.gtol * float(np.abs(grad_rest).max())
         if g_tol == 0.0:
             raise _Done()
-        begin = _Start(start, v0, grad0, u0)
         if options.optimizer == "levenberg-marquardt":
             status, message, nit = _levenberg_marquardt(
-                op, distance, evaluate, begin, g_tol, options, max_eval, deadline
+                op, distance, evaluate, best, g_tol, options, max_eval, deadline
             )
         else:
             status, message, nit = _lbfgsb(
-                op, distance, evaluate, begin, v_rest, g_tol, options, curvature, max_eval, deadline
+                op, distance, evaluate, best, v_rest, g_tol, options, curvature, max_eval, deadline
             )
     except _Done:
         status, message = "converged", "the cloud lies on the rest surface: no force needed"
@@ -358,6 +373,48 @@ class _Start:
     def cold(self) -> bool:
         """Whether the frame starts at rest (g = 0): far from its optimum, as no stream led it."""
         return not np.any(self.g)
+
+
+def _check_rest(v_rest: float, rest_positions: Array) -> None:
+    """Ends the frame (_Done) where the cloud lies on the rest surface."""
+    # coordinates first: NumPy reduces a (p, 3) array along its long axis 9x slower
+    size = float(np.linalg.norm(np.ptp(np.ascontiguousarray(rest_positions.T), axis=1))) or 1.0
+    if v_rest <= 0.5 * (1e-9 * size) ** 2:
+        raise _Done()
+
+
+def _best_start(evaluate: Objective, candidates: tuple[Array, ...], options: SolveOptions) -> _Start | None:
+    """The lowest of the candidate starts (the first of equals), each evaluated once; None if
+    none is non-zero or none could be evaluated."""
+    bounded = options.force_bound is not None
+    best: _Start | None = None
+    tried: list[Array] = []
+    for cand in candidates:
+        cand = np.asarray(cand, np.float64)
+        if bounded:
+            cand = np.clip(cand, -options.force_bound, options.force_bound)
+        if not np.any(cand) or any(np.array_equal(cand, t) for t in tried):
+            continue  # rest is the engine's own candidate
+        tried.append(cand)
+        try:
+            v, grad, _ = evaluate(cand)
+        except _Stop as stop:
+            if stop.status == "time_limit":
+                raise
+            continue  # a start the forward model cannot reach is no start; the others stand
+        if best is None or v < best.value:
+            best = _Start(cand, v, grad, evaluate.last_u)
+    return best
+
+
+def _rest_state(at_rest, distance: PointToSurface, rest_positions: Array) -> tuple[float, Array, Array, float, float]:
+    """The rest state on `distance` (bound to the frame's cloud, evaluated only at rest): J,
+    its gradient, u, the RMS distance and the seconds it took. Touches nothing of the frame's."""
+    t0 = time.perf_counter()
+    u, pullback = at_rest()
+    J, dJ_dx = distance(rest_positions + u)
+    grad = pullback(dJ_dx, rows=distance.gradient_nodes)
+    return J, grad, u, distance.last_rms, time.perf_counter() - t0
 
 
 def _lbfgsb(

@@ -121,6 +121,13 @@ class Session:
         self._lock = threading.Lock()
         self._set_support(support, None)
         check_optimizer(self.op, self._options)
+        # the same distance, only ever at rest: a warm frame's rest state evaluated beside its
+        # start (engine.solve_frame), for operators that offer it (the network)
+        self._rest_distance = (
+            PointToSurface(faces, loss=config.loss, loss_param=config.loss_param, lone=True)
+            if hasattr(self.op, "at_rest")
+            else None
+        )
         self.frames = 0
         self.converged = 0
         self.failed = 0
@@ -161,11 +168,15 @@ class Session:
                 if not np.array_equal(support, self.support):
                     self._set_support(support, self.g)
             self.distance.bind(points)
+            if self._rest_distance is not None:
+                self._rest_distance.bind(points)
             g0, fallbacks = self._start()
             options = self._options
             if self.alpha_tracker is not None:
                 options = dataclasses.replace(options, alpha=self.alpha_tracker.alpha)
-            sol = solve_frame(self.op, self.distance, self._rest, g0, options, self.curvature, fallbacks)
+            sol = solve_frame(
+                self.op, self.distance, self._rest, g0, options, self.curvature, fallbacks, self._rest_distance
+            )
             self._commit(sol, len(points), learn=True)
             t1 = time.perf_counter()
             outputs, rms, estimate = self._outputs(self.op, self.model, sol.g, sol.rms, options.alpha)

@@ -15,6 +15,7 @@ energy at fixed nu, folded into the first layer.
 from __future__ import annotations
 
 import dataclasses
+import threading
 from collections.abc import Callable
 
 import numpy as np
@@ -279,7 +280,9 @@ class NetworkOperator:
         self._last_x: Array | None = None  # the input of the last evaluation (the object)
         self._pulled: tuple[Array, Array, Array] | None = None  # its input, U^T u_bar, P x
         self._row_cache: list[tuple[Array, Array]] = []  # (rows, the readout's rows), last used first
+        self._row_lock = threading.Lock()  # at_rest's pullback reads rows beside a frame's own
         self._at_rest: tuple[tuple[Array, Callable[[Array], Array]], Array] | None = None  # (u, pullback), x
+        self._quiet_rest: tuple[Array, Callable[[Array], Array]] | None = None  # at_rest()'s
 
     def reset(self) -> None:  # stateless: nothing to forget
         pass
@@ -320,11 +323,21 @@ class NetworkOperator:
             return u, pullback
         return self._evaluate(x)
 
-    def _evaluate(self, x: Array) -> tuple[Array, Callable[[Array], Array]]:
+    def at_rest(self) -> tuple[Array, Callable[[Array], Array]]:
+        """(u, pullback) at g = 0, as a call at zero gives them, but recording nothing on the
+        operator: safe on another thread beside this operator's own evaluations (the engine
+        evaluates the rest state there while a warm frame evaluates its start)."""
+        quiet = self._quiet_rest
+        if quiet is None:
+            quiet = self._quiet_rest = self._evaluate(np.zeros(self._input.shape[1], np.float32), record=False)
+        return quiet
+
+    def _evaluate(self, x: Array, record: bool = True) -> tuple[Array, Callable[[Array], Array]]:
         h, tape, px = self._hidden(x)
         skip = self._skip_of(px)
-        self._tape_at = (x, tape, h, px)
-        self._last_x, self._pulled = x, None  # a new evaluation: its pullback has not run
+        if record:
+            self._tape_at = (x, tape, h, px)
+            self._last_x, self._pulled = x, None  # a new evaluation: its pullback has not run
         W_last, b_last, _ = self._layers[-1]
         y = W_last @ h + b_last
         if skip is not None:
@@ -342,7 +355,7 @@ class NetworkOperator:
                 yb = self._readout_rows(rows).T @ np.asarray(u_bar, np.float32)[rows].reshape(-1)
             else:
                 yb = self._readout.T @ np.asarray(u_bar, np.float32).reshape(-1)
-            if x is self._last_x:  # the latest evaluation's: C grad = C C^T yb + alpha C g
+            if record and x is self._last_x:  # the latest evaluation's: C grad = C C^T yb + alpha C g
                 self._pulled = (x, yb, px)
             hb = W_last.T @ yb
             xb = self._skip.T @ yb if self._skip is not None else 0.0
@@ -357,15 +370,16 @@ class NetworkOperator:
     def _readout_rows(self, rows: Array) -> Array:
         """The readout's rows of these nodes only (3q, r), for the few node sets in use
         (a frame alternates between its indices), keyed by the array object."""
-        for i, (key, R) in enumerate(self._row_cache):
-            if key is rows:
-                if i:
-                    self._row_cache.insert(0, self._row_cache.pop(i))
-                return R
-        r = self._readout.shape[1]
-        R = self._readout.reshape(-1, 3, r).take(rows, axis=0).reshape(-1, r)
-        self._row_cache = [(rows, R), *self._row_cache[:3]]
-        return R
+        with self._row_lock:
+            for i, (key, R) in enumerate(self._row_cache):
+                if key is rows:
+                    if i:
+                        self._row_cache.insert(0, self._row_cache.pop(i))
+                    return R
+            r = self._readout.shape[1]
+            R = self._readout.reshape(-1, 3, r).take(rows, axis=0).reshape(-1, r)
+            self._row_cache = [(rows, R), *self._row_cache[:3]]
+            return R
 
     def low_rank_jacobian(self) -> tuple[Array, Array] | None:
         """du/dg at g = 0 as U Q^T, Q orthonormal: the reduced network answers in r basis

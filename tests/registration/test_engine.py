@@ -239,3 +239,46 @@ def test_a_frame_stopped_by_a_limit_reports_its_iterations(entry):
             sol.status,
             sol.iterations,
         )
+
+
+def _lone(mesh, pts):
+    rest_distance = PointToSurface(mesh.surface_faces, lone=True)
+    rest_distance.bind(pts)
+    return rest_distance
+
+
+@pytest.mark.parametrize("optimizer", ["lbfgsb", "levenberg-marquardt"])
+@pytest.mark.parametrize("start", [0.8, -1.0])  # near the answer; worse than rest, which then wins
+def test_a_warm_network_frame_evaluates_its_rest_state_beside_its_start(entry, optimizer, start):
+    """With a rest distance of its own, a warm network frame's rest state runs on a spare core
+    beside its start: the same frame as with the two in turn (the same evaluations and steps;
+    the answer to the network's float32 rounding), and its time shows as `beside`."""
+    mesh, support, g_true, pts, dist = tip_pull(entry, entry.region)
+    rest = mesh.nodes[dist.nodes]
+    options = SolveOptions(alpha=1e-9, optimizer=optimizer, gtol=1e-4)
+    g0 = start * g_true
+    phi = objective_for(entry.network, mesh, support, pts, alpha=1e-9)
+    assert (phi(g0)[0] < phi(np.zeros_like(g0))[0]) == (start > 0)  # the case is what it says
+    in_turn = solve_frame(entry.network.restrict(support, dist.nodes), dist, rest, g0, options)
+    dist.bind(pts)
+    op = entry.network.restrict(support, dist.nodes)
+    beside = solve_frame(op, dist, rest, g0, options, rest_distance=_lone(mesh, pts))
+    assert in_turn.converged and beside.converged
+    assert in_turn.timing.beside == 0.0 < beside.timing.beside
+    assert (beside.evaluations, beside.iterations) == (in_turn.evaluations, in_turn.iterations)
+    np.testing.assert_allclose(beside.g, in_turn.g, rtol=0, atol=1e-5 * np.abs(in_turn.g).max())
+    assert beside.objective == pytest.approx(in_turn.objective, rel=1e-5)
+
+
+def test_a_warm_frame_on_the_rest_surface_still_needs_no_force(entry):
+    mesh = entry.mesh
+    support = tip_support(mesh, entry.region)
+    pts, _, _ = sample_surface(mesh.nodes, mesh.surface_faces, 200, np.random.default_rng(0))
+    dist = PointToSurface(mesh.surface_faces)
+    dist.bind(pts)
+    g0 = np.tile([0.0, 0.0, -1.0], (support.size, 1))
+    sol = solve_frame(
+        entry.network.restrict(support, dist.nodes), dist, mesh.nodes[dist.nodes], g0, rest_distance=_lone(mesh, pts)
+    )
+    assert sol.converged and "rest surface" in sol.message and sol.timing.beside > 0
+    assert not sol.g.any()

@@ -461,3 +461,23 @@ def test_a_large_support_keeps_the_leading_linear_directions(bar, monkeypatch):
     h = 1e-2
     fd = (np.sum(u_bar * op(g + h * d)[0]) - np.sum(u_bar * op(g - h * d)[0])) / (2 * h)
     assert np.sum(op(g)[1](u_bar) * d) == pytest.approx(fd, rel=2e-2, abs=1e-6)
+
+
+def test_the_rest_state_on_the_side_is_the_rest_state_and_records_nothing(bar):
+    """at_rest() answers what a call at zero does, to the bit, and leaves the operator's own
+    record alone: the last evaluation's gradient image is still known after its pullback runs
+    (the engine runs it on another thread while a frame evaluates its start)."""
+    rng = np.random.default_rng(5)
+    model = _random_reduced(bar, [32, 16], rng, seed=6, members=1)
+    support, nodes, g = case(model)
+    op = model.restrict(support, nodes)
+    u_bar = rng.normal(size=(len(nodes), 3))
+    u, pullback = op(g)
+    grad = pullback(u_bar)
+    u0, pullback0 = op.at_rest()
+    ref_u, ref_pullback = model.restrict(support, nodes)(np.zeros_like(g))
+    np.testing.assert_array_equal(u0, ref_u)
+    np.testing.assert_array_equal(pullback0(u_bar), ref_pullback(u_bar))
+    jac = op.jacobian(g)
+    ref = jac.matvec(grad.ravel())
+    np.testing.assert_allclose(jac.gradient_image(0.0), ref, rtol=1e-4, atol=1e-5 * np.abs(ref).max())

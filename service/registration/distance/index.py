@@ -99,9 +99,18 @@ class Candidates:
     """
 
     def __init__(
-        self, faces: Array, columns: Array, kernels, *, margin: float | None, margin_factor: float, keep: int
+        self,
+        faces: Array,
+        columns: Array,
+        kernels,
+        *,
+        margin: float | None,
+        margin_factor: float,
+        keep: int,
+        lone: bool = False,
     ) -> None:
         self.faces, self._columns, self._kernels = faces, columns, kernels
+        self.lone = lone  # every evaluation the only one of its cloud: one-offs only
         self.n_nodes = int(faces.max()) + 1
         self.margin, self.margin_factor, self.keep = margin, margin_factor, keep
         self.points: Array | None = None
@@ -164,6 +173,8 @@ class Candidates:
         A lone far evaluation, such as the engine's rest state or a line search's probe, gets
         a one-off. Only speed depends on this rule.
         """
+        if self.lone:
+            return False
         if not self._footprints:  # the first evaluation of a session: nothing known yet
             return True
         return any(self.motion(x, x0) <= M * M for x0, _ in self._footprints)

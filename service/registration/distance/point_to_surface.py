@@ -82,7 +82,8 @@ class PointToSurface:
     ``margin`` is the index's margin M, a length; by default ``margin_factor`` times the mean
     edge length where the spatial structure was last laid out (a quarter edge: about 7
     candidates per point on the liver). ``keep`` is how many of a frame's indices are kept for
-    reuse, so that a line search that probes far and comes back does not rebuild.
+    reuse, so that a line search that probes far and comes back does not rebuild. ``lone``: each
+    cloud is evaluated once (the engine's rest state), so every index is a one-off.
     ``backend`` is ``"numba"`` (the compiled kernels), ``"numpy"`` (the vectorised reference)
     or ``"auto"`` (numba when it imports). ``n_builds`` counts the indices built (at least one
     per frame, more when the surface moves beyond the margin), ``n_one_off`` those of them
@@ -113,6 +114,7 @@ class PointToSurface:
         margin_factor: float = 0.25,
         backend: Backend = "auto",
         keep: int = 3,
+        lone: bool = False,
     ) -> None:
         faces = np.asarray(faces)
         if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
@@ -153,7 +155,13 @@ class PointToSurface:
         self._yt: Array | None = None  # the points, coordinates first (3, m)
         self.keep = int(keep)
         self.candidates = Candidates(
-            self.faces, self._columns, self._kernels, margin=margin, margin_factor=margin_factor, keep=self.keep
+            self.faces,
+            self._columns,
+            self._kernels,
+            margin=margin,
+            margin_factor=margin_factor,
+            keep=self.keep,
+            lone=lone,
         )
         self._last: tuple | None = None  # the last evaluation's match, as last_match gives it
         self._uniform: Array | None = None  # the points' one weight (squared loss), per cloud

@@ -1,0 +1,39 @@
+"""A frame's work on a spare core: beside the caller when a thread is free, inline when not."""
+
+import threading
+
+import pytest
+
+from service.registration import spare
+
+
+def test_a_job_runs_beside_the_caller_when_a_thread_is_free():
+    started = threading.Event()
+
+    def job():
+        started.set()
+        return threading.get_ident()
+
+    beside = spare.Beside(job)
+    assert started.wait(10.0)
+    assert beside.result() != threading.get_ident()
+
+
+def test_a_job_runs_inline_when_every_spare_thread_is_busy():
+    """A loaded server's frame never waits in the queue: the caller takes its own job back."""
+    release = threading.Event()
+    pool = spare._executor()
+    blockers = [pool.submit(release.wait, 30.0) for _ in range(pool._max_workers)]
+    try:
+        beside = spare.Beside(threading.get_ident)
+        assert beside.result() == threading.get_ident()
+    finally:
+        release.set()
+        for b in blockers:
+            b.result()
+
+
+def test_a_failing_job_raises_in_the_caller():
+    beside = spare.Beside(lambda: 1 / 0)
+    with pytest.raises(ZeroDivisionError):
+        beside.result()
