@@ -34,7 +34,7 @@ from scipy.optimize import minimize
 
 from ..forward import ForwardFailed, ForwardOperator
 from .distance import PointToSurface
-from .levenberg import GaussNewtonModel, prepare
+from .levenberg import GaussNewtonModel, distance_gram, prepare
 from .precondition import Curvature, gauss_newton
 from .settings import DEFAULT_ALPHA, DEFAULT_GTOL, NAMES, OPTIMIZERS, Optimizer, SessionConfig
 from .spare import Beside
@@ -535,18 +535,23 @@ def _levenberg_marquardt(
         match = distance.last_match
     mu, mu_min, nu, nit, failures = None, 0.0, 2.0, 0, []
     cold = begin.cold
+    readout = getattr(op, "readout", None)
     while np.abs(grad).max() > g_tol:
         if nit >= options.max_iter:
             return "max_iter", f"{nit} iterations", nit
         if deadline is not None and time.perf_counter() > deadline:  # before the FEM's 3k solves
             return "time_limit", _spent(options), nit
+        # the distance's curvature through a constant readout (the network's) needs no Jacobian:
+        # a spare core forms it while this one forms the Jacobian
+        gram = None if readout is None else Beside(functools.partial(distance_gram, readout, match, distance.faces))
         try:  # the FEM solves again only where g was not its last evaluation
             jac = _jacobian(op, g.reshape(k, 3))
         except ForwardFailed as exc:
             stop = _forward_stop(exc)
             stop.iterations = nit
             raise stop from None
-        model = GaussNewtonModel(jac, match, distance.faces, grad, options.alpha)
+        A = None if gram is None else gram.result()[1]
+        model = GaussNewtonModel(jac, match, distance.faces, grad, options.alpha, A)
         if mu is None:
             mu = options.damping * model.scale
             mu_min = _MIN_DAMPING * model.scale

@@ -47,8 +47,9 @@ class GaussNewtonModel:
     approximates), the one the operator's last evaluation gave if it was at this point.
     """
 
-    def __init__(self, jac, match: Match, faces: Array, grad: Array, alpha: float) -> None:
-        _, A = distance_gram(jac.U, match, faces)
+    def __init__(self, jac, match: Match, faces: Array, grad: Array, alpha: float, A: Array | None = None) -> None:
+        if A is None:  # else distance_gram(jac.U, match, faces)[1], made beside the Jacobian
+            _, A = distance_gram(jac.U, match, faces)
         self.CCA = jac.gram_product(A)  # (r, r), Fortran-ordered as LAPACK takes it
         self.A = A
         self.jac = jac

@@ -381,6 +381,12 @@ class NetworkOperator:
             self._row_cache = [(rows, R), *self._row_cache[:3]]
             return R
 
+    @property
+    def readout(self) -> Array | None:
+        """du/dc (3p, r) of the operator's nodes, the same at every g (its Jacobian's U); None
+        for the paper's layout (no basis)."""
+        return self._readout
+
     def low_rank_jacobian(self) -> tuple[Array, Array] | None:
         """du/dg at g = 0 as U Q^T, Q orthonormal: the reduced network answers in r basis
         coefficients, so its Jacobian has rank r << 3k (the Gauss-Newton preconditioner's
