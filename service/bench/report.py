@@ -141,6 +141,7 @@ def _smoke_case(entry):
 
 def main(args: argparse.Namespace) -> int:
     from ..config import Settings, default_store, limit_threads
+    from ..registration import spare
     from . import machine
 
     blas_threads = Settings().blas_threads
@@ -150,7 +151,7 @@ def main(args: argparse.Namespace) -> int:
     out = Path(args.out)
     (out / "figures").mkdir(parents=True, exist_ok=True)
     results: dict = {
-        "machine": {**machine.describe(), "blas_threads": blas_threads},
+        "machine": {**machine.describe(), "blas_threads": blas_threads, "spare_threads": spare.threads()},
         "started": time.strftime("%Y-%m-%d %H:%M:%S"),
         "parts": {},
     }
@@ -396,7 +397,7 @@ def write_report(results: dict, out: Path) -> None:
     m = results["machine"]
     md.append(f"Run {results['started']} on {m['cpu']}, {m['cores']} cores, GPU: {m['gpu'] or 'none'}; "
               f"commit {m['commit']}; sparse solver {m['sparse_solver']}; torch {m['torch']}, numpy {m['numpy']}, "
-              f"scipy {m['scipy']}; {m.get('blas_threads') or 'default'} BLAS thread(s) per solve, as the server runs. Whole run: {results['seconds']:.0f} s. Times are medians over warm frames "
+              f"scipy {m['scipy']}; {m.get('blas_threads') or 'default'} BLAS thread(s) per solve and {m.get('spare_threads', 0)} spare thread(s) beside a frame, as the server runs. Whole run: {results['seconds']:.0f} s. Times are medians over warm frames "
               f"(the first frame of a stream is a cold start).\n")  # fmt: skip
     runs = {(v["started"], v["commit"]) for v in results.get("made_by", {}).values()}
     if len(runs) > 1:

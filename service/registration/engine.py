@@ -28,6 +28,7 @@ import functools
 import logging
 import math
 import time
+from collections.abc import Callable
 
 import numpy as np
 from scipy.optimize import minimize
@@ -176,6 +177,7 @@ class Objective:
         self.best_rms = self.rest_rms = math.nan  # at the best iterate, and at g = 0
         self.last_u: Array | None = None  # displacement of op.nodes at the last evaluation
         self.rest_u: Array | None = None  # ... and at g = 0
+        self.prefetch: Callable[[Array], None] | None = None  # told each loaded g the model answered
 
     def __call__(self, g: Array) -> tuple[float, Array, float]:
         """(Phi, dPhi/dg (k, 3), J). Raises _Stop when the forward model fails or a value is
@@ -189,9 +191,11 @@ class Objective:
             raise _forward_stop(exc) from None
         t1 = time.perf_counter()
         self.last_u = u
-        J, dJ_dx = self.distance(self.rest + u)
         flat = g.ravel()
         g2 = float(flat @ flat)  # |g|^2: one BLAS call, where np.sum(g * g) or np.any(g) cost 15 us
+        if self.prefetch is not None and g2 > 0.0:
+            self.prefetch(g)
+        J, dJ_dx = self.distance(self.rest + u)
         if g2 == 0.0:
             self.rest_u, self.rest_rms = u, self.distance.last_rms
         t2 = time.perf_counter()
@@ -271,6 +275,7 @@ def solve_frame(
     curvature: Curvature | None = None,
     fallbacks: tuple[Array, ...] = (),
     rest_distance: PointToSurface | None = None,
+    prefetch: Callable[[Array], None] | None = None,
 ) -> FrameSolution:
     """Register one frame.
 
@@ -282,6 +287,8 @@ def solve_frame(
     them, g0 and zero, skipping any whose forward solve fails. `rest_distance`, the same
     distance bound to the same cloud but evaluated only at rest, lets an operator with
     ``at_rest()`` (the network) evaluate a warm frame's rest state beside its start (spare.py).
+    `prefetch(g)` is told every loaded point as soon as the forward model has answered there,
+    before its distance: a session may start the frame's outputs for it on a spare core.
     """
     _refuse_bounds(options)  # the Jacobian, Levenberg-Marquardt's other need, at its first use
     t_start = time.perf_counter()
@@ -325,6 +332,8 @@ def solve_frame(
         g_tol = options.gtol * float(np.abs(grad_rest).max())
         if g_tol == 0.0:
             raise _Done()
+        # the optimiser's trial points only: the starts' share the spare core with the rest state
+        evaluate.prefetch = prefetch
         if options.optimizer == "levenberg-marquardt":
             status, message, nit = _levenberg_marquardt(
                 op, distance, evaluate, best, g_tol, options, max_eval, deadline

@@ -20,6 +20,8 @@ displacement of the matching surface's nodes alone.
 from __future__ import annotations
 
 import dataclasses
+import functools
+import math
 import threading
 import time
 
@@ -35,6 +37,7 @@ from .engine import SolveOptions, check_optimizer, solve_frame
 from .noise_prior import AlphaTracker
 from .precondition import Curvature
 from .settings import DEFAULT_ALPHA, DEFAULT_GTOL, METHODS, OUTPUT_NAMES, SessionConfig
+from .spare import Beside
 
 Array = np.ndarray
 
@@ -128,6 +131,10 @@ class Session:
             if hasattr(self.op, "at_rest")
             else None
         )
+        # Levenberg-Marquardt's answer is its last accepted evaluation: the network's outputs
+        # for each loaded evaluation start on a spare core while its distance is measured
+        self._early_outputs = self._rest_distance is not None and self._options.optimizer == "levenberg-marquardt"
+        self._early: tuple[Array, Beside] | None = None  # (g, its field and forward error)
         self.frames = 0
         self.converged = 0
         self.failed = 0
@@ -174,8 +181,17 @@ class Session:
             options = self._options
             if self.alpha_tracker is not None:
                 options = dataclasses.replace(options, alpha=self.alpha_tracker.alpha)
+            prefetch = self._prefetch if self._early_outputs else None
             sol = solve_frame(
-                self.op, self.distance, self._rest, g0, options, self.curvature, fallbacks, self._rest_distance
+                self.op,
+                self.distance,
+                self._rest,
+                g0,
+                options,
+                self.curvature,
+                fallbacks,
+                self._rest_distance,
+                prefetch,
             )
             self._commit(sol, len(points), learn=True)
             t1 = time.perf_counter()
@@ -286,16 +302,18 @@ class Session:
         the error estimate (the whole field is read for it, requested or not)."""
         want = set(self.config.outputs)
         out: dict[str, Array] = {}
-        try:
-            u_all = op.displacement(g)
-        except ForwardFailed:  # the best iterate's field could not be recomputed: no NaN
-            u_all = None
+        early, self._early = self._early, None
+        if early is not None and op is self.op and np.array_equal(early[0], g):
+            u_all, forward = early[1].result()
+        else:
+            if early is not None:
+                early[1].drop()
+            u_all, forward = _field(op, model, g, self.support)
         if not np.isfinite(rms):
             u_nodes = np.zeros((self.distance.nodes.size, 3)) if u_all is None else u_all[self.distance.nodes]
             rms = float(np.sqrt(np.mean(self.distance.closest(self._rest + u_nodes).sq_distances)))
         estimate = float("inf")
         if u_all is not None and np.isfinite(u_all).all():
-            forward = estimator_for(model).forward_error(u_all, g, self.support)
             spread = self._noise_spread(op, g, u_all, alpha)
             estimate = error_estimate(forward, rms, self._noise, spread)
             if "displacement" in want:
@@ -307,6 +325,14 @@ class Session:
         if "forces" in want:
             out["forces"] = g
         return out, rms, estimate
+
+    def _prefetch(self, g: Array) -> None:
+        """Starts :func:`_field` at an evaluation's forces on a spare core, in place of the last
+        one started (dropped if no thread has begun it)."""
+        if self._early is not None:
+            self._early[1].drop()
+        g = np.array(g, np.float64)
+        self._early = (g, Beside(functools.partial(_field, self.op, self.model, g, self.support)))
 
     def _noise_spread(self, op: ForwardOperator, g: Array, u_all: Array, alpha: float) -> float:
         """The declared noise carried into the answer (confidence.noise_spread), through the
@@ -343,6 +369,18 @@ class Session:
             "seconds": self.seconds,
             "support_size": int(self.support.size),
         }
+
+
+def _field(op: ForwardOperator, model: ForwardModel, g: Array, support: Array) -> tuple[Array | None, float]:
+    """The whole displacement at g and its forward error (confidence.py): a frame's costly
+    outputs. (None, inf) where the field cannot be recomputed; its error inf where not finite."""
+    try:
+        u_all = op.displacement(g)
+    except ForwardFailed:  # the best iterate's field could not be recomputed: no NaN
+        return None, math.inf
+    if not np.isfinite(u_all).all():
+        return u_all, math.inf
+    return u_all, estimator_for(model).forward_error(u_all, g, support)
 
 
 def _check_faces(mesh: TetMesh, faces) -> Array:

@@ -1,10 +1,12 @@
 """A spare core for a frame's independent work: run a job beside the caller, or inline.
 
-A warm frame's rest-state evaluation does not depend on its start's, and on a machine with a
-core to spare the two can overlap (docs/performance.md). A job goes to a shared pool of one
-thread per core; where no thread has started it by the time its result is needed (every core
-busy with other sessions' frames), the caller cancels it and runs it itself, so a loaded server
-pays a submit (tens of microseconds), never a wait in a queue.
+On a machine with a core to spare, parts of a warm network frame overlap: its rest state with
+its start, the distance's Gram with the Jacobian, the estimate's rotations with its internal
+force, and the outputs at each Levenberg-Marquardt trial point with that point's distance
+(docs/performance.md). A job goes to a shared pool of one thread per core beyond the first;
+where no thread has started it by the time its result is needed (every core busy with other
+sessions' frames), the caller cancels it and runs it itself, so a loaded server pays a submit
+(tens of microseconds), never a wait in a queue.
 """
 
 from __future__ import annotations
@@ -21,12 +23,18 @@ _pool: concurrent.futures.ThreadPoolExecutor | None = None
 _lock = threading.Lock()
 
 
+def threads() -> int:
+    """The spare threads: the cores beside the caller's (one at least), so that a frame never
+    runs more threads than there are cores."""
+    return max((os.cpu_count() or 1) - 1, 1)
+
+
 def _executor() -> concurrent.futures.ThreadPoolExecutor:
     global _pool
     if _pool is None:
         with _lock:
             if _pool is None:
-                _pool = concurrent.futures.ThreadPoolExecutor(os.cpu_count() or 1, thread_name_prefix="elastreg-spare")
+                _pool = concurrent.futures.ThreadPoolExecutor(threads(), thread_name_prefix="elastreg-spare")
     return _pool
 
 
@@ -42,3 +50,7 @@ class Beside(Generic[T]):
         if self._future.cancel():  # still queued: every spare thread is busy
             return self._fn()
         return self._future.result()
+
+    def drop(self) -> None:
+        """No longer wanted: cancelled if no thread has begun it, else left to finish."""
+        self._future.cancel()

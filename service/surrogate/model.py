@@ -303,8 +303,9 @@ class NetworkOperator:
 
     def _hidden_at(self, x: Array) -> tuple[Array, list[tuple[Array, Array | None]], Array]:
         """:meth:`_hidden` at x, the last evaluation's own when x is its input."""
-        if self._tape_at is not None and np.array_equal(self._tape_at[0], x):
-            _, tape, h, px = self._tape_at
+        at = self._tape_at  # read once: a spare core's displacement() runs beside evaluations
+        if at is not None and np.array_equal(at[0], x):
+            _, tape, h, px = at
             return h, tape, px
         return self._hidden(x)
 

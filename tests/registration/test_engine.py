@@ -282,3 +282,23 @@ def test_a_warm_frame_on_the_rest_surface_still_needs_no_force(entry):
     )
     assert sol.converged and "rest surface" in sol.message and sol.timing.beside > 0
     assert not sol.g.any()
+
+
+def test_prefetch_is_told_each_trial_point_and_the_answer_is_the_last(entry):
+    """Levenberg-Marquardt's answer is its last accepted evaluation; prefetch hears of every
+    trial point (not the starts), so a session can make the answer's outputs early."""
+    mesh, support, g_true, pts, dist = tip_pull(entry, entry.region)
+    told: list = []
+    options = SolveOptions(alpha=1e-9, optimizer="levenberg-marquardt", gtol=1e-4)
+    sol = solve_frame(
+        entry.network.restrict(support, dist.nodes),
+        dist,
+        mesh.nodes[dist.nodes],
+        0.5 * g_true,
+        options,
+        rest_distance=_lone(mesh, pts),
+        prefetch=lambda g: told.append(np.array(g)),
+    )
+    assert sol.converged and sol.iterations >= 1
+    assert len(told) == sol.evaluations - 2  # all but the rest state and the start
+    np.testing.assert_array_equal(told[-1], sol.g)

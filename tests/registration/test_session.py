@@ -255,3 +255,27 @@ def test_noise_and_alpha_are_one_choice(entry):
         Session(entry.network, SessionConfig(noise=1e-3, loss="huber", loss_param=1e-3))
     with pytest.raises(ValueError, match="positive length"):
         Session(entry.network, SessionConfig(noise=-1.0))
+
+
+@pytest.mark.parametrize("noise", [None, 1e-3])
+def test_outputs_made_early_are_the_answers_own(entry, sequence, noise):
+    """A Levenberg-Marquardt network frame starts its field and forward error at each trial
+    point on a spare core (the answer is its last accepted one): what it returns must be the
+    field of the forces it returns, to the bit, and the estimate of that field."""
+    from service.registration.confidence import error_estimate, estimator_for
+
+    tool, seq = sequence
+    config = SessionConfig(
+        support=_support(entry, tool), optimizer="levenberg-marquardt", outputs=("displacement",), noise=noise
+    )
+    s = Session(entry.network, config)
+    steps = 0
+    for cloud in seq.clouds[::4]:
+        r = s.frame(cloud)
+        steps += r.iterations
+        u = s.op.displacement(s.g)
+        np.testing.assert_array_equal(r.outputs["displacement"], u)
+        if noise is None:  # the estimate's other parts: the misfit only
+            forward = estimator_for(entry.network).forward_error(u, s.g, s.support)
+            assert r.error_estimate == pytest.approx(error_estimate(forward, r.distance_rms, None), rel=1e-12)
+    assert steps > 0  # trial points were taken: the early outputs were made
