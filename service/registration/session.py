@@ -14,7 +14,9 @@ A session told its clouds' noise moves alpha after every frame that did not fail
 (:mod:`.noise_prior`), and shifts the carried curvature by the same amount.
 
 Only the outputs the session asks for are computed: the optimisation itself reads the
-displacement of the matching surface's nodes alone.
+displacement of the matching surface's nodes alone. A network session with Levenberg-Marquardt
+starts the whole field and its error estimate at each trial point on a spare core (the answer
+is the last accepted one), and evaluates each warm frame's rest state there too (:mod:`.spare`).
 """
 
 from __future__ import annotations
