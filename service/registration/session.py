@@ -33,6 +33,7 @@ from ..fem.assembly import Assembler
 from ..fem.material import NeoHookean
 from ..forward import ForwardFailed, ForwardModel, ForwardOperator, check_support
 from ..mesh import TetMesh
+from . import spare
 from .confidence import error_estimate, estimator_for, noise_spread
 from .distance import PointToSurface
 from .engine import SolveOptions, check_optimizer, solve_frame
@@ -169,7 +170,7 @@ class Session:
             raise ValueError(f"points must be a non-empty (m, 3) array, got shape {points.shape}")
         if not np.isfinite(points).all():
             raise ValueError("points contain NaN or infinite values")
-        with self._lock:
+        with self._lock, spare.frame():
             self.last_used = time.monotonic()
             t0 = time.perf_counter()
             if support is not None:

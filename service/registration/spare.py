@@ -5,22 +5,44 @@ its start, the distance's Gram with the Jacobian, the estimate's rotations with 
 force, and the outputs at each Levenberg-Marquardt trial point with that point's distance
 (docs/performance.md). A job goes to a shared pool of one thread per core beyond the first;
 where no thread has started it by the time its result is needed (every core busy with other
-sessions' frames), the caller cancels it and runs it itself, so a loaded server pays a submit
-(tens of microseconds), never a wait in a queue.
+sessions' frames), the caller cancels it and runs it itself. A core is spare only while fewer
+frames are in progress in this process than there are cores (:func:`frame`): on a loaded
+server every job runs inline, since a third thread on two busy cores cost 6-17 % of the
+throughput of 4 and 16 streams (docs/performance.md).
 """
 
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import os
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Generic, TypeVar
 
 T = TypeVar("T")
 
 _pool: concurrent.futures.ThreadPoolExecutor | None = None
 _lock = threading.Lock()
+_frames = 0  # frames in progress in this process
+
+
+@contextlib.contextmanager
+def frame() -> Iterator[None]:
+    """Counts a frame in progress while the block runs (a session's frame)."""
+    global _frames
+    with _lock:
+        _frames += 1
+    try:
+        yield
+    finally:
+        with _lock:
+            _frames -= 1
+
+
+def spare() -> bool:
+    """Whether a core is spare: fewer frames in progress than cores."""
+    return _frames < (os.cpu_count() or 1)
 
 
 def threads() -> int:
@@ -39,18 +61,20 @@ def _executor() -> concurrent.futures.ThreadPoolExecutor:
 
 
 class Beside(Generic[T]):
-    """`fn()` started on a spare thread; :meth:`result` waits for it, or runs it inline if no
-    thread had begun it. The job must touch nothing the caller changes meanwhile."""
+    """`fn()` started on a spare thread where a core is spare; :meth:`result` waits for it, or
+    runs it inline if no thread had begun it (or none was asked to). The job must touch nothing
+    the caller changes meanwhile."""
 
     def __init__(self, fn: Callable[[], T]) -> None:
         self._fn = fn
-        self._future = _executor().submit(fn)
+        self._future = _executor().submit(fn) if spare() else None
 
     def result(self) -> T:
-        if self._future.cancel():  # still queued: every spare thread is busy
+        if self._future is None or self._future.cancel():  # not begun: no spare thread was free
             return self._fn()
         return self._future.result()
 
     def drop(self) -> None:
         """No longer wanted: cancelled if no thread has begun it, else left to finish."""
-        self._future.cancel()
+        if self._future is not None:
+            self._future.cancel()

@@ -37,3 +37,16 @@ def test_a_failing_job_raises_in_the_caller():
     beside = spare.Beside(lambda: 1 / 0)
     with pytest.raises(ZeroDivisionError):
         beside.result()
+
+
+def test_no_core_is_spare_while_every_core_has_a_frame():
+    """A loaded server runs every job inline: as many frames in progress as cores."""
+    import contextlib
+    import os
+
+    with contextlib.ExitStack() as frames:
+        for _ in range(os.cpu_count() or 1):
+            frames.enter_context(spare.frame())
+        assert not spare.spare()
+        assert spare.Beside(threading.get_ident).result() == threading.get_ident()
+    assert spare.spare()
