@@ -15,6 +15,7 @@ energy at fixed nu, folded into the first layer.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import threading
 from collections.abc import Callable
 
@@ -281,8 +282,7 @@ class NetworkOperator:
         self._pulled: tuple[Array, Array, Array] | None = None  # its input, U^T u_bar, P x
         self._row_cache: list[tuple[Array, Array]] = []  # (rows, the readout's rows), last used first
         self._row_lock = threading.Lock()  # at_rest's pullback reads rows beside a frame's own
-        self._at_rest: tuple[tuple[Array, Callable[[Array], Array]], Array] | None = None  # (u, pullback), x
-        self._quiet_rest: tuple[Array, Callable[[Array], Array]] | None = None  # at_rest()'s
+        self._at_rest: tuple[tuple[Array, Callable[..., Array]], Array] | None = None  # (u, pullback), x
 
     def reset(self) -> None:  # stateless: nothing to forget
         pass
@@ -317,9 +317,7 @@ class NetworkOperator:
         x = np.asarray(g, np.float32).reshape(-1)
         if not x.any():
             # the rest state, which the engine evaluates every frame: the same answer each time
-            if self._at_rest is None:
-                self._at_rest = (self._evaluate(x), x)
-            (u, pullback), self._last_x = self._at_rest
+            (u, pullback), self._last_x = self._rest_state()
             self._pulled = None  # a new evaluation: its pullback has not run
             return u, pullback
         return self._evaluate(x)
@@ -328,10 +326,17 @@ class NetworkOperator:
         """(u, pullback) at g = 0, as a call at zero gives them, but recording nothing on the
         operator: safe on another thread beside this operator's own evaluations (the engine
         evaluates the rest state there while a warm frame evaluates its start)."""
-        quiet = self._quiet_rest
-        if quiet is None:
-            quiet = self._quiet_rest = self._evaluate(np.zeros(self._input.shape[1], np.float32), record=False)
-        return quiet
+        (u, pullback), _ = self._rest_state()
+        return u, functools.partial(pullback, quiet=True)
+
+    def _rest_state(self) -> tuple[tuple[Array, Callable[..., Array]], Array]:
+        """The rest evaluation and its input, made once, and made recording nothing, so that
+        either caller (a call at zero, at_rest on another thread) may be the first."""
+        rest = self._at_rest
+        if rest is None:
+            x = np.zeros(self._input.shape[1], np.float32)
+            rest = self._at_rest = (self._evaluate(x, record=False), x)
+        return rest
 
     def _evaluate(self, x: Array, record: bool = True) -> tuple[Array, Callable[[Array], Array]]:
         h, tape, px = self._hidden(x)
@@ -346,7 +351,7 @@ class NetworkOperator:
         u = self._readout @ y if self._readout is not None else y
         k = x.size // 3
 
-        def pullback(u_bar: Array, rows: Array | None = None) -> Array:
+        def pullback(u_bar: Array, rows: Array | None = None, quiet: bool = False) -> Array:
             if self._readout is None:
                 yb = np.asarray(u_bar, np.float32).reshape(-1)
             elif rows is not None and rows.size < 0.5 * self.nodes.size:
@@ -356,7 +361,7 @@ class NetworkOperator:
                 yb = self._readout_rows(rows).T @ np.asarray(u_bar, np.float32)[rows].reshape(-1)
             else:
                 yb = self._readout.T @ np.asarray(u_bar, np.float32).reshape(-1)
-            if record and x is self._last_x:  # the latest evaluation's: C grad = C C^T yb + alpha C g
+            if not quiet and x is self._last_x:  # the latest evaluation's: C grad = C C^T yb + alpha C g
                 self._pulled = (x, yb, px)
             hb = W_last.T @ yb
             xb = self._skip.T @ yb if self._skip is not None else 0.0
