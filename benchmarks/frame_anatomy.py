@@ -10,7 +10,6 @@ pass's warm frames, and with --profile the functions that took the time.
 
 from __future__ import annotations
 
-import argparse
 import cProfile
 import dataclasses
 import pstats
@@ -23,22 +22,18 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from service.bench.anysite import CALIBRATION_SEED, NETWORK_LM, anysite_cases
+import calibration
+
+from service.bench.anysite import NETWORK_LM
 from service.bench.machine import describe
-from service.config import limit_threads
 from service.registration.session import Session
-from service.store import load_entry
 
 
 def main() -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--model", required=True, help="a whole-surface store entry")
-    p.add_argument("--sites", type=int, default=4)
+    p = calibration.parser(__doc__)
     p.add_argument("--profile", action="store_true", help="also profile the second pass")
     args = p.parse_args()
-    limit_threads(1)
-    entry = load_entry(Path(args.model))
-    cases = anysite_cases(entry, sites=args.sites, frames=8, seed=CALIBRATION_SEED)
+    entry, cases = calibration.cases(args)
     rows: list[dict] = []
     prof = cProfile.Profile()
     for second in (False, True):

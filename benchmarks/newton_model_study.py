@@ -14,7 +14,6 @@ time, the mean iterations and evaluations a warm frame, the mean TRE and the sta
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import sys
@@ -25,12 +24,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from service.bench.anysite import CALIBRATION_SEED, FEM, NETWORK, anysite_cases
+import calibration
+
+from service.bench.anysite import FEM, NETWORK
 from service.bench.cases import run_case
 from service.bench.machine import describe
-from service.config import limit_threads
 from service.fem.model import FEMModel
-from service.store import load_entry
 from service.surrogate.model import NetworkModel
 
 FEM_LM = dataclasses.replace(FEM, optimizer="levenberg-marquardt")
@@ -109,14 +108,11 @@ class GuidedFEM:
 
 
 def main() -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--model", required=True, help="a whole-surface store entry with a reduced network")
-    p.add_argument("--sites", type=int, default=4)
-    p.add_argument("--out", default=str(ROOT / "reports" / "newton-model" / "newton_model.json"))
+    p = calibration.parser(
+        __doc__, out="newton-model/newton_model.json", model_help="a whole-surface store entry with a reduced network"
+    )
     args = p.parse_args()
-    limit_threads(1)
-    entry = load_entry(Path(args.model))
-    cases = anysite_cases(entry, sites=args.sites, frames=8, seed=CALIBRATION_SEED)
+    entry, cases = calibration.cases(args)
     corrector = dataclasses.replace(NETWORK, method="auto", max_error=1e-9)  # 1 nm: every frame
     variants = {
         "dense Jacobian (as shipped)": lambda case: run_case(entry.fem, case, FEM_LM),

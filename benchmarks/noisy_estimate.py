@@ -12,7 +12,6 @@ the median error and the median frame time.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import sys
@@ -23,27 +22,23 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from service.bench.anysite import CALIBRATION_SEED, NETWORK, NETWORK_LM, anysite_cases
+import calibration
+
+from service.bench.anysite import NETWORK, NETWORK_LM
 from service.bench.cases import noisy, run_case
 from service.bench.machine import describe
-from service.config import limit_threads
-from service.store import load_entry
 
 OPTIMIZERS = {"levenberg-marquardt": NETWORK_LM, "lbfgsb": NETWORK}
 
 
 def main() -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--model", required=True, help="a whole-surface store entry")
-    p.add_argument("--sites", type=int, default=4)
+    p = calibration.parser(__doc__, out="noisy-estimate/noisy_estimate.json")
     p.add_argument("--noise", type=float, default=5e-4, help="per-axis noise, m")
-    p.add_argument("--out", default=str(ROOT / "reports" / "noisy-estimate" / "noisy_estimate.json"))
     args = p.parse_args()
     from scipy.stats import spearmanr
 
-    limit_threads(1)
-    entry = load_entry(Path(args.model))
-    cases = [noisy(c, noise=args.noise, seed=11) for c in anysite_cases(entry, sites=args.sites, seed=CALIBRATION_SEED)]
+    entry, clean = calibration.cases(args)
+    cases = [noisy(c, noise=args.noise, seed=11) for c in clean]
     rows = []
     for name, base in OPTIMIZERS.items():
         for declared in (False, True):

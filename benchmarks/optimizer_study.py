@@ -13,7 +13,6 @@ move with what else the machine runs.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import os
@@ -26,11 +25,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from service.bench.anysite import CALIBRATION_SEED, NETWORK, anysite_cases
+import calibration
+
+from service.bench.anysite import NETWORK
 from service.bench.cases import run_case
 from service.bench.machine import describe
-from service.config import limit_threads
-from service.store import load_entry
 
 VARIANTS: dict[str, dict[str, Any]] = {
     "lbfgsb, gtol 3e-4 (default)": {},
@@ -43,14 +42,8 @@ VARIANTS: dict[str, dict[str, Any]] = {
 
 
 def main() -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--model", required=True, help="a whole-surface store entry")
-    p.add_argument("--sites", type=int, default=4)
-    p.add_argument("--out", default=str(ROOT / "reports" / "optimizer-study" / "optimizer_study.json"))
-    args = p.parse_args()
-    limit_threads(1)
-    entry = load_entry(Path(args.model))
-    cases = anysite_cases(entry, sites=args.sites, frames=8, seed=CALIBRATION_SEED)
+    args = calibration.parser(__doc__, out="optimizer-study/optimizer_study.json").parse_args()
+    entry, cases = calibration.cases(args)
     rows = []
     for name, change in VARIANTS.items():
         config = dataclasses.replace(NETWORK, **change)
