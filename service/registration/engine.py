@@ -293,9 +293,8 @@ def solve_frame(
     _refuse_bounds(options)  # the Jacobian, Levenberg-Marquardt's other need, at its first use
     t_start = time.perf_counter()
     at_rest = getattr(op, "at_rest", None)
-    warm = any(np.any(start) for start in (g0, *fallbacks))
     beside = None
-    if rest_distance is not None and at_rest is not None and warm:
+    if rest_distance is not None and at_rest is not None and any(np.any(s) for s in (g0, *fallbacks)):  # warm
         beside = Beside(functools.partial(_rest_state, at_rest, rest_distance, rest_positions))
     timing = Timing()
     k = len(op.support)
