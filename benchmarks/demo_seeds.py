@@ -3,8 +3,9 @@ clouds' noise, and how far the model's.
 
 The demo's sequence (its tool, support, 0.7 of the model's training force, 1,000 points, 0.5 mm
 of noise) at seeds 0-5 (the demo runs seed 0), registered by the network and by the Newton
-method with the session defaults the demo uses. Prints and writes, per method and seed, the
-median force error and registration error over the frames.
+method with the session settings the demo uses (its noise declared, the default alpha). Prints
+and writes, per method and seed, the median force error and registration error over the frames,
+and how the error estimate stood to the error (median and smallest ratio, rank correlation).
 
     python benchmarks/demo_seeds.py [--store model_store] [--seeds 0 1 2 3 4 5]
 """
@@ -12,6 +13,7 @@ median force error and registration error over the frames.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -21,12 +23,15 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from clients.demo import spearman
 from service.bench.cases import run_case, synthetic_case
 from service.bench.machine import describe
 from service.config import limit_threads
 from service.demo import PEAK_FRACTION, patches
-from service.registration.settings import SessionConfig
+from service.registration.settings import DEFAULT_ALPHA, SessionConfig
 from service.store import load_entry
+
+NOISE = 5e-4  # m per axis, as the demo's clouds
 
 
 def main() -> int:
@@ -44,17 +49,24 @@ def main() -> int:
     for seed in args.seeds:
         case = synthetic_case(
             f"demo seed {seed}", entry.mesh, entry.fem.material, tool, support,
-            frames=20, peak_force=peak, n_points=1000, seed=seed, noise=5e-4,
+            frames=20, peak_force=peak, n_points=1000, seed=seed, noise=NOISE,
         )  # fmt: skip
-        runs = (("network", entry.network, SessionConfig()), ("fem", entry.fem, SessionConfig(method="fem")))
-        for method, model, config in runs:  # the demo's session: the defaults
+        demo = SessionConfig(noise=NOISE, alpha=DEFAULT_ALPHA)  # the demo's session
+        runs = (("network", entry.network, demo), ("fem", entry.fem, dataclasses.replace(demo, method="fem")))
+        for method, model, config in runs:
             records = run_case(model, case, config)
+            error = np.array([r.tre_mm for r in records])
+            estimate = np.array([r.error_estimate_mm for r in records], float)
             row = {
                 "seed": seed,
                 "method": method,
                 "frames": len(records),
                 "force_error_pct_median": float(np.median([r.force_error_pct for r in records])),
-                "registration_error_mm_median": float(np.median([r.tre_mm for r in records])),
+                "registration_error_mm_median": float(np.median(error)),
+                "estimate_mm_median": float(np.median(estimate)),
+                "estimate_over_error_median": float(np.median(estimate / error)),
+                "estimate_over_error_min": float(np.min(estimate / error)),
+                "estimate_spearman": spearman(estimate.tolist(), error.tolist()),
             }
             rows.append(row)
             print(json.dumps(row), flush=True)

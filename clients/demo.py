@@ -20,7 +20,7 @@ def _pct(a, q) -> float:
     return float(np.percentile(a, q)) if len(a) else float("nan")
 
 
-def _spearman(a: Sequence[float], b: Sequence[float]) -> float:
+def spearman(a: Sequence[float], b: Sequence[float]) -> float:
     """Spearman's rank correlation (no ties expected in measured floats)."""
     ra, rb = (np.argsort(np.argsort(np.asarray(x, float))) for x in (a, b))
     return float(np.corrcoef(ra, rb)[0, 1]) if len(ra) > 1 else float("nan")
@@ -79,7 +79,7 @@ def score_stream(
     say(f"net force error:    median {np.median(force_errors):.1f} %, "
         f"p95 {_pct(force_errors, 95):.1f} %")  # fmt: skip
     say(f"error estimate:     median {np.median(estimates):.3f} mm; rank correlation with the error "
-        f"{_spearman(estimates, errors):.2f}; {by_fem} of {n} frames corrected by the FEM")  # fmt: skip
+        f"{spearman(estimates, errors):.2f}; {by_fem} of {n} frames corrected by the FEM")  # fmt: skip
     say(f"latency:            median {np.median(latency):.1f} ms, p95 {_pct(latency, 95):.1f} ms "
         f"(server solve: median {np.median(solve):.1f} ms, p95 {_pct(solve, 95):.1f} ms)")  # fmt: skip
     return 0

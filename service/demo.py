@@ -23,6 +23,7 @@ from clients.demo import score_stream
 from .config import Settings, default_store
 from .fem.material import NeoHookean
 from .mesh import TetMesh
+from .registration.settings import DEFAULT_ALPHA
 from .synthetic import make_sequence, tool_patches
 
 TOOL_NODES = 12
@@ -92,10 +93,14 @@ def run(
             say("error: the FEM could not follow the first frame of the sequence")
             return 1
 
-        settings = None
+        # a camera knows its noise: declared, the estimate carries it into the answer instead of
+        # counting it as misfit; alpha stays at its default (the MAP alpha that noise alone would
+        # choose under-fits these clouds: docs/performance.md, "Declared noise")
+        settings: dict = {"noise": noise, "alpha": DEFAULT_ALPHA}
+        say(f"the clouds' noise ({noise * 1e3:.3g} mm per axis) is declared; alpha stays at {DEFAULT_ALPHA:.0e}")
         if method == "auto":  # correct frames past twice the build's validation error: the build's figure
             val = float(summary["training"].get("validation", {}).get("mean_mm", 0.5))
-            settings = {"max_error": 2e-3 * val}
+            settings["max_error"] = 2e-3 * val
             say(f"auto: frames whose error estimate exceeds {2 * val:.3g} mm are registered again by the FEM")
         return score_stream(
             api,

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from service.registration.session import Session, SessionConfig
+from service.registration.settings import DEFAULT_ALPHA
 from service.store import open_store
 from service.synthetic import make_sequence
 
@@ -63,13 +64,14 @@ def test_a_shipped_model_registers_a_known_deformation(shipped, name):
     assert 0.7 < np.linalg.norm(f) / np.linalg.norm(f_true) < 1.3 and angle < 30
 
 
+@pytest.mark.parametrize("alpha", [None, DEFAULT_ALPHA])
 @pytest.mark.parametrize("method", ["network", "fem"])
-def test_the_phantom_estimate_covers_its_error_under_declared_noise(shipped, method):
-    """The demo's frames (its tool, load and 0.5 mm of camera noise) with the noise declared:
-    the estimate counts the misfit beyond the noise (in quadrature) and the noise carried into
-    the forces with the prior's pull, so it stays on the safe side of the true error. Before,
-    the network's said a third of the error (median), and under a tenth on the first frames;
-    the Newton method's said 0 on the first three."""
+def test_the_phantom_estimate_covers_its_error_under_declared_noise(shipped, method, alpha):
+    """The demo's frames (its tool, load and 0.5 mm of camera noise) with the noise declared,
+    alpha following it (None) or fixed as the demo runs: the estimate counts the misfit beyond
+    the noise (in quadrature) and the noise carried into the forces with the prior's pull, so it
+    stays on the safe side of the true error. Before, the network's said a third of the error
+    (median), and under a tenth on the first frames; the Newton method's said 0 on the first three."""
     from service.demo import PEAK_FRACTION, patches
 
     entry = shipped["phantom"]
@@ -78,7 +80,7 @@ def test_the_phantom_estimate_covers_its_error_under_declared_noise(shipped, met
     noise = 5e-4
     seq = make_sequence(entry.mesh, entry.fem.material, tool, n_frames=10, peak_force=peak, n_points=1000, noise=noise)
     model = entry.network if method == "network" else entry.fem
-    session = Session(model, SessionConfig(support=tuple(support.tolist()), noise=noise))
+    session = Session(model, SessionConfig(support=tuple(support.tolist()), noise=noise, alpha=alpha))
     est, err = [], []
     for t, cloud in enumerate(seq.clouds):
         r = session.frame(cloud, frame_id=t)

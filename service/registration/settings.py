@@ -87,9 +87,10 @@ class SessionConfig:
     )
     noise: float | None = setting(
         None,
-        "per-axis noise of the clouds, m: alpha then follows the forces' MAP estimate frame by "
-        "frame, sigma^2 / (points x mean force^2), from its default up to 100x it (each frame's "
-        "result says its alpha); not with alpha; squared loss",
+        "per-axis noise of the clouds, m: the error estimate carries it into the answer instead "
+        "of counting it as misfit; without alpha, alpha also follows the forces' MAP estimate frame "
+        "by frame, sigma^2 / (points x mean force^2), from its default up to 100x it (each frame's "
+        "result says its alpha; squared loss); with alpha, alpha stays",
         gt=0,
         le=1,
     )

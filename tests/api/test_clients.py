@@ -109,7 +109,7 @@ def test_demo_on_the_bar(bar_store):
     out = io.StringIO()
     assert demo(model="bar", frames=3, store=bar_store[0], n_points=300, out=out) == 0
     text = out.getvalue()
-    assert "latency" in text
+    assert "latency" in text and "noise (0.5 mm per axis) is declared" in text
     # every frame converged, and the registered shape is nearer the truth than the rest shape
     frames, converged = map(int, re.search(r"(\d+) frames in .*; (\d+) converged", text).groups())
     assert frames == 3 and converged == 3, text

@@ -178,8 +178,8 @@ def test_time_budget_cuts_a_frame_short(http, support, clouds):
 
 def test_noise_chooses_alpha_frame_by_frame(http, support, clouds):
     """With the clouds' noise given, the config echoes it and the default alpha it starts from;
-    each frame says the alpha it ran with, which rises on clouds noisier than the fit; noise
-    together with alpha, or a non-positive noise, is a 422."""
+    each frame says the alpha it ran with, which rises on clouds noisier than the fit; with alpha
+    given too, alpha stays; a non-positive noise is a 422."""
     body = open_session(http, support=support.tolist(), noise=0.05, outputs=["forces"])
     assert body["config"]["noise"] == 0.05 and body["config"]["alpha"] == DEFAULT_ALPHA
     sid = body["session"]
@@ -192,7 +192,12 @@ def test_noise_chooses_alpha_frame_by_frame(http, support, clouds):
         alphas.append(r.json()["alpha"])
     assert alphas[0] == DEFAULT_ALPHA and alphas[-1] > alphas[0]
     http.delete(f"/sessions/{sid}")
-    for bad in ({"noise": 0.01, "alpha": 1e-6}, {"noise": 0}, {"noise": -1}):
+    body = open_session(http, support=support.tolist(), noise=0.05, alpha=1e-6, outputs=["forces"])
+    assert body["config"]["noise"] == 0.05 and body["config"]["alpha"] == 1e-6
+    r = http.post(f"/sessions/{body['session']}/frames", json={"points": clouds[2].tolist()})
+    assert r.status_code == 200 and r.json()["alpha"] == 1e-6
+    http.delete(f"/sessions/{body['session']}")
+    for bad in ({"noise": 0}, {"noise": -1}):
         r = http.post("/sessions", json={"model": "bar", **bad})
         assert r.status_code == 422 and ("noise" in r.text), r.text
 

@@ -248,9 +248,26 @@ def test_noise_sets_alpha_from_the_forces_prior(entry, method):
     assert alphas["tiny"] == alphas["default"]
 
 
-def test_noise_and_alpha_are_one_choice(entry):
-    with pytest.raises(ValueError, match="alpha or noise"):
-        Session(entry.network, SessionConfig(alpha=1e-6, noise=1e-3))
+def test_noise_with_alpha_informs_the_estimate_alone(entry):
+    """Noise given with alpha: alpha stays as given, the answers are those of the session without
+    noise, and the estimate no longer counts the noise as misfit (whether it still covers the
+    error is test_model_store's, on the demo's frames)."""
+    mesh = entry.mesh
+    tip = entry.region[np.argsort(mesh.nodes[entry.region, 0])[-6:]]
+    seq = make_sequence(mesh, entry.fem.material, tip, n_frames=6, peak_force=30.0, n_points=100, seed=5)
+    sigma = 0.01  # m, against tip displacements up to 0.1 m
+    rng = np.random.default_rng(1)
+    clouds = [c + rng.normal(scale=sigma, size=c.shape) for c in seq.clouds]
+    base = SessionConfig(alpha=1e-6, outputs=("displacement",))
+    plain, told = Session(entry.network, base), Session(entry.network, dataclasses.replace(base, noise=sigma))
+    for cloud in clouds:
+        a, b = plain.frame(cloud), told.frame(cloud)
+        assert b.alpha == 1e-6 and b.iterations == a.iterations
+        np.testing.assert_array_equal(b.outputs["displacement"], a.outputs["displacement"])
+        assert b.error_estimate < a.error_estimate
+
+
+def test_noise_settings_refused(entry):
     with pytest.raises(ValueError, match="squared loss"):
         Session(entry.network, SessionConfig(noise=1e-3, loss="huber", loss_param=1e-3))
     with pytest.raises(ValueError, match="positive length"):
