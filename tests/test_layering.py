@@ -28,6 +28,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
             "service.scene",
             "service.scenes",
             "service.forward",
+            "service.spare",
         ),
     ),
     ("fem", ("service.fem",)),

@@ -140,8 +140,8 @@ def _smoke_case(entry):
 
 
 def main(args: argparse.Namespace) -> int:
+    from .. import spare
     from ..config import Settings, default_store, limit_threads
-    from ..registration import spare
     from . import machine
 
     blas_threads = Settings().blas_threads

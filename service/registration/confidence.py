@@ -47,9 +47,9 @@ from ..fem.material import NeoHookean
 from ..fem.rest import rest_compliance
 from ..jit import kernels
 from ..mesh import TetMesh
+from ..spare import Beside
 from .distance import Match
 from .levenberg import distance_gram
-from .spare import Beside
 
 Array = np.ndarray
 

@@ -34,11 +34,11 @@ import numpy as np
 from scipy.optimize import minimize
 
 from ..forward import ForwardFailed, ForwardOperator
+from ..spare import Beside
 from .distance import PointToSurface
 from .levenberg import GaussNewtonModel, distance_gram, prepare
 from .precondition import Curvature, gauss_newton
 from .settings import DEFAULT_ALPHA, DEFAULT_GTOL, NAMES, OPTIMIZERS, Optimizer, SessionConfig
-from .spare import Beside
 
 log = logging.getLogger(__name__)
 

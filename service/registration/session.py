@@ -29,18 +29,18 @@ import time
 
 import numpy as np
 
+from .. import spare
 from ..fem.assembly import Assembler
 from ..fem.material import NeoHookean
 from ..forward import ForwardFailed, ForwardModel, ForwardOperator, check_support
 from ..mesh import TetMesh
-from . import spare
+from ..spare import Beside
 from .confidence import error_estimate, estimator_for, noise_spread
 from .distance import PointToSurface
 from .engine import SolveOptions, check_optimizer, solve_frame
 from .noise_prior import AlphaTracker
 from .precondition import Curvature
 from .settings import DEFAULT_ALPHA, DEFAULT_GTOL, METHODS, OUTPUT_NAMES, SessionConfig
-from .spare import Beside
 
 Array = np.ndarray
 

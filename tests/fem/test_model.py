@@ -1,13 +1,15 @@
 """The FEM forward model: its adjoint against finite differences, torch autograd, stiffness."""
 
+import threading
 import time
 
 import numpy as np
 import pytest
 import torch
 
+from service import spare
 from service.fem.material import NeoHookean
-from service.fem.model import FEMModel
+from service.fem.model import FACTOR_IN_SOLVES, FEMModel
 from service.fem.newton import NewtonOptions
 from service.forward import ForwardFailed, torch_forward
 
@@ -123,6 +125,33 @@ def test_a_jacobian_past_its_deadline_stops_between_blocks_of_solves(model):
     assert info.value.status == "time_limit"
     full = op._support_response(solve, deadline=time.perf_counter() + 3600.0, block=3)
     np.testing.assert_allclose(full, op._support_response(solve), atol=1e-12)
+
+
+def test_the_jacobian_solves_half_its_columns_on_a_spare_core(model):
+    """Beside the caller, a second factor of the same tangent solves the last columns: the
+    Jacobian equals the one made in turn. With every spare thread busy, the caller makes them
+    all on its own factor, and no second factor is made."""
+    support = model.mesh.free_surface_nodes
+    assert 3 * support.size > 2 * FACTOR_IN_SOLVES  # a split pays
+    g = np.random.default_rng(3).normal(size=(support.size, 3)) * 2.0
+    nodes = model.mesh.surface_nodes
+    op = model.restrict(support, nodes)
+    split = op.jacobian(g).U
+    assert op._helper is not None
+    in_turn = op._support_response(op._newton.solver.solve)
+    np.testing.assert_allclose(split, in_turn, rtol=0, atol=1e-12 * np.abs(in_turn).max())
+    busy = model.restrict(support, nodes)
+    release = threading.Event()
+    pool = spare._executor()
+    blockers = [pool.submit(release.wait, 60.0) for _ in range(pool._max_workers)]
+    try:
+        alone = busy.jacobian(g).U
+    finally:
+        release.set()
+        for b in blockers:
+            b.result()
+    assert busy._helper is None
+    np.testing.assert_allclose(alone, in_turn, rtol=0, atol=1e-12 * np.abs(in_turn).max())
 
 
 def test_support_is_validated(model):

@@ -2,7 +2,8 @@
 
 On a machine with a core to spare, parts of a warm network frame overlap: its rest state with
 its start, the distance's Gram with the Jacobian, the estimate's rotations with its internal
-force, and the outputs at each Levenberg-Marquardt trial point with that point's distance
+force, and the outputs at each Levenberg-Marquardt trial point with that point's distance; the
+Newton method's Jacobian solves half its columns there, on a factor of its own
 (docs/performance.md). A job goes to a shared pool of one thread per core beyond the first;
 where no thread has started it by the time its result is needed (every core busy with other
 sessions' frames), the caller cancels it and runs it itself. A core is spare only while fewer
@@ -72,6 +73,13 @@ class Beside(Generic[T]):
     def result(self) -> T:
         if self._future is None or self._future.cancel():  # not begun: no spare thread was free
             return self._fn()
+        return self._future.result()
+
+    def taken(self) -> T | None:
+        """Its result if a thread has begun it (waiting for the end), else None: cancelled, for
+        a caller that would do the work another way than `fn` (without a second factor, say)."""
+        if self._future is None or self._future.cancel():
+            return None
         return self._future.result()
 
     def drop(self) -> None:

@@ -4,7 +4,7 @@ import threading
 
 import pytest
 
-from service.registration import spare
+from service import spare
 
 
 def test_a_job_runs_beside_the_caller_when_a_thread_is_free():
@@ -50,3 +50,23 @@ def test_no_core_is_spare_while_every_core_has_a_frame():
         assert not spare.spare()
         assert spare.Beside(threading.get_ident).result() == threading.get_ident()
     assert spare.spare()
+
+
+def test_taken_is_the_result_if_begun_and_none_if_not():
+    """`taken` lets a caller do a job its own way when no thread began it: the job then never runs."""
+    started = threading.Event()
+    assert spare.Beside(lambda: started.set() or 7).taken() in (7, None)
+    release, ran = threading.Event(), []
+    pool = spare._executor()
+    blockers = [pool.submit(release.wait, 30.0) for _ in range(pool._max_workers)]
+    try:
+        beside = spare.Beside(lambda: ran.append(1))
+        assert beside.taken() is None
+    finally:
+        release.set()
+        for b in blockers:
+            b.result()
+    assert not ran
+    begun = threading.Event()
+    beside = spare.Beside(lambda: begun.set() or 7)
+    assert begun.wait(10.0) and beside.taken() == 7
