@@ -216,7 +216,7 @@ class FEMOperator:
                 X = solve(rhs)
                 J[read >= 0, lo:hi] = X[read[read >= 0]]
 
-        mine = n_cols if at is None else (n_cols + FACTOR_IN_SOLVES) // 2  # both halves end together
+        mine = n_cols if at is None else min(n_cols, (n_cols + FACTOR_IN_SOLVES) // 2)  # both halves end together
         other = None
         if mine < n_cols - FACTOR_IN_SOLVES // 2:
 

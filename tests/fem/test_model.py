@@ -152,6 +152,10 @@ def test_the_jacobian_solves_half_its_columns_on_a_spare_core(model):
             b.result()
     assert busy._helper is None
     np.testing.assert_allclose(alone, in_turn, rtol=0, atol=1e-12 * np.abs(in_turn).max())
+    small = model.restrict(support[:5], nodes)  # 15 columns: fewer than a factorisation costs
+    few = small.jacobian(g[:5]).U
+    assert small._helper is None and few.shape == (3 * nodes.size, 15)
+    np.testing.assert_allclose(few, small._support_response(small._newton.solver.solve), rtol=0, atol=1e-15)
 
 
 def test_support_is_validated(model):
