@@ -62,6 +62,11 @@ class FEMModel:
 #: surface would take about 8 s and 100 MB a step)
 MAX_JACOBIAN_SUPPORT = 500
 
+#: A factorisation's cost in back-substitutions (in blocks): the paper's liver, 27 ms against
+#: 0.9 ms, one thread. The Jacobian's columns split so that the spare core's share plus its own
+#: factorisation take as long as the caller's; under twice this, no split pays
+FACTOR_IN_SOLVES = 30
+
 #: Equilibria an operator keeps by their forces, the latest first: a frame's outputs are taken
 #: at its best iterate, which need not be its last evaluation (a frame cut short by its budget
 #: mid line search), and solving for it again would be a Newton solve past the budget. 32
@@ -90,7 +95,7 @@ class FEMOperator:
         # (g, u) of recent equilibria, latest first; the first is the next solve's start
         self._kept: list[tuple[Array, Array]] = []
         self._rest_jacobian: DenseJacobian | None = None
-        self._model_factors: tuple[SparseSolver, SparseSolver] | None = None  # the Jacobian's, single precision
+        self._helper: SparseSolver | None = None  # a second factor, for the Jacobian's other half
         self._last_jacobian: tuple[Array, DenseJacobian] | None = None  # (g, du/dg at g)
         self.last: NewtonResult | None = None
         #: a time.perf_counter() value past which solves give up (ForwardFailed "time_limit"):
@@ -174,10 +179,7 @@ class FEMOperator:
             self._solve(g)
         newton, u = self._newton, self._last_u
         if newton.factor_at(u):
-            try:
-                jac = DenseJacobian(self._support_response(deadline=self.deadline, at=u))
-            except ArithmeticError:  # a tangent too near instability for float32: the exact factor
-                jac = DenseJacobian(self._support_response(newton.solver.solve, self.deadline))
+            jac = DenseJacobian(self._support_response(newton.solver.solve, self.deadline, at=u))
         else:  # an unstable equilibrium: refine on the shifted factor
             K = self.model.assembler.tangent(u)
             solve = lambda B: _refined_solve(K, newton.solver.solve, B)  # noqa: E731
@@ -186,17 +188,14 @@ class FEMOperator:
         return jac
 
     def _support_response(
-        self, solve=None, deadline: float | None = None, block: int = 256, at: Array | None = None
+        self, solve, deadline: float | None = None, block: int = 256, at: Array | None = None
     ) -> Array:
         """K^-1 applied to each unit force on the support, read at the operator's nodes, in
         blocks of `block` right-hand sides (a block's solution is 3n x block; the whole would be
         3n x 3k); past `deadline`, ForwardFailed between blocks (the rest responses, made once
-        per operator, take none). K^-1 is `solve`, or, given `at` instead (a state whose tangent
-        is positive definite), single-precision factors of at's tangent: a model needs about
-        1e-5 (the step's right-hand side stays the exact gradient), and a float32 solve costs
-        half a double one. The second half of the columns then goes to a spare core, on a
-        factor of its own (``spare.Beside``; the caller solves them itself if no thread began).
-        Shape: (3p, 3k)."""
+        per operator, take none). `at`: the state u whose exact tangent `solve` holds; given,
+        the last columns go to a spare core, which factorises that tangent on a solver of its
+        own (``spare.Beside``; the caller solves them itself if no thread began). Shape: (3p, 3k)."""
         mesh, n_cols = self.mesh, 3 * self.support.size
         free = mesh.free_dofs
         pos = np.full(3 * mesh.n_nodes, -1, np.int64)
@@ -217,39 +216,33 @@ class FEMOperator:
                 X = solve(rhs)
                 J[read >= 0, lo:hi] = X[read[read >= 0]]
 
-        mine, other = n_cols, None
-        if at is not None:
-            K = self.model.assembler.tangent(at)
-            own, spare_factor = self._single_factors()
-            mine = (n_cols + 1) // 2
+        mine = n_cols if at is None else min(n_cols, (n_cols + FACTOR_IN_SOLVES) // 2)  # both halves end together
+        other = None
+        if mine < n_cols - FACTOR_IN_SOLVES // 2:
 
             def theirs() -> bool:
-                spare_factor.factor(K)
-                fill(spare_factor.solve, mine, n_cols)
+                helper = self._helper_solver()
+                helper.factor(self.model.assembler.tangent(at))  # at's tangent is SPD: its factor held
+                fill(helper.solve, mine, n_cols)
                 return True
 
-            other = Beside(theirs) if mine < n_cols else None
-            solve = own.solve
+            other = Beside(theirs)
         try:
-            if at is not None:
-                own.factor(K)
             fill(solve, 0, mine)
         except BaseException:
-            if other is not None:  # its factor must be free before the next Jacobian uses it
+            if other is not None:  # its solver must be free before the next Jacobian factors on it
                 with contextlib.suppress(Exception):
                     other.taken()
             raise
-        if other is not None and other.taken() is None:  # no thread began it: the caller's factor
+        if other is not None and other.taken() is None:  # no thread began it: no second factor
             fill(solve, mine, n_cols)
         return J
 
-    def _single_factors(self) -> tuple[SparseSolver, SparseSolver]:
-        """Two single-precision solvers of the tangent's pattern: the caller's, the spare core's."""
-        if self._model_factors is None:
-            K0 = self.model.assembler.stiffness_at_rest()
-            backend = self.model.options.backend
-            self._model_factors = (make_solver(K0, backend, single=True), make_solver(K0, backend, single=True))
-        return self._model_factors
+    def _helper_solver(self):
+        """A second solver of the tangent's pattern, for columns solved on a spare core."""
+        if self._helper is None:
+            self._helper = make_solver(self.model.assembler.stiffness_at_rest(), self.model.options.backend)
+        return self._helper
 
     def __call__(self, g: Array) -> tuple[Array, callable]:
         g = np.asarray(g, np.float64)
