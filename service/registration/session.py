@@ -113,9 +113,8 @@ class Session:
         gtol = config.gtol if config.gtol is not None else DEFAULT_GTOL.get(model.method, 1e-4)
         alpha = config.alpha if config.alpha is not None else DEFAULT_ALPHA * (E_model / float(model.material.E)) ** 2
         self.alpha_tracker: AlphaTracker | None = None
-        if (
-            config.noise is not None and config.alpha is None
-        ):  # a given alpha stays: noise then informs the estimate alone
+        # noise without alpha chooses alpha; a given alpha stays, and noise informs the estimate alone
+        if config.noise is not None and config.alpha is None:
             if config.loss != "squared":
                 raise ValueError(f"noise chooses alpha for the squared loss only, not {config.loss!r}")
             self.alpha_tracker = AlphaTracker(alpha, config.noise)  # starts at the default
