@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
+import threading
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from service import spare
 from service.mesh import TetMesh
 from service.phantoms import grid_tets
 
@@ -15,6 +19,21 @@ SHARED = Path(__file__).resolve().parents[2] / "shared"
 LIVER = SHARED / "meshes" / "liver_paper"
 #: CI sets CI=true and puts shared/ beside the checkout: there a missing ../shared is a failure
 IN_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
+
+
+@contextlib.contextmanager
+def spare_threads_busy() -> Iterator[None]:
+    """Every thread of the spare pool held on a wait while the block runs: as on a server whose
+    cores all run frames, a job handed to the pool is never begun."""
+    release = threading.Event()
+    pool = spare._executor()
+    blockers = [pool.submit(release.wait, 60.0) for _ in range(pool._max_workers)]
+    try:
+        yield
+    finally:
+        release.set()
+        for b in blockers:
+            b.result()
 
 
 def require_shared(path: Path) -> None:

@@ -5,6 +5,7 @@ import threading
 import pytest
 
 from service import spare
+from tests.conftest import spare_threads_busy
 
 
 def test_a_job_runs_beside_the_caller_when_a_thread_is_free():
@@ -21,16 +22,9 @@ def test_a_job_runs_beside_the_caller_when_a_thread_is_free():
 
 def test_a_job_runs_inline_when_every_spare_thread_is_busy():
     """A loaded server's frame never waits in the queue: the caller takes its own job back."""
-    release = threading.Event()
-    pool = spare._executor()
-    blockers = [pool.submit(release.wait, 30.0) for _ in range(pool._max_workers)]
-    try:
+    with spare_threads_busy():
         beside = spare.Beside(threading.get_ident)
         assert beside.result() == threading.get_ident()
-    finally:
-        release.set()
-        for b in blockers:
-            b.result()
 
 
 def test_a_failing_job_raises_in_the_caller():
@@ -56,16 +50,10 @@ def test_taken_is_the_result_if_begun_and_none_if_not():
     """`taken` lets a caller do a job its own way when no thread began it: the job then never runs."""
     started = threading.Event()
     assert spare.Beside(lambda: started.set() or 7).taken() in (7, None)
-    release, ran = threading.Event(), []
-    pool = spare._executor()
-    blockers = [pool.submit(release.wait, 30.0) for _ in range(pool._max_workers)]
-    try:
+    ran: list[int] = []
+    with spare_threads_busy():
         beside = spare.Beside(lambda: ran.append(1))
         assert beside.taken() is None
-    finally:
-        release.set()
-        for b in blockers:
-            b.result()
     assert not ran
     begun = threading.Event()
     beside = spare.Beside(lambda: begun.set() or 7)

@@ -1,17 +1,16 @@
 """The FEM forward model: its adjoint against finite differences, torch autograd, stiffness."""
 
-import threading
 import time
 
 import numpy as np
 import pytest
 import torch
 
-from service import spare
 from service.fem.material import NeoHookean
 from service.fem.model import FACTOR_IN_SOLVES, FEMModel
 from service.fem.newton import NewtonOptions
 from service.forward import ForwardFailed, torch_forward
+from tests.conftest import spare_threads_busy
 
 
 @pytest.fixture(scope="module")
@@ -153,15 +152,8 @@ def test_the_jacobian_solves_half_its_columns_on_a_spare_core(model):
     in_turn = op._support_response(op._newton.solver.solve)
     np.testing.assert_allclose(split, in_turn, rtol=0, atol=1e-12 * np.abs(in_turn).max())
     busy = model.restrict(support, nodes)
-    release = threading.Event()
-    pool = spare._executor()
-    blockers = [pool.submit(release.wait, 60.0) for _ in range(pool._max_workers)]
-    try:
+    with spare_threads_busy():
         alone = busy.jacobian(g).U
-    finally:
-        release.set()
-        for b in blockers:
-            b.result()
     assert busy._helper is None
     np.testing.assert_allclose(alone, in_turn, rtol=0, atol=1e-12 * np.abs(in_turn).max())
     small = model.restrict(support[:5], nodes)  # 15 columns: fewer than a factorisation costs
