@@ -34,7 +34,6 @@ from ..fem.assembly import Assembler
 from ..fem.material import NeoHookean
 from ..forward import ForwardFailed, ForwardModel, ForwardOperator, check_support
 from ..mesh import TetMesh
-from ..spare import Beside
 from .confidence import error_estimate, estimator_for, noise_spread
 from .distance import PointToSurface
 from .engine import SolveOptions, check_optimizer, solve_frame
@@ -136,7 +135,7 @@ class Session:
         # Levenberg-Marquardt's answer is its last accepted evaluation: the network's outputs
         # for each loaded evaluation start on a spare core while its distance is measured
         self._early_outputs = self._rest_distance is not None and self._options.optimizer == "levenberg-marquardt"
-        self._early: tuple[Array, Beside] | None = None  # (g, its field and forward error)
+        self._early: tuple[Array, spare.Beside] | None = None  # (g, its field and forward error)
         self.frames = 0
         self.converged = 0
         self.failed = 0
@@ -334,7 +333,7 @@ class Session:
         if self._early is not None:
             self._early[1].drop()
         g = np.array(g, np.float64)
-        self._early = (g, Beside(functools.partial(_field, self.op, self.model, g, self.support)))
+        self._early = (g, spare.Beside(functools.partial(_field, self.op, self.model, g, self.support)))
 
     def _noise_spread(self, op: ForwardOperator, g: Array, u_all: Array, alpha: float) -> float:
         """The declared noise carried into the answer (confidence.noise_spread), through the
