@@ -27,11 +27,9 @@ from clients.demo import spearman
 from service.bench.cases import run_case, synthetic_case
 from service.bench.machine import describe
 from service.config import limit_threads
-from service.demo import PEAK_FRACTION, patches
+from service.demo import NOISE, PEAK_FRACTION, patches
 from service.registration.settings import DEFAULT_ALPHA, SessionConfig
 from service.store import load_entry
-
-NOISE = 5e-4  # m per axis, as the demo's clouds
 
 
 def main() -> int:

@@ -29,6 +29,7 @@ from .synthetic import make_sequence, tool_patches
 TOOL_NODES = 12
 SUPPORT_NODES = 36
 PEAK_FRACTION = 0.7  # of the model's training max_force
+NOISE = 5e-4  # m per axis on every point of a cloud: a depth camera's, declared to the session
 
 
 def patches(mesh, region: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -44,7 +45,7 @@ def run(
     store=None,
     *,
     n_points: int = 1000,
-    noise: float = 0.0005,
+    noise: float = NOISE,
     seed: int = 0,
     out=None,
 ) -> int:
