@@ -145,6 +145,7 @@ class FrameSolution:
     evaluations: int
     timing: Timing
     message: str = ""
+    u: Array | None = None  # (p, 3) the displacement of op.nodes at g, where g was evaluated here
 
 
 class _Stop(Exception):
@@ -174,6 +175,7 @@ class Objective:
         self.timing = timing or Timing()
         self.evaluations = 0
         self.best_value, self.best_g, self.best_J = math.inf, None, math.inf
+        self.best_u: Array | None = None  # displacement of op.nodes at best_g
         self.best_rms = self.rest_rms = math.nan  # at the best iterate, and at g = 0
         self.last_u: Array | None = None  # displacement of op.nodes at the last evaluation
         self.rest_u: Array | None = None  # ... and at g = 0
@@ -209,6 +211,7 @@ class Objective:
             raise _Stop("non_finite", "the objective or its gradient is not finite")
         if value < self.best_value:
             self.best_value, self.best_g, self.best_J = value, np.array(g, np.float64), J
+            self.best_u = u
             self.best_rms = self.distance.last_rms
         return value, grad, J
 
@@ -222,6 +225,7 @@ class Objective:
             raise _Stop("non_finite", "the objective or its gradient is not finite")
         if J <= self.best_value:  # ties to rest, as when it is evaluated first
             self.best_value, self.best_g, self.best_J, self.best_rms = J, np.zeros_like(grad), J, rms
+            self.best_u = u
         return J, grad
 
 
@@ -344,6 +348,7 @@ def solve_frame(
     except _Done:
         status, message = "converged", "the cloud lies on the rest surface: no force needed"
         evaluate.best_g, evaluate.best_value, evaluate.best_J = np.zeros((k, 3)), v_rest, v_rest
+        evaluate.best_u = evaluate.rest_u
         evaluate.best_rms = evaluate.rest_rms
     except _Stop as stop:
         status, message = stop.status, stop.message
@@ -364,6 +369,7 @@ def solve_frame(
         evaluations=evaluate.evaluations,
         timing=timing,
         message=message,
+        u=evaluate.best_u,
     )
 
 

@@ -36,7 +36,7 @@ from ..forward import ForwardFailed, ForwardModel, ForwardOperator, check_suppor
 from ..mesh import TetMesh
 from .confidence import error_estimate, estimator_for, noise_spread
 from .distance import PointToSurface
-from .engine import SolveOptions, check_optimizer, solve_frame
+from .engine import FrameSolution, SolveOptions, check_optimizer, solve_frame
 from .noise_prior import AlphaTracker
 from .precondition import Curvature
 from .settings import DEFAULT_ALPHA, DEFAULT_GTOL, METHODS, OUTPUT_NAMES, SessionConfig
@@ -196,7 +196,7 @@ class Session:
             )
             self._commit(sol, len(points), learn=True)
             t1 = time.perf_counter()
-            outputs, rms, estimate = self._outputs(self.op, self.model, sol.g, sol.rms, options.alpha)
+            outputs, rms, estimate = self._outputs(self.op, self.model, sol, options.alpha)
             timing = sol.timing.as_ms()
             timing["outputs"] = 1e3 * (time.perf_counter() - t1)
             method_used, iterations, evaluations = self.model.method, sol.iterations, sol.evaluations
@@ -212,9 +212,7 @@ class Session:
                     self._commit(fem, len(points), learn=False)
                     sol, method_used = fem, self.corrector.method
                     iterations, evaluations = iterations + fem.iterations, evaluations + fem.evaluations
-                    outputs, rms, estimate = self._outputs(
-                        self._corrector_op, self.corrector, fem.g, fem.rms, options.alpha
-                    )
+                    outputs, rms, estimate = self._outputs(self._corrector_op, self.corrector, fem, options.alpha)
             timing["total"] = 1e3 * (time.perf_counter() - t0)
             self.frames += 1
             self.converged += int(sol.converged)
@@ -296,26 +294,36 @@ class Session:
         )
 
     def _outputs(
-        self, op: ForwardOperator, model: ForwardModel, g: Array, rms: float, alpha: float
+        self, op: ForwardOperator, model: ForwardModel, sol: FrameSolution, alpha: float
     ) -> tuple[dict[str, Array], float, float]:
-        """The requested fields at the frame's forces, the RMS point-to-surface distance (the
-        solve's at g, or searched for if it has none: the best iterate was never evaluated), and
-        the error estimate (the whole field is read for it, requested or not)."""
+        """The requested fields at the frame's forces `sol.g`, the RMS point-to-surface distance
+        (the solve's at g, or searched for if it has none: the best iterate was never evaluated),
+        and the error estimate (the whole field is read for it, requested or not)."""
+        g, rms = sol.g, sol.rms
         want = set(self.config.outputs)
         out: dict[str, Array] = {}
+        # with noise declared, the network's field is made on a spare core (its operator
+        # allows it, as for a warm frame's rest state) while this one carries the noise through
+        beside = op is self.op and self._rest_distance is not None and bool(self._noise) and sol.u is not None
         early, self._early = self._early, None
         if early is not None and op is self.op and np.array_equal(early[0], g):
-            u_all, forward = early[1].result()
+            field = early[1]
         else:
             if early is not None:
                 early[1].drop()
-            u_all, forward = _field(op, model, g, self.support)
+            field = spare.Beside(functools.partial(_field, op, model, g, self.support)) if beside else None
+        spread = None
+        if field is not None and sol.u is not None:
+            spread = self._noise_spread(op, g, self._rest + sol.u, alpha)
+        u_all, forward = field.result() if field is not None else _field(op, model, g, self.support)
         if not np.isfinite(rms):
             u_nodes = np.zeros((self.distance.nodes.size, 3)) if u_all is None else u_all[self.distance.nodes]
             rms = float(np.sqrt(np.mean(self.distance.closest(self._rest + u_nodes).sq_distances)))
         estimate = float("inf")
         if u_all is not None and np.isfinite(u_all).all():
-            spread = self._noise_spread(op, g, u_all, alpha)
+            if spread is None:
+                x = self._rest + (u_all[self.distance.nodes] if sol.u is None else sol.u)
+                spread = self._noise_spread(op, g, x, alpha)
             estimate = error_estimate(forward, rms, self._noise, spread)
             if "displacement" in want:
                 out["displacement"] = u_all
@@ -335,11 +343,11 @@ class Session:
         g = np.array(g, np.float64)
         self._early = (g, spare.Beside(functools.partial(_field, self.op, self.model, g, self.support)))
 
-    def _noise_spread(self, op: ForwardOperator, g: Array, u_all: Array, alpha: float) -> float:
+    def _noise_spread(self, op: ForwardOperator, g: Array, x: Array, alpha: float) -> float:
         """The declared noise carried into the answer (confidence.noise_spread), through the
         forward model's Jacobian at g (the Newton method's: 3 solves per support node, unless its
-        last step made it there); 0 without declared noise or a Jacobian (the Newton method past
-        MAX_JACOBIAN_SUPPORT support nodes)."""
+        last step made it there), the matching nodes at x (p, 3); 0 without declared noise or a
+        Jacobian (the Newton method past MAX_JACOBIAN_SUPPORT support nodes)."""
         jacobian = getattr(op, "jacobian", None)
         if not self._noise or jacobian is None:
             return 0.0
@@ -351,7 +359,6 @@ class Session:
             return float("inf")
         if jac is None:  # the paper's layout: no basis, no Jacobian
             return 0.0
-        x = self._rest + u_all[self.distance.nodes]
         match = self.distance.last_match
         if match is None or not np.array_equal(match.x, x):  # the answer was not the last evaluation
             self.distance(x)

@@ -296,3 +296,27 @@ def test_outputs_made_early_are_the_answers_own(entry, sequence, noise):
             forward = estimator_for(entry.network).forward_error(u, s.g, s.support)
             assert r.error_estimate == pytest.approx(error_estimate(forward, r.distance_rms, None), rel=1e-12)
     assert steps > 0  # trial points were taken: the early outputs were made
+
+
+def test_the_noise_term_beside_the_field_is_the_fields_own(entry, sequence):
+    """With noise declared, an L-BFGS-B network frame makes its field on a spare core while the
+    noise is carried through the Jacobian at the returned forces' own evaluation: the same
+    answer and estimate as with every spare thread busy (all inline), and the estimate that of
+    the returned field."""
+    from service.registration.confidence import error_estimate, estimator_for
+    from tests.conftest import spare_threads_busy
+
+    tool, seq = sequence
+    config = SessionConfig(support=_support(entry, tool), outputs=("displacement",), noise=1e-3, alpha=1e-7)
+    beside, inline = Session(entry.network, config), Session(entry.network, config)
+    for cloud in seq.clouds[::4]:
+        a = beside.frame(cloud)
+        with spare_threads_busy():
+            b = inline.frame(cloud)
+        np.testing.assert_array_equal(a.outputs["displacement"], b.outputs["displacement"])
+        assert a.error_estimate == b.error_estimate
+        u = a.outputs["displacement"]
+        spread = beside._noise_spread(beside.op, beside.g, beside._rest + u[beside.distance.nodes], 1e-7)
+        forward = estimator_for(entry.network).forward_error(u, beside.g, beside.support)
+        expected = error_estimate(forward, a.distance_rms, 1e-3, spread)
+        assert spread > 0 and a.error_estimate == pytest.approx(expected, rel=1e-5)
