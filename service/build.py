@@ -23,7 +23,7 @@ from .fem.newton import NewtonOptions
 from .scene import Scene
 from .store import write_entry
 from .surrogate.data import LoadSpec, done_indices, generate, load_dataset
-from .surrogate.train import TrainConfig, held_out_paths, train
+from .surrogate.train import TrainConfig, train
 
 log = logging.getLogger(__name__)
 
@@ -34,8 +34,7 @@ DATA_SHARE = 0.6
 WRITE_RESERVE_S = 5.0
 #: Newton iterations a timed build gives one step of a training path before it drops the rest of
 #: the path: two cuts' worth of a load step's own budget. The steps past it are extreme shapes
-#: that took half of a slow organ's FEM time (docs/performance.md); an untimed build keeps them,
-#: and so does a timed build's validation paths, which measure the whole load distribution
+#: that took half of a slow organ's FEM time (docs/performance.md); an untimed build keeps them
 TIMED_NEWTON_CAP = 2 * NewtonOptions.max_step_iter
 
 
@@ -54,20 +53,11 @@ def load_spec(scene: Scene, region: np.ndarray) -> LoadSpec:
     )
 
 
-def data_key(
-    mesh_hash: str,
-    material: NeoHookean,
-    spec: LoadSpec,
-    max_newton: int | None = None,
-    held_out: tuple[float, int] | None = None,
-) -> str:
-    """The data folder's key; a Newton cap keeps a folder of its own (it changes which steps
-    exist), as does the rule for the paths it spares (`held_out`: validation fraction, seed)."""
+def data_key(mesh_hash: str, material: NeoHookean, spec: LoadSpec, max_newton: int | None = None) -> str:
+    """The data folder's key; a Newton cap keeps a folder of its own (it changes which steps exist)."""
     parts: list = [mesh_hash, material.E, material.nu, dataclasses.asdict(spec)]
     if max_newton is not None:
         parts.append({"max_newton": max_newton})
-    if held_out is not None:
-        parts.append({"uncapped_validation": list(held_out)})
     blob = json.dumps(parts, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:12]
 
@@ -119,12 +109,7 @@ def build(
     n_samples = int(samples or scene.training.samples)
     n_paths = max(2, math.ceil(n_samples / spec.steps))
     max_newton = None if minutes is None else TIMED_NEWTON_CAP
-    # a timed build caps its training paths' Newton work but not its validation paths': capped
-    # ones would lack the extreme shapes, where a network that beats linear physics on them
-    # lost to it on a held-out test set (SOFA's liver at 5 minutes: docs/performance.md)
-    held_out = None if max_newton is None else (config.val_fraction, config.seed)
-    val_paths = None if held_out is None else held_out_paths(np.arange(n_paths), *held_out)
-    key = data_key(mesh.hash, material, spec, max_newton, held_out)
+    key = data_key(mesh.hash, material, spec, max_newton)
     data_dir = Path(data_root or default_data_root()) / f"{scene.name}-{key}"
     log.info("data for %s in %s (%d paths)", scene.name, data_dir, n_paths)
 
@@ -132,7 +117,7 @@ def build(
     data_until = None if deadline is None else t_start + DATA_SHARE * (deadline - t_start)
     paths = generate(
         mesh, material, spec, data_dir, n_paths,
-        workers=workers, scheduler=scheduler, progress=progress, max_newton=max_newton, uncapped=val_paths,
+        workers=workers, scheduler=scheduler, progress=progress, max_newton=max_newton,
     )  # fmt: skip
     for _ in paths:
         if data_until is not None and time.perf_counter() > data_until:
@@ -149,11 +134,7 @@ def build(
         config = dataclasses.replace(config, max_seconds=max(left, 1.0), epochs=max(config.epochs, 100_000))
     if config.members is None:  # the scene's ensemble is the reduced layout's; the paper's has none
         config = dataclasses.replace(config, members=scene.training.members if config.layout == "reduced" else 1)
-    held = None if val_paths is None else np.intersect1d(done, val_paths)
-    if held is not None and not 0 < held.size < len(done):  # too few paths finished to keep the rule
-        log.warning("%d of %d finished paths are held out: validating on a split of them instead", held.size, len(done))
-        held = None
-    result = train(F, U, P, Assembler(mesh, material), region, config, progress=progress, val_paths=held)
+    result = train(F, U, P, Assembler(mesh, material), region, config, progress=progress)
     net = result.model
     training = {
         "samples": int(len(F)),
@@ -166,7 +147,6 @@ def build(
         "load_distribution": {k: v for k, v in dataclasses.asdict(spec).items() if k != "region"},
         "data_key": data_dir.name,
         "max_newton": max_newton,
-        "uncapped_validation": held is not None,
     }
     features = int(net.feature_basis.shape[1]) if getattr(net, "physics", False) else None
     network = {

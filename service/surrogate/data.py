@@ -33,9 +33,6 @@ log = logging.getLogger(__name__)
 
 Array = np.ndarray
 
-#: a training sample's Newton tolerance (relative residual)
-SOLVE_RTOL = 1e-7
-
 
 @dataclasses.dataclass(frozen=True)
 class LoadSpec:
@@ -120,12 +117,7 @@ def _solver(mesh: TetMesh, material: NeoHookean, rtol: float, max_newton: int | 
 
 
 def solve_path(
-    mesh: TetMesh,
-    material: NeoHookean,
-    spec: LoadSpec,
-    index: int,
-    rtol: float = SOLVE_RTOL,
-    max_newton: int | None = None,
+    mesh: TetMesh, material: NeoHookean, spec: LoadSpec, index: int, rtol: float = 1e-7, max_newton: int | None = None
 ) -> dict:
     """Solve path `index` step by step; keeps the steps that converged (a pure function).
 
@@ -208,28 +200,25 @@ def generate(
     scheduler: str | None = None,
     progress: bool = True,
     max_newton: int | None = None,
-    uncapped: Array | None = None,
 ) -> Generator[dict, None, None]:
     """Solve paths 0..n_paths-1 that are not on disk yet, in parallel; yields each as written.
 
     With `scheduler` the work goes to that Dask cluster; otherwise a LocalCluster of `workers`
     single-threaded processes (one per core: the factorisation is the hot spot and threads
     would only fight over it). With workers=0 it runs in this process (tests, debugging).
-    `max_newton` caps each step's Newton iterations (solve_path), except on the paths in
-    `uncapped`; a data folder should hold paths of one such rule (build.data_key).
+    `max_newton` caps each step's Newton iterations (solve_path); a data folder should hold
+    paths of one cap (build.data_key).
     """
     data_dir = Path(data_dir)
     data_dir.mkdir(parents=True, exist_ok=True)
     todo = [i for i in range(n_paths) if i not in done_indices(data_dir)]
-    free = set() if uncapped is None else {int(i) for i in uncapped}
-    caps = [None if i in free else max_newton for i in todo]
     bar = _progress(n_paths, n_paths - len(todo), progress)
     if not todo:
         bar.close()
         return
     if workers == 0 and scheduler is None:
-        for i, cap in zip(todo, caps, strict=True):
-            result = solve_path(mesh, material, spec, i, max_newton=cap)
+        for i in todo:
+            result = solve_path(mesh, material, spec, i, max_newton=max_newton)
             write_path(data_dir, result)
             bar.update(1)
             bar.set_postfix(samples=_count(bar, result))
@@ -253,8 +242,9 @@ def generate(
     client = Client(scheduler or cluster)
     try:
         m, mat, s = client.scatter([mesh, material, spec], broadcast=True)
-        n = len(todo)
-        futures = client.map(solve_path, [m] * n, [mat] * n, [s] * n, todo, [SOLVE_RTOL] * n, caps, pure=False)
+        futures = client.map(
+            solve_path, [m] * len(todo), [mat] * len(todo), [s] * len(todo), todo, max_newton=max_newton, pure=False
+        )
         for fut in as_completed(futures):
             result = fut.result()
             write_path(data_dir, result)

@@ -76,18 +76,6 @@ def split_paths(path_ids: Array, val_fraction: float, seed: int) -> tuple[Array,
     return np.sort(paths[n_val:]), np.sort(paths[:n_val])
 
 
-def held_out_paths(path_ids: Array, val_fraction: float, seed: int) -> Array:
-    """The validation paths among `path_ids`, each decided by a draw of its own index alone, so
-    the set is known before any path is solved and does not depend on how many a timed build
-    reaches (such a build solves these without its Newton cap: build.py)."""
-    ids = np.unique(np.asarray(path_ids, np.int64))
-    draws = np.array([np.random.default_rng([seed, _HELD_OUT_STREAM, int(i)]).random() for i in ids])
-    return ids[draws < val_fraction]
-
-
-_HELD_OUT_STREAM = 1  # keeps these draws apart from every other use of the seed
-
-
 def nodal_errors(pred: Array, true: Array) -> Array:
     """Euclidean error per node per sample. Shape: (N, 3n) x2 -> (N, n)."""
     d = (pred - true).reshape(len(pred), -1, 3)
@@ -179,23 +167,15 @@ def train(
     region: Array,
     config: TrainConfig = TrainConfig(),
     progress: bool = True,
-    val_paths: Array | None = None,
 ) -> TrainResult:
-    """Fit a surrogate to samples F (N, R, 3) -> U (N, n, 3), validating on held-out paths:
-    `val_paths` where given (a timed build's, solved uncapped), else a split of `path_ids`."""
+    """Fit a surrogate to samples F (N, R, 3) -> U (N, n, 3), validating on held-out paths."""
     tqdm = need("tqdm.auto", "the trainer's progress bar").tqdm
     t_start = time.perf_counter()  # a capped training counts its model's making (a skip path's solves)
     if config.threads:
         torch.set_num_threads(config.threads)
     device = config.device or ("cuda" if torch.cuda.is_available() else "cpu")
     torch.manual_seed(config.seed)
-    if val_paths is None:
-        train_paths, val_paths = split_paths(path_ids, config.val_fraction, config.seed)
-    else:
-        val_paths = np.intersect1d(np.unique(path_ids), val_paths)
-        train_paths = np.setdiff1d(np.unique(path_ids), val_paths)
-        if not (val_paths.size and train_paths.size):
-            raise ValueError(f"{val_paths.size} validation and {train_paths.size} training paths: a build needs both")
+    train_paths, val_paths = split_paths(path_ids, config.val_fraction, config.seed)
     tr = np.isin(path_ids, train_paths)
     va = np.isin(path_ids, val_paths) if val_paths.size else tr
     F = F.reshape(len(F), -1).astype(np.float32)

@@ -231,11 +231,7 @@ def test_a_timed_build_keeps_to_its_minutes_and_still_learns(tmp_path, bar):
     # its paths' Newton work was capped, and capped data keep a folder of their own
     assert entry.manifest["training"]["max_newton"] == TIMED_NEWTON_CAP
     assert entry.manifest["training"]["data_key"] != f"{scene.name}-{data_key(*key)}"
-    held_out = (config.val_fraction, config.seed)
-    assert entry.manifest["training"]["data_key"] == f"{scene.name}-{data_key(*key, TIMED_NEWTON_CAP, held_out)}"
-    # ...but not its validation paths', which are drawn before any is solved
-    assert report.paths > 14  # seed 0 holds out paths 12 and 13 first
-    assert entry.manifest["training"]["uncapped_validation"] is True
+    assert entry.manifest["training"]["data_key"] == f"{scene.name}-{data_key(*key, TIMED_NEWTON_CAP)}"
 
 
 def test_a_build_too_short_for_two_paths_is_refused(tmp_path, bar):
@@ -277,23 +273,3 @@ def test_a_timed_training_spends_its_seconds(bar_store):
     config = TrainConfig(hidden=(16,), rank=8, epochs=100_000, patience=1, max_seconds=3.0)
     result = train(F, U, P, Assembler(entry.mesh, NeoHookean(4500.0, 0.45)), entry.region, config, progress=False)
     assert result.metrics["train_seconds"] > 2.0 and result.metrics["epochs"] > 20
-
-
-def test_training_validates_on_the_paths_it_is_given(bar_store):
-    """A timed build's held-out paths are the validation set, whole, and none of them trains;
-    a set that leaves nothing to train on is refused."""
-    from service.fem.assembly import Assembler
-    from service.fem.material import NeoHookean
-    from service.surrogate.data import load_dataset
-    from service.surrogate.train import TrainConfig, train
-
-    store, _ = bar_store
-    entry = load_entry(store / "bar")
-    F, U, P = load_dataset(next(store.parent.glob(f"data/{entry.manifest['training']['data_key']}")))
-    asm, config = Assembler(entry.mesh, NeoHookean(4500.0, 0.45)), TrainConfig(hidden=(16,), rank=8, epochs=2)
-    given = np.unique(P)[[1, 4]]
-    result = train(F, U, P, asm, entry.region, config, progress=False, val_paths=np.append(given, 10_000))
-    np.testing.assert_array_equal(result.val_paths, given)
-    np.testing.assert_array_equal(result.train_paths, np.setdiff1d(np.unique(P), given))
-    with pytest.raises(ValueError, match="validation and 0 training paths"):
-        train(F, U, P, asm, entry.region, config, progress=False, val_paths=np.unique(P))

@@ -66,32 +66,6 @@ def test_a_newton_cap_stops_a_path_at_the_first_step_that_needs_more(bar, spec):
     np.testing.assert_array_equal(generous["u"], free["u"])
 
 
-@pytest.mark.parametrize("workers", [0, 1])  # in process, and on a Dask cluster
-def test_a_capped_generation_leaves_the_held_out_paths_uncapped(tmp_path, bar, spec, workers):
-    """A timed build's validation paths keep every step its training paths' cap would drop."""
-    its = solve_path(bar, MAT, spec, 1)["newton_iterations"]
-    cap = int(its.max()) - 1
-    out = tmp_path / "data"
-    got = {r["index"]: r for r in generate(bar, MAT, spec, out, 3, workers=workers, progress=False,
-                                           max_newton=cap, uncapped=np.array([1]))}  # fmt: skip
-    assert sorted(got) == [0, 1, 2]
-    np.testing.assert_array_equal(got[1]["newton_iterations"], its)  # all of it
-    for i in (0, 2):
-        np.testing.assert_array_equal(got[i]["u"], solve_path(bar, MAT, spec, i, max_newton=cap)["u"])
-
-
-def test_held_out_paths_are_decided_by_their_own_index():
-    """Known before any path is solved, whatever number of paths a build reaches."""
-    from service.surrogate.train import held_out_paths
-
-    many = held_out_paths(np.arange(4000), 0.1, 0)
-    few = held_out_paths(np.arange(100), 0.1, 0)
-    np.testing.assert_array_equal(few, many[many < 100])
-    np.testing.assert_array_equal(held_out_paths(np.array([5, 3, 3, 12, 13]), 0.1, 0), [12, 13])
-    assert 0.08 < many.size / 4000 < 0.12
-    assert not np.array_equal(held_out_paths(np.arange(4000), 0.1, 1), many)
-
-
 def test_generation_resumes_without_losing_or_redoing_paths(tmp_path, bar, spec):
     out = tmp_path / "data"
     assert len(list(generate(bar, MAT, spec, out, 6, workers=0, progress=False))) == 6
