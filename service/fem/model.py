@@ -129,14 +129,18 @@ class FEMOperator:
         return res
 
     def displacement(self, g: Array) -> Array:
+        """The equilibrium under g (:meth:`_equilibrium`), the caller's to change."""
+        return self._equilibrium(np.asarray(g, np.float64)).copy()
+
+    def _equilibrium(self, g: Array) -> Array:
         """The equilibrium under g: a kept one if g was solved lately (the state the optimiser
-        scored, at no cost), else a Newton solve. The next solve starts from it either way."""
-        g = np.asarray(g, np.float64)
+        scored, at no cost; a warm frame's start is the last frame's answer), else a Newton
+        solve. The next solve starts from it either way. Read-only. Shape: (n, 3)."""
         for i, (g_kept, u_kept) in enumerate(self._kept):
             if np.array_equal(g_kept, g):
                 self._kept.insert(0, self._kept.pop(i))  # the latest now
-                return u_kept.copy()  # the caller's to change
-        return self._solve(g).u.copy()
+                return u_kept
+        return self._solve(g).u
 
     def _rest_solver(self) -> RestCompliance:
         """The rest stiffness's factorisation (the rest state's adjoint), shared with every
@@ -256,9 +260,11 @@ class FEMOperator:
                 return asm.unpack(solver.solve_free(asm.pack(rhs)))[support]
 
             return np.zeros((nodes.size, 3)), rest_pullback
-        res = self._solve(g)
+        # a kept equilibrium, not one more Newton iteration on it: that would move u by its
+        # tolerance, and the adjoint would factorise again at a state a bit away from the
+        # factor the last evaluation there left (a warm Newton frame's start, every frame)
+        u = self._equilibrium(g)
         asm, newton = self.model.assembler, self._newton
-        u = res.u
         nodes, support, mesh = self.nodes, self.support, self.mesh
 
         def pullback(u_bar: Array, rows: Array | None = None) -> Array:

@@ -76,9 +76,25 @@ def test_displacement_at_a_recent_equilibrium_takes_no_newton_solve(model):
     u[:] = 0.0
     assert np.abs(op.displacement(0.5 * g)).max() > 0.0
     op(0.5 * g)
-    assert op.last.iterations == 0  # warm-started from the kept equilibrium
+    assert op.last is last  # an evaluation there is the kept equilibrium too
     op.displacement(0.7 * g)  # never solved: a Newton solve
     assert op.last is not last and op.last.converged
+
+
+def test_an_evaluation_at_the_last_forces_reuses_their_adjoints_factor(model):
+    """A warm Newton frame starts where the last one ended: evaluating those forces again is
+    the kept equilibrium, and its adjoint the factor the last evaluation left there (before, one
+    more Newton iteration moved u by its tolerance and the adjoint factorised again)."""
+    support, g = support_and_load(model.mesh)
+    op = model.restrict(support)
+    u_bar = np.ones((model.mesh.n_nodes, 3))
+    u1, pullback = op(g)
+    first = pullback(u_bar)
+    factors = op._newton.n_factor
+    u2, pullback = op(g)
+    np.testing.assert_array_equal(u2, u1)
+    np.testing.assert_array_equal(pullback(u_bar), first)
+    assert op._newton.n_factor == factors
 
 
 def test_with_stiffness_scales_the_response(model):
