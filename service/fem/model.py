@@ -107,11 +107,6 @@ class FEMOperator:
         self._last_jacobian = None
 
     @property
-    def _last_g(self) -> Array | None:
-        """The forces of the latest equilibrium, None before the first."""
-        return self._kept[0][0] if self._kept else None
-
-    @property
     def _last_u(self) -> Array | None:
         """The latest equilibrium (the next solve's start), None before the first."""
         return self._kept[0][1] if self._kept else None
@@ -163,10 +158,10 @@ class FEMOperator:
 
     def jacobian(self, g: Array) -> DenseJacobian:
         """du/dg at g on the operator's nodes (the Levenberg-Marquardt driver's model): 3k
-        solves with the exact tangent's factorisation at g's equilibrium, the one the last
-        evaluation left when g was evaluated last (the driver asks right after), else a new
-        solve. Kept for the rest state and the last g: a warm-started frame starts where the
-        last one ended. Shape: U (3p, 3k)."""
+        solves with the exact tangent's factorisation at g's equilibrium (:meth:`_equilibrium`:
+        the kept one if g was solved lately; the factor is the last evaluation's when g was
+        evaluated last, as the driver asks right after). Kept for the rest state and the last g:
+        a warm-started frame starts where the last one ended. Shape: U (3p, 3k)."""
         if self.support.size > MAX_JACOBIAN_SUPPORT:
             raise ValueError(
                 f"levenberg-marquardt with the fem method takes 3 solves per support node at each step: at most "
@@ -179,9 +174,7 @@ class FEMOperator:
             return self._rest_jacobian
         if self._last_jacobian is not None and np.array_equal(self._last_jacobian[0], g):
             return self._last_jacobian[1]
-        if self._last_g is None or not np.array_equal(self._last_g, g):
-            self._solve(g)
-        newton, u = self._newton, self._last_u
+        newton, u = self._newton, self._equilibrium(g)
         if newton.factor_at(u):
             jac = DenseJacobian(self._support_response(newton.solver.solve, self.deadline, at=u))
         else:  # an unstable equilibrium: refine on the shifted factor
