@@ -8,14 +8,13 @@ demo`` inside it) under this interpreter."""
 
 from __future__ import annotations
 
-import argparse
-import json
-import platform
 import re
 import statistics
 import subprocess
 import sys
 from pathlib import Path
+
+import paired
 
 FIGURES = {
     "latency_ms": r"latency:\s+median ([\d.]+) ms",
@@ -33,48 +32,23 @@ def run(checkout: Path) -> dict:
     return {k: float(m.group(1)) if (m := re.search(p, out)) else None for k, p in FIGURES.items()}
 
 
-def commit(checkout: Path) -> str:
-    return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=checkout, capture_output=True, text=True,
-                          check=True).stdout.strip()  # fmt: skip
-
-
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("old", type=Path)
-    p.add_argument("new", type=Path)
+    p = paired.parser(__doc__)
     p.add_argument("--pairs", type=int, default=4)
-    p.add_argument("--out", type=Path, required=True)
     args = p.parse_args()
-    runs: dict[str, list[dict]] = {"old": [], "new": []}
-    for i in range(args.pairs):
-        for side in ("old", "new"):
-            runs[side].append(run(getattr(args, side)))
-            print(i, side, runs[side][-1], flush=True)
+    runs = paired.alternate(run, args, args.pairs)
     ratios = [n["latency_ms"] / o["latency_ms"] for o, n in zip(runs["old"], runs["new"], strict=True)]
     summary = {
         "latency_median_ms": {s: statistics.median(r["latency_ms"] for r in runs[s]) for s in runs},
         "latency_ratio_new_old": {"median": statistics.median(ratios), "each": ratios},
-        "same_answers": all(
-            {k: v for k, v in o.items() if k not in ("latency_ms", "solve_ms")}
-            == {k: v for k, v in n.items() if k not in ("latency_ms", "solve_ms")}
-            for o, n in zip(runs["old"], runs["new"], strict=True)
-        ),
+        "same_answers": all(_answers(o) == _answers(n) for o, n in zip(runs["old"], runs["new"], strict=True)),
     }
-    print(json.dumps(summary, indent=1))
-    record = {"commits": {"old": commit(args.old), "new": commit(args.new)}, "machine": platform.processor()
-              or platform.machine(), "cpu": _cpu(), "runs": runs, "summary": summary}  # fmt: skip
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(record, indent=1) + "\n")
+    paired.write(args, runs, summary)
 
 
-def _cpu() -> str:
-    """The CPU's model name, family and model (lscpu), where lscpu runs."""
-    try:
-        text = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-    keep = ("Model name", "CPU family", "Model:", "CPU(s):")
-    return "; ".join(" ".join(line.split()) for line in text.splitlines() if line.startswith(keep))
+def _answers(figures: dict) -> dict:
+    """A run's figures but its times: what both checkouts must agree on."""
+    return {k: v for k, v in figures.items() if k not in ("latency_ms", "solve_ms")}
 
 
 if __name__ == "__main__":

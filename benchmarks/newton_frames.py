@@ -9,12 +9,13 @@ server runs), the first `frames` frames of the sequence, gtol 1e-4."""
 
 from __future__ import annotations
 
-import argparse
 import json
 import statistics
 import subprocess
 import sys
 from pathlib import Path
+
+import paired
 
 #: what each process runs inside its checkout: the frames' times, iterations and forces
 _ONE_RUN = """
@@ -47,20 +48,15 @@ def run(checkout: Path, model: Path, frames: int) -> list[dict]:
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("old", type=Path)
-    p.add_argument("new", type=Path)
+    p = paired.parser(__doc__)
     p.add_argument("--model", type=Path, required=True)
     p.add_argument("--rounds", type=int, default=3)
     p.add_argument("--frames", type=int, default=8)
-    p.add_argument("--out", type=Path, required=True)
     args = p.parse_args()
-    runs: dict[str, list] = {"old": [], "new": []}
-    for i in range(args.rounds):
-        for side in ("old", "new"):
-            runs[side].append(run(getattr(args, side), args.model, args.frames))
-            warm = [f["ms"] for f in runs[side][-1][1:]]
-            print(i, side, "warm median ms", round(statistics.median(warm), 1), flush=True)
+    runs = paired.alternate(
+        lambda checkout: run(checkout, args.model, args.frames), args, args.rounds,
+        show=lambda frames: f"warm median {statistics.median(f['ms'] for f in frames[1:]):.1f} ms",
+    )  # fmt: skip
     medians = {s: [statistics.median(f["ms"] for f in r[1:]) for r in runs[s]] for s in runs}
     summary = {
         "warm_median_ms": medians,
@@ -72,15 +68,7 @@ def main() -> None:
             for a, b in zip(o["net_force"], n["net_force"], strict=True)
         ),  # fmt: skip
     }
-    print(json.dumps(summary, indent=1))
-    commits = {s: subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=getattr(args, s), capture_output=True,
-                                 text=True, check=True).stdout.strip() for s in runs}  # fmt: skip
-    cpu = subprocess.run(["lscpu"], capture_output=True, text=True).stdout
-    keep = ("Model name", "CPU family", "Model:", "CPU(s):")
-    record = {"commits": commits, "cpu": "; ".join(" ".join(x.split()) for x in cpu.splitlines() if x.startswith(keep)),
-              "frames": args.frames, "runs": runs, "summary": summary}  # fmt: skip
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(record, indent=1) + "\n")
+    paired.write(args, runs, summary, frames=args.frames)
 
 
 if __name__ == "__main__":
