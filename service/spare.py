@@ -4,11 +4,11 @@ On a machine with a core to spare, parts of a warm network frame overlap: its re
 its start, the distance's Gram with the Jacobian, the estimate's rotations with its internal
 force, the outputs at each Levenberg-Marquardt trial point with that point's distance, the field
 with the declared noise's term; the Newton method's Jacobian solves half its columns there, on a
-factor of its own (docs/performance.md). A job goes to a shared pool of one thread per core beyond the first;
-where no thread has started it by the time its result is needed (every core busy with other
-sessions' frames), the caller cancels it and runs it itself. A core is spare only while fewer
-frames are in progress in this process than there are cores (:func:`frame`): on a loaded
-server every job runs inline, since a third thread on two busy cores cost 6-17 % of the
+factor of its own (docs/performance.md). A job goes to a shared pool of one thread per core
+beyond the first; where no thread has started it by the time its result is needed (every core
+busy with other sessions' frames), the caller cancels it and runs it itself. A core is spare
+only while fewer frames are in progress in this process than there are cores (:func:`frame`): on
+a loaded server every job runs inline, since a third thread on two busy cores cost 6-17 % of the
 throughput of 4 and 16 streams (docs/performance.md).
 """
 
