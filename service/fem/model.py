@@ -97,6 +97,8 @@ class FEMOperator:
         self._rest_jacobian: DenseJacobian | None = None
         self._helper: SparseSolver | None = None  # a second factor, for the Jacobian's other half
         self._last_jacobian: tuple[Array, DenseJacobian] | None = None  # (g, du/dg at g)
+        self._held: DenseJacobian | None = None  # the latest Jacobian formed in full, at any g
+        self.n_jacobians = 0  # Jacobians formed in full away from rest (only grows)
         self.last: NewtonResult | None = None
         #: a time.perf_counter() value past which solves give up (ForwardFailed "time_limit"):
         #: the engine sets it for the length of a frame with a time budget
@@ -105,6 +107,7 @@ class FEMOperator:
     def reset(self) -> None:
         self._kept = []
         self._last_jacobian = None
+        self._held = None
 
     @property
     def _last_u(self) -> Array | None:
@@ -171,6 +174,7 @@ class FEMOperator:
         if not np.any(g):
             if self._rest_jacobian is None:
                 self._rest_jacobian = DenseJacobian(self._support_response(self._rest_solver().solve_free))
+            self._held = self._rest_jacobian
             return self._rest_jacobian
         if self._last_jacobian is not None and np.array_equal(self._last_jacobian[0], g):
             return self._last_jacobian[1]
@@ -182,7 +186,41 @@ class FEMOperator:
             solve = lambda B: _refined_solve(K, newton.solver.solve, B)  # noqa: E731
             jac = DenseJacobian(self._support_response(solve, self.deadline))
         self._last_jacobian = (g.copy(), jac)
+        self._held = jac
+        self.n_jacobians += 1
         return jac
+
+    def jacobian_products(self, g: Array) -> JacobianProducts | None:
+        """du/dg at g as products, one solve each with the exact tangent's factor at g's
+        equilibrium, and the latest Jacobian formed in full (at an earlier g) to precondition
+        them: a Levenberg-Marquardt step in a few solves, not 3k. None where :meth:`jacobian`
+        is as cheap or the products cannot be had: at rest, at the g of the last Jacobian,
+        before any was formed, at an unstable equilibrium."""
+        g = np.asarray(g, np.float64)
+        last = self._last_jacobian
+        if self._held is None or not np.any(g) or (last is not None and np.array_equal(last[0], g)):
+            return None
+        newton, u = self._newton, self._equilibrium(g)
+
+        def ready() -> bool:  # a trial evaluated since may have left its own factor
+            return newton.factor_at(u)
+
+        if not ready():
+            return None
+        cols, read = self._dof_maps
+        n_free = self.mesh.free_dofs.size
+        return JacobianProducts(ready, newton.solver.solve, cols, read, n_free, self._held, self.deadline)
+
+    @cached_property
+    def _dof_maps(self) -> tuple[Array, Array]:
+        """Rows of the free system: the support's (3k,) and the operator's nodes' (3p,), -1 on
+        fixed dofs (they never move)."""
+        mesh = self.mesh
+        pos = np.full(3 * mesh.n_nodes, -1, np.int64)
+        pos[mesh.free_dofs] = np.arange(mesh.free_dofs.size)
+        cols = pos[(3 * self.support[:, None] + np.arange(3)).ravel()]
+        read = pos[(3 * self.nodes[:, None] + np.arange(3)).ravel()]
+        return cols, read
 
     def _support_response(
         self, solve, deadline: float | None = None, block: int = 256, at: Array | None = None
@@ -193,12 +231,8 @@ class FEMOperator:
         per operator, take none). `at`: the state u whose exact tangent `solve` holds; given,
         the last columns go to a spare core, which factorises that tangent on a solver of its
         own (``spare.Beside``; the caller solves them itself if no thread began). Shape: (3p, 3k)."""
-        mesh, n_cols = self.mesh, 3 * self.support.size
-        free = mesh.free_dofs
-        pos = np.full(3 * mesh.n_nodes, -1, np.int64)
-        pos[free] = np.arange(free.size)
-        cols = pos[(3 * self.support[:, None] + np.arange(3)).ravel()]  # (3k,) rows of the free system
-        read = pos[(3 * self.nodes[:, None] + np.arange(3)).ravel()]  # (3p,) -1 on fixed dofs (they never move)
+        n_cols, free = 3 * self.support.size, self.mesh.free_dofs
+        cols, read = self._dof_maps
         J = np.zeros((read.size, n_cols))
 
         def fill(solve, start: int, stop: int) -> None:
@@ -287,6 +321,41 @@ def _refined_solve(K, approx_solve, b: Array, rtol: float = 1e-10, max_steps: in
             break
         x = x + approx_solve(r)
     return x
+
+
+class JacobianProducts:
+    """du/dg at one g as products, each one solve with the exact tangent's factor there (K =
+    3k force components, p the operator's nodes); `held`, a :class:`DenseJacobian` formed in
+    full at an earlier g, preconditions them (levenberg.KrylovGaussNewton). Past `deadline`
+    a product gives up (ForwardFailed "time_limit")."""
+
+    def __init__(
+        self, ready, solve, cols: Array, read: Array, n_free: int, held: DenseJacobian, deadline: float | None
+    ) -> None:
+        self.ready, self._solve, self._cols, self._read, self._n_free = ready, solve, cols, read, n_free
+        self._moving = read >= 0
+        self.held, self.deadline = held, deadline
+        self.n_rows, self.n_solves = read.size, 0
+
+    def _solved(self, rhs: Array) -> Array:
+        if self.deadline is not None and time.perf_counter() > self.deadline:
+            raise ForwardFailed("time_limit", f"time budget spent in the Jacobian's products, after {self.n_solves}")
+        self.n_solves += 1
+        return self._solve(rhs)
+
+    def matvec(self, x: Array) -> Array:
+        """(du/dg) x. Shape: (K,) -> (3p,) node-major."""
+        rhs = np.zeros(self._n_free)
+        rhs[self._cols] = x
+        out = np.zeros(self.n_rows)
+        out[self._moving] = self._solved(rhs)[self._read[self._moving]]
+        return out
+
+    def rmatvec(self, y: Array) -> Array:
+        """(du/dg)^T y (the tangent is symmetric: one solve). Shape: (3p,) -> (K,)."""
+        rhs = np.zeros(self._n_free)
+        rhs[self._read[self._moving]] = y[self._moving]  # the nodes are distinct
+        return self._solved(rhs)[self._cols]
 
 
 class DenseJacobian:

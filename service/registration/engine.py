@@ -36,7 +36,7 @@ from scipy.optimize import minimize
 from ..forward import ForwardFailed, ForwardOperator
 from ..spare import Beside
 from .distance import PointToSurface
-from .levenberg import GaussNewtonModel, distance_gram, prepare
+from .levenberg import GaussNewtonModel, KrylovGaussNewton, distance_gram, prepare
 from .precondition import Curvature, gauss_newton
 from .settings import DEFAULT_ALPHA, DEFAULT_GTOL, NAMES, OPTIMIZERS, Optimizer, SessionConfig
 
@@ -558,14 +558,7 @@ def _levenberg_marquardt(
         # the distance's curvature through a constant readout (the network's) needs no Jacobian:
         # a spare core forms it while this one forms the Jacobian
         gram = None if readout is None else Beside(functools.partial(distance_gram, readout, match, distance.faces))
-        try:  # the FEM solves again only where g was not its last evaluation
-            jac = _jacobian(op, g.reshape(k, 3))
-        except ForwardFailed as exc:
-            stop = _forward_stop(exc)
-            stop.iterations = nit
-            raise stop from None
-        A = None if gram is None else gram.result()[1]
-        model = GaussNewtonModel(jac, match, distance.faces, grad, options.alpha, A)
+        model = _model(op, g.reshape(k, 3), match, distance.faces, grad, options.alpha, gram, nit)
         if mu is None:
             mu = options.damping * model.scale
             mu_min = _MIN_DAMPING * model.scale
@@ -574,7 +567,11 @@ def _levenberg_marquardt(
                 return "max_iter", "evaluation budget spent", nit
             if deadline is not None and time.perf_counter() > deadline:
                 return "time_limit", _spent(options), nit
-            d = model.step(mu)
+            d = _step(model, mu, nit)
+            if d is None:  # the held Jacobian no longer preconditions: form this g's own
+                model = _model(op, g.reshape(k, 3), match, distance.faces, grad, options.alpha, gram, nit, exact=True)
+                d = _step(model, mu, nit)
+                assert d is not None  # a Jacobian's own model always steps
             if not np.abs(d).max() > 1e-12 * max(float(np.abs(g).max()), _TINY):
                 return "stalled", "the damped step vanished before the gradient test", nit
             try:
@@ -599,6 +596,35 @@ def _levenberg_marquardt(
         else:
             return "stalled", f"no decrease in {_MAX_REJECTIONS + 1} damped steps: the objective's precision", nit
     return "converged", "projected gradient below gtol", nit
+
+
+def _model(op, g: Array, match, faces: Array, grad: Array, alpha: float, gram, nit: int, exact: bool = False):
+    """The damped Gauss-Newton model at g: through products with the Jacobian where the
+    operator offers them (the FEM once it has formed one: a few solves a step, not 3k), else
+    through the Jacobian itself (the FEM solves only where g was not its last evaluation)."""
+    try:
+        products = None if exact else getattr(op, "jacobian_products", lambda g: None)(g)
+        if products is not None:
+            return KrylovGaussNewton(products, match, faces, grad, alpha)
+        jac = _jacobian(op, g)
+    except ForwardFailed as exc:
+        raise _stopped(exc, nit) from None
+    A = None if gram is None else gram.result()[1]
+    return GaussNewtonModel(jac, match, faces, grad, alpha, A)
+
+
+def _step(model, mu: float, nit: int) -> Array | None:
+    """model.step(mu), a forward failure inside it (the products' solves) a stop."""
+    try:
+        return model.step(mu)
+    except ForwardFailed as exc:
+        raise _stopped(exc, nit) from None
+
+
+def _stopped(exc: ForwardFailed, nit: int) -> _Stop:
+    stop = _forward_stop(exc)
+    stop.iterations = nit
+    return stop
 
 
 def _spent(options: SolveOptions) -> str:

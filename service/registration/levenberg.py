@@ -12,7 +12,9 @@ lies on the surface) and b_jv its barycentric weights. A damped step (H + mu I) 
 needs no K x K algebra: with z = C d, (lam I + C C^T A) z = C v and d = (v - C^T A z) / lam,
 lam = alpha + mu, v = -grad, an r x r solve (the beam: K = 939 forces, r = 64). The FEM
 gives du/dg itself (``DenseJacobian`` in ``fem/model.py``: U = du/dg, C = I, r = K), which pays where the
-support is small (the paper's liver: 60 nodes, 180 solves with the Newton factorisation).
+support is small (the paper's liver: 60 nodes, 180 solves with the Newton factorisation). Once
+it has formed one, its later steps go through products with du/dg instead (a solve each),
+preconditioned by the one it holds (:class:`KrylovGaussNewton`): a few solves a step.
 
 Why this, not L-BFGS-B, for whole-surface cold starts: L-BFGS-B learns the curvature from
 gradients, about one direction per iteration, and the rest Jacobian that preconditions it
@@ -27,11 +29,13 @@ from __future__ import annotations
 import functools
 
 import numpy as np
+import scipy.sparse as sp
+from scipy.linalg import cho_factor, cho_solve
 from scipy.linalg.lapack import dgesv
 
 from ..jit import kernels
 from .distance import Match
-from .precondition import residual_rows
+from .precondition import residual_matrix, residual_rows
 
 Array = np.ndarray
 
@@ -77,6 +81,80 @@ class GaussNewtonModel:
         return 0.5 * float(d @ (mu * d + self.v))
 
 
+#: The conjugate-gradient step's relative residual: an inexact Newton method's forcing term;
+#: the step's last percent costs more solves than the iteration it could save
+KRYLOV_RTOL = 1e-2
+#: Conjugate-gradient iterations (two solves each) before the held Jacobian counts as too far
+#: from this g to precondition: 20 solves, a fifth of what forming the paper's liver's 180
+#: columns costs its caller; the step is then taken through the Jacobian formed in full
+KRYLOV_MAX_ITER = 10
+
+
+class KrylovGaussNewton:
+    """The damped Gauss-Newton model of Phi at one accepted point, through products with the
+    exact Jacobian J (``fem/model.py``'s JacobianProducts: a solve each) instead of J itself.
+
+    The step solves (J^T A J + (alpha + mu) I) d = -grad by conjugate gradients, preconditioned
+    with the same matrix made from the held Jacobian J_h (formed in full at an earlier g) and
+    this point's match: where the shape moved little since J_h, a few iterations (two solves
+    each) replace 3k solves. Where they do not suffice (KRYLOV_MAX_ITER), step() gives None and
+    the caller forms J. The gradient stays exact, so only the step, not the answer, is inexact.
+    """
+
+    def __init__(self, products, match: Match, faces: Array, grad: Array, alpha: float) -> None:
+        self.products = products
+        self.N = weighted_matrix(match, faces, products.n_rows)
+        held = products.held
+        _, A = distance_gram(held.U, match, faces)
+        self.A_held = held.gram_product(A).T  # C C^T A with C = I (a DenseJacobian): A itself
+        self.v = -np.asarray(grad, np.float64).ravel()
+        self.alpha = float(alpha)
+        self.scale = max(float(np.trace(self.A_held)) / len(self.A_held), 0.0)
+        self.iterations = 0  # conjugate-gradient iterations of the last step
+        self._residual: tuple[Array, Array] | None = None  # (d, v - (H + mu I) d) of the last step
+
+    def _curvature(self, x: Array, lam: float) -> Array:
+        """(J^T A J + lam I) x: two solves."""
+        p = self.products
+        return p.rmatvec(self.N.T @ (self.N @ p.matvec(x))) + lam * x
+
+    def step(self, mu: float) -> Array | None:
+        """d with (J^T A J + (alpha + mu) I) d = -grad to KRYLOV_RTOL, or None. Shape: (K,)."""
+        if not self.products.ready():  # the factor there no longer holds (an unstable state)
+            return None
+        lam = self.alpha + mu
+        M = self.A_held.copy()
+        M.ravel()[:: len(M) + 1] += lam
+        factor = cho_factor(M, lower=True, overwrite_a=True, check_finite=False)
+        d, r = np.zeros_like(self.v), self.v.copy()
+        z = cho_solve(factor, r, check_finite=False)
+        p, rz, goal = z.copy(), float(r @ z), KRYLOV_RTOL * float(np.linalg.norm(self.v))
+        for it in range(1, KRYLOV_MAX_ITER + 1):
+            Hp = self._curvature(p, lam)
+            pHp = float(p @ Hp)
+            if not pHp > 0.0:  # H is positive definite: only rounding gets here
+                return None
+            step = rz / pHp
+            d += step * p
+            r -= step * Hp
+            self.iterations = it
+            if np.linalg.norm(r) <= goal:
+                self._residual = (d, r)
+                return d
+            z = cho_solve(factor, r, check_finite=False)
+            rz, rz_old = float(r @ z), rz
+            p = z + (rz / rz_old) * p
+        return None
+
+    def predicted(self, d: Array, mu: float) -> float:
+        """The model's decrease for the step d of the last step(mu): v.d - d.H d / 2, with H d
+        read off the step's residual r = v - (H + mu I) d, no solve."""
+        if self._residual is None or self._residual[0] is not d:
+            raise ValueError("predicted() takes the last step()'s own d")
+        r = self._residual[1]
+        return 0.5 * float(d @ (self.v + mu * d + r))
+
+
 def distance_gram(U: Array, match: Match, faces: Array) -> tuple[Array, Array]:
     """The rows sqrt(w_j) N_j (m, r), in U's dtype, and A = N^T diag(w) N (r, r), float64:
     the distance's curvature seen through U (the Gauss-Newton model's, the noise term's)."""
@@ -96,6 +174,20 @@ def weighted_rows(U: Array, match: Match, faces: Array) -> Array:
         kernel(np.ascontiguousarray(U), match.x, faces, match.face, match.W, match.r,
                np.ascontiguousarray(match.weight, np.float64), out)  # fmt: skip
         return out
+    N = residual_rows(U, faces[match.face], match.W.T, _directions(match, faces))
+    return N * np.sqrt(match.weight)[:, None].astype(N.dtype)
+
+
+def weighted_matrix(match: Match, faces: Array, n_rows: int) -> sp.csr_matrix:
+    """weighted_rows' rows over the nodes' displacement itself (U the identity), sparse: nine
+    entries a point. Shape: (m, n_rows = 3p), float64."""
+    N = residual_matrix(faces[match.face], match.W.T, _directions(match, faces), n_rows)
+    return sp.csr_matrix(sp.diags(np.sqrt(match.weight)) @ N)
+
+
+def _directions(match: Match, faces: Array) -> Array:
+    """Each point's unit direction: to its closest point, or its face's normal where it lies
+    on the surface. Shape: (m, 3)."""
     tri = match.x[faces[match.face]]  # (m, 3 vertices, 3)
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
@@ -103,8 +195,7 @@ def weighted_rows(U: Array, match: Match, faces: Array) -> Array:
     d = np.linalg.norm(res, axis=1)
     off = d > _ON_SURFACE * (float(np.abs(match.x).max()) or 1.0)
     n[off] = res[off] / d[off, None]
-    N = residual_rows(U, faces[match.face], match.W.T, n)
-    return N * np.sqrt(match.weight)[:, None].astype(N.dtype)
+    return n
 
 
 #: A point nearer its closest point than this (relative to the coordinates' size) lies on the

@@ -49,10 +49,16 @@ def residual_rows(U: Array, faces: Array, bary: Array, normals: Array) -> Array:
         kernel(np.ascontiguousarray(U), np.ascontiguousarray(faces, np.intp),
                np.ascontiguousarray(bary, np.float64), np.ascontiguousarray(normals, np.float64), out)  # fmt: skip
         return out
-    coef = (bary[:, :, None] * normals[:, None, :]).ravel().astype(U.dtype)
+    return np.asarray(residual_matrix(faces, bary, normals, U.shape[0]).astype(U.dtype) @ U)
+
+
+def residual_matrix(faces: Array, bary: Array, normals: Array, n_rows: int) -> sp.csr_matrix:
+    """residual_rows' N as a sparse matrix over the nodes' displacement, nine entries a point.
+    Shape: faces (m, 3), bary (m, 3), normals (m, 3) -> (m, n_rows = 3p), float64."""
+    m = len(faces)
+    coef = (bary[:, :, None] * normals[:, None, :]).ravel()
     cols = (3 * faces[:, :, None] + np.arange(3)).ravel()
-    W = sp.csr_matrix((coef, cols, np.arange(0, 9 * m + 1, 9)), shape=(m, U.shape[0]))
-    return np.asarray(W @ U)
+    return sp.csr_matrix((coef, cols, np.arange(0, 9 * m + 1, 9)), shape=(m, n_rows))
 
 
 def _rows_loop(U, faces, bary, normals, out):

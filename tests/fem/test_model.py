@@ -97,6 +97,35 @@ def test_an_evaluation_at_the_last_forces_reuses_their_adjoints_factor(model):
     assert op._newton.n_factor == factors
 
 
+def test_jacobian_products_are_the_jacobians_own(model):
+    """At a loaded g, du/dg x and du/dg^T y take a solve each with the factor the evaluation
+    left there and equal the Jacobian formed in full at g; the latest full one (at an earlier
+    g) comes along to precondition them. None where the full one is as cheap: before any was
+    formed, at rest, at its own g."""
+    support, g = support_and_load(model.mesh)
+    op = model.restrict(support, model.mesh.surface_nodes[::3])
+    op(g)
+    assert op.jacobian_products(g) is None  # nothing held yet
+    held = op.jacobian(0.5 * g)
+    _, pullback = op(g)
+    pullback(np.ones((op.nodes.size, 3)))  # the gradient at g, as the driver takes it first
+    factors = op._newton.n_factor
+    products = op.jacobian_products(g)
+    assert products is not None and products.held is held
+    assert op.jacobian_products(np.zeros_like(g)) is None and op.jacobian_products(0.5 * g) is None
+    rng = np.random.default_rng(3)
+    x, y = rng.normal(size=g.size), rng.normal(size=3 * op.nodes.size)
+    Jx, Jty = products.matvec(x), products.rmatvec(y)
+    assert products.n_solves == 2 and op._newton.n_factor == factors
+    U = op.jacobian(g).U
+    np.testing.assert_allclose(Jx, U @ x, rtol=1e-9, atol=1e-12 * np.abs(U @ x).max())
+    np.testing.assert_allclose(Jty, U.T @ y, rtol=1e-9, atol=1e-12 * np.abs(U.T @ y).max())
+    assert not np.allclose(held.U, U, rtol=1e-3)  # the held one is another g's
+    products.deadline = time.perf_counter() - 1.0
+    with pytest.raises(ForwardFailed, match="time_limit"):
+        products.matvec(x)
+
+
 def test_with_stiffness_scales_the_response(model):
     support, g = support_and_load(model.mesh)
     stiff = model.with_stiffness(4 * model.material.E)

@@ -12,7 +12,7 @@ import service.registration.levenberg as lev
 from service.forward import ForwardFailed
 from service.registration.distance import PointToSurface
 from service.registration.engine import SolveOptions, solve_frame
-from service.registration.levenberg import GaussNewtonModel, weighted_rows
+from service.registration.levenberg import GaussNewtonModel, KrylovGaussNewton, weighted_matrix, weighted_rows
 from service.registration.session import Session, SessionConfig
 
 from .test_engine import frame_from_load, tip_pull, tip_support
@@ -74,6 +74,98 @@ def test_rows_are_the_distance_derivatives(loaded):
     off = d0 > 1e-3 * d0.max()  # off the surface, where the distance is differentiable
     fd = (d1 - d0) / eps * np.sqrt(match.weight)
     np.testing.assert_allclose((N @ c)[off], fd[off], rtol=1e-2, atol=1e-3 * np.abs(fd).max())
+
+
+@pytest.fixture(scope="module")
+def fem_loaded(entry):
+    """The bar's FEM at a loaded g with its gradient and match there, a Jacobian formed in
+    full at an earlier g (held), the products at g, and then g's own Jacobian."""
+    mesh, support, g_true, _, dist = tip_pull(entry)
+    op = entry.fem.restrict(support, dist.nodes)
+    op(0.6 * g_true)
+    held = op.jacobian(0.6 * g_true)
+    g = 0.8 * g_true
+    u, pullback = op(g)
+    _, dJ = dist(mesh.nodes[dist.nodes] + u)
+    grad = pullback(dJ).ravel() + 1e-6 * g.ravel()
+    products = op.jacobian_products(g)
+    assert products is not None and products.held is held
+    return op, dist, g, grad, products, op.jacobian(g)
+
+
+def test_krylov_step_solves_the_damped_gauss_newton_system(fem_loaded):
+    """Conjugate gradients through the exact Jacobian's products, preconditioned by the held
+    one's model, reach the step to KRYLOV_RTOL in a few iterations; the predicted decrease is
+    the quadratic model's at the step taken; preconditioned by g's own Jacobian, one iteration."""
+    op, dist, g, grad, products, jac = fem_loaded
+    match = dist.last_match
+    model = KrylovGaussNewton(products, match, dist.faces, grad, alpha=1e-6)
+    exact = GaussNewtonModel(jac, match, dist.faces, grad, alpha=1e-6)
+    H = exact.A + 1e-6 * np.eye(g.size)  # C = I: the FEM's Jacobian is U itself
+    N = weighted_matrix(match, dist.faces, jac.U.shape[0])
+    np.testing.assert_allclose(jac.U.T @ (N.T @ (N @ jac.U)), exact.A, rtol=1e-9, atol=1e-12 * np.abs(exact.A).max())
+    for mu in (1e-3 * exact.scale, exact.scale):
+        d = model.step(mu)
+        assert d is not None and 1 <= model.iterations <= 4, model.iterations
+        residual = np.linalg.norm((H + mu * np.eye(g.size)) @ d + grad)
+        assert residual <= lev.KRYLOV_RTOL * np.linalg.norm(grad) * (1 + 1e-6)
+        assert model.predicted(d, mu) == pytest.approx(-(grad @ d + 0.5 * d @ H @ d), rel=1e-8)
+        d_exact = exact.step(mu)
+        assert np.linalg.norm(d - d_exact) <= 0.1 * np.linalg.norm(d_exact)
+    with pytest.raises(ValueError, match="last step"):
+        model.predicted(d.copy(), mu)
+    held, products.held = products.held, jac
+    try:
+        own = KrylovGaussNewton(products, match, dist.faces, grad, alpha=1e-6)
+        assert own.step(exact.scale) is not None and own.iterations == 1
+    finally:
+        products.held = held
+
+
+def test_a_krylov_step_gives_up_on_a_held_jacobian_far_from_its_own(fem_loaded, monkeypatch):
+    """A held Jacobian that no longer resembles g's preconditions badly: past KRYLOV_MAX_ITER
+    the step gives None (the caller forms g's Jacobian), having spent two solves an iteration."""
+    op, dist, g, grad, products, jac = fem_loaded
+    held = products.held
+    rng = np.random.default_rng(4)
+    products.held = type(held)(rng.normal(size=held.U.shape) * np.abs(held.U).max())
+    try:
+        model = KrylovGaussNewton(products, dist.last_match, dist.faces, grad, alpha=1e-6)
+        before = products.n_solves
+        monkeypatch.setattr(lev, "KRYLOV_MAX_ITER", 3)
+        assert model.step(model.scale) is None
+        assert products.n_solves - before == 2 * 3
+    finally:
+        products.held = held
+
+
+def test_fem_frames_step_through_products_once_a_jacobian_is_held(entry, monkeypatch):
+    """A stream of FEM frames with Levenberg-Marquardt forms the Jacobian in full only where no
+    held one preconditions well; the frames step through its products in a few solves and land
+    where frames forming the Jacobian at every step land (those with KRYLOV_MAX_ITER 0)."""
+    mesh = entry.mesh
+    support = tip_support(mesh)
+    config = SessionConfig(method="fem", optimizer="levenberg-marquardt", support=tuple(support), gtol=1e-5,
+                           outputs=("forces",))  # fmt: skip
+    clouds = []
+    for k, scale in enumerate((1.0, 1.04, 1.08, 1.12)):
+        g_true = np.tile([0.0, 0.0, -40.0 * scale / support.size], (support.size, 1))
+        clouds.append(frame_from_load(mesh, support, g_true, seed=k)[1])
+
+    def stream():
+        s = Session(entry.fem, config)
+        results = [s.frame(c) for c in clouds]
+        assert all(r.converged for r in results), [r.status for r in results]
+        return s.op, results
+
+    op, fast = stream()
+    monkeypatch.setattr(lev, "KRYLOV_MAX_ITER", 0)  # every step through a Jacobian formed in full
+    op_full, full = stream()
+    assert sum(r.iterations for r in fast[1:]) >= 2  # warm frames that stepped
+    assert op.n_jacobians < op_full.n_jacobians and op.n_jacobians <= 2, (op.n_jacobians, op_full.n_jacobians)
+    for a, b in zip(fast, full, strict=True):
+        fa, fb = np.asarray(a.outputs["forces"]).sum(0), np.asarray(b.outputs["forces"]).sum(0)
+        assert np.linalg.norm(fa - fb) <= 1e-3 * np.linalg.norm(fb)
 
 
 def _register(entry, optimizer, pts, support, model, **kw):
