@@ -159,13 +159,18 @@ class FEMOperator:
             self._low_rank = (np.ascontiguousarray(W[:, :r] * sv[:r]), np.ascontiguousarray(Vt[:r].T))
         return self._low_rank
 
+    @property
+    def has_jacobian(self) -> bool:
+        """Whether :meth:`jacobian` serves this support (MAX_JACOBIAN_SUPPORT nodes at most)."""
+        return self.support.size <= MAX_JACOBIAN_SUPPORT
+
     def jacobian(self, g: Array) -> DenseJacobian:
         """du/dg at g on the operator's nodes (the Levenberg-Marquardt driver's model): 3k
         solves with the exact tangent's factorisation at g's equilibrium (:meth:`_equilibrium`:
         the kept one if g was solved lately; the factor is the last evaluation's when g was
         evaluated last, as the driver asks right after). Kept for the rest state and the last g:
         a warm-started frame starts where the last one ended. Shape: U (3p, 3k)."""
-        if self.support.size > MAX_JACOBIAN_SUPPORT:
+        if not self.has_jacobian:
             raise ValueError(
                 f"levenberg-marquardt with the fem method takes 3 solves per support node at each step: at most "
                 f"{MAX_JACOBIAN_SUPPORT} support nodes (this support has {self.support.size}); use optimizer 'lbfgsb'"
