@@ -33,7 +33,7 @@ from service.bench.anysite import FEM, NETWORK, NETWORK_LM
 from service.bench.cases import run_case
 from service.bench.machine import describe
 
-VARIANTS = {"lbfgsb": FEM, "levenberg-marquardt": dataclasses.replace(FEM, optimizer="levenberg-marquardt")}
+VARIANTS = {name: dataclasses.replace(FEM, optimizer=name) for name in ("lbfgsb", "levenberg-marquardt")}
 #: method "auto" as the any-site part runs it (the network under L-BFGS-B, the FEM correcting
 #: with it) against the same over the any-site Levenberg-Marquardt network, whose corrections
 #: then take Levenberg-Marquardt too (with --auto)

@@ -443,7 +443,9 @@ def write_report(results: dict, out: Path) -> None:
             f"load region; truth: the Neo-Hookean solution on the mesh subdivided once"
             + (
                 f"; method auto corrects frames whose estimate exceeds {A['max_error_mm']:.3g} mm (twice the "
-                "build's validation error).\n\n"
+                "build's validation error) with the Newton method; auto runs the network as its "
+                "Levenberg-Marquardt row does where the layout has a Jacobian, and the Newton method, in its "
+                "own rows and in auto's corrections, Levenberg-Marquardt (both chosen on calibration sites).\n\n"
                 if any(s.get("method") == "auto" for s in A["summaries"])
                 else " (network only: run with --no-fem).\n\n"
             )
