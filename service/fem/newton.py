@@ -39,11 +39,6 @@ Array = np.ndarray
 CG_MAX_ITER = 10
 #: the largest relative accuracy asked of a Newton step (inexact Newton's forcing term)
 CG_FORCING = 1e-2
-#: how much tighter than the forcing term a Newton step's solve may be asked to be, where that
-#: makes it the last step: conjugate gradients on the held factor gain a decade in one or two
-#: solves (the liver's warm trials: 11 solves for 9 decades), so 1.5 decades cost 2-3 solves,
-#: against a Newton iteration's tangent, residual, line search and 3-4 solves
-FINISH_REACH = 30.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -315,12 +310,6 @@ class NewtonSolver:
             # eta shrinks with the residual (superlinear convergence) but never below what
             # reaching atol needs
             eta = max(min(CG_FORCING, np.sqrt(rn / ref)), 1e-3 * atol / rn)
-            # where a little more accuracy would make this the last step, ask for it: a few
-            # conjugate-gradient iterations more instead of a Newton iteration (a tangent, a
-            # residual and a line search; docs/performance.md)
-            finish = 0.5 * atol / rn
-            if finish < eta <= FINISH_REACH * finish:
-                eta = finish
             dx = None
             if self._cg_skip > 0:  # they failed lately: the tangent moves fast here
                 self._cg_skip -= 1
