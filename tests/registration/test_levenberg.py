@@ -139,6 +139,20 @@ def test_a_krylov_step_gives_up_on_a_held_jacobian_far_from_its_own(fem_loaded, 
         products.held = held
 
 
+def test_a_krylov_step_past_the_deadline_is_the_frames_time_limit(fem_loaded):
+    """The products' solves check the frame's deadline: past it the step stops the frame with
+    status time_limit (as the Jacobian's blocks of solves do), keeping its iterations."""
+    op, dist, g, grad, products, jac = fem_loaded
+    deadline, products.deadline = products.deadline, 0.0  # long past
+    try:
+        model = KrylovGaussNewton(products, dist.last_match, dist.faces, grad, alpha=1e-6)
+        with pytest.raises(engine._Stop) as stop:
+            engine._step(model, model.scale, 3)
+        assert stop.value.status == "time_limit" and stop.value.iterations == 3
+    finally:
+        products.deadline = deadline
+
+
 def test_fem_frames_step_through_products_once_a_jacobian_is_held(entry, monkeypatch):
     """A stream of FEM frames with Levenberg-Marquardt forms the Jacobian in full only where no
     held one preconditions well; the frames step through its products in a few solves and land
