@@ -5,19 +5,26 @@ uses it) on a whole-surface store entry, with one BLAS thread as the server runs
 
     args = calibration.parser(__doc__, out="optimizer-study/optimizer_study.json").parse_args()
     entry, cases = calibration.cases(args)
+    rows = [calibration.row(variant, case, run_case(...)) for ...]
+    calibration.write(args, rows)
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import os
 import sys
 from pathlib import Path
+
+import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from service.bench.anysite import CALIBRATION_SEED, anysite_cases
 from service.bench.cases import Case
+from service.bench.machine import describe
 from service.config import limit_threads
 from service.store import Entry, load_entry
 
@@ -40,3 +47,30 @@ def cases(args: argparse.Namespace) -> tuple[Entry, list[Case]]:
     limit_threads(1)
     entry = load_entry(Path(args.model))
     return entry, anysite_cases(entry, sites=args.sites, frames=8, seed=CALIBRATION_SEED)
+
+
+def row(variant: str, case: Case, recs: list) -> dict:
+    """One variant's figures at one site: mean TRE, median force error, iterations and
+    evaluations by frame, each frame's time and the warm frames' median, the converged share,
+    the share the FEM answered (method auto), and the load average beside the times."""
+    return {
+        "variant": variant,
+        "case": case.name,
+        "tre_mean_mm": float(np.mean([r.tre_mm for r in recs])),
+        "force_error_median_pct": float(np.median([r.force_error_pct for r in recs])),
+        "iterations": [r.iterations for r in recs],
+        "evaluations": [r.evaluations for r in recs],
+        "ms": [r.ms for r in recs],
+        "ms_median_warm": float(np.median([r.ms for r in recs[1:]])),
+        "converged": float(np.mean([r.converged for r in recs])),
+        "fem_share": float(np.mean([r.method_used == "fem" for r in recs])),
+        "load": os.getloadavg()[0],
+    }
+
+
+def write(args: argparse.Namespace, rows: list[dict]) -> None:
+    """The study's rows to --out, with the machine's stamp and the model's name."""
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(
+        json.dumps({"machine": describe(), "model": Path(args.model).name, "rows": rows}, indent=1)
+    )

@@ -17,12 +17,8 @@ Levenberg-Marquardt network), by the same rule.
 from __future__ import annotations
 
 import dataclasses
-import json
-import os
 import sys
 from pathlib import Path
-
-import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -31,7 +27,6 @@ import calibration
 
 from service.bench.anysite import FEM, NETWORK, NETWORK_LM
 from service.bench.cases import run_case
-from service.bench.machine import describe
 
 VARIANTS = {name: dataclasses.replace(FEM, optimizer=name) for name in ("lbfgsb", "levenberg-marquardt")}
 #: method "auto" as the any-site part runs it (the network under L-BFGS-B, the FEM correcting
@@ -56,19 +51,7 @@ def main() -> int:
                 recs = run_case(entry.network, case, auto, "auto", corrector=entry.fem)
             else:
                 recs = run_case(entry.fem, case, config)
-            row = {
-                "variant": name,
-                "case": case.name,
-                "tre_mean_mm": float(np.mean([r.tre_mm for r in recs])),
-                "force_error_median_pct": float(np.median([r.force_error_pct for r in recs])),
-                "iterations": [r.iterations for r in recs],
-                "evaluations": [r.evaluations for r in recs],
-                "ms": [r.ms for r in recs],
-                "ms_median_warm": float(np.median([r.ms for r in recs[1:]])),
-                "converged": float(np.mean([r.converged for r in recs])),
-                "fem_share": float(np.mean([r.method_used == "fem" for r in recs])),
-                "load": os.getloadavg()[0],
-            }
+            row = calibration.row(name, case, recs)
             rows.append(row)
             print(
                 f"{name:>20} {case.name:>28}: TRE {row['tre_mean_mm']:.4f} mm, force "
@@ -77,10 +60,7 @@ def main() -> int:
                 f"(load {row['load']:.1f})",
                 flush=True,
             )
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(
-        json.dumps({"machine": describe(), "model": Path(args.model).name, "rows": rows}, indent=1)
-    )
+    calibration.write(args, rows)
     return 0
 
 

@@ -14,13 +14,9 @@ move with what else the machine runs.
 from __future__ import annotations
 
 import dataclasses
-import json
-import os
 import sys
 from pathlib import Path
 from typing import Any
-
-import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -29,7 +25,6 @@ import calibration
 
 from service.bench.anysite import NETWORK
 from service.bench.cases import run_case
-from service.bench.machine import describe
 
 VARIANTS: dict[str, dict[str, Any]] = {
     "lbfgsb, gtol 3e-4 (default)": {},
@@ -50,27 +45,14 @@ def main() -> int:
         for case in cases:
             run_case(entry.network, case, config)  # warm: compiled kernels, caches
             recs = run_case(entry.network, case, config)
-            row = {
-                "variant": name,
-                "case": case.name,
-                "tre_mean_mm": float(np.mean([r.tre_mm for r in recs])),
-                "force_error_median_pct": float(np.median([r.force_error_pct for r in recs])),
-                "iterations": [r.iterations for r in recs],
-                "evaluations": [r.evaluations for r in recs],
-                "ms_median_warm": float(np.median([r.ms for r in recs[1:]])),
-                "converged": float(np.mean([r.converged for r in recs])),
-                "load": os.getloadavg()[0],
-            }
+            row = calibration.row(name, case, recs)
             rows.append(row)
             figures = (
                 f"TRE {row['tre_mean_mm']:.3f} mm, force {row['force_error_median_pct']:.1f} %, "
                 f"evaluations {sum(row['evaluations'])}, {row['ms_median_warm']:.1f} ms (load {row['load']:.1f})"
             )
             print(f"{name:>32} {case.name:>28}: {figures}", flush=True)
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(
-        json.dumps({"machine": describe(), "model": Path(args.model).name, "rows": rows}, indent=1)
-    )
+    calibration.write(args, rows)
     return 0
 
 
