@@ -104,9 +104,8 @@ class KrylovGaussNewton:
     def __init__(self, products, match: Match, faces: Array, grad: Array, alpha: float) -> None:
         self.products = products
         self.N = weighted_matrix(match, faces, products.n_rows)
-        held = products.held
-        _, A = distance_gram(held.U, match, faces)
-        self.A_held = held.gram_product(A).T  # C C^T A with C = I (a DenseJacobian): A itself
+        # the held Jacobian is the FEM's DenseJacobian (C = I): its model's matrix is A itself
+        _, self.A_held = distance_gram(products.held.U, match, faces)
         self.v = -np.asarray(grad, np.float64).ravel()
         self.alpha = float(alpha)
         self.scale = max(float(np.trace(self.A_held)) / len(self.A_held), 0.0)
@@ -125,7 +124,10 @@ class KrylovGaussNewton:
         lam = self.alpha + mu
         M = self.A_held.copy()
         M.ravel()[:: len(M) + 1] += lam
-        factor = cho_factor(M, lower=True, overwrite_a=True, check_finite=False)
+        try:
+            factor = cho_factor(M, lower=True, overwrite_a=True, check_finite=False)
+        except np.linalg.LinAlgError:  # lam = 0 on a singular model: the caller forms J
+            return None
         d, r = np.zeros_like(self.v), self.v.copy()
         z = cho_solve(factor, r, check_finite=False)
         p, rz, goal = z.copy(), float(r @ z), KRYLOV_RTOL * float(np.linalg.norm(self.v))

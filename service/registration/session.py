@@ -285,8 +285,8 @@ class Session:
         if self._corrector_op is None:
             self._corrector_op = self.corrector.restrict(self.support, self.distance.nodes)
         # the session's optimizer where the FEM runs it for this support: Levenberg-Marquardt
-        # forms the FEM's Jacobian once, then steps through its products (a few solves a step);
-        # 1.6-11x faster than L-BFGS-B from a warm start on calibration sites, the same error
+        # forms the FEM's Jacobian once, then steps through its products (a few solves a step):
+        # auto's frames 1.2-8x faster than with L-BFGS-B on calibration sites, the same error
         lm = options.optimizer == "levenberg-marquardt" and getattr(self._corrector_op, "has_jacobian", False)
         fem_options = dataclasses.replace(
             options,
