@@ -47,25 +47,47 @@ def _inv_transpose(F, G):
     return det
 
 
+def _gradient(u, tets, grads, t, H):
+    """H = grad u = F - I of tet t, summed from zero (its small entries keep their digits)."""
+    for i in range(3):
+        for J in range(3):
+            H[i, J] = 0.0
+    for a in range(4):
+        n = tets[t, a]
+        for i in range(3):
+            ui = u[n, i]
+            for J in range(3):
+                H[i, J] += ui * grads[t, a, J]
+
+
 def energy(u, tets, grads, vol, mu, lam):
-    """sum_e vol_e W(F_e); +inf if any det F <= 0."""
-    F = np.empty((3, 3))
+    """sum_e vol_e W(F_e); +inf if any det F <= 0. J - 1 and tr C - 3 come from H = F - I's
+    invariants, not as differences of numbers near 1: near rest those roundings (eps a tet)
+    exceeded a small load's whole energy change, and Newton's line search could not see it."""
+    H = np.empty((3, 3))
     total = 0.0
     for t in range(tets.shape[0]):
-        _deformation(u, tets, grads, t, F)
-        det = (
-            F[0, 0] * (F[1, 1] * F[2, 2] - F[1, 2] * F[2, 1])
-            - F[0, 1] * (F[1, 0] * F[2, 2] - F[1, 2] * F[2, 0])
-            + F[0, 2] * (F[1, 0] * F[2, 1] - F[1, 1] * F[2, 0])
+        _gradient(u, tets, grads, t, H)
+        tr = H[0, 0] + H[1, 1] + H[2, 2]
+        minors = (
+            (H[0, 0] * H[1, 1] - H[0, 1] * H[1, 0])
+            + (H[0, 0] * H[2, 2] - H[0, 2] * H[2, 0])
+            + (H[1, 1] * H[2, 2] - H[1, 2] * H[2, 1])
         )
-        if det <= 0.0:
+        det = (
+            H[0, 0] * (H[1, 1] * H[2, 2] - H[1, 2] * H[2, 1])
+            - H[0, 1] * (H[1, 0] * H[2, 2] - H[1, 2] * H[2, 0])
+            + H[0, 2] * (H[1, 0] * H[2, 1] - H[1, 1] * H[2, 0])
+        )
+        jm1 = tr + minors + det  # det(I + H) - 1
+        if jm1 <= -1.0:
             return np.inf
-        trC = 0.0
+        hh = 0.0
         for i in range(3):
             for J in range(3):
-                trC += F[i, J] * F[i, J]
-        lnJ = math.log(det)
-        total += vol[t] * (0.5 * mu * (trC - 3.0) - mu * lnJ + 0.5 * lam * lnJ * lnJ)
+                hh += H[i, J] * H[i, J]
+        lnJ = math.log1p(jm1)
+        total += vol[t] * (0.5 * mu * (2.0 * tr + hh) - mu * lnJ + 0.5 * lam * lnJ * lnJ)
     return total
 
 
@@ -126,4 +148,4 @@ def tangent_data(u, tets, grads, vol, mu, lam, slot, data):
                             data[s] += val
 
 
-compiled = kernels(energy, internal_force, tangent_data, helpers=(_deformation, _inv_transpose))
+compiled = kernels(energy, internal_force, tangent_data, helpers=(_deformation, _gradient, _inv_transpose))

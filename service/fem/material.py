@@ -76,12 +76,20 @@ class NeoHookean:
     # -- pointwise law ------------------------------------------------------------------------
 
     def energy(self, F: Array) -> Array:
-        """W(F). Shape: (..., 3, 3) -> (...); +inf where det F <= 0."""
-        J = det3(F)
-        ok = J > 0
-        lnJ = np.log(np.where(ok, J, 1.0))
-        trC = np.einsum("...ij,...ij->...", F, F)
-        W = 0.5 * self.mu * (trC - 3.0) - self.mu * lnJ + 0.5 * self.lam * lnJ**2
+        """W(F). Shape: (..., 3, 3) -> (...); +inf where det F <= 0. J - 1 and tr C - 3 come
+        from H = F - I's invariants, not as differences of numbers near 1 (kernels.energy)."""
+        H = F - np.eye(3)
+        tr = np.einsum("...ii->...", H)
+        minors = (
+            (H[..., 0, 0] * H[..., 1, 1] - H[..., 0, 1] * H[..., 1, 0])
+            + (H[..., 0, 0] * H[..., 2, 2] - H[..., 0, 2] * H[..., 2, 0])
+            + (H[..., 1, 1] * H[..., 2, 2] - H[..., 1, 2] * H[..., 2, 1])
+        )
+        jm1 = tr + minors + det3(H)  # det(I + H) - 1
+        ok = jm1 > -1.0
+        lnJ = np.log1p(np.where(ok, jm1, 0.0))
+        hh = np.einsum("...ij,...ij->...", H, H)  # tr C - 3 = 2 tr H + |H|^2
+        W = 0.5 * self.mu * (2.0 * tr + hh) - self.mu * lnJ + 0.5 * self.lam * lnJ**2
         return np.where(ok, W, np.inf)
 
     def stress(self, F: Array) -> Array:

@@ -2,8 +2,10 @@
 a homogeneous-stress patch check against the analytical Neo-Hookean stress."""
 
 import numpy as np
+import pytest
 
 from service.fem.assembly import Assembler, generic_element_stiffness
+from service.fem.kernels import compiled as _kernels
 from service.fem.material import NeoHookean
 from service.mesh import TetMesh
 
@@ -96,3 +98,22 @@ def test_compiled_kernels_equal_the_numpy_reference(bar):
     crushed = u.copy()
     crushed[bar.free_mask] = -bar.nodes[bar.free_mask] * 2.0  # inverts elements
     assert np.isinf(fast.energy(crushed)) and np.isinf(ref.energy(crushed))
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_the_energy_resolves_a_small_loads_change(bar, compiled):
+    """Near rest the energy's change along a tiny step is the internal force's work on it, to
+    1e-6: J - 1 and tr C - 3 come from grad u's invariants, not as differences of numbers near
+    1, whose rounding (eps a tet) once exceeded a small load's whole change of energy, so that
+    Newton's line search rejected good steps."""
+    if compiled and _kernels() is None:
+        pytest.skip("numba is not importable")
+    asm = Assembler(bar, NeoHookean(4500.0, 0.49), compiled)
+    rng = np.random.default_rng(0)
+    free = np.ones((bar.n_nodes, 1))
+    free[bar.fixed] = 0.0
+    u = rng.normal(size=(bar.n_nodes, 3)) * 1e-7 * free
+    d = rng.normal(size=(bar.n_nodes, 3)) * 1e-9 * free
+    change = asm.energy(u + d) - asm.energy(u - d)  # central: 2 f.d + O(|d|^3)
+    work = 2.0 * float((asm.internal_force(u) * d).sum())
+    assert change == pytest.approx(work, rel=1e-6, abs=0.0)  # approx alone allows 1e-12
