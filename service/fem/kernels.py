@@ -16,16 +16,24 @@ import numpy as np
 from ..jit import kernels
 
 
-def _deformation(u, tets, grads, t, F):
+def _gradient(u, tets, grads, t, H):
+    """H = grad u = F - I of tet t, summed from zero (its small entries keep their digits)."""
     for i in range(3):
         for J in range(3):
-            F[i, J] = 1.0 if i == J else 0.0
+            H[i, J] = 0.0
     for a in range(4):
         n = tets[t, a]
         for i in range(3):
             ui = u[n, i]
             for J in range(3):
-                F[i, J] += ui * grads[t, a, J]
+                H[i, J] += ui * grads[t, a, J]
+
+
+def _deformation(u, tets, grads, t, F):
+    """F = I + grad u of tet t."""
+    _gradient(u, tets, grads, t, F)
+    for i in range(3):
+        F[i, i] += 1.0
 
 
 def _inv_transpose(F, G):
@@ -45,19 +53,6 @@ def _inv_transpose(F, G):
     G[2, 1] = (F[0, 2] * F[1, 0] - F[0, 0] * F[1, 2]) * inv
     G[2, 2] = (F[0, 0] * F[1, 1] - F[0, 1] * F[1, 0]) * inv
     return det
-
-
-def _gradient(u, tets, grads, t, H):
-    """H = grad u = F - I of tet t, summed from zero (its small entries keep their digits)."""
-    for i in range(3):
-        for J in range(3):
-            H[i, J] = 0.0
-    for a in range(4):
-        n = tets[t, a]
-        for i in range(3):
-            ui = u[n, i]
-            for J in range(3):
-                H[i, J] += ui * grads[t, a, J]
 
 
 def energy(u, tets, grads, vol, mu, lam):
@@ -148,4 +143,4 @@ def tangent_data(u, tets, grads, vol, mu, lam, slot, data):
                             data[s] += val
 
 
-compiled = kernels(energy, internal_force, tangent_data, helpers=(_deformation, _gradient, _inv_transpose))
+compiled = kernels(energy, internal_force, tangent_data, helpers=(_gradient, _deformation, _inv_transpose))
