@@ -183,8 +183,8 @@ def weighted_rows(U: Array, match: Match, faces: Array) -> Array:
 def weighted_matrix(match: Match, faces: Array, n_rows: int) -> sp.csr_matrix:
     """weighted_rows' rows over the nodes' displacement itself (U the identity), sparse: nine
     entries a point. Shape: (m, n_rows = 3p), float64."""
-    N = residual_matrix(faces[match.face], match.W.T, _directions(match, faces), n_rows)
-    return sp.csr_matrix(sp.diags(np.sqrt(match.weight)) @ N)
+    weighted = match.W.T * np.sqrt(match.weight)[:, None]  # each point's weight in its barycentric ones
+    return residual_matrix(faces[match.face], weighted, _directions(match, faces), n_rows)
 
 
 def _directions(match: Match, faces: Array) -> Array:
