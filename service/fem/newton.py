@@ -9,10 +9,7 @@ factorisation of the current tangent only when they would be slow (projected pas
 ``CG_MAX_ITER``) or meet negative curvature. A factorisation costs 50 ms on the paper's liver,
 a solve with it 2-4 ms: a registration's evaluation went from 2.9 factorisations to 1.1 (the
 adjoint's, at the solution), same equilibria to the tolerance. An indefinite tangent is
-shifted until it factorises, so every step is a descent step. Before the Newton steps, chord
-steps (the held factor's solve of the residual: no tangent to assemble) while their observed
-rate says they reach the tolerance within a few: near the held factor's state they are the
-cheaper way there.
+shifted until it factorises, so every step is a descent step.
 
 Loads are followed along a straight path from the starting state: a start u0 is in equilibrium
 under its own internal force f0 = f_int(u0), so the path g(s) = f0 + s (g - f0), s in [0, 1],
@@ -42,13 +39,6 @@ Array = np.ndarray
 CG_MAX_ITER = 10
 #: the largest relative accuracy asked of a Newton step (inexact Newton's forcing term)
 CG_FORCING = 1e-2
-#: a chord step (a solve with the held factor, no tangent) costs about a quarter of an inexact
-#: Newton step on the paper's liver, and Newton ends in about two steps: chord steps go on while
-#: their rate projects the tolerance within this many (docs/performance.md)
-CHORD_MAX_STEPS = 8
-#: where chord steps stop, as a share of the tolerance: Newton's last step lands about this far
-#: below it (median 4e-3 on the recorded sequence's solves), so the equilibria stay as accurate
-CHORD_BELOW = 1e-2
 
 
 @dataclasses.dataclass(frozen=True)
@@ -108,7 +98,6 @@ class NewtonSolver:
         self._cg_skip = self._cg_backoff = 0  # Newton steps to factorise without trying CG first
         self.n_factor = 0  # factorisations made (only grows)
         self.n_cg = 0  # linear solves done by conjugate gradients on a held factor instead
-        self.n_chord = 0  # chord steps taken (only grows)
 
     # -- one factorisation, shifted if indefinite ----------------------------------------------
 
@@ -229,11 +218,11 @@ class NewtonSolver:
         # the predictor's factor, also the preconditioner of the Newton steps: the tangent at
         # the start, reused when the held factor was made exactly there (a registration's
         # adjoint leaves it so); made here otherwise, so that the result is a function of
-        # (g, u0) alone, whatever the solver did before (to the tolerance; bit for bit without
-        # chord steps). Chord steps only on a held factor: where the solve makes its own, as
-        # along a training path, they were rarely kept (10 in 50 samples' solves, no time saved)
-        held = self._factor_x is not None and np.array_equal(self._factor_x, x)
-        shifts = 0 if held else self._factor_tangent(asm.tangent(u_start), x)
+        # (g, u0) alone, whatever the solver did before
+        if self._factor_x is not None and np.array_equal(self._factor_x, x):
+            shifts = 0
+        else:
+            shifts = self._factor_tangent(asm.tangent(u_start), x)
         s, ds, iterations, steps = 0.0, 1.0, 0, 0
         self._cg_skip = self._cg_backoff = 0  # per solve, so that u is a function of (g, u0)
         residuals: list[float] = []
@@ -256,12 +245,7 @@ class NewtonSolver:
                     x_try = x_pred
             tol = opt.rtol if s_try == 1.0 else max(opt.rtol, opt.step_rtol)
             budget = min(opt.max_step_iter, opt.max_iter - iterations)
-            # and where the load is taken whole: from a cut step's far-off states they led Newton
-            # astray on hard loads
-            chord = held and s == 0.0 and s_try == 1.0 and CHORD_MAX_STEPS > 0
-            x_new, ok, its, hist, nshift, factored, why = self._newton(
-                x_try, load, tol * ref, ref, budget, deadline, chord
-            )
+            x_new, ok, its, hist, nshift, factored, why = self._newton(x_try, load, tol * ref, ref, budget, deadline)
             iterations += its
             shifts += nshift
             residuals += hist
@@ -295,97 +279,65 @@ class NewtonSolver:
         res.shifted = shifts
         return res
 
-    def _newton(self, x: Array, load: Array, atol: float, ref: float, budget: int, deadline: float | None, chord: bool):
-        """Newton iterations at a fixed load, until `deadline` at most: chord steps on the held
-        factor while they converge fast enough (:data:`CHORD_MAX_STEPS`), inexact Newton steps
-        after. Returns (x, ok, iterations, history, shifts, factored, reason)."""
-        asm = self.asm
+    def _newton(self, x: Array, load: Array, atol: float, ref: float, budget: int, deadline: float | None = None):
+        """Newton iterations at a fixed load, until `deadline` at most. Returns (x, ok,
+        iterations, history, shifts, factored, reason)."""
+        asm, opt = self.asm, self.options
         hist: list[float] = []
         shifts = 0
         factored = False
-        newton_steps = 0
         u = asm.unpack(x)
         Pi = asm.energy(u) - float(load @ x)
-        r = asm.pack(asm.internal_force(u)) - load
-        goal = CHORD_BELOW * atol if chord else atol
         for it in range(budget + 1):
+            r = asm.pack(asm.internal_force(u)) - load
             rn = float(np.linalg.norm(r))
             hist.append(rn / ref)
             if not np.isfinite(rn):
                 return x, False, it, hist, shifts, factored, "non_finite"
-            if rn <= goal:
+            if rn <= atol:
                 return x, True, it, hist, shifts, factored, "converged"
             # roundoff floor: within 100x of the tolerance, a Newton step that no longer halves
             # the residual cannot do better (the internal forces cancel to that precision)
-            if newton_steps >= 2 and rn <= 100.0 * atol and rn > 0.5 * hist[-2] * ref:
+            if it >= 2 and rn <= 100.0 * atol and rn > 0.5 * hist[-2] * ref:
                 return x, True, it, hist, shifts, factored, "converged"
             if it == budget:
                 break
             if deadline is not None and time.perf_counter() > deadline:
                 return x, False, it, hist, shifts, factored, "time_limit"
-            if chord:
-                # kept only where its rate projects the goal within CHORD_MAX_STEPS (and the
-                # budget); else undone, and Newton goes on from where the chord stood
+            K = asm.tangent(u)
+            # inexact Newton: the step to a relative accuracy eta, by conjugate gradients on
+            # the held factor when they get there quickly, else from a new factorisation.
+            # eta shrinks with the residual (superlinear convergence) but never below what
+            # reaching atol needs
+            eta = max(min(CG_FORCING, np.sqrt(rn / ref)), 1e-3 * atol / rn)
+            dx = None
+            if self._cg_skip > 0:  # they failed lately: the tangent moves fast here
+                self._cg_skip -= 1
+            else:
+                dx = self.solve_tangent(K, -r, eta)
+                # back off after a failure (skip 1, 2, 4, 8 steps), try every step after a success
+                self._cg_backoff = 0 if dx is not None else min(max(2 * self._cg_backoff, 1), 8)
+                self._cg_skip = self._cg_backoff
+            if dx is None:
+                shifts += self._factor_tangent(K, x)
+                factored = True
                 dx = -self.solver.solve(r)
-                step = self._line_search(x, Pi, r, dx, load) if float(r @ dx) < 0.0 else None
-                if step is not None:
-                    r_new = asm.pack(asm.internal_force(step[1])) - load
-                    rate = float(np.linalg.norm(r_new)) / rn
-                    if rate < 1.0 and (
-                        rate * rn <= goal or _steps(goal, rate * rn, rate) <= min(CHORD_MAX_STEPS, budget - it - 1)
-                    ):
-                        (x, u, Pi), r = step, r_new
-                        self.n_chord += 1
-                        continue
-                chord, goal = False, atol
-                if rn <= atol:
-                    return x, True, it, hist, shifts, factored, "converged"
-            dx, made, nshift = self._newton_step(u, x, r, rn, ref, atol)
-            shifts, factored, newton_steps = shifts + nshift, factored or made, newton_steps + 1
-            step = self._line_search(x, Pi, r, dx, load)
-            if step is None:
+            slope = float(r @ dx)  # < 0: descent (K positive definite)
+            alpha = 1.0
+            for _ in range(opt.max_halvings):
+                x_new = x + alpha * dx
+                u_new = asm.unpack(x_new)
+                Pi_new = asm.energy(u_new) - float(load @ x_new)
+                if np.isfinite(Pi_new):
+                    # roundoff: near the solution Pi cannot resolve the decrease any more
+                    lost = abs(slope) * alpha < 1e-13 * max(abs(Pi), 1e-300)
+                    if Pi_new <= Pi + opt.armijo * alpha * slope or lost:
+                        break
+                alpha *= 0.5
+            else:
                 return x, False, it + 1, hist, shifts, factored, "line_search"
-            x, u, Pi = step
-            r = asm.pack(asm.internal_force(u)) - load
+            x, u, Pi = x_new, u_new, Pi_new
         return x, False, budget, hist, shifts, factored, "max_iter"
-
-    def _newton_step(self, u: Array, x: Array, r: Array, rn: float, ref: float, atol: float) -> tuple[Array, bool, int]:
-        """An inexact Newton step: K du = -r to a relative accuracy eta, by conjugate gradients
-        on the held factor when they get there quickly, else from a new factorisation. eta
-        shrinks with the residual (superlinear convergence) but never below what reaching atol
-        needs. Returns (du, whether it factorised, the factorisation's shifts)."""
-        K = self.asm.tangent(u)
-        eta = max(min(CG_FORCING, np.sqrt(rn / ref)), 1e-3 * atol / rn)
-        dx = None
-        if self._cg_skip > 0:  # they failed lately: the tangent moves fast here
-            self._cg_skip -= 1
-        else:
-            dx = self.solve_tangent(K, -r, eta)
-            # back off after a failure (skip 1, 2, 4, 8 steps), try every step after a success
-            self._cg_backoff = 0 if dx is not None else min(max(2 * self._cg_backoff, 1), 8)
-            self._cg_skip = self._cg_backoff
-        if dx is not None:
-            return dx, False, 0
-        shifts = self._factor_tangent(K, x)
-        return -self.solver.solve(r), True, shifts
-
-    def _line_search(self, x: Array, Pi: float, r: Array, dx: Array, load: Array):
-        """The longest step in {1, 1/2, 1/4, ...} along dx that lowers Pi (Armijo), as (x, u,
-        Pi); None where no step will do."""
-        asm, opt = self.asm, self.options
-        slope = float(r @ dx)  # < 0: descent (K, or the factor, positive definite)
-        alpha = 1.0
-        for _ in range(opt.max_halvings):
-            x_new = x + alpha * dx
-            u_new = asm.unpack(x_new)
-            Pi_new = asm.energy(u_new) - float(load @ x_new)
-            if np.isfinite(Pi_new):
-                # roundoff: near the solution Pi cannot resolve the decrease any more
-                lost = abs(slope) * alpha < 1e-13 * max(abs(Pi), 1e-300)
-                if Pi_new <= Pi + opt.armijo * alpha * slope or lost:
-                    return x_new, u_new, Pi_new
-            alpha *= 0.5
-        return None
 
     def _result(self, x, converged, status, iterations, steps, residuals, t0) -> NewtonResult:
         return NewtonResult(
@@ -397,11 +349,6 @@ class NewtonSolver:
             residuals=residuals,
             seconds=time.perf_counter() - t0,
         )
-
-
-def _steps(goal: float, rn: float, rate: float) -> float:
-    """Steps at a linear rate from residual rn to goal."""
-    return float(np.log(goal / rn) / np.log(rate))
 
 
 def _is_better(hist: list[float]) -> bool:

@@ -7,7 +7,7 @@ import pytest
 
 from service.fem.assembly import Assembler
 from service.fem.material import NeoHookean
-from service.fem.newton import CHORD_BELOW, NewtonOptions, NewtonSolver
+from service.fem.newton import NewtonOptions, NewtonSolver
 
 
 def tip_load(mesh, total) -> np.ndarray:
@@ -171,37 +171,3 @@ def test_warm_solves_mostly_reuse_the_factor_and_agree_with_fresh_ones(bar):
         solver.factor_at(u)  # as a registration's adjoint does
     assert solver.n_cg > 0
     assert solver.n_factor < iterations
-
-
-def test_warm_solves_take_chord_steps_as_accurate_as_newtons(bar):
-    """Near the held factor's state (a registration's next trial) the residual is reduced by
-    that factor alone, to CHORD_BELOW of the tolerance (where Newton's last step lands), and
-    the equilibrium is a fresh solver's."""
-    asm = Assembler(bar, NeoHookean(4500.0, 0.49))
-    solver = NewtonSolver(asm)
-    u = solver.solve(tip_load(bar, [0.0, 5.0, -40.0])).u
-    assert solver.factor_at(u)  # as a registration's adjoint leaves it
-    g = tip_load(bar, [0.0, 5.0, -40.4])
-    chords, factors = solver.n_chord, solver.n_factor
-    res = solver.solve(g, u)
-    assert res.converged and solver.n_chord > chords and solver.n_factor == factors
-    assert res.residual <= CHORD_BELOW * solver.options.rtol
-    fresh = NewtonSolver(asm).solve(g)
-    np.testing.assert_allclose(res.u, fresh.u, atol=1e-9 * np.abs(fresh.u).max())
-
-
-def test_chord_steps_only_on_a_held_factor_and_a_whole_load(bar):
-    """A solve that makes its own factor (a training path's) is Newton's alone, and so is one
-    whose load must be stepped towards (its first step cut short), held factor or not: chord
-    steps from a cut step's far-off states led Newton astray on hard loads."""
-    g = np.zeros((bar.n_nodes, 3))
-    loaded = bar.free_surface_nodes[bar.nodes[bar.free_surface_nodes, 0] >= 3.0]
-    g[loaded] = np.random.default_rng(0).normal(size=(loaded.size, 3)) * 20.0 + [0.0, 0.0, -60.0]
-    solver = NewtonSolver(Assembler(bar, NeoHookean(4500.0, 0.49)))
-    assert solver.solve(g).converged
-    u = solver.solve(0.05 * g).u
-    assert solver.n_chord == 0
-    assert solver.factor_at(u)
-    res = solver.solve(g, u)
-    assert res.converged and res.load_steps > 1
-    assert solver.n_chord == 0
