@@ -3,7 +3,7 @@ clouds' noise, and how far the model's.
 
 The demo's sequence (its tool, support, 0.7 of the model's training force, 1,000 points, 0.5 mm
 of noise) at seeds 0-5 (the demo runs seed 0), registered by the network and by the Newton
-method with the session settings the demo uses (its noise declared, the default alpha). Prints
+method with the session settings the demo uses (its noise declared, choosing alpha). Prints
 and writes, per method and seed, the median force error and registration error over the frames,
 and how the error estimate stood to the error (median and smallest ratio, rank correlation).
 
@@ -27,8 +27,8 @@ from clients.demo import spearman
 from service.bench.cases import run_case, synthetic_case
 from service.bench.machine import describe
 from service.config import limit_threads
-from service.demo import NOISE, PEAK_FRACTION, patches
-from service.registration.settings import DEFAULT_ALPHA, SessionConfig
+from service.demo import NOISE, PEAK_FRACTION, patches, session_settings
+from service.registration.settings import SessionConfig
 from service.store import load_entry
 
 
@@ -49,7 +49,7 @@ def main() -> int:
             f"demo seed {seed}", entry.mesh, entry.fem.material, tool, support,
             frames=20, peak_force=peak, n_points=1000, seed=seed, noise=NOISE,
         )  # fmt: skip
-        demo = SessionConfig(noise=NOISE, alpha=DEFAULT_ALPHA)  # the demo's session
+        demo = SessionConfig(**session_settings(NOISE))  # the demo's session
         runs = (("network", entry.network, demo), ("fem", entry.fem, dataclasses.replace(demo, method="fem")))
         for method, model, config in runs:
             records = run_case(model, case, config)

@@ -23,13 +23,19 @@ from clients.demo import score_stream
 from .config import Settings, default_store
 from .fem.material import NeoHookean
 from .mesh import TetMesh
-from .registration.settings import DEFAULT_ALPHA
 from .synthetic import make_sequence, tool_patches
 
 TOOL_NODES = 12
 SUPPORT_NODES = 36
 PEAK_FRACTION = 0.7  # of the model's training max_force
 NOISE = 5e-4  # m per axis on every point of a cloud: a depth camera's, declared to the session
+
+
+def session_settings(noise: float = NOISE) -> dict:
+    """The demo's session: a camera knows its noise. Declared, it chooses alpha (the forces' MAP
+    estimate, noise_prior) and the estimate carries it into the answer instead of counting it
+    as misfit."""
+    return {"noise": noise}
 
 
 def patches(mesh, region: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -94,11 +100,8 @@ def run(
             say("error: the FEM could not follow the first frame of the sequence")
             return 1
 
-        # a camera knows its noise: declared, the estimate carries it into the answer instead of
-        # counting it as misfit; alpha stays at its default (the MAP alpha that noise alone would
-        # choose under-fits these clouds: docs/performance.md, "Declared noise")
-        settings: dict = {"noise": noise, "alpha": DEFAULT_ALPHA}
-        say(f"the clouds' noise ({noise * 1e3:.3g} mm per axis) is declared; alpha stays at {DEFAULT_ALPHA:.0e}")
+        settings = session_settings(noise)
+        say(f"the clouds' noise ({noise * 1e3:.3g} mm per axis) is declared; it chooses alpha, frame by frame")
         if method == "auto":  # correct frames past twice the build's validation error: the build's figure
             val = float(summary["training"].get("validation", {}).get("mean_mm", 0.5))
             settings["max_error"] = 2e-3 * val

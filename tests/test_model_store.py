@@ -68,7 +68,7 @@ def test_a_shipped_model_registers_a_known_deformation(shipped, name):
 @pytest.mark.parametrize("method", ["network", "fem"])
 def test_the_phantom_estimate_covers_its_error_under_declared_noise(shipped, method, alpha):
     """The demo's frames (its tool, load and 0.5 mm of camera noise) with the noise declared,
-    alpha following it (None) or fixed as the demo runs: the estimate counts the misfit beyond
+    alpha following it (None, as the demo runs) or fixed: the estimate counts the misfit beyond
     the noise (in quadrature) and the noise carried into the forces with the prior's pull, so it
     stays on the safe side of the true error. Before, the network's said a third of the error
     (median), and under a tenth on the first frames; the Newton method's said 0 on the first three."""

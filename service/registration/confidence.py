@@ -110,13 +110,16 @@ def estimator_for(model) -> ResidualEstimator:
 MISFIT_FACTOR = 4.9
 
 
-def noise_spread(jac, match: Match, faces: Array, alpha: float, noise: float, readout_gram: Array, Cg: Array) -> float:
+def noise_spread(
+    jac, match: Match, faces: Array, alpha: float, noise: float, readout_gram: Array, Cg: Array
+) -> tuple[float, float]:
     """What the declared noise does to the displacement (see the module): its spread, and the
     bias of the prior it calls for (alpha (C^T A C + alpha I)^-1 g: the MAP estimate's pull
     towards zero force, which the truth does not have), added in quadrature; RMS over the
-    Jacobian's nodes. `jac` a low-rank Jacobian with ``gram()`` at the frame's forces g, `Cg`
-    its image C g (r,), `match` the distance's at its positions, `readout_gram` U^T U (r, r)
-    of jac.U, in float64."""
+    Jacobian's nodes. With it, gamma = tr((C^T A C + alpha I)^-1 C^T A C), the force directions
+    the cloud determines (noise_prior's rule). `jac` a low-rank Jacobian with ``gram()`` at the
+    frame's forces g, `Cg` its image C g (r,), `match` the distance's at its positions,
+    `readout_gram` U^T U (r, r) of jac.U, in float64. Returns (spread, gamma)."""
     Nw, A = distance_gram(jac.U, match, faces)  # in U's precision, as the LM model's
     w = np.asarray(match.weight, np.float64)
     if w.size and w.min() == w.max():  # the squared loss: one weight, N^T W^2 N = w A
@@ -136,7 +139,8 @@ def noise_spread(jac, match: Match, faces: Array, alpha: float, noise: float, re
     p = jac.U.shape[0] // 3
     spread2 = float(noise) ** 2 * max(float(np.sum(cov * readout_gram)), 0.0)
     bias2 = max(float(pull @ (readout_gram @ pull)), 0.0)
-    return math.sqrt((spread2 + bias2) / p)
+    gamma = float(np.sum(Bt * A.T))  # tr(X^-1 M A): C^T A C's eigenvalues l, sum of l / (l + alpha)
+    return math.sqrt((spread2 + bias2) / p), gamma
 
 
 def error_estimate(forward_error: float, distance_rms: float, noise: float | None, spread: float = 0.0) -> float:

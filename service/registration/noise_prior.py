@@ -7,10 +7,15 @@ the distance sees) and a zero-mean Gaussian prior of variance s^2 on each force 
 
     alpha = sigma^2 / (m s^2).
 
-The prior's variance is unknown but a stream estimates it: the mean of g^2 over the support in
-the last frame (an empirical prior, which scales with the loads of the scene and needs no
-calibration to the organ). A fixed alpha suits one noise level only: small enough for a clean
-cloud, it lets the forces chase a noisy one.
+The prior's variance is unknown but a stream estimates it from the forces of its last frame,
+as MacKay's evidence framework does (the fixed point of expectation-maximisation on it):
+s^2 = |g|^2 / gamma, with gamma = sum_i l_i / (l_i + alpha) over the eigenvalues l_i of J's
+Gauss-Newton Hessian in g, the number of force directions the cloud determines. The directions
+it does not see hold the prior's value, zero, and say nothing of s: dividing |g|^2 by all K
+components (the rule before, mean g^2) counted them, took s too small and alpha too large (on
+the demo's calibration seeds, docs/performance.md). Without the Hessian (a model with no
+Jacobian) gamma falls back to K. The rule needs no calibration to the organ: it scales with the
+scene's loads.
 
 Two guards. The bare rule has a collapse: smaller forces give a larger alpha, which gives smaller
 forces (measured: alpha 8e10 on one sequence), so alpha stays within [floor, ceiling x floor],
@@ -45,16 +50,19 @@ class AlphaTracker:
         self.floor, self.top = float(floor), float(floor) * ceiling
         self.alpha = self.floor
 
-    def rule(self, g: Array, m: int) -> float | None:
-        """sigma^2 / (m mean(g^2)), clamped; None when the forces say nothing (all zero)."""
-        s2 = float(np.mean(np.square(g))) if np.size(g) else 0.0
-        if not (math.isfinite(s2) and s2 > 0 and m > 0):
+    def rule(self, g: Array, m: int, gamma: float | None = None) -> float | None:
+        """sigma^2 gamma / (m |g|^2), clamped; gamma defaults to g's size. None when the forces
+        say nothing (all zero)."""
+        e2 = float(np.sum(np.square(g))) if np.size(g) else 0.0
+        n = float(np.size(g)) if gamma is None else float(gamma)
+        if not (math.isfinite(e2) and e2 > 0 and m > 0 and math.isfinite(n) and n > 0):
             return None
-        return min(max(self.noise * self.noise / (m * s2), self.floor), self.top)
+        return min(max(self.noise * self.noise * n / (m * e2), self.floor), self.top)
 
-    def update(self, g: Array, m: int) -> float:
-        """Move alpha after a frame that ended at forces `g` (k, 3) on `m` points; returns it."""
-        target = self.rule(g, m)
+    def update(self, g: Array, m: int, gamma: float | None = None) -> float:
+        """Move alpha after a frame that ended at forces `g` (k, 3) on `m` points, with gamma
+        force directions determined (see the module); returns it."""
+        target = self.rule(g, m, gamma)
         if target is not None:
             self.alpha = math.sqrt(self.alpha * target)
         return self.alpha

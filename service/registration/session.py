@@ -120,6 +120,7 @@ class Session:
         self.config = dataclasses.replace(config, E=float(model.material.E), gtol=gtol, alpha=alpha)
         self._noise = config.noise
         self._readout_gram: tuple[Array, Array] | None = None  # (jac.U, U^T U) for noise_spread
+        self._gamma: float | None = None  # force directions the last answer's cloud determined
         self._options = SolveOptions.of(self.config)
         self._rest = self.mesh.nodes[self.distance.nodes]
         self._lock = threading.Lock()
@@ -194,9 +195,11 @@ class Session:
                 self._rest_distance,
                 prefetch,
             )
-            self._commit(sol, len(points), learn=True)
+            self._commit(sol, learn=True)
             t1 = time.perf_counter()
             outputs, rms, estimate = self._outputs(self.op, self.model, sol, options.alpha)
+            if sol.status not in FAILED:
+                self._learn_alpha(sol.g, len(points))
             timing = sol.timing.as_ms()
             timing["outputs"] = 1e3 * (time.perf_counter() - t1)
             method_used, iterations, evaluations = self.model.method, sol.iterations, sol.evaluations
@@ -209,7 +212,7 @@ class Session:
                     if self._corrector_curvature is not None:
                         self._corrector_curvature.reset()
                 else:
-                    self._commit(fem, len(points), learn=False)
+                    self._commit(fem, learn=False)
                     sol, method_used = fem, self.corrector.method
                     iterations, evaluations = iterations + fem.iterations, evaluations + fem.evaluations
                     outputs, rms, estimate = self._outputs(self._corrector_op, self.corrector, fem, options.alpha)
@@ -255,7 +258,7 @@ class Session:
             return self.g, (self.g + self._trend,)
         return self.g, (self._anchor,)
 
-    def _commit(self, sol, n_points: int, learn: bool) -> None:
+    def _commit(self, sol, learn: bool) -> None:
         """Move the warm start to a frame's answer (a failed one leaves it as it was)."""
         if sol.status in FAILED:
             self.op.reset()
@@ -273,12 +276,17 @@ class Session:
         self.g = sol.g
         if sol.converged:
             self._anchor = sol.g
-        if learn and self.alpha_tracker is not None:
-            before = self.alpha_tracker.alpha
-            after = self.alpha_tracker.update(sol.g, n_points)
-            for curvature in (self.curvature, self._corrector_curvature):
-                if curvature is not None:
-                    curvature.shift(after - before)
+
+    def _learn_alpha(self, g: Array, n_points: int) -> None:
+        """Move a noisy stream's alpha after a frame's first answer g, with the force directions
+        its cloud determined (self._gamma, from its estimate's noise term; None: all of them)."""
+        if self.alpha_tracker is None:
+            return
+        before = self.alpha_tracker.alpha
+        after = self.alpha_tracker.update(g, n_points, self._gamma)
+        for curvature in (self.curvature, self._corrector_curvature):
+            if curvature is not None:
+                curvature.shift(after - before)
 
     def _correct(self, sol, options: SolveOptions, fallbacks: tuple):
         """The FEM's registration of the bound cloud, from the network's answer (or its start)."""
@@ -306,6 +314,7 @@ class Session:
         (the solve's at g, or searched for if it has none: the best iterate was never evaluated),
         and the error estimate (the whole field is read for it, requested or not)."""
         g, rms = sol.g, sol.rms
+        self._gamma = None
         want = set(self.config.outputs)
         out: dict[str, Array] = {}
         # with noise declared, the network's field is made on a spare core (its operator
@@ -373,7 +382,10 @@ class Session:
             U = np.asarray(jac.U, np.float64)
             self._readout_gram = (jac.U, U.T @ U)  # constant per operator: once per support
         Cg = jac.matvec(np.asarray(g, np.float64).ravel())
-        return noise_spread(jac, match, self.distance.faces, alpha, self._noise, self._readout_gram[1], Cg)
+        spread, self._gamma = noise_spread(
+            jac, match, self.distance.faces, alpha, self._noise, self._readout_gram[1], Cg
+        )
+        return spread
 
     def summary(self) -> dict:
         return {

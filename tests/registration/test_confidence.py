@@ -195,8 +195,9 @@ def test_a_rotated_error_is_measured_in_the_rotated_frame(entry):
 @pytest.mark.parametrize("method", ["network", "fem"])
 def test_noise_spread_is_the_linearised_covariance_and_the_priors_pull(entry, method):
     """noise_spread's r x r algebra against the same quantities formed in force space (K x K):
-    the covariance sigma^2 J H^-1 (N^T W^2 N) H^-1 J^T and the pull alpha J H^-1 g, with J = U C
-    and H = C^T A C + alpha I, for the network's low-rank Jacobian and the FEM's dense one."""
+    the covariance sigma^2 J H^-1 (N^T W^2 N) H^-1 J^T, the pull alpha J H^-1 g and gamma =
+    tr(H^-1 C^T A C), with J = U C and H = C^T A C + alpha I, for the network's low-rank Jacobian
+    and the FEM's dense one."""
     from service.registration.confidence import noise_spread
     from service.registration.levenberg import weighted_rows
 
@@ -224,6 +225,10 @@ def test_noise_spread_is_the_linearised_covariance_and_the_priors_pull(entry, me
     pull = alpha * J @ (Hi @ g.ravel())
     p = U.shape[0] // 3
     expected = np.sqrt((np.trace(cov) + pull @ pull) / p)
-    got = noise_spread(jac, match, dist.faces, alpha, sigma, U.T @ U, jac.matvec(g.ravel()))
+    got, gamma = noise_spread(jac, match, dist.faces, alpha, sigma, U.T @ U, jac.matvec(g.ravel()))
     assert got == pytest.approx(expected, rel=1e-3)
     assert got > np.sqrt(np.trace(cov) / p) * (1 + 1e-6)  # the pull counts
+    # the force directions the cloud determines: sum of l / (l + alpha) over C^T A C's eigenvalues
+    lam = np.linalg.eigvalsh(C.T @ A @ C)
+    assert gamma == pytest.approx(float(np.sum(lam / (lam + alpha))), rel=1e-3)
+    assert 0.5 < gamma < K

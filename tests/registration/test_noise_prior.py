@@ -1,4 +1,4 @@
-"""The noise prior's alpha: the MAP weight, its damping, and the clamp that stops its collapse."""
+"""The noise prior's alpha: the MAP weight (MacKay's), its damping, and the clamp that stops its collapse."""
 
 import math
 
@@ -17,6 +17,19 @@ def test_alpha_moves_halfway_in_log_towards_the_map_weight():
     for _ in range(30):
         t.update(g, 500)
     assert t.alpha == pytest.approx(rule)
+
+
+def test_the_rule_counts_the_directions_the_cloud_determines():
+    """MacKay's update: |g|^2 over gamma, not over all K components (gamma None: all of them);
+    a gamma that says nothing (zero, not finite) leaves alpha."""
+    t = AlphaTracker(1e-9, noise=1e-3, ceiling=1e6)
+    g = np.full((10, 3), 0.02)  # |g|^2 = 1.2e-2, K = 30
+    assert t.rule(g, 500, gamma=6.0) == pytest.approx(1e-6 * 6.0 / (500 * 1.2e-2))
+    assert t.rule(g, 500) == pytest.approx(t.rule(g, 500, gamma=30.0))
+    assert t.rule(g, 500, gamma=6.0) == pytest.approx(t.rule(g, 500) / 5.0)
+    a = t.alpha
+    for gamma in (0.0, float("nan"), float("inf")):
+        assert t.update(g, 500, gamma) == a
 
 
 def test_alpha_stays_within_floor_and_ceiling():
