@@ -68,9 +68,10 @@ def row(variant: str, case: Case, recs: list) -> dict:
     }
 
 
-def write(args: argparse.Namespace, rows: list[dict]) -> None:
-    """The study's rows to --out, with the machine's stamp and the model's name."""
+def write(args: argparse.Namespace, rows: list[dict], **settings) -> None:
+    """The study's rows to --out, with the machine's stamp, the model's name and any settings
+    of the study's own (noise_m=..., say)."""
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(
-        json.dumps({"machine": describe(), "model": Path(args.model).name, "rows": rows}, indent=1)
+        json.dumps({"machine": describe(), "model": Path(args.model).name, **settings, "rows": rows}, indent=1)
     )

@@ -26,7 +26,6 @@ import calibration
 
 from service.bench.anysite import NETWORK, NETWORK_LM
 from service.bench.cases import noisy, run_case
-from service.bench.machine import describe
 
 OPTIMIZERS = {"levenberg-marquardt": NETWORK_LM, "lbfgsb": NETWORK}
 
@@ -58,9 +57,7 @@ def main() -> int:
             }
             rows.append(row)
             print(json.dumps(row))
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"machine": describe(), "noise_m": args.noise, "rows": rows}, indent=1) + "\n")
+    calibration.write(args, rows, noise_m=args.noise)
     return 0
 
 
