@@ -69,6 +69,7 @@ class FrameRecord:
     alpha: float | None = None  # the regularisation weight the frame ran with
     error_estimate_mm: float | None = None  # the frame's own estimate of its error
     method_used: str | None = None  # the forward model that answered (method auto)
+    force_along_pct: float | None = None  # the answer's net force along the true one, % of it
 
 
 def liver_paper_case() -> Case:
@@ -144,7 +145,9 @@ def run_case(model, case: Case, config: SessionConfig, method: str | None = None
         finite = bool(u is not None and np.isfinite(u).all() and np.isfinite(r.net_force).all())
         tre = float(np.linalg.norm(rest + u - case.positions[k], axis=1).mean() * 1e3) if finite else float("nan")
         true_f = case.net_forces[k]
-        fe = float(np.linalg.norm(r.net_force - true_f) / max(np.linalg.norm(true_f), 1e-300) * 100)
+        size = max(float(np.linalg.norm(true_f)), 1e-300)
+        fe = float(np.linalg.norm(r.net_force - true_f) / size * 100)
+        along = float(r.net_force @ true_f / size / size * 100)  # under 100: the prior's shrinkage
         est = 1e3 * r.error_estimate if np.isfinite(r.error_estimate) else float("inf")
         out.append(
             FrameRecord(
@@ -162,6 +165,7 @@ def run_case(model, case: Case, config: SessionConfig, method: str | None = None
                 r.alpha,
                 est,
                 r.method_used,
+                along,
             )
         )
     return out

@@ -89,6 +89,22 @@ def test_passes_take_the_same_steps_and_time_each_frame_by_its_median(entry):
         run_passes(entry.network, case, NETWORK, 0)
 
 
+def test_a_frames_force_error_splits_along_and_across_the_truth(entry):
+    """force_along_pct: the answer's net force along the true one (% of it); its gap to 100 is
+    the part of the force error along the truth, so it never exceeds the whole, and the rest of
+    the error lies across it."""
+    from service.bench.cases import run_case
+    from service.bench.liver import NETWORK
+    from service.bench.report import _smoke_case
+
+    case = _smoke_case(entry)
+    records = run_case(entry.network, case, NETWORK)
+    assert records and all(r.force_along_pct is not None for r in records)
+    for r in records:
+        assert abs(r.force_along_pct - 100) <= r.force_error_pct * (1 + 1e-12)
+    assert any(50 < r.force_along_pct < 150 for r in records)  # the smoke model finds the pull
+
+
 def test_passes_that_take_other_steps_are_refused():
     """same_steps: timing over passes is refused when a pass took other steps than the first
     (a registration that is not deterministic would mix two different works' times)."""
