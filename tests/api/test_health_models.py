@@ -165,3 +165,21 @@ def test_a_bad_store_entry_is_skipped_and_reported(bar_store, tmp_path, caplog):
         assert "corrupt" in caplog.text
     finally:
         server.stop()
+
+
+def test_a_started_server_has_made_each_models_estimator(bar_store):
+    """Startup makes what a session's first frame would otherwise wait for: every loaded model's
+    error estimator (its rest stiffness factorised), for both forward models."""
+    from service.registration.confidence import _CACHE_KEY, estimator_for
+
+    from .conftest import start
+
+    server = start(bar_store[0], instance_id="warm")
+    try:
+        entry = server.app.state.models["bar"]
+        for model in (entry.network, entry.fem):
+            made = model.__dict__.get(_CACHE_KEY)
+            assert made is not None  # no frame has run on this server
+            assert estimator_for(model) is made  # the first frame finds it
+    finally:
+        server.stop()
