@@ -34,9 +34,9 @@ log = logging.getLogger(__name__)
 
 
 def _warm_up(entries: dict) -> None:
-    """Do now what a session's first frame would otherwise wait for: the distance kernel compiled
-    (or loaded), and each model's error estimator made, its rest stiffness factorised and the
-    FEM's kernels loaded (the demo's first frame: 240-290 ms before, 52 ms after)."""
+    """Do now what a session's first frame would otherwise wait for (docs/performance.md): the
+    distance kernel compiled (or loaded), and each model's error estimator made, its rest
+    stiffness factorised and the FEM's kernels loaded."""
     import numpy as np
 
     from ..registration.confidence import estimator_for
@@ -47,7 +47,7 @@ def _warm_up(entries: dict) -> None:
         for model in (entry.network, entry.fem):
             try:
                 estimator_for(model)
-            except Exception as exc:  # the first frame meets it again and says so; serving goes on
+            except Exception as exc:  # the other models stay warmed; this one's frames meet the error
                 log.warning("model %s: its error estimator could not be made (%s)", entry.id, exc)
 
 
