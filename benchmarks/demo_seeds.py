@@ -62,10 +62,9 @@ def main() -> int:
             frames=20, peak_force=peak, n_points=1000, seed=seed, noise=NOISE,
         )  # fmt: skip
         demo = SessionConfig(**session_settings(NOISE))  # the demo's session
-        models = {"network": entry.network, "fem": entry.fem}
         for method, alpha in itertools.product(args.methods, args.alpha):
             config = dataclasses.replace(demo, method=method, alpha=alpha)
-            records = run_case(models[method], case, config)
+            records = run_case(entry.model(method), case, config)
             error = np.array([r.tre_mm for r in records])
             estimate = np.array([r.error_estimate_mm for r in records], float)
             force = np.array([r.force_error_pct for r in records])
