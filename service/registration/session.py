@@ -120,7 +120,6 @@ class Session:
         self.config = dataclasses.replace(config, E=float(model.material.E), gtol=gtol, alpha=alpha)
         self._noise = config.noise
         self._readout_gram: tuple[Array, Array] | None = None  # (jac.U, U^T U) for noise_spread
-        self._gamma: float | None = None  # force directions the last answer's cloud determined
         self._options = SolveOptions.of(self.config)
         self._rest = self.mesh.nodes[self.distance.nodes]
         self._lock = threading.Lock()
@@ -197,9 +196,9 @@ class Session:
             )
             self._commit(sol, learn=True)
             t1 = time.perf_counter()
-            outputs, rms, estimate = self._outputs(self.op, self.model, sol, options.alpha)
+            outputs, rms, estimate, gamma = self._outputs(self.op, self.model, sol, options.alpha)
             if sol.status not in FAILED:
-                self._learn_alpha(sol.g, len(points))
+                self._learn_alpha(sol.g, len(points), gamma)
             timing = sol.timing.as_ms()
             timing["outputs"] = 1e3 * (time.perf_counter() - t1)
             method_used, iterations, evaluations = self.model.method, sol.iterations, sol.evaluations
@@ -215,7 +214,7 @@ class Session:
                     self._commit(fem, learn=False)
                     sol, method_used = fem, self.corrector.method
                     iterations, evaluations = iterations + fem.iterations, evaluations + fem.evaluations
-                    outputs, rms, estimate = self._outputs(self._corrector_op, self.corrector, fem, options.alpha)
+                    outputs, rms, estimate, _ = self._outputs(self._corrector_op, self.corrector, fem, options.alpha)
             timing["total"] = 1e3 * (time.perf_counter() - t0)
             self.frames += 1
             self.converged += int(sol.converged)
@@ -277,13 +276,13 @@ class Session:
         if sol.converged:
             self._anchor = sol.g
 
-    def _learn_alpha(self, g: Array, n_points: int) -> None:
+    def _learn_alpha(self, g: Array, n_points: int, gamma: float | None) -> None:
         """Move a noisy stream's alpha after a frame's first answer g, with the force directions
-        its cloud determined (self._gamma, from its estimate's noise term; None: all of them)."""
+        its cloud determined (`gamma`, from its estimate's noise term; None: all of them)."""
         if self.alpha_tracker is None:
             return
         before = self.alpha_tracker.alpha
-        after = self.alpha_tracker.update(g, n_points, self._gamma)
+        after = self.alpha_tracker.update(g, n_points, gamma)
         for curvature in (self.curvature, self._corrector_curvature):
             if curvature is not None:
                 curvature.shift(after - before)
@@ -309,12 +308,13 @@ class Session:
 
     def _outputs(
         self, op: ForwardOperator, model: ForwardModel, sol: FrameSolution, alpha: float
-    ) -> tuple[dict[str, Array], float, float]:
+    ) -> tuple[dict[str, Array], float, float, float | None]:
         """The requested fields at the frame's forces `sol.g`, the RMS point-to-surface distance
         (the solve's at g, or searched for if it has none: the best iterate was never evaluated),
-        and the error estimate (the whole field is read for it, requested or not)."""
+        the error estimate (the whole field is read for it, requested or not), and the force
+        directions the cloud determined (:meth:`_noise_spread`'s gamma; None if not made)."""
         g, rms = sol.g, sol.rms
-        self._gamma = None
+        gamma = None
         want = set(self.config.outputs)
         out: dict[str, Array] = {}
         # with noise declared, the network's field is made on a spare core (its operator
@@ -329,7 +329,7 @@ class Session:
             field = spare.Beside(functools.partial(_field, op, model, g, self.support)) if beside else None
         spread = None
         if field is not None and sol.u is not None:
-            spread = self._noise_spread(op, g, self._rest + sol.u, alpha)
+            spread, gamma = self._noise_spread(op, g, self._rest + sol.u, alpha)
         u_all, forward = field.result() if field is not None else _field(op, model, g, self.support)
         if not np.isfinite(rms):
             u_nodes = np.zeros((self.distance.nodes.size, 3)) if u_all is None else u_all[self.distance.nodes]
@@ -338,7 +338,7 @@ class Session:
         if u_all is not None and np.isfinite(u_all).all():
             if spread is None:
                 x = self._rest + (u_all[self.distance.nodes] if sol.u is None else sol.u)
-                spread = self._noise_spread(op, g, x, alpha)
+                spread, gamma = self._noise_spread(op, g, x, alpha)
             estimate = error_estimate(forward, rms, self._noise, spread)
             if "displacement" in want:
                 out["displacement"] = u_all
@@ -348,7 +348,7 @@ class Session:
                 out["stress"] = von_mises(self.mesh, model.material, u_all)
         if "forces" in want:
             out["forces"] = g
-        return out, rms, estimate
+        return out, rms, estimate, gamma
 
     def _prefetch(self, g: Array) -> None:
         """Starts :func:`_field` at an evaluation's forces on a spare core, in place of the last
@@ -358,22 +358,23 @@ class Session:
         g = np.array(g, np.float64)
         self._early = (g, spare.Beside(functools.partial(_field, self.op, self.model, g, self.support)))
 
-    def _noise_spread(self, op: ForwardOperator, g: Array, x: Array, alpha: float) -> float:
-        """The declared noise carried into the answer (confidence.noise_spread), through the
-        forward model's Jacobian at g (the Newton method's: 3 solves per support node, unless its
-        last step made it there), the matching nodes at x (p, 3); 0 without declared noise or a
-        Jacobian (the Newton method past MAX_JACOBIAN_SUPPORT support nodes)."""
+    def _noise_spread(self, op: ForwardOperator, g: Array, x: Array, alpha: float) -> tuple[float, float | None]:
+        """The declared noise carried into the answer and the force directions the cloud
+        determined (confidence.noise_spread), through the forward model's Jacobian at g (the
+        Newton method's: 3 solves per support node, unless its last step made it there), the
+        matching nodes at x (p, 3); (0, None) without declared noise or a Jacobian (the Newton
+        method past MAX_JACOBIAN_SUPPORT support nodes)."""
         jacobian = getattr(op, "jacobian", None)
         if not self._noise or jacobian is None:
-            return 0.0
+            return 0.0, None
         try:
             jac = jacobian(g)
         except ValueError:  # a support too large for the Newton method's dense Jacobian
-            return 0.0
+            return 0.0, None
         except ForwardFailed:  # g's equilibrium could not be solved again: the field is none either
-            return float("inf")
+            return float("inf"), None
         if jac is None:  # the paper's layout: no basis, no Jacobian
-            return 0.0
+            return 0.0, None
         match = self.distance.last_match
         if match is None or not np.array_equal(match.x, x):  # the answer was not the last evaluation
             self.distance(x)
@@ -382,10 +383,7 @@ class Session:
             U = np.asarray(jac.U, np.float64)
             self._readout_gram = (jac.U, U.T @ U)  # constant per operator: once per support
         Cg = jac.matvec(np.asarray(g, np.float64).ravel())
-        spread, self._gamma = noise_spread(
-            jac, match, self.distance.faces, alpha, self._noise, self._readout_gram[1], Cg
-        )
-        return spread
+        return noise_spread(jac, match, self.distance.faces, alpha, self._noise, self._readout_gram[1], Cg)
 
     def summary(self) -> dict:
         return {

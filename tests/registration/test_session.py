@@ -316,7 +316,7 @@ def test_the_noise_term_beside_the_field_is_the_fields_own(entry, sequence):
         np.testing.assert_array_equal(a.outputs["displacement"], b.outputs["displacement"])
         assert a.error_estimate == b.error_estimate
         u = a.outputs["displacement"]
-        spread = beside._noise_spread(beside.op, beside.g, beside._rest + u[beside.distance.nodes], 1e-7)
+        spread, _ = beside._noise_spread(beside.op, beside.g, beside._rest + u[beside.distance.nodes], 1e-7)
         forward = estimator_for(entry.network).forward_error(u, beside.g, beside.support)
         expected = error_estimate(forward, a.distance_rms, 1e-3, spread)
         assert spread > 0 and a.error_estimate == pytest.approx(expected, rel=1e-5)
