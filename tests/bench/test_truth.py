@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from service.bench.anysite import spread_sites
+from service.bench.anysite import anysite_cases, spread_sites
 from service.bench.truth import coarse_edges, fine_patch, subdivide
 
 
@@ -42,3 +42,12 @@ def test_sites_spread_over_the_region(bar):
     x = bar.nodes[sites]
     gaps = np.linalg.norm(x[:, None] - x[None], axis=2)[np.triu_indices(4, 1)]
     assert gaps.min() > 0.2 * np.ptp(bar.nodes[region], axis=0).max()
+
+
+def test_a_site_is_named_by_how_far_its_tool_moves_the_organ(entry):
+    """The issue's loads move the organ 3-7 cm: each any-site case's name says its reach, the
+    largest nodal displacement of its truth over its frames, so a report shows which sites
+    are in that range."""
+    case = anysite_cases(entry, sites=1, frames=2)[0]
+    reach = 1e3 * np.linalg.norm(case.positions - entry.mesh.nodes, axis=2).max()
+    assert reach > 0 and case.name.endswith(f", {reach:.0f} mm)")
