@@ -1,8 +1,9 @@
 """The finer mesh that the anysite part's truth comes from."""
 
 import numpy as np
+import pytest
 
-from service.bench.anysite import anysite_cases, spread_sites
+from service.bench.anysite import anysite_cases, peak_for_reach, spread_sites
 from service.bench.truth import coarse_edges, fine_patch, subdivide
 
 
@@ -51,3 +52,22 @@ def test_a_site_is_named_by_how_far_its_tool_moves_the_organ(entry):
     case = anysite_cases(entry, sites=1, frames=2)[0]
     reach = 1e3 * np.linalg.norm(case.positions - entry.mesh.nodes, axis=2).max()
     assert reach > 0 and case.name.endswith(f", {reach:.0f} mm)")
+
+
+def test_a_sites_load_aims_at_its_reach_within_the_force_range(entry):
+    """The peak force whose linear response moves the organ `reach` at most, unless the
+    model's force range (a quarter of its trained maximum to all of it) says otherwise."""
+    from service.fem.rest import RestCompliance
+
+    fine = subdivide(entry.mesh)
+    compliance = RestCompliance(fine, entry.fem.material)
+    site = int(entry.mesh.free_surface_nodes[-1])
+    patch = fine_patch(entry.mesh, fine, entry.mesh.surface_patch(site, 6))
+    normal = fine.vertex_normals[patch].sum(axis=0)
+    g = np.zeros((fine.n_nodes, 3))
+    g[patch] = normal / (np.linalg.norm(normal) * patch.size)  # 1 N in all
+    per_newton = np.linalg.norm(compliance.solve(g.ravel()).reshape(-1, 3), axis=1).max()
+    aimed = 0.05 / per_newton
+    assert peak_for_reach(compliance, patch, 0.05, max_force=2 * aimed) == pytest.approx(aimed, rel=1e-9)
+    assert peak_for_reach(compliance, patch, 0.05, max_force=0.5 * aimed) == pytest.approx(0.5 * aimed)
+    assert peak_for_reach(compliance, patch, 0.05, max_force=8 * aimed) == pytest.approx(2 * aimed)
