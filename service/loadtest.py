@@ -34,8 +34,7 @@ async def make_frames(
     mesh = TetMesh(m["nodes"], m["tets"], m["fixed_nodes"])
     tool, support = patches(mesh, m["region_nodes"])
     peak = PEAK_FRACTION * float(summary["training"].get("load_distribution", {}).get("max_force", 1.0))
-    normal = mesh.vertex_normals[tool].sum(axis=0)
-    normal /= np.linalg.norm(normal)
+    normal = mesh.patch_normal(tool)
     rng = np.random.default_rng(seed)
     clouds = []
     for t in range(n_frames):

@@ -221,6 +221,12 @@ class TetMesh:
         norm = np.linalg.norm(acc, axis=1, keepdims=True)
         return _readonly(np.divide(acc, norm, out=np.zeros_like(acc), where=norm > 0))
 
+    def patch_normal(self, nodes: Array) -> Array:
+        """The unit outward normal of a surface patch: its nodes' area-weighted normals summed
+        (the direction a grasper pulls it). Shape: (k,) -> (3,)."""
+        n = self.vertex_normals[np.asarray(nodes, np.int64)].sum(axis=0)
+        return n / np.linalg.norm(n)
+
     @property
     def bounding_box(self) -> Array:
         return np.stack([self.nodes.min(0), self.nodes.max(0)])

@@ -100,8 +100,7 @@ def make_sequence(
     """
     rng = np.random.default_rng(seed)
     tool = np.asarray(tool, np.int64)
-    normal = mesh.vertex_normals[tool].sum(axis=0)
-    normal /= np.linalg.norm(normal)
+    normal = mesh.patch_normal(tool)
     d0 = normal if direction is None else np.asarray(direction, float) / np.linalg.norm(direction)
     axis = np.cross(d0, rng.normal(size=3))
     axis /= np.linalg.norm(axis)

@@ -105,3 +105,13 @@ def test_free_surface_excludes_fixed(bar):
     nodes, tets = grid_tets((1, 1, 1), 1.0)
     mesh, _ = TetMesh.build(nodes, tets)
     assert mesh.free_surface_nodes.size == 8 and mesh.surface_faces.shape == (12, 3)
+
+
+def test_a_patch_normal_is_the_unit_outward_normal_of_its_face(bar):
+    """The bar's free end (x = 4) and its top (z = 1): unit vectors close to +x and +z (the
+    edge nodes' own normals lean over the sides, and the tets' diagonals are not symmetric)."""
+    end = np.flatnonzero(bar.nodes[:, 0] == bar.nodes[:, 0].max())
+    top = np.flatnonzero((bar.nodes[:, 2] == bar.nodes[:, 2].max()) & (bar.nodes[:, 0] > 1.0))
+    for nodes, axis in ((end, 0), (top, 2)):
+        n = bar.patch_normal(nodes)
+        assert abs(np.linalg.norm(n) - 1.0) < 1e-12 and n[axis] > 0.95

@@ -70,9 +70,8 @@ def peak_for_reach(compliance: RestCompliance, patch: np.ndarray, reach: float, 
     FORCE_SHARE of `max_force`. The truth's load turns and its response is nonlinear, so it
     moves the organ about that far: the case's name says how far it did."""
     mesh = compliance.mesh
-    normal = mesh.vertex_normals[patch].sum(axis=0)
     g = np.zeros((mesh.n_nodes, 3))
-    g[patch] = normal / (np.linalg.norm(normal) * patch.size)
+    g[patch] = mesh.patch_normal(patch) / patch.size
     u = compliance.solve(g.ravel()).reshape(-1, 3)
     per_newton = float(np.linalg.norm(u, axis=1).max())
     lo, hi = (share * max_force for share in FORCE_SHARE)

@@ -33,8 +33,7 @@ def paper_like_loads(mesh: TetMesh, support: np.ndarray, rng: np.random.Generato
     for _ in range(n):
         centre = int(rng.choice(support))
         patch = mesh.surface_patch(centre, int(rng.integers(20, 36)))
-        normal = mesh.vertex_normals[patch].sum(0)
-        normal /= np.linalg.norm(normal)
+        normal = mesh.patch_normal(patch)
         g = np.zeros((mesh.n_nodes, 3))
         g[patch] = normal * rng.uniform(1.0, 4.0) / patch.size
         loads.append(g)

@@ -79,7 +79,7 @@ def sample_path_load(mesh: TetMesh, spec: LoadSpec, rng: np.random.Generator) ->
         centre = int(rng.choice(region))
         k = int(rng.integers(lo, hi + 1))
         patch = _region_patch(mesh, centre, k, in_region)
-        normal = _unit(mesh.vertex_normals[patch].sum(axis=0))
+        normal = mesh.patch_normal(patch)
         tangent = _unit(np.cross(normal, _unit(rng.normal(size=3))))
         nf = min(max(spec.normal_fraction, 1e-3), 1 - 1e-3)
         a = rng.beta(2.0 * nf, 2.0 * (1.0 - nf))

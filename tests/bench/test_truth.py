@@ -63,9 +63,8 @@ def test_a_sites_load_aims_at_its_reach_within_the_force_range(entry):
     compliance = RestCompliance(fine, entry.fem.material)
     site = int(entry.mesh.free_surface_nodes[-1])
     patch = fine_patch(entry.mesh, fine, entry.mesh.surface_patch(site, 6))
-    normal = fine.vertex_normals[patch].sum(axis=0)
     g = np.zeros((fine.n_nodes, 3))
-    g[patch] = normal / (np.linalg.norm(normal) * patch.size)  # 1 N in all
+    g[patch] = fine.patch_normal(patch) / patch.size  # 1 N in all, as make_sequence pulls
     per_newton = np.linalg.norm(compliance.solve(g.ravel()).reshape(-1, 3), axis=1).max()
     aimed = 0.05 / per_newton
     assert peak_for_reach(compliance, patch, 0.05, max_force=2 * aimed) == pytest.approx(aimed, rel=1e-9)
