@@ -86,7 +86,7 @@ def main() -> int:
     _, cases = calibration.cases(args)
     runs: dict = {}
     with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "cases.pkl"
+        path = Path(tmp) / "cases.pkl"  # written here, read only by the runs below
         path.write_bytes(pickle.dumps(cases))
         for method in args.methods:
             runs[method] = {side: [] for side in paired.SIDES}
@@ -98,7 +98,7 @@ def main() -> int:
                     s = runs[method][side][-1]
                     print(method, i, side, {c: (v["steps"], round(v["warm_median_ms"], 1)) for c, v in s.items()},
                           flush=True)  # fmt: skip
-    result = {}
+    result = {}  # times over the rounds; the answers, the same every round (one thread), from the first
     for method, sides in runs.items():
         result[method] = {
             side: {
