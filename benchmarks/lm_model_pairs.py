@@ -12,11 +12,8 @@ objective (J at the answer: lower is nearer the optimum), the mean TRE and media
 
 from __future__ import annotations
 
-import json
 import pickle
 import statistics
-import subprocess
-import sys
 import tempfile
 from pathlib import Path
 
@@ -55,9 +52,7 @@ print(json.dumps(rows))
 
 
 def run(checkout: Path, model: Path, cases: Path, method: str) -> list[dict]:
-    out = subprocess.run([sys.executable, "-c", _ONE_RUN, str(model), str(cases), method], cwd=checkout,
-                         capture_output=True, text=True, check=True).stdout  # fmt: skip
-    return json.loads(out.strip().splitlines()[-1])
+    return paired.run_json(checkout, _ONE_RUN, model, cases, method)
 
 
 def summary(rows: list[dict]) -> dict:

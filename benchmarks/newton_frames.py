@@ -9,10 +9,7 @@ server runs), the first `frames` frames of the sequence, gtol 1e-4."""
 
 from __future__ import annotations
 
-import json
 import statistics
-import subprocess
-import sys
 from pathlib import Path
 
 import paired
@@ -42,9 +39,7 @@ print(json.dumps(rows))
 
 
 def run(checkout: Path, model: Path, frames: int) -> list[dict]:
-    out = subprocess.run([sys.executable, "-c", _ONE_RUN, str(model), str(frames)], cwd=checkout,
-                         capture_output=True, text=True, check=True).stdout  # fmt: skip
-    return json.loads(out.strip().splitlines()[-1])
+    return paired.run_json(checkout, _ONE_RUN, model, frames)
 
 
 def main() -> None:

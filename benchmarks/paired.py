@@ -1,6 +1,7 @@
-"""What the paired-checkout studies share (demo_pairs.py, newton_frames.py): two checkouts on
-the command line, their runs alternated so that a shared machine's drift falls on both, and the
-record stamped with the machine (service.bench.machine) and each checkout's commit."""
+"""What the paired-checkout studies share (demo_pairs.py, newton_frames.py, lm_model_pairs.py):
+two checkouts on the command line, their runs alternated so that a shared machine's drift falls
+on both, a snippet run inside each checkout, and the record stamped with the machine
+(service.bench.machine) and each checkout's commit."""
 
 from __future__ import annotations
 
@@ -40,6 +41,14 @@ def alternate(
             runs[side].append(run(getattr(args, side)))
             print(i, side, show(runs[side][-1]), flush=True)
     return runs
+
+
+def run_json(checkout: Path, code: str, *argv: object):
+    """`code` run by this Python in a fresh process inside `checkout` (its own ``service``), with
+    `argv` as its arguments; the JSON its last line of output printed."""
+    out = subprocess.run([sys.executable, "-c", code, *map(str, argv)], cwd=checkout, capture_output=True,
+                         text=True, check=True).stdout  # fmt: skip
+    return json.loads(out.strip().splitlines()[-1])
 
 
 def write(args: argparse.Namespace, runs: dict, summary: dict, **extra) -> None:
