@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import dataclasses
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +30,7 @@ sys.path.insert(0, str(ROOT))
 import calibration
 
 from service.bench.anysite import FEM
-from service.registration.session import Session
+from service.bench.cases import score, stream_case
 
 CANDIDATES = (1e-4, 2e-4, 3e-4, 1e-3)
 REFERENCE_GTOL = 1e-6
@@ -40,19 +39,12 @@ NODAL_LIMIT_MM, FORCE_LIMIT_PCT = 0.005, 0.1
 
 
 def stream(entry, case, gtol: float) -> list[dict]:
-    """One session through the case's frames at gtol: each frame's answer, time and steps."""
-    config = dataclasses.replace(
-        FEM, gtol=gtol, support=tuple(int(i) for i in case.support), outputs=("displacement", "forces")
-    )
-    session, frames = Session(entry.fem, config), []
-    for k, cloud in enumerate(case.clouds):
-        t0 = time.perf_counter()
-        r = session.frame(cloud, frame_id=k)
-        ms = 1e3 * (time.perf_counter() - t0)
-        u = r.outputs["displacement"]
-        tre = float(np.linalg.norm(case.mesh.nodes + u - case.positions[k], axis=1).mean() * 1e3)
-        frames.append({"u": u, "f": r.net_force, "ms": ms, "iterations": r.iterations, "status": r.status, "tre": tre})
-    return frames
+    """One session through the case's frames at gtol: each frame's answer and its record."""
+    config = dataclasses.replace(FEM, gtol=gtol)
+    return [
+        {"u": r.outputs["displacement"], "f": r.net_force, "record": score(case, k, r, ms, "fem")}
+        for k, (r, ms) in enumerate(stream_case(entry.fem, case, config))
+    ]
 
 
 def main() -> int:
@@ -76,13 +68,13 @@ def main() -> int:
                 "force_median_pct": float(np.median(force)),
                 "nodal_mm": nodal,
                 "force_pct": force,
-                "tre_mean_mm": float(np.mean([f["tre"] for f in run])),
-                "reference_tre_mean_mm": float(np.mean([f["tre"] for f in ref])),
-                "iterations": [f["iterations"] for f in run],
-                "reference_iterations": [f["iterations"] for f in ref],
-                "status": [f["status"] for f in run],
-                "ms": [f["ms"] for f in run],
-                "ms_median_warm": float(np.median([f["ms"] for f in run[1:]])),
+                "tre_mean_mm": float(np.mean([f["record"].tre_mm for f in run])),
+                "reference_tre_mean_mm": float(np.mean([f["record"].tre_mm for f in ref])),
+                "iterations": [f["record"].iterations for f in run],
+                "reference_iterations": [f["record"].iterations for f in ref],
+                "status": [f["record"].status for f in run],
+                "ms": [f["record"].ms for f in run],
+                "ms_median_warm": float(np.median([f["record"].ms for f in run[1:]])),
                 "passes": bool(np.mean(nodal) <= NODAL_LIMIT_MM and np.median(force) <= FORCE_LIMIT_PCT),
             }
             rows.append(row)

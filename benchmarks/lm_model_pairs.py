@@ -12,6 +12,7 @@ objective (J at the answer: lower is nearer the optimum), the mean TRE and media
 
 from __future__ import annotations
 
+import functools
 import pickle
 import statistics
 import tempfile
@@ -20,7 +21,8 @@ from pathlib import Path
 import calibration
 import paired
 
-#: what each process runs inside its checkout: one method over every site, a row per site
+#: what each process runs inside its checkout: one method over every site, a row per site; written
+#: out in full (not service.bench.cases.score), since an older checkout may lack what it calls
 _ONE_RUN = """
 import dataclasses, json, pickle, sys, time
 from pathlib import Path
@@ -55,6 +57,14 @@ def run(checkout: Path, model: Path, cases: Path, method: str) -> list[dict]:
     return paired.run_json(checkout, _ONE_RUN, model, cases, method)
 
 
+def _summary_of_run(checkout: Path, model: Path, cases: Path, method: str) -> dict:
+    return summary(run(checkout, Path(model), cases, method))
+
+
+def _steps_and_median(s: dict) -> dict:
+    return {c: (v["steps"], round(v["warm_median_ms"], 1)) for c, v in s.items()}
+
+
 def summary(rows: list[dict]) -> dict:
     """Per site: steps, warm median and total ms, mean TRE, median force error, summed objective."""
     out = {}
@@ -84,15 +94,9 @@ def main() -> int:
         path = Path(tmp) / "cases.pkl"  # written here, read only by the runs below
         path.write_bytes(pickle.dumps(cases))
         for method in args.methods:
-            runs[method] = {side: [] for side in paired.SIDES}
-            for i in range(args.rounds):
-                order = paired.SIDES if i % 2 == 0 else paired.SIDES[::-1]  # neither always first
-                for side in order:
-                    rows = run(getattr(args, side), Path(args.model), path, method)
-                    runs[method][side].append(summary(rows))
-                    s = runs[method][side][-1]
-                    print(method, i, side, {c: (v["steps"], round(v["warm_median_ms"], 1)) for c, v in s.items()},
-                          flush=True)  # fmt: skip
+            runs[method] = paired.alternate(functools.partial(_summary_of_run, model=args.model, cases=path,
+                                                              method=method),
+                                            args, args.rounds, show=_steps_and_median)  # fmt: skip
     result = {}  # times over the rounds; the answers, the same every round (one thread), from the first
     for method, sides in runs.items():
         result[method] = {

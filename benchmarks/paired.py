@@ -34,13 +34,20 @@ def parser(doc: str) -> argparse.ArgumentParser:
 def alternate(
     run: Callable[[Path], T], args: argparse.Namespace, rounds: int, show: Callable[[T], object] = lambda r: r
 ) -> dict[str, list[T]]:
-    """`run(checkout)` for old then new, `rounds` times; each run's `show` printed as it ends."""
+    """`run(checkout)` once per side, `rounds` times, old first in even rounds and new first in odd
+    ones (a side always run first was measured to gain from it); each run's `show` printed as it
+    ends. Runs are listed per side in round order, so index i of each side is one pair."""
     runs: dict[str, list[T]] = {side: [] for side in SIDES}
     for i in range(rounds):
-        for side in SIDES:
+        for side in order(i):
             runs[side].append(run(getattr(args, side)))
             print(i, side, show(runs[side][-1]), flush=True)
     return runs
+
+
+def order(i: int) -> tuple[str, ...]:
+    """The sides in the order round `i` runs them."""
+    return SIDES if i % 2 == 0 else SIDES[::-1]
 
 
 def run_json(checkout: Path, code: str, *argv: object):

@@ -12,7 +12,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +20,7 @@ import numpy as np
 
 from ..fem.material import NeoHookean
 from ..mesh import TetMesh
-from ..registration.session import Session, SessionConfig
+from ..registration.session import FrameResult, Session, SessionConfig
 from ..synthetic import make_sequence, perturb
 
 log = logging.getLogger(__name__)
@@ -70,6 +70,7 @@ class FrameRecord:
     error_estimate_mm: float | None = None  # the frame's own estimate of its error
     method_used: str | None = None  # the forward model that answered (method auto)
     force_along_pct: float | None = None  # the answer's net force along the true one, % of it
+    objective: float | None = None  # J at the answer (m^2), without the regulariser
 
 
 def liver_paper_case() -> Case:
@@ -125,9 +126,9 @@ def noisy(case: Case, noise: float = 0.0, outliers: float = 0.0, points: int | N
     return case.with_clouds(clouds)
 
 
-def run_case(model, case: Case, config: SessionConfig, method: str | None = None, corrector=None) -> list[FrameRecord]:
-    """Stream every frame of `case` through one session (`corrector`: the FEM for method
-    auto); score each frame."""
+def stream_case(model, case: Case, config: SessionConfig, corrector=None) -> Iterator[tuple[FrameResult, float]]:
+    """Every frame of `case` through one session (`corrector`: the FEM for method auto), with
+    its displacement and forces asked for: each frame's result and wall time (ms)."""
     config = dataclasses.replace(
         config,
         support=tuple(int(i) for i in case.support),
@@ -135,40 +136,50 @@ def run_case(model, case: Case, config: SessionConfig, method: str | None = None
         outputs=("displacement", "forces"),
     )
     session = Session(model, config, corrector)
-    rest = case.mesh.nodes
-    out = []
     for k, cloud in enumerate(case.clouds):
         t0 = time.perf_counter()
         r = session.frame(cloud, frame_id=k)
-        ms = 1e3 * (time.perf_counter() - t0)
-        u = r.outputs.get("displacement")
-        finite = bool(u is not None and np.isfinite(u).all() and np.isfinite(r.net_force).all())
-        tre = float(np.linalg.norm(rest + u - case.positions[k], axis=1).mean() * 1e3) if finite else float("nan")
-        true_f = case.net_forces[k]
-        size = max(float(np.linalg.norm(true_f)), 1e-300)
-        fe = float(np.linalg.norm(r.net_force - true_f) / size * 100)
-        along = float(r.net_force @ true_f / size / size * 100)  # under 100: the prior's shrinkage
-        est = 1e3 * r.error_estimate if np.isfinite(r.error_estimate) else float("inf")
-        out.append(
-            FrameRecord(
-                case.name,
-                method or model.method,
-                k,
-                tre,
-                fe,
-                ms,
-                r.iterations,
-                r.evaluations,
-                r.status,
-                r.converged,
-                finite,
-                r.alpha,
-                est,
-                r.method_used,
-                along,
-            )
-        )
-    return out
+        yield r, 1e3 * (time.perf_counter() - t0)
+
+
+def score(case: Case, k: int, r: FrameResult, ms: float, method: str) -> FrameRecord:
+    """Frame `k`'s result against the case's truth: TRE over all nodes, resultant-force error."""
+    u = r.outputs.get("displacement")
+    finite = bool(u is not None and np.isfinite(u).all() and np.isfinite(r.net_force).all())
+    tre = (
+        float(np.linalg.norm(case.mesh.nodes + u - case.positions[k], axis=1).mean() * 1e3) if finite else float("nan")
+    )
+    true_f = case.net_forces[k]
+    size = max(float(np.linalg.norm(true_f)), 1e-300)
+    fe = float(np.linalg.norm(r.net_force - true_f) / size * 100)
+    along = float(r.net_force @ true_f / size / size * 100)  # under 100: the prior's shrinkage
+    est = 1e3 * r.error_estimate if np.isfinite(r.error_estimate) else float("inf")
+    return FrameRecord(
+        case.name,
+        method,
+        k,
+        tre,
+        fe,
+        ms,
+        r.iterations,
+        r.evaluations,
+        r.status,
+        r.converged,
+        finite,
+        r.alpha,
+        est,
+        r.method_used,
+        along,
+        r.objective,
+    )
+
+
+def run_case(model, case: Case, config: SessionConfig, method: str | None = None, corrector=None) -> list[FrameRecord]:
+    """Stream every frame of `case` through one session (stream_case); score each frame."""
+    return [
+        score(case, k, r, ms, method or model.method)
+        for k, (r, ms) in enumerate(stream_case(model, case, config, corrector))
+    ]
 
 
 def same_steps(run: Callable[[], list], passes: int, steps: Callable[[Any], int], what: str) -> list[list]:

@@ -105,6 +105,24 @@ def test_a_frames_force_error_splits_along_and_across_the_truth(entry):
     assert any(50 < r.force_along_pct < 150 for r in records)  # the smoke model finds the pull
 
 
+def test_a_streamed_case_scores_as_run_case_does(entry):
+    """stream_case gives each frame's result (its displacement for a driver's own comparison) and
+    score makes run_case's record from it, the frame's objective included."""
+    from service.bench.cases import run_case, score, stream_case
+    from service.bench.liver import NETWORK
+    from service.bench.report import _smoke_case
+
+    case = _smoke_case(entry)
+    streamed = list(stream_case(entry.network, case, NETWORK))
+    assert len(streamed) == case.frames and all(r.outputs["displacement"].shape == case.mesh.nodes.shape
+                                                for r, _ in streamed)  # fmt: skip
+    records = [score(case, k, r, ms, "network") for k, (r, ms) in enumerate(streamed)]
+    again = run_case(entry.network, case, NETWORK)
+    assert [r.tre_mm for r in records] == [r.tre_mm for r in again]
+    assert [r.objective for r in records] == [r.objective for r in again] == [r.objective for r, _ in streamed]
+    assert all(r.objective is not None and 0 < r.objective < 1e-3 for r in records)  # m^2: under 30 mm rms
+
+
 def test_passes_that_take_other_steps_are_refused():
     """same_steps: timing over passes is refused when a pass took other steps than the first
     (a registration that is not deterministic would mix two different works' times)."""
