@@ -4,7 +4,8 @@ On a machine with a core to spare, parts of a warm network frame overlap: its re
 its start, the distance's Gram with the Jacobian, the estimate's rotations with its internal
 force, the outputs at each Levenberg-Marquardt trial point with that point's distance, the field
 with the declared noise's term; the Newton method's Jacobian solves half its columns there, on a
-factor of its own (docs/performance.md). A job goes to a shared pool of one thread per core
+factor of its own, and its factorisations and assemblies take that core too (:func:`helping`;
+docs/performance.md). A job goes to a shared pool of one thread per core
 beyond the first; where no thread has started it by the time its result is needed (every core
 busy with other sessions' frames), the caller cancels it and runs it itself. A core is spare
 only while fewer frames are in progress in this process than there are cores (:func:`frame`): on
@@ -26,17 +27,22 @@ T = TypeVar("T")
 _pool: concurrent.futures.ThreadPoolExecutor | None = None
 _lock = threading.Lock()
 _frames = 0  # frames in progress in this process
+_running = threading.local()  # .frame: whether this thread runs a frame now
 
 
 @contextlib.contextmanager
 def frame() -> Iterator[None]:
-    """Counts a frame in progress while the block runs (a session's frame)."""
+    """Counts a frame in progress while the block runs (a session's frame), and marks the
+    calling thread as a frame's own (:func:`helping`)."""
     global _frames
     with _lock:
         _frames += 1
+    outer = getattr(_running, "frame", False)
+    _running.frame = True
     try:
         yield
     finally:
+        _running.frame = outer
         with _lock:
             _frames -= 1
 
@@ -44,6 +50,13 @@ def frame() -> Iterator[None]:
 def spare() -> bool:
     """Whether a core is spare: fewer frames in progress than cores."""
     return _frames < (os.cpu_count() or 1)
+
+
+def helping() -> bool:
+    """Whether the calling thread runs a frame and a core is spare: the FEM's own work may then
+    take a second core (a factorisation's threads, an assembly's other half). A trainer's
+    worker processes run no frames, so they never take one: they fill the cores themselves."""
+    return getattr(_running, "frame", False) and spare()
 
 
 def threads() -> int:
@@ -66,9 +79,10 @@ class Beside(Generic[T]):
     runs it inline if no thread had begun it (or none was asked to). The job must touch nothing
     the caller changes meanwhile."""
 
-    def __init__(self, fn: Callable[[], T]) -> None:
+    def __init__(self, fn: Callable[[], T], start: bool | None = None) -> None:
+        """`start`: whether to hand it to a spare thread (default: where a core is spare)."""
         self._fn = fn
-        self._future = _executor().submit(fn) if spare() else None
+        self._future = _executor().submit(fn) if (spare() if start is None else start) else None
 
     def result(self) -> T:
         if self._future is None or self._future.cancel():  # not begun: no spare thread was free

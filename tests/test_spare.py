@@ -56,3 +56,19 @@ def test_taken_is_the_result_if_begun_and_none_if_not():
     begun = threading.Event()
     beside = spare.Beside(lambda: begun.set() or 7)
     assert begun.wait(10.0) and beside.taken() == 7
+
+
+def test_openmp_threads_idle_briefly_unless_told_otherwise():
+    """Importing the service caps libgomp's spinning (it would take the spare core for ms after
+    each two-thread factorisation), before torch loads it; a caller's own setting wins."""
+    import os
+    import subprocess
+    import sys
+
+    code = "import service, os; print(os.environ['GOMP_SPINCOUNT'])"
+    env = {k: v for k, v in os.environ.items() if k != "GOMP_SPINCOUNT"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "10000"
+    out = subprocess.run([sys.executable, "-c", code], env={**env, "GOMP_SPINCOUNT": "5"}, capture_output=True,
+                         text=True, check=True)  # fmt: skip
+    assert out.stdout.strip() == "5"

@@ -16,6 +16,7 @@ shift an indefinite tangent instead of following a non-descent direction.
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import glob
 import logging
@@ -23,6 +24,7 @@ import os
 import site
 import sys
 import threading
+from collections.abc import Iterator
 from functools import lru_cache
 from typing import Protocol
 
@@ -30,9 +32,15 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from ..spare import helping
+
 log = logging.getLogger(__name__)
 
 Array = np.ndarray
+
+#: PARDISO's threads for the factorisations a frame makes while a core is spare (spare.helping):
+#: the liver's tangent in 11.5 against 20.4 ms (docs/performance.md)
+FACTOR_THREADS = 2
 
 
 class NotPositiveDefinite(ArithmeticError):
@@ -109,8 +117,8 @@ class CholmodSolver:
 
 
 @lru_cache(maxsize=1)
-def _mkl_pardiso():
-    """The MKL ``pardiso`` entry point, or None where MKL is not installed."""
+def _mkl() -> ctypes.CDLL | None:
+    """MKL's runtime library, or None where MKL is not installed."""
     candidates = [os.environ.get("ELASTREG_MKL_RT", "")]
     for prefix in (sys.prefix, site.getuserbase(), *site.getsitepackages()):
         candidates += sorted(glob.glob(os.path.join(prefix, "[Ll]ib*", "**", "*mkl_rt*"), recursive=True), key=len)
@@ -121,6 +129,18 @@ def _mkl_pardiso():
             lib = ctypes.CDLL(path)
         except OSError:
             continue
+        log.debug("MKL from %s", path)
+        if hasattr(lib, "MKL_Set_Num_Threads_Local"):
+            lib.MKL_Set_Num_Threads_Local.restype = ctypes.c_int
+        return lib
+    return None
+
+
+@lru_cache(maxsize=1)
+def _mkl_pardiso():
+    """The MKL ``pardiso`` entry point, or None where MKL is not installed."""
+    lib = _mkl()
+    if lib is not None:
         fn = lib.pardiso
         i32p = ctypes.POINTER(ctypes.c_int32)
         fn.argtypes = (
@@ -131,9 +151,24 @@ def _mkl_pardiso():
             + [ctypes.c_void_p, ctypes.c_void_p, i32p]
         )
         fn.restype = None
-        log.debug("MKL PARDISO from %s", path)
         return fn
     return None
+
+
+@contextlib.contextmanager
+def _mkl_threads(n: int) -> Iterator[None]:
+    """MKL's threads for the calling thread's calls within the block. Thread-local
+    (MKL_Set_Num_Threads_Local), so other threads' solves keep one each; the process-wide
+    setters do not reach a thread whose local count is set (threadpoolctl sets it)."""
+    setter = getattr(_mkl(), "MKL_Set_Num_Threads_Local", None)
+    if n <= 1 or setter is None:
+        yield
+        return
+    before = setter(n)
+    try:
+        yield
+    finally:
+        setter(before)  # 0, none set before: back to the process-wide count
 
 
 def _i32(v: int):
@@ -146,13 +181,15 @@ class PardisoSolver:
     Phase 11 (ordering and symbolic factorisation) runs once per pattern; each :meth:`factor`
     runs phase 22 only. One instance holds one factor and is not shared between threads.
     `single`: factor and solve in float32 (iparm 28), about half a solve's time (memory-bound)
-    at a relative error near 1e-5 on the liver: for solves that only estimate.
+    at a relative error near 1e-5 on the liver: for solves that only estimate. `threads`: MKL's
+    threads for every call, fixed at the analysis (:class:`SpareCoreSolver` holds two).
     """
 
     name = "pardiso"
     _MTYPE = 2  # real symmetric positive definite
 
-    def __init__(self, pattern: sp.csr_matrix, single: bool = False) -> None:
+    def __init__(self, pattern: sp.csr_matrix, single: bool = False, threads: int = 1) -> None:
+        self.threads = threads
         fn = _mkl_pardiso()
         if fn is None:
             raise RuntimeError("MKL PARDISO is not available (install the 'mkl' package)")
@@ -183,6 +220,10 @@ class PardisoSolver:
         self._call(11, np.zeros(self.n))
 
     def _call(self, phase: int, b: Array) -> Array:
+        with _mkl_threads(self.threads):  # every phase on the analysis's count: a factor on fewer crashed
+            return self._phase(phase, b)
+
+    def _phase(self, phase: int, b: Array) -> Array:
         b = np.asfortranarray(b, dtype=self._dtype)
         x = np.zeros_like(b)
         err = ctypes.c_int32(0)
@@ -226,6 +267,32 @@ class PardisoSolver:
             pass
 
 
+class SpareCoreSolver:
+    """Two PARDISO solvers of one pattern: one on a single thread, and one on FACTOR_THREADS for
+    the factorisations a frame makes while a core is spare (spare.helping). PARDISO must
+    factorise on the thread count it analysed with (fewer crashed it), so the count picks the
+    solver, not the call. Solves go to the one holding the latest factor."""
+
+    name = "pardiso"
+
+    def __init__(self, pattern: sp.csr_matrix, single: bool = False) -> None:
+        self._pattern, self._single = pattern, single
+        self._one = self._current = PardisoSolver(pattern, single)
+        self._more: PardisoSolver | None = None  # analysed on first use
+
+    def factor(self, K: sp.csr_matrix) -> None:
+        solver = self._one
+        if helping():
+            if self._more is None:
+                self._more = PardisoSolver(self._pattern, self._single, threads=FACTOR_THREADS)
+            solver = self._more
+        self._current = solver  # a failed factor leaves it refusing solves, as a lone solver does
+        solver.factor(K)
+
+    def solve(self, b: Array) -> Array:
+        return self._current.solve(b)
+
+
 BACKENDS = {"pardiso": PardisoSolver, "cholmod": CholmodSolver, "superlu": SuperLUSolver}
 
 
@@ -244,14 +311,19 @@ def available_backends() -> list[str]:
     return names
 
 
-def make_solver(pattern: sp.csr_matrix, backend: str | None = None, single: bool = False) -> SparseSolver:
+def make_solver(
+    pattern: sp.csr_matrix, backend: str | None = None, single: bool = False, spare_core: bool = False
+) -> SparseSolver:
     """A solver for matrices with this sparsity: the named backend, or the fastest available.
 
     `backend` may also come from the environment variable ELASTREG_SOLVER. `single`: factor in
     float32 where the backend can (PARDISO, SuperLU; CHOLMOD stays double); solutions come
-    back in float64 either way.
+    back in float64 either way. `spare_core`: PARDISO factorises on two threads where a frame
+    has a core to spare (:class:`SpareCoreSolver`; a Newton method's solver).
     """
     backend = backend or os.environ.get("ELASTREG_SOLVER") or available_backends()[0]
     if backend not in BACKENDS:
         raise ValueError(f"unknown solver backend {backend!r}; choose from {sorted(BACKENDS)}")
+    if spare_core and backend == "pardiso":
+        return SpareCoreSolver(pattern, single)
     return BACKENDS[backend](pattern, single)

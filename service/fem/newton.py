@@ -89,7 +89,7 @@ class NewtonSolver:
         self.asm = assembler
         self.options = options or NewtonOptions()
         K0 = assembler.stiffness_at_rest()
-        self.solver = make_solver(K0, self.options.backend)
+        self.solver = make_solver(K0, self.options.backend, spare_core=True)
         self._diag = _diagonal_slots(K0)
         self._mean_diag = float(K0.diagonal().mean())
         self._tau = 1e-4 * self._mean_diag  # last shift that worked: where the next search starts

@@ -1,6 +1,8 @@
 """Vectorised assembly: forces and tangent against finite differences, rigid invariance, and
 a homogeneous-stress patch check against the analytical Neo-Hookean stress."""
 
+import os
+
 import numpy as np
 import pytest
 
@@ -117,3 +119,31 @@ def test_the_energy_resolves_a_small_loads_change(bar, compiled):
     change = asm.energy(u + d) - asm.energy(u - d)  # central: 2 f.d + O(|d|^3)
     work = 2.0 * float((asm.internal_force(u) * d).sum())
     assert change == pytest.approx(work, rel=1e-6, abs=0.0)  # approx alone allows 1e-12
+
+
+def test_an_assembly_split_over_two_cores_gives_the_same_digits(bar, monkeypatch):
+    """A frame with a spare core assembles half the tets there; the compiled kernels always sum
+    two halves, so the tangent and the internal force are the same to the last digit whether
+    the half ran beside or inline (an answer must not depend on the server's load)."""
+    pytest.importorskip("numba")
+    import service.fem.assembly as assembly
+    from service import spare
+
+    asm = Assembler(bar, NeoHookean(4500.0, 0.49), compiled=True)
+    u = displaced(bar, 0.05, seed=5)
+    inline = asm.tangent(u).data.copy(), asm.internal_force(u)
+    monkeypatch.setattr(assembly, "BESIDE_MIN_TETS", 0)  # the bar is small: split it anyway
+    ran_on = []
+    real = assembly.Beside
+
+    def watched(fn, start=None):
+        ran_on.append(start)
+        return real(fn, start)
+
+    monkeypatch.setattr(assembly, "Beside", watched)
+    with spare.frame():
+        beside = asm.tangent(u).data, asm.internal_force(u)
+    assert ran_on == [(os.cpu_count() or 1) > 1] * 2  # handed beside where a core is spare
+    assert np.array_equal(beside[0], inline[0]) and np.array_equal(beside[1], inline[1])
+    ref = Assembler(bar, NeoHookean(4500.0, 0.49), compiled=False)
+    np.testing.assert_allclose(beside[1], ref.internal_force(u), atol=1e-11 * 4500.0)

@@ -50,3 +50,52 @@ def test_single_precision_solves_to_float32_accuracy(bar, backend):
     assert err < 1e-3  # a few digits, which is all an estimate needs
     if backend != "cholmod":  # CHOLMOD has no single precision: the same answer
         assert err > 1e-12
+
+
+@pytest.mark.skipif("pardiso" not in available_backends(), reason="needs MKL PARDISO")
+def test_a_frames_factorisation_takes_the_spare_core_and_solves_alike(bar):
+    """A Newton method's solver factorises on PARDISO's two-thread instance inside a frame with a
+    core to spare, on its one-thread instance elsewhere (a trainer's workers, a loaded server),
+    and solves on whichever holds the latest factor: the same answers to rounding."""
+    import os
+    from contextlib import ExitStack
+
+    from service import spare
+    from service.fem.linsolve import FACTOR_THREADS, SpareCoreSolver
+
+    K = Assembler(bar, NeoHookean(4500.0, 0.45)).stiffness_at_rest()
+    b = np.random.default_rng(2).normal(size=K.shape[0])
+    solver = make_solver(K, "pardiso", spare_core=True)
+    assert isinstance(solver, SpareCoreSolver)
+    solver.factor(K)  # no frame: one thread, the other instance not even analysed
+    alone = solver.solve(b)
+    assert solver._current is solver._one and solver._more is None
+    with spare.frame():
+        if (os.cpu_count() or 1) > 1:  # a core to spare
+            solver.factor(2 * K)
+            assert solver._current is solver._more and solver._more.threads == FACTOR_THREADS
+            np.testing.assert_allclose(2 * solver.solve(b), alone, rtol=1e-10)
+        with ExitStack() as others:  # every core now has a frame: none is spare
+            for _ in range((os.cpu_count() or 1) - 1):
+                others.enter_context(spare.frame())
+            solver.factor(3 * K)
+            assert solver._current is solver._one
+            np.testing.assert_allclose(3 * solver.solve(b), alone, rtol=1e-10)
+        with pytest.raises(NotPositiveDefinite):
+            solver.factor(-K)
+        with pytest.raises(RuntimeError, match="before a successful factor"):
+            solver.solve(b)  # a failed factor refuses solves, as a lone solver does
+
+
+def test_only_a_frames_own_thread_may_take_the_spare_core():
+    """helping(): inside a frame, on its thread, while fewer frames run than there are cores;
+    never on the spare pool's threads (their jobs are the spare core's work already)."""
+    import os
+
+    from service import spare
+
+    assert not spare.helping()
+    with spare.frame():
+        assert spare.helping() == ((os.cpu_count() or 1) > 1)
+        assert not spare.Beside(spare.helping, start=True).result()
+    assert not spare.helping()
