@@ -27,6 +27,7 @@ T = TypeVar("T")
 _pool: concurrent.futures.ThreadPoolExecutor | None = None
 _lock = threading.Lock()
 _frames = 0  # frames in progress in this process
+_outstanding = 0  # jobs handed to the pool and neither ended nor cancelled
 _running = threading.local()  # .frame: whether this thread runs a frame now
 
 
@@ -53,10 +54,12 @@ def spare() -> bool:
 
 
 def helping() -> bool:
-    """Whether the calling thread runs a frame and a core is spare: the FEM's own work may then
-    take a second core (a factorisation's threads, an assembly's other half). A trainer's
-    worker processes run no frames, so they never take one: they fill the cores themselves."""
-    return getattr(_running, "frame", False) and spare()
+    """Whether the calling thread runs a frame, a core is spare and the pool has no job: the
+    FEM's own work may then take that core (a factorisation's second thread, an assembly's
+    other half). A trainer's worker processes run no frames, so they never take one: they fill
+    the cores themselves. A job in the pool (method auto's network field beside its Newton
+    correction) keeps the factorisation on one thread, not two on a busy core."""
+    return getattr(_running, "frame", False) and spare() and _outstanding == 0
 
 
 def threads() -> int:
@@ -82,21 +85,53 @@ class Beside(Generic[T]):
     def __init__(self, fn: Callable[[], T], start: bool | None = None) -> None:
         """`start`: whether to hand it to a spare thread (default: where a core is spare)."""
         self._fn = fn
-        self._future = _executor().submit(fn) if (spare() if start is None else start) else None
+        self._future = _submit(fn) if (spare() if start is None else start) else None
+
+    def _not_begun(self) -> bool:
+        """Whether it had no thread (none asked, or cancelled now since none had begun it)."""
+        if self._future is None:
+            return True
+        if self._future.cancel():
+            self._future = None
+            _settle()
+            return True
+        return False
 
     def result(self) -> T:
-        if self._future is None or self._future.cancel():  # not begun: no spare thread was free
+        if self._not_begun():  # no spare thread was free
             return self._fn()
+        assert self._future is not None
         return self._future.result()
 
     def taken(self) -> T | None:
         """Its result if a thread has begun it (waiting for the end), else None: cancelled, for
         a caller that would do the work another way than `fn` (without a second factor, say)."""
-        if self._future is None or self._future.cancel():
+        if self._not_begun():
             return None
+        assert self._future is not None
         return self._future.result()
 
     def drop(self) -> None:
         """No longer wanted: cancelled if no thread has begun it, else left to finish."""
-        if self._future is not None:
-            self._future.cancel()
+        self._not_begun()
+
+
+def _submit(fn: Callable[[], T]) -> concurrent.futures.Future:
+    """`fn` handed to the pool, counted until it ends or is cancelled (:func:`helping`)."""
+    global _outstanding
+
+    def counted() -> T:
+        try:
+            return fn()
+        finally:
+            _settle()  # before the caller can see the result: its next helping() counts it done
+
+    with _lock:
+        _outstanding += 1
+    return _executor().submit(counted)
+
+
+def _settle() -> None:
+    global _outstanding
+    with _lock:
+        _outstanding -= 1

@@ -72,3 +72,25 @@ def test_openmp_threads_idle_briefly_unless_told_otherwise():
     out = subprocess.run([sys.executable, "-c", code], env={**env, "GOMP_SPINCOUNT": "5"}, capture_output=True,
                          text=True, check=True)  # fmt: skip
     assert out.stdout.strip() == "5"
+
+
+def test_a_frame_takes_the_spare_core_only_while_the_pool_has_no_job():
+    """helping(): a job handed beside (begun or waiting) keeps the frame's FEM on its own core,
+    and once the job ended, or was taken back unbegun, the core is the frame's again."""
+    import os
+
+    if (os.cpu_count() or 1) < 2:
+        pytest.skip("needs a core to spare")
+    with spare.frame():
+        assert spare.helping()
+        release, begun = threading.Event(), threading.Event()
+        job = spare.Beside(lambda: begun.set() or release.wait(10.0), start=True)
+        assert begun.wait(10.0) and not spare.helping()
+        release.set()
+        assert job.result() and spare.helping()
+        with spare_threads_busy():
+            waiting = spare.Beside(lambda: 1, start=True)
+            assert not spare.helping()
+            assert waiting.taken() is None and spare.helping()  # cancelled: no longer counted
+            waiting.drop()  # a second cancel counts nothing twice
+            assert spare.helping()

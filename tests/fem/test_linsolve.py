@@ -97,5 +97,5 @@ def test_only_a_frames_own_thread_may_take_the_spare_core():
     assert not spare.helping()
     with spare.frame():
         assert spare.helping() == ((os.cpu_count() or 1) > 1)
-        assert not spare.Beside(spare.helping, start=True).result()
+        assert not spare._executor().submit(spare.helping).result()  # on the pool's thread itself
     assert not spare.helping()
