@@ -160,8 +160,8 @@ def _mkl_threads(n: int) -> Iterator[None]:
     """MKL's threads for the calling thread's calls within the block. Thread-local
     (MKL_Set_Num_Threads_Local), so other threads' solves keep one each; the process-wide
     setters do not reach a thread whose local count is set (threadpoolctl sets it)."""
-    setter = getattr(_mkl(), "MKL_Set_Num_Threads_Local", None)
-    if n <= 1 or setter is None:
+    setter = getattr(_mkl(), "MKL_Set_Num_Threads_Local", None) if n > 1 else None
+    if setter is None:  # one thread (every solver but a frame's second): nothing to look up
         yield
         return
     before = setter(n)
