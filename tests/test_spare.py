@@ -74,6 +74,18 @@ def test_openmp_threads_idle_briefly_unless_told_otherwise():
     assert out.stdout.strip() == "5"
 
 
+def test_only_a_frames_own_thread_may_take_the_spare_core():
+    """helping(): inside a frame, on its thread, while fewer frames run than there are cores;
+    never on the spare pool's threads (their jobs are the spare core's work already)."""
+    import os
+
+    assert not spare.helping()
+    with spare.frame():
+        assert spare.helping() == ((os.cpu_count() or 1) > 1)
+        assert not spare._executor().submit(spare.helping).result()  # on the pool's thread itself
+    assert not spare.helping()
+
+
 def test_a_frame_takes_the_spare_core_only_while_the_pool_has_no_job():
     """helping(): a job handed beside (begun or waiting) keeps the frame's FEM on its own core,
     and once the job ended, or was taken back unbegun, the core is the frame's again."""

@@ -85,17 +85,3 @@ def test_a_frames_factorisation_takes_the_spare_core_and_solves_alike(bar):
             solver.factor(-K)
         with pytest.raises(RuntimeError, match="before a successful factor"):
             solver.solve(b)  # a failed factor refuses solves, as a lone solver does
-
-
-def test_only_a_frames_own_thread_may_take_the_spare_core():
-    """helping(): inside a frame, on its thread, while fewer frames run than there are cores;
-    never on the spare pool's threads (their jobs are the spare core's work already)."""
-    import os
-
-    from service import spare
-
-    assert not spare.helping()
-    with spare.frame():
-        assert spare.helping() == ((os.cpu_count() or 1) > 1)
-        assert not spare._executor().submit(spare.helping).result()  # on the pool's thread itself
-    assert not spare.helping()
