@@ -29,9 +29,7 @@ def subdivide(mesh: TetMesh) -> TetMesh:
     """Each tet into eight; coarse nodes keep their ids; an edge between two fixed nodes has a
     fixed midpoint (the Dirichlet surface stays the same surface). Shape: n + edges nodes."""
     n = mesh.n_nodes
-    pairs = np.sort(mesh.tets[:, _EDGES], axis=2).reshape(-1, 2)  # (6 t, 2)
-    edges, inverse = np.unique(pairs, axis=0, return_inverse=True)  # as coarse_edges()
-    mid = n + inverse.reshape(-1, 6)  # (t, 6) midpoint ids
+    edges, mid = edge_midpoints(mesh)
     nodes = np.vstack([mesh.nodes, 0.5 * (mesh.nodes[edges[:, 0]] + mesh.nodes[edges[:, 1]])])
     local = np.hstack([mesh.tets, mid])  # (t, 10)
     tets = local[:, _CHILDREN].reshape(-1, 4)
@@ -58,5 +56,12 @@ def fine_patch(coarse: TetMesh, fine: TetMesh, tool: Array) -> Array:
 
 def coarse_edges(coarse: TetMesh) -> Array:
     """The coarse mesh's edges (e, 2), in the order subdivide() numbers their midpoints."""
-    pairs = np.sort(coarse.tets[:, _EDGES], axis=2).reshape(-1, 2)
-    return np.unique(pairs, axis=0)
+    return edge_midpoints(coarse)[0]
+
+
+def edge_midpoints(mesh: TetMesh) -> tuple[Array, Array]:
+    """The mesh's edges (e, 2), sorted, and each tet's six midpoint ids n + edge index in _EDGES'
+    order (t, 6): the finer mesh's numbering, and a ten-node tet's."""
+    pairs = np.sort(mesh.tets[:, _EDGES], axis=2).reshape(-1, 2)  # (6 t, 2)
+    edges, inverse = np.unique(pairs, axis=0, return_inverse=True)
+    return edges, mesh.n_nodes + inverse.reshape(-1, 6)
