@@ -24,7 +24,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-import scipy.sparse as sp
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -33,57 +32,31 @@ from locking_study import outward, scene_entry, tools
 
 from service.bench.anysite import CALIBRATION_SEED
 from service.bench.machine import describe
-from service.bench.truth import _EDGES, edge_midpoints, subdivide
+from service.bench.truth import subdivide
 from service.config import limit_threads
 from service.fem.linsolve import make_solver
+from service.fem.quadratic import QuadraticAssembler
 from service.fem.rest import RestCompliance
+from service.mesh import TetMesh, edge_midpoints
 
 Array = np.ndarray
 
-#: the 4-point degree-2 rule on a tet: exact for P2 stiffness on straight-sided tets
-_QA, _QB = 0.5854101966249685, 0.1381966011250105
-_BARY = np.full((4, 4), _QB) + np.eye(4) * (_QA - _QB)  # (q, 4) barycentric coordinates
 
-
-def p2_gradients(mesh) -> Array:
-    """Gradients of the ten P2 shape functions at the four quadrature points. Shape: (t, 4, 10, 3).
-    Vertex a: L_a (2 L_a - 1); edge (a, b): 4 L_a L_b; grad L_k are the P1 gradients."""
-    dNdL = np.zeros((4, 10, 4))
-    for a in range(4):
-        dNdL[:, a, a] = 4 * _BARY[:, a] - 1
-    for e, (a, b) in enumerate(_EDGES):
-        dNdL[:, 4 + e, a] = 4 * _BARY[:, b]
-        dNdL[:, 4 + e, b] = 4 * _BARY[:, a]
-    return np.einsum("qak,tkx->tqax", dNdL, mesh.shape_gradients)
-
-
-def p2_stiffness(mesh, material, n_total: int, tets10: Array) -> sp.csr_matrix:
-    """Small-strain stiffness (lambda, mu of the Neo-Hookean law at rest) on ten-node tets."""
-    G = p2_gradients(mesh)
-    w = mesh.volumes / 4.0
-    lam, mu = material.lam, material.mu
-    Ke = lam * np.einsum("t,tqai,tqbj->taibj", w, G, G)
-    Ke += mu * np.einsum("t,tqaj,tqbi->taibj", w, G, G)
-    Ke += mu * np.einsum("t,tqak,tqbk,ij->taibj", w, G, G, np.eye(3))
-    dofs = (3 * tets10[:, :, None] + np.arange(3)).reshape(len(tets10), 30)
-    rows = np.repeat(dofs, 30, axis=1).ravel()
-    cols = np.tile(dofs, (1, 30)).ravel()
-    K = sp.coo_matrix((Ke.reshape(-1), (rows, cols)), shape=(3 * n_total, 3 * n_total)).tocsr()
-    K.sum_duplicates()
-    return K
-
-
-def patch_test(mesh, material, fine, tets10: Array) -> dict:
-    """The element's own checks on this mesh: a linear field's energy is exact, rigid motions
-    cost nothing."""
-    K = p2_stiffness(mesh, material, fine.n_nodes, tets10)
-    x = fine.nodes
+def patch_test(constrained: QuadraticAssembler) -> dict:
+    """The element's own checks on this mesh, nothing fixed: a linear field's energy is exact,
+    rigid motions cost nothing."""
+    elements, nodes = constrained.elements, constrained.nodes
+    free = TetMesh(elements.nodes, elements.tets), TetMesh(nodes.nodes, nodes.tets)
+    asm = QuadraticAssembler(*free, constrained.material)
+    K = asm.stiffness_at_rest()
+    x = asm.nodes.nodes
     A = np.array([[1.0, 2.0, 0.0], [0.0, -1.0, 3.0], [1.0, 0.0, 2.0]]) * 1e-3
     eps = 0.5 * (A + A.T)
-    exact = (0.5 * material.lam * np.trace(eps) ** 2 + material.mu * (eps * eps).sum()) * mesh.volumes.sum()
-    u = (x @ A.T).ravel()
+    mat = asm.material
+    exact = (0.5 * mat.lam * np.trace(eps) ** 2 + mat.mu * (eps * eps).sum()) * asm.elements.volumes.sum()
+    u = asm.pack(x @ A.T)
     skew = np.array([[0.0, 1.0, 2.0], [-1.0, 0.0, 3.0], [-2.0, -3.0, 0.0]]) * 1e-3
-    rigid = (x @ skew.T + [1e-3, 2e-3, 3e-3]).ravel()
+    rigid = asm.pack(x @ skew.T + [1e-3, 2e-3, 3e-3])
     return {
         "linear_field_energy_ratio": float(0.5 * u @ K @ u / exact),
         "rigid_force_over_linear": float(np.abs(K @ rigid).max() / np.abs(K @ u).max()),
@@ -121,7 +94,7 @@ def p2_load(coarse, loaded: Array, normal: Array, n_total: int) -> Array:
 
 def refine_faces(faces: Array, mesh) -> Array:
     """Each triangle of `mesh` into four at its edge midpoints, numbered as subdivide() does."""
-    edges, _ = edge_midpoints(mesh)
+    edges, _ = edge_midpoints(mesh.n_nodes, mesh.tets)
     keys = edges[:, 0] * mesh.n_nodes + edges[:, 1]
 
     def mid(a: Array, b: Array) -> Array:
@@ -132,21 +105,12 @@ def refine_faces(faces: Array, mesh) -> Array:
     return np.concatenate([np.stack(t, axis=1) for t in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
 
 
-def compliance_p2(coarse, material, fine, loads: list[Array]) -> list[float]:
+def compliance_p2(asm: QuadraticAssembler, loads: list[Array]) -> list[float]:
     """c = f . u on ten-node tets of the coarse mesh; its nodes are the once-subdivided mesh's."""
-    _, mid = edge_midpoints(coarse)
-    tets10 = np.hstack([coarse.tets, mid])
-    K = p2_stiffness(coarse, material, fine.n_nodes, tets10)
-    free = fine.free_dofs
-    Kff = K[free][:, free].tocsr()
-    solver = make_solver(Kff)
-    solver.factor(Kff)
-    out = []
-    for f in loads:
-        u = np.zeros_like(f)
-        u[free] = solver.solve(f[free])
-        out.append(float(f @ u))
-    return out
+    K = asm.stiffness_at_rest()
+    solver = make_solver(K)
+    solver.factor(K)
+    return [float(asm.pack(f) @ solver.solve(asm.pack(f))) for f in loads]
 
 
 def study(scene: str, nu: float, finest: int) -> list[dict]:
@@ -175,12 +139,12 @@ def study(scene: str, nu: float, finest: int) -> list[dict]:
     fine = meshes[1]
     normals = [np.asarray(row["normal"]) for row in rows]
     loads = [p2_load(coarse, tri, n, fine.n_nodes) for n, tri in zip(normals, faces, strict=True)]
-    _, mid = edge_midpoints(coarse)
-    check = patch_test(coarse, material, fine, np.hstack([coarse.tets, mid]))
+    asm = QuadraticAssembler(coarse, fine, material)
+    check = patch_test(asm)
     assert abs(check["linear_field_energy_ratio"] - 1) < 1e-9 and check["rigid_force_over_linear"] < 1e-9, check
     for row in rows:
         row["p2_patch_test"] = check
-    for row, c_p2 in zip(rows, compliance_p2(coarse, material, fine, loads), strict=True):
+    for row, c_p2 in zip(rows, compliance_p2(asm, loads), strict=True):
         row["c_p2_l0"] = c_p2
     print(f"nu {nu}: P2 level 0 ({fine.n_nodes} nodes) {time.perf_counter() - t0:.1f} s", flush=True)
     for row in rows:

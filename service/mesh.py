@@ -35,6 +35,18 @@ def _readonly(a: Array) -> Array:
     return a
 
 
+#: a tet's six edges as local vertex pairs: the order its edge midpoints are numbered in
+TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
+
+
+def edge_midpoints(n_nodes: int, tets: Array) -> tuple[Array, Array]:
+    """The tets' edges (e, 2), sorted, and each tet's six midpoint ids n + edge index in
+    TET_EDGES' order (t, 6): a subdivided mesh's numbering, and a ten-node tet's."""
+    pairs = np.sort(tets[:, TET_EDGES], axis=2).reshape(-1, 2)  # (6 t, 2)
+    edges, inverse = np.unique(pairs, axis=0, return_inverse=True)
+    return edges, n_nodes + inverse.reshape(-1, 6)
+
+
 def signed_volumes(nodes: Array, tets: Array) -> Array:
     """Signed volume of each tet.
 

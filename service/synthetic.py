@@ -91,9 +91,12 @@ def make_sequence(
     noise: float = 0.0,
     outliers: float = 0.0,
     seed: int = 0,
+    shares: Array | None = None,
+    fem: FEMModel | None = None,
 ) -> Sequence:
-    """A load that grows linearly to `peak_force` (N, total, spread evenly over `tool`) while its
-    direction turns by `turn_deg`; each frame's cloud samples the faces visible from `view`.
+    """A load that grows linearly to `peak_force` (N, total, spread over `tool` by `shares`,
+    evenly by default) while its direction turns by `turn_deg`; each frame's cloud samples the
+    faces visible from `view`. `fem` solves it (default: linear tets on `mesh`).
 
     The default direction is the outward normal of the tool patch (a grasper pulling) and the
     default view looks at the patch (the camera sees where the tool acts).
@@ -106,13 +109,16 @@ def make_sequence(
     axis /= np.linalg.norm(axis)
     view = normal if view is None else np.asarray(view, float)
     faces_visible = visible_faces(mesh, view)
-    op = FEMModel(mesh, material).restrict(tool)
+    op = (fem or FEMModel(mesh, material)).restrict(tool)
     forces, positions, clouds = [], [], []
     for t in range(n_frames):
         s = (t + 1) / n_frames
         angle = np.radians(turn_deg) * s
         d = d0 * np.cos(angle) + np.cross(axis, d0) * np.sin(angle)
-        g = np.tile(d * (peak_force * s / tool.size), (tool.size, 1))
+        if shares is None:
+            g = np.tile(d * (peak_force * s / tool.size), (tool.size, 1))
+        else:
+            g = np.asarray(shares, float)[:, None] * (d * (peak_force * s))
         try:
             x = mesh.nodes + op.displacement(g)  # warm-starts from the previous frame
         except ForwardFailed:

@@ -25,7 +25,7 @@ from ..registration.settings import SessionConfig
 from ..surrogate.network import ReducedSurrogate
 from ..synthetic import make_sequence
 from .cases import Case, FrameRecord, rest_baseline, run_case, run_passes, summarise
-from .truth import fine_patch, subdivide
+from .truth import TRUTHS, fine_patch, quadratic_truth, subdivide, traction_shares
 
 log = logging.getLogger(__name__)
 
@@ -83,11 +83,23 @@ def tool_size(mesh) -> int:
 
 
 def anysite_cases(
-    entry, *, sites: int = 6, frames: int = 8, n_points: int = 800, noise: float = 0.0, seed: int = SITE_SEED
+    entry,
+    *,
+    sites: int = 6,
+    frames: int = 8,
+    n_points: int = 800,
+    noise: float = 0.0,
+    seed: int = SITE_SEED,
+    truth: str = "subdivided",
 ) -> list[Case]:
-    """Sequences at `sites` tool sites over the entry's load region, truth from the finer mesh."""
+    """Sequences at `sites` tool sites over the entry's load region, truth from the finer mesh
+    (`truth` "subdivided") or from ten-node tets on the same nodes ("quadratic": the same sites,
+    peaks and turns, the load a uniform traction over the tool patch's triangles)."""
+    if truth not in TRUTHS:
+        raise ValueError(f"unknown truth {truth!r}; choose from {TRUTHS}")
     mesh, material = entry.mesh, entry.fem.material
     fine = subdivide(mesh)
+    quadratic = quadratic_truth(mesh, fine, material) if truth == "quadratic" else None
     compliance = RestCompliance(fine, material)  # the loads' reach; one factorisation, not kept
     rng = np.random.default_rng(seed)
     max_force = float(entry.manifest.get("training", {}).get("load_distribution", {}).get("max_force", 1.0))
@@ -113,6 +125,8 @@ def anysite_cases(
             n_points=n_points,
             noise=noise,
             seed=seed + i,
+            shares=None if quadratic is None else traction_shares(mesh, fine, tool, fine_tool),
+            fem=quadratic,
         )
         if not seq.clouds:
             log.warning("site %d: the fine mesh's FEM could not follow the first frame; skipped", site)
@@ -144,6 +158,7 @@ def anysite_part(
     fem: bool = True,
     noise: float = 0.0,
     passes: int = 3,
+    truth: str = "subdivided",
 ) -> dict:
     """Records, per-case summaries and the estimates' honesty for network, auto and fem.
 
@@ -155,7 +170,7 @@ def anysite_part(
     if max_error is None:
         val = entry.manifest.get("training", {}).get("validation", {}).get("mean_mm")
         max_error = 2e-3 * float(val) if val else 1e-3
-    cases = anysite_cases(entry, sites=sites, frames=frames, noise=noise)
+    cases = anysite_cases(entry, sites=sites, frames=frames, noise=noise, truth=truth)
     has_jacobian = isinstance(entry.network.net, ReducedSurrogate)  # the layout with a Jacobian
     auto = dataclasses.replace(NETWORK_LM if has_jacobian else NETWORK, method="auto", max_error=max_error)
     records: list[FrameRecord] = []
@@ -180,6 +195,7 @@ def anysite_part(
         "honesty": honesty(records),
         "max_error_mm": 1e3 * max_error,
         "tool_nodes": tool_size(entry.mesh),
+        "truth": truth,
     }
 
 

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ..optional import need
+from .truth import TRUTHS
 
 log = logging.getLogger(__name__)
 
@@ -43,6 +44,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--anysite-model", default="phantom", help="a whole-surface model for the anysite part (default: phantom)"
     )
     p.add_argument("--sites", type=int, default=6, help="anysite: tool sites (sequences)")
+    p.add_argument(
+        "--truth",
+        choices=TRUTHS,
+        default="subdivided",
+        help="anysite: the truth's discretisation, linear tets on the mesh subdivided once or ten-node tets on it",
+    )
     p.add_argument("--out", default="reports/latest", help="report folder (default: reports/latest)")
     p.add_argument("--quick", action="store_true", help="fewer frames and sweep points (minutes, not an hour)")
     p.add_argument(
@@ -74,6 +81,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--smoke", metavar="MODEL", default=None, help="every part on a tiny model of --store (seconds; for the tests)"
     )
+
+
+_TRUTH_TEXT = {
+    "subdivided": "the Neo-Hookean solution on the mesh subdivided once",
+    "quadratic": "the Neo-Hookean solution on ten-node tets of the mesh (a uniform traction over the tool "
+    "patch's triangles)",
+}
 
 
 def _jsonable(x):
@@ -304,11 +318,16 @@ def main(args: argparse.Namespace) -> int:
         from .anysite import anysite_part, plot_honesty
 
         if args.smoke is not None:
-            results["parts"]["anysite"] = anysite_part(entry, sites=2, frames=2, fem=fem_on, passes=1)
+            results["parts"]["anysite"] = anysite_part(entry, sites=2, frames=2, fem=fem_on, passes=1, truth=args.truth)
         else:
             model = _entry(store, args.anysite_model, f"elastreg train {args.anysite_model}")
             results["parts"]["anysite"] = anysite_part(
-                model, sites=args.sites, frames=4 if quick else 8, fem=fem_on, passes=1 if quick else 3
+                model,
+                sites=args.sites,
+                frames=4 if quick else 8,
+                fem=fem_on,
+                passes=1 if quick else 3,
+                truth=args.truth,
             )
         results["parts"]["anysite"]["model"] = args.smoke or args.anysite_model
         plot_honesty(results["parts"]["anysite"]["records"], out / "figures" / "anysite_estimates.png")
@@ -440,7 +459,7 @@ def write_report(results: dict, out: Path) -> None:
         md.append(f"\n## Any tool site ({A['model']}): sites the build never aimed at, truth from a finer mesh\n")
         md.append(
             f"Tool patches of {A['tool_nodes']} nodes, supports three times that, sites spread over the whole "
-            f"load region; truth: the Neo-Hookean solution on the mesh subdivided once"
+            f"load region; truth: {_TRUTH_TEXT[A.get('truth', 'subdivided')]}"
             + (
                 f"; method auto corrects frames whose estimate exceeds {A['max_error_mm']:.3g} mm (twice the "
                 "build's validation error) with the Newton method; auto runs the network as its "

@@ -4,20 +4,21 @@ Scoring a registration against sequences that the same P1 mesh produced rewards 
 reproducing its own discretisation (an "inverse crime"). Here every tet is split into eight at
 its edge midpoints: the coarse nodes keep their ids (the finer mesh lists them first), so a
 truth on the fine mesh reads straight off at the coarse nodes, loads on coarse nodes act on the
-same points, and the camera's clouds sample the fine surface.
+same points, and the camera's clouds sample the fine surface. Or ten-node tets on the mesh
+itself, whose nodes are the same: nearer the converged solution at that cost (`TRUTHS`).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from ..mesh import TetMesh
+from ..fem.material import NeoHookean
+from ..fem.quadratic import QuadraticFEM
+from ..mesh import TetMesh, edge_midpoints
 
 Array = np.ndarray
 
-#: the tet's six edges as local vertex pairs, in the order the midpoints are numbered below
-_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
-#: the eight children in local ids: vertices 0-3, then midpoints 4-9 in _EDGES' order; four
+#: the eight children in local ids: vertices 0-3, then midpoints 4-9 in TET_EDGES' order; four
 #: corner tets and an octahedron cut along its 4-9 diagonal (m01-m23)
 _CHILDREN = np.array([
     [0, 4, 5, 6], [4, 1, 7, 8], [5, 7, 2, 9], [6, 8, 9, 3],
@@ -29,7 +30,7 @@ def subdivide(mesh: TetMesh) -> TetMesh:
     """Each tet into eight; coarse nodes keep their ids; an edge between two fixed nodes has a
     fixed midpoint (the Dirichlet surface stays the same surface). Shape: n + edges nodes."""
     n = mesh.n_nodes
-    edges, mid = edge_midpoints(mesh)
+    edges, mid = edge_midpoints(n, mesh.tets)
     nodes = np.vstack([mesh.nodes, 0.5 * (mesh.nodes[edges[:, 0]] + mesh.nodes[edges[:, 1]])])
     local = np.hstack([mesh.tets, mid])  # (t, 10)
     tets = local[:, _CHILDREN].reshape(-1, 4)
@@ -56,12 +57,34 @@ def fine_patch(coarse: TetMesh, fine: TetMesh, tool: Array) -> Array:
 
 def coarse_edges(coarse: TetMesh) -> Array:
     """The coarse mesh's edges (e, 2), in the order subdivide() numbers their midpoints."""
-    return edge_midpoints(coarse)[0]
+    return edge_midpoints(coarse.n_nodes, coarse.tets)[0]
 
 
-def edge_midpoints(mesh: TetMesh) -> tuple[Array, Array]:
-    """The mesh's edges (e, 2), sorted, and each tet's six midpoint ids n + edge index in _EDGES'
-    order (t, 6): the finer mesh's numbering, and a ten-node tet's."""
-    pairs = np.sort(mesh.tets[:, _EDGES], axis=2).reshape(-1, 2)  # (6 t, 2)
-    edges, inverse = np.unique(pairs, axis=0, return_inverse=True)
-    return edges, mesh.n_nodes + inverse.reshape(-1, 6)
+#: the truths a benchmark may score against: linear tets on the mesh subdivided once, or
+#: ten-node tets on the mesh itself (the same nodes; nearer the converged solution,
+#: docs/performance.md "Quadratic tets")
+TRUTHS = ("subdivided", "quadratic")
+
+
+def quadratic_truth(coarse: TetMesh, fine: TetMesh, material: NeoHookean) -> QuadraticFEM:
+    """Ten-node tets on `coarse`, on `fine`'s nodes (subdivide(coarse))."""
+    return QuadraticFEM(fine, material, elements=coarse)
+
+
+def traction_shares(coarse: TetMesh, fine: TetMesh, tool: Array, spread: Array) -> Array:
+    """Each of `spread`'s nodes' share (summing to 1) of a uniform traction over the coarse
+    surface triangles whose nodes all lie in `tool`, as ten-node tets take it: a straight
+    six-node triangle's corners take nothing and its edge midpoints a third of its force each."""
+    inside = np.zeros(coarse.n_nodes, bool)
+    inside[tool] = True
+    faces = coarse.surface_faces[inside[coarse.surface_faces].all(axis=1)]
+    x = coarse.nodes[faces]
+    area = 0.5 * np.linalg.norm(np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]), axis=1)
+    edges = coarse_edges(coarse)
+    keys = edges[:, 0] * coarse.n_nodes + edges[:, 1]
+    pairs = np.sort(faces[:, [[0, 1], [1, 2], [2, 0]]], axis=2)  # (f, 3, 2)
+    mids = coarse.n_nodes + np.searchsorted(keys, pairs[..., 0] * coarse.n_nodes + pairs[..., 1])
+    load = np.bincount(mids.ravel(), weights=np.repeat(area / 3.0, 3), minlength=fine.n_nodes)
+    if not np.isin(np.flatnonzero(load), spread).all():
+        raise ValueError("the traction's midpoints lie outside the spread patch")
+    return load[spread] / load.sum()

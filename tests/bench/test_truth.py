@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from service.bench.anysite import anysite_cases, peak_for_reach, spread_sites
-from service.bench.truth import coarse_edges, fine_patch, subdivide
+from service.bench.truth import coarse_edges, fine_patch, subdivide, traction_shares
 
 
 def test_subdivision_keeps_the_body_and_its_nodes(bar):
@@ -70,3 +70,26 @@ def test_a_sites_load_aims_at_its_reach_within_the_force_range(entry):
     assert peak_for_reach(compliance, patch, 0.05, max_force=2 * aimed) == pytest.approx(aimed, rel=1e-9)
     assert peak_for_reach(compliance, patch, 0.05, max_force=0.5 * aimed) == pytest.approx(0.5 * aimed)
     assert peak_for_reach(compliance, patch, 0.05, max_force=8 * aimed) == pytest.approx(2 * aimed)
+
+
+def test_a_uniform_traction_on_ten_node_tets_loads_the_patch_midpoints(bar):
+    """Corners of a straight six-node triangle take none of a uniform traction, each edge
+    midpoint a third of the triangle's force; the shares cover the patch's triangles' area."""
+    fine = subdivide(bar)
+    tool = bar.surface_patch(int(bar.free_surface_nodes[0]), 9)
+    spread = fine_patch(bar, fine, tool)
+    shares = traction_shares(bar, fine, tool, spread)
+    assert shares.sum() == pytest.approx(1.0) and (shares >= 0).all()
+    assert not shares[spread < bar.n_nodes].any() and shares[spread >= bar.n_nodes].any()
+
+
+def test_a_quadratic_truth_scores_the_same_loads_on_ten_node_tets(entry):
+    """The same site, peak and turn as the subdivided truth, the same net force; another
+    discretisation's answer on the same nodes, softer (linear tets lock at nu = 0.49)."""
+    [linear] = anysite_cases(entry, sites=1, frames=2)
+    [quadratic] = anysite_cases(entry, sites=1, frames=2, truth="quadratic")
+    np.testing.assert_allclose(quadratic.net_forces, linear.net_forces, rtol=1e-9, atol=1e-12)
+    moved = [np.linalg.norm(c.positions - entry.mesh.nodes, axis=2).max() for c in (linear, quadratic)]
+    assert moved[1] > 1.05 * moved[0]
+    with pytest.raises(ValueError, match="unknown truth"):
+        anysite_cases(entry, sites=1, frames=2, truth="cubic")
