@@ -21,7 +21,7 @@ from .fem.assembly import Assembler
 from .fem.material import NeoHookean
 from .fem.newton import NewtonOptions
 from .scene import Scene
-from .store import write_entry
+from .store import check_entry_id, write_entry
 from .surrogate.data import LoadSpec, done_indices, generate, load_dataset
 from .surrogate.train import TrainConfig, train
 
@@ -99,6 +99,7 @@ def build(
     TIMED_NEWTON_CAP), training in what is left.
     """
     t_start = time.perf_counter()
+    check_entry_id(name or scene.name)
     if minutes is not None and minutes <= 0:
         raise ValueError(f"minutes must be positive, got {minutes}")
     deadline = None if minutes is None else t_start + 60.0 * minutes
@@ -128,6 +129,11 @@ def build(
     if len(done) < 2:
         raise ValueError(f"{minutes} minutes gave {len(done)} finished load paths; a build needs 2 (give it more time)")
     F, U, P = load_dataset(data_dir, done)
+    if np.unique(P).size < 2:  # paths whose first step failed hold no sample
+        raise ValueError(
+            f"{len(done)} load paths finished but {np.unique(P).size} hold a sample (their first steps did not "
+            "converge): check the boundary conditions and the load range, or give the build more time"
+        )
     if deadline is not None:
         left = deadline - time.perf_counter() - WRITE_RESERVE_S
         # the clock bounds training, not an epoch count: as many epochs as fit
@@ -152,7 +158,7 @@ def build(
     network = {
         "layout": config.layout,
         "hidden": list(net.hidden),
-        "n_in": features or 3 * len(region),
+        "n_in": features if features is not None else 3 * len(region),
         "n_out": 3 * mesh.n_nodes,
         "rank": int(net.basis.shape[1]) if hasattr(net, "basis") else None,
         "members": int(getattr(net, "members", 1)),

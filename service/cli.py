@@ -5,7 +5,9 @@ Each subcommand parses its flags and calls one function."""
 from __future__ import annotations
 
 import argparse
+import functools
 import logging
+import math
 import os
 import shlex
 import sys
@@ -25,14 +27,25 @@ def _at_least_one(text: str) -> int:
 
 def _positive(text: str) -> float:
     value = float(text)
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"must be a positive number, got {text!r}")
+    if not (value > 0 and math.isfinite(value)):
+        raise argparse.ArgumentTypeError(f"must be a positive finite number, got {text!r}")
+    return value
+
+
+def _at_least_zero(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be a whole number >= 0, got {text!r}")
     return value
 
 
 def _train(args: argparse.Namespace) -> int:
     from .build import build
     from .scene import resolve_scene
+    from .store import check_entry_id
     from .surrogate.train import TrainConfig
 
     try:  # the config first: a bad combination of flags fails before the scene and any data
@@ -52,9 +65,14 @@ def _train(args: argparse.Namespace) -> int:
         return 2
     command = "elastreg " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     try:
+        check_entry_id(args.name or scene.name)
         report = _build_from(build, scene, config, command, args)
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except (OSError, TimeoutError) as exc:  # a scheduler or worker that cannot be reached
+        where = f"the Dask scheduler at {args.scheduler}" if args.scheduler else "the local Dask workers"
+        print(f"error: cannot reach {where}: {exc}", file=sys.stderr)
         return 2
     m = report.metrics
     print(
@@ -142,14 +160,20 @@ def _bench(args: argparse.Namespace) -> int:
     return main(args)
 
 
+def _command(sub, name: str, text: str) -> argparse.ArgumentParser:
+    """A subcommand whose own --help says what it does, as the list of commands does."""
+    return sub.add_parser(name, help=text, description=text)
+
+
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="elastreg", description=__doc__)
     p.add_argument("-v", "--verbose", action="store_true", help="log progress (INFO)")
     sub = p.add_subparsers(dest="command", required=True)
+    command = functools.partial(_command, sub)
 
-    d = sub.add_parser(
+    d = command(
         "demo",
-        help="serve the shipped default model, stream a synthetic sequence through the API, "
+        "serve the shipped default model, stream a synthetic sequence through the API, "
         "print error and latency per frame",
     )
     d.add_argument("--model", default="phantom", help="model id in the store (default: phantom)")
@@ -168,7 +192,7 @@ def parser() -> argparse.ArgumentParser:
     d.add_argument("--port", type=int, default=None, help="with --viewer: the server's port (default: a free one)")
     d.set_defaults(func=_demo)
 
-    s = sub.add_parser("serve", help="run the HTTP/WebSocket API over a model store")
+    s = command("serve", "run the HTTP/WebSocket API over a model store")
     s.add_argument("--store", default=None, help="model store (default: $ELASTREG_STORE or the project's model_store/)")
     s.add_argument("--host", default="127.0.0.1")
     s.add_argument("--port", type=int, default=8000)
@@ -183,23 +207,30 @@ def parser() -> argparse.ArgumentParser:
     s.add_argument("--ssl-keyfile", default=None, help="the certificate's private key (PEM)")
     s.set_defaults(func=_serve)
 
-    t = sub.add_parser("train", help="generate FEM data for a scene and train its surrogate into the model store")
+    t = command("train", "generate FEM data for a scene and train its surrogate into the model store")
     t.add_argument("scene", help="a scene .toml, or a shipped scene name (beam, phantom)")
     t.add_argument("--store", default=None, help="model store (default: $ELASTREG_STORE or the project's model_store/)")
     t.add_argument("--name", default=None, help="model id in the store (default: the scene's name)")
-    t.add_argument("--samples", type=int, default=None, help="samples to generate (default: the scene's)")
+    t.add_argument("--samples", type=_at_least_one, default=None, help="samples to generate (default: the scene's)")
     t.add_argument(
         "--minutes",
         type=_positive,
         default=None,
         help="bound the whole build's wall time: FEM data for 60 %% of it, training in the rest",
     )
-    t.add_argument("--workers", type=int, default=2, help="local Dask worker processes (one per core)")
+    t.add_argument(
+        "--workers",
+        type=_at_least_zero,
+        default=2,
+        help="local Dask worker processes (one per core; 0: in this process)",
+    )
     t.add_argument("--scheduler", default=None, help="address of an existing Dask scheduler for the data generation")
     t.add_argument("--data", default=None, help="data folder root (default: $ELASTREG_DATA or ~/.cache/elastreg/data)")
     t.add_argument("--layout", choices=["reduced", "paper"], default="reduced")
-    t.add_argument("--hidden", type=int, nargs="+", default=[512, 512], help="hidden layer widths (reduced layout)")
-    t.add_argument("--rank", type=int, default=128, help="POD modes (reduced layout)")
+    t.add_argument(
+        "--hidden", type=_at_least_one, nargs="+", default=[512, 512], help="hidden layer widths (reduced layout)"
+    )
+    t.add_argument("--rank", type=_at_least_one, default=128, help="POD modes (reduced layout)")
     t.add_argument(
         "--members",
         type=_at_least_one,
@@ -214,14 +245,16 @@ def parser() -> argparse.ArgumentParser:
         help="the physics layout: the exact small-strain response outside the network, which "
         "reads its features and learns the remainder (default: on; --no-physics-skip trains on raw forces)",
     )
-    t.add_argument("--features", type=int, default=256, help="linear-response POD modes the physics layout reads")
-    t.add_argument("--epochs", type=int, default=200)
+    t.add_argument(
+        "--features", type=_at_least_one, default=256, help="linear-response POD modes the physics layout reads"
+    )
+    t.add_argument("--epochs", type=_at_least_one, default=200)
     t.add_argument("--seed", type=int, default=0)
     t.set_defaults(func=_train)
 
-    g = sub.add_parser(
+    g = command(
         "igtl",
-        help="an OpenIGTLink bridge (3D Slicer connects as a client): clouds in, "
+        "an OpenIGTLink bridge (3D Slicer connects as a client): clouds in, "
         "the registered surface and a status out (docs/frontends.md)",
     )
     g.add_argument("--model", required=True, help="model id in the store")
@@ -239,7 +272,7 @@ def parser() -> argparse.ArgumentParser:
     g.add_argument("--token", default=None, help="the API token, for a --server with tokens (default: $ELASTREG_TOKEN)")
     g.set_defaults(func=_igtl)
 
-    b = sub.add_parser("bench", help="error against run time: tables and plots (see the README)")
+    b = command("bench", "error against run time: tables and plots (see the README)")
     from .bench.report import add_arguments
 
     add_arguments(b)

@@ -82,9 +82,9 @@ def _resolve_path(value: Path, info: ValidationInfo) -> Path:
 
 ScenePath = Annotated[Path, AfterValidator(_resolve_path)]
 NodeId = Annotated[int, Field(strict=True, ge=0)]
-Finite = Annotated[float, Field(allow_inf_nan=False)]
+Finite = Annotated[float, Field(strict=True, allow_inf_nan=False)]  # strict: no bool, no string
 Vec3 = tuple[Finite, Finite, Finite]
-Fraction = Annotated[float, Field(ge=0.0, le=1.0)]
+Fraction = Annotated[float, Field(strict=True, ge=0.0, le=1.0)]
 Count = Annotated[int, Field(strict=True, ge=1)]
 
 
@@ -115,7 +115,7 @@ class MeshSpec(_Table):
 
     path: ScenePath | None = None
     generator: Literal["beam", "phantom"] | None = None
-    scale: Annotated[float, Field(gt=0.0, allow_inf_nan=False)] = 1.0
+    scale: Annotated[float, Field(strict=True, gt=0.0, allow_inf_nan=False)] = 1.0
 
     @model_validator(mode="after")
     def _one_source(self) -> MeshSpec:
@@ -128,8 +128,8 @@ class MaterialSpec(_Table):
     """[material]: the Neo-Hookean law of SCENES.md (the only one)."""
 
     law: Literal["neo-hookean"] = "neo-hookean"
-    E: Annotated[float, Field(gt=0.0, allow_inf_nan=False)]
-    nu: Annotated[float, Field(ge=0.0, lt=0.5)]
+    E: Annotated[float, Field(strict=True, gt=0.0, allow_inf_nan=False)]
+    nu: Annotated[float, Field(strict=True, ge=0.0, lt=0.5)]
 
 
 FIXED_KEYS = ("fixed_nodes", "fixed_nodes_file", "fixed_box")
@@ -153,7 +153,7 @@ class BoundarySpec(_Table):
 
 class Sphere(_Table):
     centre: Vec3
-    radius: Annotated[float, Field(gt=0.0, allow_inf_nan=False)]
+    radius: Annotated[float, Field(strict=True, gt=0.0, allow_inf_nan=False)]
 
 
 REGION_KEYS = ("region", "region_file", "region_box", "region_sphere")
@@ -163,7 +163,7 @@ class TrainingSpec(_Table):
     """[training]: how many samples, how strong, how spread, and where loads may act."""
 
     samples: Count
-    max_force: Annotated[float, Field(gt=0.0, allow_inf_nan=False)]
+    max_force: Annotated[float, Field(strict=True, gt=0.0, allow_inf_nan=False)]
     patch_nodes: tuple[Count, Count]
     region: list[NodeId] | None = None
     region_file: ScenePath | None = None
@@ -228,7 +228,7 @@ class RegistrationSpec(BaseModel):
 class Scene(_Table):
     """One organ's scene: mesh, material, boundary conditions, and the loads to learn."""
 
-    name: Annotated[str, Field(pattern=r"^[A-Za-z0-9_-]+$", max_length=64)]
+    name: Annotated[str, Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_-]*$", max_length=64)]  # a store id
     mesh: MeshSpec
     material: MaterialSpec
     boundary: BoundarySpec = BoundarySpec()
@@ -311,10 +311,21 @@ class Scene(_Table):
             if stray.size:
                 log.warning("%s: free_nodes %s were not fixed anyway", self._origin, stray.tolist()[:10])
             fixed = np.setdiff1d(fixed, free)
-        if np.unique(fixed).size == 0:
+        fixed = np.unique(fixed)
+        if fixed.size == 0:
             raise self._error(
                 "[boundary]",
                 "no node is fixed, so the static problem is singular (rigid motions are free): fix at least one node",
+            )
+        at = loaded.nodes[fixed] - loaded.nodes[fixed].mean(axis=0)
+        spread = (
+            np.linalg.matrix_rank(at, tol=1e-6 * float(np.ptp(loaded.nodes, axis=0).max())) if fixed.size > 1 else 0
+        )
+        if spread < 2:  # held at a point or along a line: it can still turn about it
+            raise self._error(
+                "[boundary]",
+                f"the {fixed.size} fixed node(s) lie {'at one point' if spread == 0 else 'on one line'}, so the body "
+                "can still turn about them and the static problem is singular: fix three or more nodes not in a line",
             )
         mesh = loaded.to_mesh(fixed)
         self._loaded[mesh.hash] = loaded
@@ -343,6 +354,8 @@ class Scene(_Table):
                     f"{bad.size} nodes are not free surface nodes (interior or fixed): "
                     f"{bad.tolist()[:10]}{' ...' if bad.size > 10 else ''}",
                 )
+            if ids.size == 0:
+                raise self._error(key, "lists no node: the load region holds no free surface node")
             return ids
         if t.region_box is not None:
             key = "[training] region_box"
@@ -459,7 +472,7 @@ def _describe(err: dict) -> str:
     elif kind == "literal_error":
         what = f"must be {ctx['expected']}, got {got}"
     elif kind == "string_pattern_mismatch":
-        what = f"must be letters, digits, '-' and '_' only, got {got}"
+        what = f"must start with a letter or digit and hold only letters, digits, '-' and '_', got {got}"
     elif kind == "value_error":
         what = str(ctx.get("error", err["msg"]))
     elif kind == "model_type" or kind == "dict_type":
@@ -498,6 +511,8 @@ def load_scene(path: str | Path) -> Scene:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise SceneError(f"{path}: cannot read the scene file ({exc.strerror or exc})") from exc
+    except UnicodeDecodeError as exc:
+        raise SceneError(f"{path}: a scene file is TOML in UTF-8 ({exc.reason} at byte {exc.start})") from None
     return parse_scene(text, str(path), path.resolve().parent)
 
 

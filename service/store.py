@@ -55,6 +55,15 @@ class StoreError(RuntimeError):
     """An entry that cannot be used, and why."""
 
 
+def check_entry_id(entry_id: str) -> None:
+    """Refuse an id the store could not serve (before a build spends its time)."""
+    if not isinstance(entry_id, str) or not ENTRY_ID.fullmatch(entry_id):
+        raise ValueError(
+            f"model id {entry_id!r:.80} must start with a letter or digit and hold only letters, digits, "
+            "'_', '.' and '-' (64 at most)"
+        )
+
+
 def sha256(path: Path) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as f:
@@ -133,7 +142,9 @@ def write_entry(
     rebuild: str,
     renumbered: bool = False,
 ) -> Path:
-    """Write an entry atomically: built in a temporary folder, then renamed into place."""
+    """Write an entry atomically: built in a temporary folder and loaded back from it (an entry
+    the store would refuse never replaces one it serves), then renamed into place."""
+    check_entry_id(entry_id)
     store = Path(store)
     store.mkdir(parents=True, exist_ok=True)
     final = store / entry_id
@@ -156,10 +167,16 @@ def write_entry(
             "files": {name: sha256(tmp / name) for name in (MESH, WEIGHTS)},
         }
         (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1, default=_jsonable))
+        load_entry(tmp, name=entry_id)
         if final.exists():
-            old = store / f".{entry_id}-old-{os.getpid()}"
+            old = Path(tempfile.mkdtemp(prefix=f".{entry_id}-old-", dir=store))
             os.replace(final, old)
-            os.replace(tmp, final)
+            try:
+                os.replace(tmp, final)
+            except BaseException:
+                if not final.exists():  # put the served entry back: never a store without it
+                    os.replace(old, final)
+                raise
             shutil.rmtree(old, ignore_errors=True)
         else:
             os.replace(tmp, final)
@@ -224,10 +241,11 @@ def _check_manifest(manifest, name: str) -> None:
         raise StoreError(f"{name}: the manifest's material needs numbers E and nu")
 
 
-def load_entry(path: Path) -> Entry:
-    """Load and verify one entry; a :class:`StoreError` says what is wrong."""
+def load_entry(path: Path, name: str | None = None) -> Entry:
+    """Load and verify one entry; a :class:`StoreError` says what is wrong. `name`: the id it
+    is to be served as (default: its folder's name)."""
     path = Path(path)
-    name = path.name
+    name = path.name if name is None else name
     if not ENTRY_ID.fullmatch(name):
         raise StoreError(f"{name!r:.80}: an entry's folder name must match {ENTRY_ID.pattern}")
     _regular_file(path / MANIFEST, path, name, MANIFEST)

@@ -103,12 +103,19 @@ def test_fixed_box_selects_after_scaling(folder):
 
 
 def test_fixed_nodes_file_text_and_npy(folder):
-    (folder / "fixed.txt").write_text("# clamp\n0\n1\n2\n")
+    (folder / "fixed.txt").write_text("# clamp\n0\n1\n3\n")
     mesh, _ = load_scene(write(folder, boundary='fixed_nodes_file = "fixed.txt"')).build_mesh()
-    assert mesh.fixed.tolist() == [0, 1, 2]
-    np.save(folder / "fixed.npy", np.array([3, 4]))
-    scene = load_scene(write(folder, boundary='fixed_nodes_file = "fixed.npy"\nfree_nodes = [4]'))
-    assert scene.build_mesh()[0].fixed.tolist() == [3]
+    assert mesh.fixed.tolist() == [0, 1, 3]
+    np.save(folder / "fixed.npy", np.array([3, 4, 6, 7]))
+    scene = load_scene(write(folder, boundary='fixed_nodes_file = "fixed.npy"\nfree_nodes = [7]'))
+    assert scene.build_mesh()[0].fixed.tolist() == [3, 4, 6]
+
+
+def test_a_body_held_at_a_point_or_along_a_line_is_refused(folder):
+    """It could still turn about the fixed nodes: the static problem would be singular."""
+    assert "at one point" in error_of(folder, boundary="fixed_nodes = [4]")
+    assert "on one line" in error_of(folder, boundary="fixed_nodes = [0, 1, 2]")
+    assert "no node" in error_of(folder, boundary="fixed_nodes = [0, 1, 3]", training="region = []")
 
 
 def test_regions(folder):
@@ -220,10 +227,22 @@ def test_region_not_on_surface(folder):
         ("[2, 6]", "[0, 2]", "[training] patch_nodes[0]: must be >= 1, got 0"),
         ("samples = 10", "samples = 1.5", "[training] samples: must be a valid integer"),
         ("max_force = 0.5", "max_force = inf", "[training] max_force: must be a finite number"),
-        ("block-1", "a b", "name: must be letters, digits, '-' and '_' only, got 'a b'"),
+        (
+            "block-1",
+            "a b",
+            "name: must start with a letter or digit and hold only letters, digits, '-' and '_', got 'a b'",
+        ),
         ("block.vtu", "nope.vtu", "[mesh] path: file not found"),
         ('"neo-hookean"', '"st-venant"', "[material] law: must be 'neo-hookean'"),
         ("name = ", "name = \nname = ", "not valid TOML"),
+        ("E = 4500", "E = true", "[material] E: must be a valid number"),
+        ("nu = 0.49", 'nu = "0.3"', "[material] nu: must be a valid number"),
+        ("max_force = 0.5", 'max_force = "0.5"', "[training] max_force: must be a valid number"),
+        (
+            "block-1",
+            "-block",
+            "name: must start with a letter or digit and hold only letters, digits, '-' and '_', got '-block'",
+        ),
     ],
 )
 def test_value_errors_name_the_key(folder, old, new, expected):
@@ -276,3 +295,10 @@ def test_paper_liver_scene():
     # the recipe takes nothing from the sequence it is scored on: its loads may act anywhere
     np.testing.assert_array_equal(region, mesh.free_surface_nodes)
     assert scene.matching_faces(mesh).shape == (4745, 3)
+
+
+def test_a_scene_file_not_in_utf8_is_refused_by_name(folder):
+    path = write(folder)
+    path.write_bytes(path.read_bytes().replace(b"block-1", b"bl\xe9ck"))
+    with pytest.raises(SceneError, match=r"scene.toml: a scene file is TOML in UTF-8"):
+        load_scene(path)

@@ -82,3 +82,61 @@ def test_names_are_checked_before_any_file_is_read(store):
         with pytest.raises(StoreError):
             load_entry(store / name)
         assert time.monotonic() - t0 < 1.0
+
+
+def _rewrite(entry, store, **changes):
+    """write_entry with a loaded entry's own parts (and `changes` to them)."""
+    from service.store import write_entry
+
+    m = entry.manifest
+    parts = dict(
+        material=entry.network.material,
+        scene=m["scene"],
+        training=m["training"],
+        network={k: v for k, v in m["network"].items() if k != "parameters"},
+        rebuild=m["rebuild"],
+    )
+    parts.update(changes)
+    return write_entry(store, entry.id, entry.mesh, entry.region, entry.network.net, **parts)
+
+
+def test_an_entry_the_store_would_refuse_never_replaces_the_served_one(bar_store, tmp_path):
+    root = tmp_path / "store"
+    shutil.copytree(bar_store[0] / "bar", root / "bar")
+    before = (root / "bar" / "manifest.json").read_bytes()
+    entry = load_entry(root / "bar")
+    wrong = {**entry.manifest["network"], "n_in": 1}
+    wrong.pop("parameters")
+    with pytest.raises(StoreError, match="the weights do not fit the manifest"):
+        _rewrite(entry, root, network=wrong)
+    assert (root / "bar" / "manifest.json").read_bytes() == before
+    assert [p.name for p in root.iterdir()] == ["bar"]  # no temporary left behind
+    assert _rewrite(entry, root) == root / "bar"  # a good one does replace it
+    assert load_entry(root / "bar").manifest["created"]
+
+
+def test_a_failed_swap_puts_the_served_entry_back(bar_store, tmp_path, monkeypatch):
+    """Between the two renames a failure (a full disk, a concurrent writer) must not leave the
+    store without the entry it served."""
+    import service.store as store_module
+
+    root = tmp_path / "store"
+    shutil.copytree(bar_store[0] / "bar", root / "bar")
+    before = (root / "bar" / "manifest.json").read_bytes()
+    entry = load_entry(root / "bar")
+    real = os.replace
+    calls = []
+
+    def second_fails(src, dst):
+        calls.append((src, dst))
+        if len(calls) == 2:  # the new entry into place
+            raise OSError(39, "Directory not empty")
+        return real(src, dst)
+
+    monkeypatch.setattr(store_module.os, "replace", second_fails)
+    with pytest.raises(OSError, match="not empty"):
+        _rewrite(entry, root)
+    monkeypatch.undo()
+    assert (root / "bar" / "manifest.json").read_bytes() == before
+    assert [p.name for p in root.iterdir()] == ["bar"]
+    load_entry(root / "bar")

@@ -16,6 +16,7 @@ import dataclasses
 import logging
 import os
 import re
+import tempfile
 import time
 from collections.abc import Generator
 from functools import lru_cache
@@ -170,9 +171,15 @@ def done_indices(data_dir: Path) -> set[int]:
 def write_path(data_dir: Path, result: dict) -> None:
     """Atomic write: a half-written file never looks like a finished path."""
     final = path_file(data_dir, result["index"])
-    tmp = final.with_name(f".{final.stem}.tmp.npz")
-    np.savez(tmp, forces=result["forces"], u=result["u"], newton_iterations=result["newton_iterations"])
-    os.replace(tmp, final)
+    fd, name = tempfile.mkstemp(prefix=f".{final.stem}-", suffix=".tmp.npz", dir=final.parent)
+    tmp = Path(name)  # a name of its own: two builds of one scene may write the same path
+    try:
+        with os.fdopen(fd, "wb") as f:
+            np.savez(f, forces=result["forces"], u=result["u"], newton_iterations=result["newton_iterations"])
+        os.replace(tmp, final)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def load_dataset(data_dir: Path, indices: list[int] | None = None) -> tuple[Array, Array, Array]:

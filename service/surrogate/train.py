@@ -53,6 +53,11 @@ class TrainConfig:
             raise ValueError(f"unknown layout {self.layout!r}: 'reduced' or 'paper'")
         if self.members is not None and self.members < 1:
             raise ValueError(f"members must be a whole number >= 1, got {self.members}")
+        for key in ("rank", "features", "epochs"):
+            if getattr(self, key) < 1:
+                raise ValueError(f"{key} must be a whole number >= 1, got {getattr(self, key)}")
+        if not self.hidden or min(self.hidden) < 1:
+            raise ValueError(f"hidden layer widths must be whole numbers >= 1, got {list(self.hidden)}")
         if self.layout != "reduced" and (self.members or 1) > 1:
             raise ValueError("members > 1 (an ensemble) needs the reduced layout: its members share one POD basis")
 

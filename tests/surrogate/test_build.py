@@ -164,6 +164,10 @@ def test_a_bad_ensemble_size_is_refused_before_any_work(capsys):
         ({"layout": "paper", "members": 3}, "needs the reduced layout"),
         ({"members": 0}, "members must be a whole number >= 1"),
         ({"layout": "dense"}, "unknown layout 'dense'"),
+        ({"features": 0}, "features must be a whole number >= 1"),
+        ({"rank": -4}, "rank must be a whole number >= 1"),
+        ({"epochs": 0}, "epochs must be a whole number >= 1"),
+        ({"hidden": (512, 0)}, "hidden layer widths must be whole numbers >= 1"),
     ],
 )
 def test_train_config_refuses_what_no_build_can_take(kwargs, message):
@@ -255,7 +259,37 @@ def test_the_command_line_refuses_a_budget_that_is_not_positive():
         text=True,
         timeout=120,
     )
-    assert r.returncode == 2 and "must be a positive number" in r.stderr
+    assert r.returncode == 2 and "must be a positive finite number" in r.stderr
+
+
+@pytest.mark.parametrize(
+    ("flags", "message"),
+    [
+        (["--minutes", "inf"], "--minutes: must be a positive finite number"),
+        (["--samples", "0"], "--samples: must be a whole number >= 1"),
+        (["--workers", "-1"], "--workers: must be a whole number >= 0"),
+        (["--features", "0"], "--features: must be a whole number >= 1"),
+        (["--hidden", "512", "0"], "--hidden: must be a whole number >= 1"),
+        (["--rank", "-4"], "--rank: must be a whole number >= 1"),
+        (["--epochs", "-3"], "--epochs: must be a whole number >= 1"),
+    ],
+)
+def test_the_command_line_refuses_numbers_no_build_can_take(flags, message, capsys):
+    """At parse time: before the scene, the data and the store are touched."""
+    from service.cli import main
+
+    with pytest.raises(SystemExit) as info:
+        main(["train", "beam", *flags])
+    assert info.value.code == 2 and message in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("name", ["-bar", "_bar", "x y", "../escaped", ".hidden"])
+def test_a_model_id_the_store_would_refuse_is_refused_before_any_work(name, tmp_path, capsys):
+    from service.cli import main
+
+    assert main(["train", "beam", f"--name={name}", "--store", str(tmp_path / "store")]) == 2
+    assert "must start with a letter or digit" in capsys.readouterr().err
+    assert not (tmp_path / "store").exists()
 
 
 def test_a_timed_training_spends_its_seconds(bar_store):

@@ -114,3 +114,18 @@ def test_no_twist_keeps_the_random_stream(bar, spec):
 
     b = sample_path_load(bar, replace(spec, twist_fraction=0.0), np.random.default_rng(11))
     np.testing.assert_array_equal(a, b)
+
+
+def test_two_builds_writing_one_path_never_trip_over_each_others_temporaries(tmp_path):
+    """Two runs of one scene share its data folder: each write has a temporary of its own."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from service.surrogate.data import done_indices, load_dataset, write_path
+
+    result = {"index": 3, "forces": np.ones((2, 4, 3)), "u": np.zeros((2, 5, 3)), "newton_iterations": np.ones(2)}
+    with ThreadPoolExecutor(4) as pool:
+        list(pool.map(lambda _: write_path(tmp_path, result), range(200)))
+    assert done_indices(tmp_path) == {3}
+    assert [p.name for p in tmp_path.iterdir()] == ["path_000003.npz"]
+    F, _, _ = load_dataset(tmp_path)
+    assert F.shape == (2, 4, 3)
