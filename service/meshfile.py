@@ -9,7 +9,12 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import io
+import json
 import logging
+import os
+import subprocess
+import sys
+import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 from types import MappingProxyType
@@ -70,6 +75,7 @@ class LoadedMesh:
     Shape: nodes (n, 3) float64 after scaling, tets (t, 4) int64 positively oriented, kept (n,)
     or None. `kept[i]` is the file's id of node i when unused nodes were dropped (None when every
     node was kept); `n_source_nodes` is the file's node count, the range of ids a scene may use.
+    A surface's file ids are its vertices' (`file_ids`); tetgen numbers its nodes otherwise.
     """
 
     nodes: Array
@@ -79,9 +85,12 @@ class LoadedMesh:
     kept: Array | None
     n_source_nodes: int
     quality: MeshQuality
+    file_ids: Array | None = None  # a surface's: each file vertex's mesh id (-1: in no face)
 
     def source_to_mesh(self) -> Array:
         """Map from the file's node ids to mesh ids (-1 for dropped nodes). Shape: (n_source,)."""
+        if self.file_ids is not None:
+            return self.file_ids
         if self.kept is None:
             return np.arange(self.n_source_nodes, dtype=np.int64)
         new_id = np.full(self.n_source_nodes, -1, np.int64)
@@ -123,6 +132,25 @@ def mesh_quality(nodes: Array, tets: Array) -> MeshQuality:
     )
 
 
+def _file_vertex_ids(points: Array, merged: Array) -> Array:
+    """Each file vertex's id among the merged vertices: the one at its place (-1 where none is,
+    a vertex no face uses). Shape: (v_file,)."""
+    from scipy.spatial import cKDTree
+
+    size = float(np.ptp(merged, axis=0).max()) or 1.0
+    dist, near = cKDTree(merged).query(points)
+    return np.where(dist <= 1e-6 * size, near, -1).astype(np.int64)
+
+
+def _obj_points(path: Path) -> Array:
+    """An .obj file's vertex list as written (trimesh's reader drops and reorders vertices)."""
+    rows = [line.split()[1:4] for line in path.read_text(errors="replace").splitlines() if line.startswith("v ")]
+    try:
+        return np.array(rows, np.float64).reshape(-1, 3)
+    except ValueError as exc:
+        raise MeshError(f"{path}: a vertex line is not three numbers ({exc})") from None
+
+
 def tetrahedralise(
     vertices: Array,
     faces: Array,
@@ -135,29 +163,68 @@ def tetrahedralise(
     tets (t, 4) int64.
     `max_volume` adds TetGen's -a bound (same units as the vertices, cubed) for a finer interior.
     """
-    tetgen = need("tetgen", "filling a closed surface with tets")  # only surfaces need it
-
+    need("tetgen", "filling a closed surface with tets")  # only surfaces need it
     options = dict(TETGEN_OPTIONS)
     if max_volume is not None:
         options.update(fixedvolume=True, maxvolume=float(max_volume))
-    gen = tetgen.TetGen(np.asarray(vertices, np.float64), np.asarray(faces, np.int32))
-    try:
-        nodes, tets, *_ = gen.tetrahedralize(**options)
-    except RuntimeError as exc:  # tetgen refuses self-intersecting input this way
-        raise MeshError(f"tetgen could not fill the surface ({exc})") from exc
-    return np.asarray(nodes, np.float64), np.asarray(tets, np.int64)
+    # in a child process: on a self-intersecting surface tetgen reports the error and then
+    # corrupts its process's heap (an abort in whatever comes next), and it writes its
+    # _skipped files into the working directory
+    with tempfile.TemporaryDirectory(prefix="elastreg-tetgen-") as scratch:
+        np.savez(
+            Path(scratch) / "surface.npz",
+            vertices=np.asarray(vertices, np.float64),
+            faces=np.asarray(faces, np.int32),
+            options=json.dumps(options),
+        )
+        path = os.pathsep.join(filter(None, (_PACKAGE_ROOT, os.environ.get("PYTHONPATH"))))
+        child = "import sys; from service.meshfile import _tetgen_child; _tetgen_child(sys.argv[1])"
+        run = subprocess.run(
+            [sys.executable, "-c", child, scratch],
+            cwd=scratch,
+            capture_output=True,
+            text=True,
+            env={**os.environ, "PYTHONPATH": path},
+        )
+        if run.returncode != 0:
+            lines = run.stderr.strip().splitlines() or ["no message"]
+            said = next((line for line in reversed(lines) if "Error" in line), lines[-1])
+            raise MeshError(f"tetgen could not fill the surface: is it self-intersecting? ({said})")
+        with np.load(Path(scratch) / "tets.npz") as z:
+            return z["nodes"].astype(np.float64), z["tets"].astype(np.int64)
 
 
-def _read_surface(path: Path) -> tuple[Array, Array]:
-    """A closed triangle surface from an .stl/.obj/.ply/.off file, merged and outward oriented."""
+#: where `service` imports from, for the child process
+_PACKAGE_ROOT = str(Path(__file__).resolve().parents[1])
+
+
+def _tetgen_child(scratch: str) -> None:
+    """tetgen on the surface saved in `scratch`, its tets saved beside it (a child process)."""
+    import tetgen
+
+    with np.load(Path(scratch) / "surface.npz") as z:
+        vertices, faces, options = z["vertices"], z["faces"], json.loads(str(z["options"]))
+    nodes, tets, *_ = tetgen.TetGen(vertices, faces).tetrahedralize(**options)
+    np.savez(Path(scratch) / "tets.npz", nodes=nodes, tets=tets)
+
+
+def _read_surface(path: Path) -> tuple[Array, Array, Array]:
+    """A closed triangle surface from an .stl/.obj/.ply/.off file, merged and outward oriented.
+
+    Returns its vertices (v, 3), faces (f, 3) and each file vertex's id among them (-1 where no
+    face uses it): a scene's node ids are the file's, and an .stl repeats a vertex per face.
+    """
     import trimesh
 
     try:
-        surf = trimesh.load_mesh(path, process=True)
+        raw = trimesh.load_mesh(path, process=False)
+        surf = trimesh.load_mesh(path, process=True)  # equal (to 1e-8) vertices merged, unused dropped
     except Exception as exc:  # trimesh's loaders raise many types on a corrupt file
         raise MeshError(f"{path}: trimesh could not read it ({type(exc).__name__}: {exc})") from exc
-    if not isinstance(surf, trimesh.Trimesh) or len(surf.faces) == 0:
+    if not isinstance(surf, trimesh.Trimesh) or not isinstance(raw, trimesh.Trimesh) or len(surf.faces) == 0:
         raise MeshError(f"{path}: no triangles in this surface file")
+    points = _obj_points(path) if path.suffix.lower() == ".obj" else np.asarray(raw.vertices)
+    vertex_id = _file_vertex_ids(points, np.asarray(surf.vertices))
     if not surf.is_watertight:
         edges = np.sort(surf.edges, axis=1)
         _, counts = np.unique(edges, axis=0, return_counts=True)
@@ -170,7 +237,7 @@ def _read_surface(path: Path) -> tuple[Array, Array]:
         raise MeshError(f"{path}: the surface's triangles are not consistently oriented")
     if surf.volume < 0:
         surf.invert()
-    return np.asarray(surf.vertices, np.float64), np.asarray(surf.faces, np.int64)
+    return np.asarray(surf.vertices, np.float64), np.asarray(surf.faces, np.int64), vertex_id
 
 
 def _is_gmsh1(path: Path) -> bool:
@@ -254,8 +321,9 @@ def load_mesh(path: str | Path, scale: float = 1.0, *, max_volume: float | None 
     if not scale > 0:
         raise MeshError(f"{path}: scale must be > 0, got {scale}")
     surface = path.suffix.lower() in SURFACE_SUFFIXES
+    file_ids = None
     if surface:
-        vertices, faces = _read_surface(path)
+        vertices, faces, file_ids = _read_surface(path)
         vertices = vertices * scale
         try:
             nodes, tets = tetrahedralise(vertices, faces, max_volume=max_volume)
@@ -280,12 +348,18 @@ def load_mesh(path: str | Path, scale: float = 1.0, *, max_volume: float | None 
         level = logging.WARNING if quality.n_slivers > 0.01 * mesh.n_tets else logging.INFO
         log.log(level, "%s: %d sliver tets (min dihedral %.1f deg)", path.name, quality.n_slivers, quality.min_dihedral)
     log.info("%s: %d nodes, %d tets, min dihedral %.1f deg", path.name, mesh.n_nodes, mesh.n_tets, quality.min_dihedral)
+    if file_ids is not None:  # a surface: its file's vertices, through tetgen's and the build's ids
+        node_id = np.arange(len(nodes)) if kept is None else np.full(len(nodes), -1, np.int64)
+        if kept is not None:
+            node_id[kept] = np.arange(kept.size)
+        file_ids = np.where(file_ids >= 0, node_id[np.maximum(file_ids, 0)], -1)
     return LoadedMesh(
         nodes=mesh.nodes,
         tets=mesh.tets,
         source=path,
         tetrahedralised=surface,
         kept=kept,
-        n_source_nodes=len(nodes),
+        n_source_nodes=len(nodes) if file_ids is None else len(file_ids),
         quality=quality,
+        file_ids=file_ids,
     )

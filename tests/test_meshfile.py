@@ -146,3 +146,34 @@ def test_open_surface_is_refused(tmp_path):
     holed.export(path)
     with pytest.raises(MeshError, match=r"holed\.ply: the surface is not watertight \(3 open"):
         load_mesh(path)
+
+
+def test_a_self_intersecting_surface_is_refused_and_the_process_goes_on(tmp_path, monkeypatch):
+    """tetgen refuses it and then corrupts its process's heap, so it runs in a child process;
+    its scratch files stay out of the working directory."""
+    a, b = trimesh.creation.box((1, 1, 1)), trimesh.creation.box((1, 1, 1))
+    b.apply_translation([0.5, 0.5, 0.5])
+    trimesh.util.concatenate([a, b]).export(tmp_path / "crossed.stl")
+    trimesh.creation.box((1, 1, 1)).export(tmp_path / "box.stl")
+    monkeypatch.chdir(tmp_path)
+    for _ in range(2):
+        with pytest.raises(MeshError, match="self-intersecting"):
+            load_mesh(tmp_path / "crossed.stl")
+        assert load_mesh(tmp_path / "box.stl").tets.shape[1] == 4
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["box.stl", "crossed.stl"]
+
+
+def test_a_surfaces_node_ids_are_its_files_vertex_ids(tmp_path):
+    """A scene names nodes by the file's ids: a vertex no face uses (dropped) or one written
+    twice (merged) must not shift the others."""
+    box = trimesh.creation.box((1.0, 1.0, 1.0))
+    V, F = np.asarray(box.vertices), np.asarray(box.faces)
+    verts = np.vstack([[[5.0, 5.0, 5.0]], V, V[2:3]])  # an unused vertex first, a copy of vertex 2 last
+    faces = np.where(F == 2, 9, F + 1)  # faces use the copy
+    lines = [f"v {x} {y} {z}" for x, y, z in verts] + [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces]
+    (tmp_path / "box.obj").write_text("\n".join(lines) + "\n")
+    loaded = load_mesh(tmp_path / "box.obj")
+    ids = loaded.source_to_mesh()
+    assert loaded.n_source_nodes == 10 and ids[0] == -1
+    np.testing.assert_allclose(loaded.nodes[ids[1:]], verts[1:])
+    assert ids[3] == ids[9]  # the copy is the same node
