@@ -287,8 +287,9 @@ async def http_frame(
 # -- models --------------------------------------------------------------------------------------
 
 
-def simulate(entry, body: SimulateIn, kind: str, timing: dict, t_received: float) -> bytes:
-    """The forward problem in the pool: displacement under the body's forces."""
+def simulate(entry, body: SimulateIn, kind: str, timing: dict, t_received: float, budget_ms: float) -> bytes:
+    """The forward problem in the pool: displacement under the body's forces, the FEM's solve
+    within the server's time cap (`budget_ms`, as a frame's)."""
     nodes, values = body.forces.nodes, body.forces.values
     t0 = time.perf_counter()
     try:
@@ -298,7 +299,7 @@ def simulate(entry, body: SimulateIn, kind: str, timing: dict, t_received: float
             result = {"converged": True, "status": "converged", "iterations": 0, "residual": None}
         else:
             model = entry.fem if body.E is None else entry.fem.with_stiffness(body.E)
-            res = model.solve(values, nodes)
+            res = model.solve(values, nodes, deadline=t0 + budget_ms / 1e3)
             u = res.u
             result = {
                 "converged": bool(res.converged),

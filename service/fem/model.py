@@ -47,11 +47,14 @@ class FEMModel:
         """A fresh solver (owns a factorisation: one per thread)."""
         return NewtonSolver(self.assembler, self.options)
 
-    def solve(self, forces: Array, support: Array, u0: Array | None = None) -> NewtonResult:
-        """Equilibrium under `forces` (k, 3) on `support` (k,). Shape: result.u (n, 3)."""
+    def solve(
+        self, forces: Array, support: Array, u0: Array | None = None, deadline: float | None = None
+    ) -> NewtonResult:
+        """Equilibrium under `forces` (k, 3) on `support` (k,), until `deadline` at most
+        (NewtonSolver.solve). Shape: result.u (n, 3)."""
         g = np.zeros((self.mesh.n_nodes, 3))
         g[check_support(self.mesh, support)] = forces
-        return self.newton().solve(g, u0)
+        return self.newton().solve(g, u0, deadline)
 
     def restrict(self, support: Array, nodes: Array | None = None) -> FEMOperator:
         return FEMOperator(self, support, nodes)

@@ -229,14 +229,21 @@ class NewtonSolver:
         have_factor = True
         status = "converged"
         while s < 1.0:
+            if deadline is not None and time.perf_counter() > deadline:
+                status = "time_limit"
+                break
             # tangent predictor along the load path, with the step cut so that it asks no
             # element for more than `step_strain` of |grad du|
             x_try = x
             if have_factor:
                 dx = self.solver.solve(target - f0)
                 grad = asm.F(asm.unpack(dx)) - np.eye(3)
-                gmax = float(np.sqrt((grad**2).sum(axis=(1, 2)).max()))
+                with np.errstate(over="ignore"):  # an absurd load's strains overflow: inf stops it below
+                    gmax = float(np.sqrt((grad**2).sum(axis=(1, 2)).max()))
                 ds = min(ds, opt.step_strain / gmax) if gmax > 0 else ds
+                if not ds >= opt.min_load_step:  # strains of thousands asked for (or inf): no path
+                    status = "load_step_too_small"
+                    break
             s_try = min(1.0, s + ds)
             load = f0 + s_try * (target - f0)
             if have_factor:

@@ -95,6 +95,17 @@ def test_simulate_fem_and_stiffness(http, entry, support):
     assert np.abs(stiff["displacement"]).max() < np.abs(u).max()
 
 
+def test_simulate_an_absurd_fem_load_answers_at_once(http, support):
+    """Not a solver thread held for ever: a result that says it did not converge, and why."""
+    g = np.tile([0.0, 0.0, 1e12], (support.size, 1))
+    r = http.post(
+        "/models/bar/simulate", json={"method": "fem", "forces": {"nodes": support.tolist(), "values": g.tolist()}}
+    )
+    body = r.json()
+    assert r.status_code == 200 and not body["converged"] and body["status"] == "load_step_too_small"
+    assert http.get("/health").json()["solves"]["running"] == 0
+
+
 @pytest.mark.parametrize(
     "forces, words",
     [

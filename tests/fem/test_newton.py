@@ -93,6 +93,15 @@ def test_crushing_load_never_produces_nan(bar):
     assert (J > 0).all()
 
 
+@pytest.mark.parametrize("size", [1e7, 1e12, 1e300])
+def test_an_absurd_load_ends_at_once_with_no_path(bar, size):
+    """Its linear predictor asks for strains of millions (or overflows): no load step can be
+    small enough, and the solve says so at once instead of creeping along for ever."""
+    res = NewtonSolver(Assembler(bar, NeoHookean(4500.0, 0.49))).solve(tip_load(bar, [0.0, 0.0, -size]))
+    assert not res.converged and res.status == "load_step_too_small" and res.seconds < 5.0
+    assert np.isfinite(res.u).all()
+
+
 def test_warm_start_needs_fewer_iterations(bar):
     solver = NewtonSolver(Assembler(bar, NeoHookean(4500.0, 0.49)))
     g1 = tip_load(bar, [0.0, 0.0, -80.0])

@@ -54,5 +54,7 @@ async def get_mesh(request: Request, entry: EntryDep, pool: PoolDep, kind: Reply
 )
 async def simulate(entry: EntryDep, body: SimulateBody, pool: PoolDep, settings: SettingsDep, kind: ReplyKind):
     work.check_E(body.value.E, entry, settings)
-    data = await pool.run(work.simulate, entry, body.value, kind, {"decode": body.decode_ms}, body.t_received)
+    data = await pool.run(
+        work.simulate, entry, body.value, kind, {"decode": body.decode_ms}, body.t_received, settings.max_time_budget_ms
+    )
     return reply(data, kind)
