@@ -86,6 +86,8 @@ ENDPOINTS = [
     ("POST", "/sessions/guarded-xyz/frames", {"points": [[0.0, 0.0, 0.0]]}),
     ("DELETE", "/sessions/guarded-xyz", None),
     ("GET", "/openapi.json", None),
+    ("GET", "/models/bar/demo?frames=2&points=10", None),  # the viewer's demo: FEM work, a model's
+    ("GET", "/models/nope/demo", None),  # not even which models exist
 ]
 
 

@@ -9,15 +9,15 @@ static files; the page sends the token itself on every API call it makes.
 
 from __future__ import annotations
 
-import asyncio
 from pathlib import Path
 from typing import Annotated
 
 import numpy as np
-from fastapi import APIRouter, Query, Request
+from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import FileResponse
 
-from ..deps import EntryDep, ReplyKind, reply
+from .. import deps
+from ..deps import EntryDep, PoolDep, ReplyKind, reply
 from ..errors import ApiError
 
 router = APIRouter(tags=["viewer"])
@@ -76,12 +76,15 @@ def demo_sequence(entry, frames: int, points: int, seed: int) -> dict:
     }
 
 
-# not in the OpenAPI document: a helper of the viewer's demo (docs/frontends.md), not the contract
-@router.get("/models/{model}/demo", tags=["viewer"], include_in_schema=False)
+# not in the OpenAPI document: a helper of the viewer's demo (docs/frontends.md), not the contract;
+# a model endpoint, so it needs the token as they do (the page sends it from its fragment), and
+# its FEM solves go through the solve pool (503 at capacity, not unbounded threads)
+@router.get("/models/{model}/demo", tags=["viewer"], include_in_schema=False, dependencies=[Depends(deps.owner)])
 async def demo(
     request: Request,
     entry: EntryDep,
     kind: ReplyKind,
+    pool: PoolDep,
     frames: Annotated[int, Query(ge=2, le=120)] = 40,
     points: Annotated[int, Query(ge=10, le=5000)] = 500,
     seed: int = 0,
@@ -96,7 +99,8 @@ async def demo(
         cache = state.demo_sequences = {}
     key = (entry.id, frames, points, seed)
     if key not in cache:  # one FEM solve per frame: computed once, off the event loop
+        sequence = await pool.run(demo_sequence, entry, frames, points, seed)
         while len(cache) >= DEMO_CACHE:
             cache.pop(next(iter(cache)))
-        cache[key] = await asyncio.to_thread(demo_sequence, entry, frames, points, seed)
+        cache[key] = sequence
     return reply(cache[key], kind)
