@@ -47,6 +47,7 @@ POLICY = 1008  # a bad first message, or no valid token
 TRY_LATER = 1013  # the server is at its session limit
 RESTART = 1012  # the server is shutting down
 _THREAD_DECODE = 256 << 10  # messages larger than this are decoded off the event loop
+_LENIENT_ID = 64 << 10  # an undecodable message is read again for its frame_id up to this size
 _CLOSED = object()
 _IDLE = object()
 _DRAIN = object()
@@ -265,12 +266,20 @@ class StreamRunner:
             if item is _CLOSED or item is _IDLE:
                 return
 
-    def _parse(self, kind: str, data) -> FrameIn:
-        obj = self._decode(data, kind)
-        if not isinstance(obj, dict):
-            raise ApiError(422, "a frame must be a map with points (and optionally support, frame_id)")
-        check_points_limit(obj, self.settings.max_points)
-        return FrameIn.model_validate(obj)
+    def _parse(self, kind: str, data) -> tuple[FrameIn | None, Exception | None, object]:
+        """(frame, None, id) or (None, the error, the frame_id when it could be read): a refused
+        frame's id comes from this one decode, never a second parse of its whole body."""
+        try:
+            obj = self._decode(data, kind)
+        except Exception as exc:  # only a small body is read again, leniently, for its id
+            return None, exc, _frame_id(data, kind) if len(data) <= _LENIENT_ID else None
+        try:
+            if not isinstance(obj, dict):
+                raise ApiError(422, "a frame must be a map with points (and optionally support, frame_id)")
+            check_points_limit(obj, self.settings.max_points)
+            return FrameIn.model_validate(obj), None, None
+        except Exception as exc:
+            return None, exc, _id_of(obj)
 
     async def _answer(self, batch: list) -> bool:
         """Answer a batch (one message, or all queued ones with skip_stale); False when the
@@ -278,16 +287,15 @@ class StreamRunner:
         good = []
         for kind, data, t_received in batch:
             t0 = time.perf_counter()
-            try:
-                if len(data) > _THREAD_DECODE:  # a large JSON cloud takes a while to parse
-                    frame = await asyncio.to_thread(self._parse, kind, data)
-                else:
-                    frame = self._parse(kind, data)
-            except Exception as exc:
+            if len(data) > _THREAD_DECODE:  # a large JSON cloud takes a while to parse
+                frame, exc, fid = await asyncio.to_thread(self._parse, kind, data)
+            else:
+                frame, exc, fid = self._parse(kind, data)
+            if frame is None:
                 err = as_api_error(exc) or ApiError(500, f"internal error ({type(exc).__name__})")
                 if err.status == 500:
                     log.error("decoding a frame failed", exc_info=exc)
-                if not await self._error(kind, err, _frame_id(data, kind)):
+                if not await self._error(kind, err, fid):
                     return False
                 continue
             good.append((kind, frame, t_received, 1e3 * (time.perf_counter() - t0)))
@@ -343,12 +351,17 @@ class StreamRunner:
 
 
 def _frame_id(data, kind: str):
-    """The frame_id of an undecodable or invalid frame, when one can be read (else None); JSON
-    is read leniently here (NaN literals allowed) since only the id is wanted."""
+    """The frame_id of a small undecodable frame, when one can be read (else None); JSON is
+    read leniently here (NaN literals allowed) since only the id is wanted."""
     try:
-        obj = json.loads(data) if kind == codec.JSON else codec.decode(data, kind)
+        obj = json.loads(data) if kind == codec.JSON else codec.decode(data, kind, max_bytes=_LENIENT_ID)
     except Exception:
         return None
+    return _id_of(obj)
+
+
+def _id_of(obj):
+    """A decoded frame's frame_id, when it is one the reply can carry (else None)."""
     fid = obj.get("frame_id") if isinstance(obj, dict) else None
     if isinstance(fid, str) and len(fid) <= 256:
         return fid

@@ -83,6 +83,8 @@ BAD_FRAMES = [
     (mp({"points": {"dtype": "<f8", "shape": [5, 3], "data": b"\0" * 8}}), 422, "bytes"),
     (mp({"points": packed(np.zeros((MAX_POINTS + 1, 3)))}), 413, "limit"),
     (bytes(range(256)) * 4, 422, "MessagePack"),
+    # a large body that does not decode is not parsed a second time (on the event loop) for its id
+    ('{"frame_id": "big", "points": [[NaN, 0, 0]' + ", [0, 0, 0]" * 20_000 + "]}", 422, "NaN"),
 ]
 
 
@@ -97,7 +99,11 @@ def test_bad_frames_get_error_messages_and_the_stream_goes_on(live, entry, suppo
             assert set(r) == {"error"}, (k, r)
             assert r["error"]["code"] == code and words in r["error"]["detail"], (k, r)
             if k == 3:
-                assert r["error"]["frame_id"] == 3
+                assert r["error"]["frame_id"] == 3  # a small body read again, leniently, for its id
+            if k == 4:
+                assert r["error"]["frame_id"] == "x"  # decoded once: its id from that decode
+            if k == len(BAD_FRAMES) - 1:
+                assert r["error"].get("frame_id") is None
             pts = clouds[k % len(clouds)]
             ws.send(json.dumps({"points": pts.tolist(), "frame_id": k}))
             good = recv(ws)
