@@ -89,3 +89,23 @@ def test_the_phantom_estimate_covers_its_error_under_declared_noise(shipped, met
     print(np.round(np.array(est) * 1e3, 3), np.round(np.array(err) * 1e3, 3))
     assert np.median(est) >= np.median(err)
     assert (np.array(est) >= 0.5 * np.array(err)).all()
+
+
+def test_a_refused_support_leaves_the_session_as_it_was(shipped):
+    """The Newton method with Levenberg-Marquardt forms 3 solves a support node: a frame asking
+    for more nodes than that allows is a ValueError, and the session keeps its support, its
+    forces and its answers (the next frame is the one a session that never saw it gives)."""
+    entry = shipped["phantom"]
+    support = tuple(int(i) for i in _patch(entry, 40))
+    config = SessionConfig(method="fem", optimizer="levenberg-marquardt", support=support, max_iter=20)
+    seq = make_sequence(entry.mesh, entry.fem.material, np.asarray(support[:10]), n_frames=3, peak_force=0.2,
+                        n_points=300, seed=5)  # fmt: skip
+    session, fresh = Session(entry.fem, config), Session(entry.fem, config)
+    session.frame(seq.clouds[0])
+    fresh.frame(seq.clouds[0])
+    huge = entry.mesh.free_surface_nodes[:600]
+    with pytest.raises(ValueError, match="at most 500 support nodes"):
+        session.frame(seq.clouds[1], support=huge)
+    assert session.support.tolist() == list(support)
+    got, want = session.frame(seq.clouds[1]), fresh.frame(seq.clouds[1])
+    np.testing.assert_allclose(got.outputs["forces"], want.outputs["forces"], rtol=1e-9, atol=1e-12)

@@ -36,10 +36,10 @@ from starlette.websockets import WebSocketState
 
 from . import codec
 from .deps import authorize_websocket, websocket_slot
-from .errors import ApiError, as_api_error
+from .errors import ApiError, as_api_error, unprocessable
 from .schemas import FrameIn, SessionCreate, check_points_limit
 from .sessions import RegistryFull
-from .work import Dropped, not_found_model, open_session, opened, solve_frame
+from .work import Dropped, check_frame_support, not_found_model, open_session, opened, solve_frame
 
 log = logging.getLogger(__name__)
 
@@ -306,8 +306,18 @@ class StreamRunner:
         if self.held.skip_stale:
             skipped = [f for _, f, _, _ in good[:-1]]
             extra = {"skipped": len(skipped), "skipped_ids": [f.frame_id for f in skipped]}
-            if frame.support is None:  # a support sent with a skipped frame still applies
-                support = next((f.support for f in reversed(skipped) if f.support is not None), None)
+            for f in skipped:  # a support sent with a skipped frame still applies, if it is one
+                if f.support is None:
+                    continue
+                try:
+                    check_frame_support(self.held, f.support)
+                except ValueError as exc:  # refused under its own id; the one before it stands
+                    if not await self._error(kind, unprocessable(str(exc), "support"), f.frame_id):
+                        return False
+                    continue
+                support = f.support
+            if frame.support is not None:
+                support = None  # the answered frame's own
         if self.gone:
             return False
         self.busy = True

@@ -19,6 +19,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from ..forward import check_support
 from ..registration.settings import NAMES
 from . import codec
 from .errors import ApiError, unprocessable
@@ -207,6 +208,16 @@ def flag_non_finite(payload: dict) -> None:
         payload["converged"] = False
         payload["status"] = "non_finite"
         payload["message"] = f"non-finite values in {', '.join(bad)} (solver: {payload.get('message') or ''})"
+
+
+def check_frame_support(held: Held, support) -> None:
+    """The cheap checks a frame's support must pass (ids, fixed nodes, a network's load region),
+    for a support a skipped frame carried: ValueError saying why."""
+    session = held.session
+    nodes = check_support(session.mesh, np.asarray(support))
+    region_columns = getattr(session.model, "region_columns", None)
+    if region_columns is not None:
+        region_columns(nodes)
 
 
 def solve_frame(

@@ -143,8 +143,8 @@ class Session:
         self.created = time.time()
         self.last_used = time.monotonic()
 
-    def _set_support(self, support: Array, g_old: Array | None) -> None:
-        self.op = self.model.restrict(support, self.distance.nodes)
+    def _set_support(self, support: Array, g_old: Array | None, op: ForwardOperator | None = None) -> None:
+        self.op = self.model.restrict(support, self.distance.nodes) if op is None else op
         self._corrector_op = None  # restricted again to the new support when next needed
         g = np.zeros((support.size, 3))
         if g_old is not None:
@@ -174,7 +174,9 @@ class Session:
             if support is not None:
                 support = check_support(self.mesh, np.asarray(support))
                 if not np.array_equal(support, self.support):
-                    self._set_support(support, self.g)
+                    op = self.model.restrict(support, self.distance.nodes)
+                    check_optimizer(op, self._options)  # refused before the session changes at all
+                    self._set_support(support, self.g, op)
             self.distance.bind(points)
             if self._rest_distance is not None:
                 self._rest_distance.bind(points)
