@@ -60,8 +60,8 @@ def build_session(
     given["outputs"] = tuple(create.outputs)
     if create.time_budget_ms is None and budget_ms is not None:
         given["time_budget_ms"] = budget_ms
-    if "max_iter" not in create.model_fields_set and max_iter is not None:
-        given["max_iter"] = min(create.max_iter, max_iter)
+    if max_iter is not None and (create.max_iter is None or "max_iter" not in create.model_fields_set):
+        given["max_iter"] = min(SessionConfig.max_iter, max_iter)  # null is unsent: the default, capped
     try:
         if create.method == "auto":
             session = Session(entry.network, SessionConfig(**given), corrector=entry.fem)
@@ -76,7 +76,6 @@ def build_session(
         outputs=list(c.outputs),
         matching=np.asarray(c.matching, np.int64) if c.matching is not None else session.mesh.surface_faces,
         skip_stale=create.skip_stale,
-        time_budget_ms=create.time_budget_ms,
     )
     return Held(id=reservation.id, kind=reservation.kind, model=entry.id, session=session, config=config)
 

@@ -108,7 +108,7 @@ class SessionConfig:
     )
     E: float | None = setting(None, "Young's modulus for this session, Pa (default: the model's)", per_model=True, gt=0)
     loss: Loss = setting("squared", "point-to-surface loss")
-    loss_param: float | None = setting(None, "huber: threshold (length); trimmed: fraction ignored", gt=0)
+    loss_param: float | None = setting(None, "huber: threshold (length, m); trimmed: fraction ignored", gt=0, le=1.0)
     carry_curvature: bool = setting(
         True,
         "precondition each frame with the curvature the previous frames measured (unbounded solves)",

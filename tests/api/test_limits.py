@@ -264,15 +264,23 @@ def test_the_ends_of_the_ranges_are_served_and_the_time_cap_applies_unasked(tigh
             r = c.post("/sessions", json={"model": "bar", "E": E, "max_iter": 50, "time_budget_ms": 2000.0})
             assert r.status_code == 201, r.text
             c.delete(f"/sessions/{r.json()['session']}")
-        r = c.post("/sessions", json={"model": "bar"})
-        opened = r.json()
-        assert opened["config"]["time_budget_ms"] is None  # the session's own setting, as asked
-        held = tight.app.state.registry.get(opened["session"])
-        assert held.session.config.time_budget_ms == 2000.0  # and the server's cap is what it runs under
-        c.delete(f"/sessions/{opened['session']}")
+        for unasked in ({"model": "bar"}, {"model": "bar", "max_iter": None, "time_budget_ms": None}):
+            opened = c.post("/sessions", json=unasked).json()
+            held = tight.app.state.registry.get(opened["session"])
+            # the server's caps are what it runs under, and what it says it runs with
+            assert held.session.config.time_budget_ms == 2000.0 == opened["config"]["time_budget_ms"]
+            assert held.session.config.max_iter == tight.app.state.settings.max_iter == opened["config"]["max_iter"]
+            c.delete(f"/sessions/{opened['session']}")
         g = {"nodes": support[:3].tolist(), "values": [[0.0, 0.0, 1.0]] * 3}
         r = c.post("/models/bar/simulate", json={"forces": g, "E": 1e-300})
         assert r.status_code == 422 and "outside" in json.dumps(r.json()["detail"])
         r = c.post("/models/bar/simulate", json={"forces": g, "E": 4.5})
         assert r.status_code == 200 and r.json()["converged"] is True
         assert np.isfinite(np.asarray(r.json()["displacement"], float)).all()
+
+
+@pytest.mark.parametrize("loss_param", [1e200, 2.0])
+def test_a_huber_threshold_too_large_to_square_is_a_422_not_a_session_of_500s(tight, loss_param):
+    with httpx.Client(base_url=tight.url, timeout=60) as c:
+        r = c.post("/sessions", json={"model": "bar", "loss": "huber", "loss_param": loss_param})
+        assert r.status_code == 422 and "loss_param" in json.dumps(r.json()["detail"])

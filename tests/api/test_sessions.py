@@ -24,7 +24,7 @@ def open_session(http, **config) -> dict:
     return r.json()
 
 
-def test_open_echoes_every_setting(http, entry):
+def test_open_echoes_every_setting(http, entry, live):
     body = open_session(http)
     SessionOpened.model_validate(body)
     c = body["config"]
@@ -32,7 +32,8 @@ def test_open_echoes_every_setting(http, entry):
     assert c["model"] == "bar" and c["method"] == "network"
     assert (c["alpha"], c["gtol"], c["max_iter"]) == (DEFAULT_ALPHA, DEFAULT_GTOL["network"], DEFAULTS.max_iter)
     assert c["outputs"] == ["displacement", "forces"] and c["warm_start"] is True and c["skip_stale"] is False
-    assert c["E"] == 4500.0 and c["force_bound"] is None and c["loss"] == "squared" and c["time_budget_ms"] is None
+    assert c["E"] == 4500.0 and c["force_bound"] is None and c["loss"] == "squared"
+    assert c["time_budget_ms"] == live.app.state.settings.max_time_budget_ms  # unasked: the cap it runs under
     assert c["precondition"] is False and c["noise"] is None and c["optimizer"] == "lbfgsb"
     assert c["predict"] is True
     np.testing.assert_array_equal(c["support"], entry.region)  # the default: the load region

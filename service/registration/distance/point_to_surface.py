@@ -128,8 +128,8 @@ class PointToSurface:
                 raise ValueError(f"give {loss}'s parameter once: loss_param or its own name")
             delta, trim = (loss_param, trim) if loss == "huber" else (delta, loss_param)
         trim = 0.1 if trim is None else trim
-        if loss == "huber" and not (delta is not None and np.isfinite(delta) and delta > 0):
-            raise ValueError("the huber loss needs a positive threshold delta (a length)")
+        if loss == "huber" and not (delta is not None and 0 < delta <= 1e6):  # its square must be finite
+            raise ValueError(f"the huber loss needs a positive threshold delta (a length), at most 1e6, got {delta}")
         if loss == "trimmed" and not 0.0 <= trim < 1.0:
             raise ValueError(f"trim must lie in [0, 1), got {trim}")
         if margin is not None and not (np.isfinite(margin) and margin > 0):
