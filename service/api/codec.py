@@ -74,6 +74,11 @@ def _media(value: str) -> str:
     return value.split(";", 1)[0].strip().lower()
 
 
+def _is_json(media: str) -> bool:
+    """application/json, or an application type with JSON's structured suffix (RFC 6839)."""
+    return media == "application/json" or (media.startswith("application/") and media.endswith("+json"))
+
+
 def request_kind(content_type: str | None) -> str:
     """The encoding of a request body from its Content-Type: JSON or MessagePack types only. A
     web page can send ``text/plain``, a form or no type at all without a CORS preflight (so
@@ -81,7 +86,7 @@ def request_kind(content_type: str | None) -> str:
     media = _media(content_type or "")
     if media in _MSGPACK_TYPES:
         return MSGPACK
-    if media == "application/json" or media.endswith("+json"):
+    if _is_json(media):
         return JSON
     raise UnsupportedMedia(
         f"unsupported Content-Type {media or '(none)'!r}: use application/json or application/msgpack"
@@ -104,7 +109,7 @@ def response_kind(accept: str | None, content_type: str | None) -> str:
                     q = 0.0
         if media in _MSGPACK_TYPES:
             kind = MSGPACK
-        elif media == "application/json" or media.endswith("+json"):
+        elif _is_json(media):
             kind = JSON
         else:
             kind = None
@@ -178,7 +183,7 @@ def _no_ext(code: int, data: bytes):
     raise DecodeError(f"MessagePack extension types are not accepted (got ext type {code})")
 
 
-_NON_FINITE = re.compile(rb"NaN|Infinity")
+_NON_FINITE = re.compile(r"NaN|Infinity")
 
 
 def _loads_json(data: bytes | str):
@@ -186,8 +191,8 @@ def _loads_json(data: bytes | str):
         try:
             return orjson.loads(data)
         except orjson.JSONDecodeError as exc:
-            raw = data.encode() if isinstance(data, str) else data
-            if "infinity" in str(exc) or _NON_FINITE.search(raw):  # a literal, or 1e999
+            text = data if isinstance(data, str) else bytes(data).decode("utf-8", "replace")
+            if "infinity" in str(exc) or _NON_FINITE.match(text, exc.pos):  # 1e999, or a literal where it failed
                 raise DecodeError("NaN and Infinity are not valid JSON numbers") from None
             raise DecodeError(f"not valid JSON: {exc}") from None
     try:

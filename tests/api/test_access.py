@@ -424,3 +424,19 @@ def test_a_watcher_without_the_sessions_token_is_refused(guarded, support, heade
             ws.send(json.dumps(first))
         assert recv(ws)["error"]["code"] == code
         assert close_code(ws) == 1008
+
+
+def test_a_silent_watcher_on_a_guarded_server_is_closed_with_1008(bar_store):
+    """A browser sends the watch's token in its first message: one that sends nothing within
+    the first-message timeout gets a 401 and a 1008 close, as /stream's silent client does."""
+    server = start(bar_store[0], instance_id="silent", api_tokens=TOKEN_A, first_message_timeout_s=0.5)
+    try:
+        url = server.url.replace("http://", "ws://") + "/sessions/silent-xyz/watch"
+        with connect(url) as ws:
+            r = recv(ws)
+            assert r["error"]["code"] == 401 and "no token within 0.5 s" in r["error"]["detail"]
+            with pytest.raises(ConnectionClosed) as info:
+                ws.recv(timeout=10)
+            assert info.value.rcvd is not None and info.value.rcvd.code == 1008
+    finally:
+        server.stop()

@@ -101,6 +101,8 @@ def test_bad_packed_arrays(packed, words):
         (b'{"a": -Infinity}', JSON, "NaN"),
         ('{"a": [1, Infinity]}', JSON, "NaN"),
         (b'{"a": ', JSON, "not valid JSON"),
+        (b'{"frame_id": "NaN-camera", "points": [1,', JSON, "not valid JSON"),  # NaN in a string, cut short
+        ('{"frame_id": "\u00e9t\u00e9", "a": NaN}', JSON, "NaN"),  # where it failed, counted in characters
         (b"\xff\xfe\x00", JSON, "not valid JSON"),
         (b"[" * 100_000, JSON, "lists and maps"),  # refused before parsing (TooLarge, a DecodeError)
         (b"\xc1", MSGPACK, "not valid MessagePack"),
@@ -149,6 +151,9 @@ def test_unsupported_content_type():
     with pytest.raises(UnsupportedMedia):
         codec.request_kind("application/xml")
     assert codec.request_kind("application/problem+json") == JSON
+    for media in ("text/plain+json", "image/svg+json"):  # JSON's suffix under application/ only
+        with pytest.raises(UnsupportedMedia):
+            codec.request_kind(media)
 
 
 @pytest.mark.parametrize("kind", [JSON, MSGPACK])

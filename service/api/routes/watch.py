@@ -70,10 +70,17 @@ class Watcher:
         await self._close(POLICY, detail)
 
     async def _first_message(self) -> tuple[bool, dict | None]:
-        """(still connected, the first message as a map, or None)."""
+        """(still connected, the first message as a map, or None); a client silent past the
+        timeout is refused with 1008, as /stream refuses one."""
+        wait = self.settings.first_message_timeout_s
         try:
-            msg = await asyncio.wait_for(self.ws.receive(), self.settings.first_message_timeout_s)
-        except (TimeoutError, Exception):
+            msg = await asyncio.wait_for(self.ws.receive(), wait)
+        except TimeoutError:
+            await self._refuse(
+                401, f"no token within {wait:g} s: send it in the first message or the Authorization header"
+            )
+            return False, None
+        except Exception:
             return False, None
         if msg["type"] == "websocket.disconnect":
             return False, None
