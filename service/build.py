@@ -118,7 +118,7 @@ def build(
     data_until = None if deadline is None else t_start + DATA_SHARE * (deadline - t_start)
     paths = generate(
         mesh, material, spec, data_dir, n_paths,
-        workers=workers, scheduler=scheduler, progress=progress, max_newton=max_newton,
+        workers=workers, scheduler=scheduler, progress=progress, max_newton=max_newton, until=data_until,
     )  # fmt: skip
     for _ in paths:
         if data_until is not None and time.perf_counter() > data_until:

@@ -207,6 +207,7 @@ def generate(
     scheduler: str | None = None,
     progress: bool = True,
     max_newton: int | None = None,
+    until: float | None = None,
 ) -> Generator[dict, None, None]:
     """Solve paths 0..n_paths-1 that are not on disk yet, in parallel; yields each as written.
 
@@ -214,7 +215,8 @@ def generate(
     single-threaded processes (one per core: the factorisation is the hot spot and threads
     would only fight over it). With workers=0 it runs in this process (tests, debugging).
     `max_newton` caps each step's Newton iterations (solve_path); a data folder should hold
-    paths of one cap (build.data_key).
+    paths of one cap (build.data_key). `until` (a time.perf_counter() value): with workers, the
+    generation stops there even while paths are being solved (those still running are dropped).
     """
     data_dir = Path(data_dir)
     data_dir.mkdir(parents=True, exist_ok=True)
@@ -252,7 +254,13 @@ def generate(
         futures = client.map(
             solve_path, [m] * len(todo), [mat] * len(todo), [s] * len(todo), todo, max_newton=max_newton, pure=False
         )
-        for fut in as_completed(futures):
+        timeout = None if until is None else max(until - time.perf_counter(), 1e-3)
+        done = as_completed(futures, timeout=timeout)
+        while True:
+            try:
+                fut = next(done)
+            except (StopIteration, TimeoutError):  # all written, or the clock ran out
+                return
             result = fut.result()
             write_path(data_dir, result)
             bar.update(1)

@@ -121,3 +121,16 @@ def test_a_timed_build_on_a_dask_cluster_keeps_to_its_minutes(tmp_path, bar, clu
     entry = load_entry(tmp_path / "store" / "bar")
     assert entry.manifest["training"]["minutes"] == 0.25
     assert 2 <= entry.manifest["training"]["paths"] < 10_000
+
+
+def test_generation_stops_at_its_deadline_with_paths_still_running(tmp_path, bar, cluster):
+    """A timed build's data phase ends at its clock, not when the next path happens to finish:
+    a long path (seconds on a big organ) must not carry the build past its minutes."""
+    from service.fem.material import NeoHookean
+    from service.surrogate.data import LoadSpec, done_indices, generate
+
+    spec = LoadSpec(region=tuple(bar.free_surface_nodes.tolist()), max_force=20.0, patch_nodes=(2, 6))
+    mat = NeoHookean(4500.0, 0.45)
+    got = list(generate(bar, mat, spec, tmp_path / "d", 200, scheduler=cluster, progress=False,
+                        until=time.perf_counter()))  # fmt: skip
+    assert len(got) == len(done_indices(tmp_path / "d")) < 200
