@@ -132,6 +132,10 @@ class MaterialSpec(_Table):
     nu: Annotated[float, Field(strict=True, ge=0.0, lt=0.5)]
 
 
+#: the span (bounding-box diagonal, m) outside which a mesh is probably in the wrong unit: a
+#: finger's width to a torso's
+ORGAN_SIZE = (0.01, 2.0)
+
 FIXED_KEYS = ("fixed_nodes", "fixed_nodes_file", "fixed_box")
 
 
@@ -330,6 +334,15 @@ class Scene(_Table):
         mesh = loaded.to_mesh(fixed)
         self._loaded[mesh.hash] = loaded
         log.info("%s: %d nodes, %d tets, %d fixed", self._origin, mesh.n_nodes, mesh.n_tets, mesh.fixed.size)
+        size = float(np.linalg.norm(np.ptp(mesh.nodes, axis=0)))
+        if not ORGAN_SIZE[0] <= size <= ORGAN_SIZE[1]:  # SCENES.md: metres; a file in mm needs scale 0.001
+            log.warning(
+                "%s: the mesh spans %.3g m corner to corner, not an organ's %g-%g m: is [mesh] scale right "
+                "(a mesh in millimetres needs scale = 0.001)?",
+                self._origin,
+                size,
+                *ORGAN_SIZE,
+            )
         return mesh, loaded
 
     # -- node sets ----------------------------------------------------------------------------

@@ -160,7 +160,7 @@ def test_ids_are_mapped_when_unused_nodes_are_dropped(tmp_path):
 # -- errors name the key ----------------------------------------------------------------------
 
 
-def edited(old: str, new: str, boundary: str = "fixed_nodes = [0]", training: str = "") -> str:
+def edited(old: str, new: str, boundary: str = "fixed_nodes = [0, 1, 3]", training: str = "") -> str:
     """The good scene with one piece of text replaced."""
     text = GOOD.format(boundary=boundary, training=training)
     assert old in text
@@ -302,3 +302,15 @@ def test_a_scene_file_not_in_utf8_is_refused_by_name(folder):
     path.write_bytes(path.read_bytes().replace(b"block-1", b"bl\xe9ck"))
     with pytest.raises(SceneError, match=r"scene.toml: a scene file is TOML in UTF-8"):
         load_scene(path)
+
+
+def test_a_mesh_in_the_wrong_unit_is_warned_of(folder, caplog):
+    """The block is 40 mm long: read as metres (scale 1) it spans 49 m, no organ's size."""
+    scene = load_scene(write(folder, text=edited("scale = 0.001", "scale = 1.0")))
+    with caplog.at_level("WARNING", logger="service.scene"):
+        scene.build_mesh()
+    assert "is [mesh] scale right" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="service.scene"):
+        load_scene(write(folder)).build_mesh()
+    assert "scale right" not in caplog.text
