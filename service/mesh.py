@@ -67,6 +67,21 @@ def components(n_nodes: int, tets: Array) -> Array:
     return np.where(used, labels, -1)
 
 
+def face_components(tets: Array) -> int:
+    """How many parts the tets make when joined only through shared faces. Raises MeshError for
+    a face that more than two tets share."""
+    faces = np.sort(tets[:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]], axis=2).reshape(-1, 3)
+    _, inverse, counts = np.unique(faces, axis=0, return_inverse=True, return_counts=True)
+    if counts.max() > 2:
+        raise MeshError(f"{int((counts > 2).sum())} faces belong to more than two tets (overlapping or repeated tets)")
+    order = np.argsort(inverse.ravel(), kind="stable")
+    owner, face = order // 4, inverse.ravel()[order]
+    pair = np.flatnonzero(face[1:] == face[:-1])  # the two tets of each interior face, side by side
+    n = len(tets)
+    graph = sp.coo_matrix((np.ones(pair.size), (owner[pair], owner[pair + 1])), shape=(n, n))
+    return int(csgraph.connected_components(graph, directed=False)[0])
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class TetMesh:
     """A P1 tetrahedral mesh with its Dirichlet nodes.
@@ -98,8 +113,9 @@ class TetMesh:
     ) -> tuple[TetMesh, Array | None]:
         """Validate and repair raw arrays into a mesh.
 
-        Inverted tets are re-oriented (logged); degenerate tets, several components and bad
-        indices are refused with a :class:`MeshError`; unused nodes are dropped, in which case
+        Inverted tets are re-oriented (logged); degenerate tets, several components (by nodes,
+        or by faces: parts touching at an edge or a point) and bad indices are refused with a
+        :class:`MeshError`; unused nodes are dropped, in which case
         the second value maps each kept node to its index in the input (else it is None).
         """
         nodes = np.asarray(nodes, np.float64)
@@ -139,6 +155,13 @@ class TetMesh:
             raise MeshError(
                 f"the mesh has {n_comp} separate components (node counts {sorted(sizes.tolist(), reverse=True)[:5]}); "
                 "split it into one scene per body"
+            )
+
+        parts = face_components(tets)
+        if parts > 1:  # one body by its nodes, several by its faces: they touch at edges or points
+            raise MeshError(
+                f"the mesh is {parts} parts that touch only along an edge or at a point (no shared face): "
+                "it could turn about the contact, so it is not one body; mesh the contact as a solid or split it"
             )
 
         fixed = np.zeros(0, np.int64) if fixed is None else np.asarray(fixed, np.int64)

@@ -115,3 +115,21 @@ def test_a_patch_normal_is_the_unit_outward_normal_of_its_face(bar):
     for nodes, axis in ((end, 0), (top, 2)):
         n = bar.patch_normal(nodes)
         assert abs(np.linalg.norm(n) - 1.0) < 1e-12 and n[axis] > 0.95
+
+
+@pytest.mark.parametrize("shift", [[1.0, 1.0, 0.0], [1.0, 1.0, 1.0]])  # along an edge; at a point
+def test_parts_that_touch_without_a_shared_face_are_refused(shift):
+    """Connected through a node or an edge, the two blocks could turn about the contact: not one
+    body (a build on it failed every path, or trained on one sample)."""
+    n, t = grid_tets((2, 2, 2), 0.5)
+    nodes, inverse = np.unique(np.vstack([n, n + shift]).round(9), axis=0, return_inverse=True)
+    tets = inverse.ravel()[np.vstack([t, t + len(n)])]
+    with pytest.raises(MeshError, match="touch only along an edge or at a point"):
+        TetMesh.build(nodes, tets)
+    TetMesh.build(*grid_tets((4, 2, 2), 0.5))  # blocks sharing a face are one body
+
+
+def test_a_face_in_three_tets_is_refused():
+    n, t = grid_tets((1, 1, 1), 1.0)
+    with pytest.raises(MeshError, match="more than two tets"):
+        TetMesh.build(n, np.vstack([t, t[:1]]))
