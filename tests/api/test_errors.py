@@ -121,7 +121,7 @@ def test_every_frame_error_leaves_the_session_intact(http, entry, support, cloud
         ({"model": "bar", "matching": [[1, 2, 500]]}, 422, "0..80"),
         ({"model": "bar", "matching": [[1, 2]]}, 422, "triples"),
         ({"model": "bar", "loss": "huber"}, 422, "huber"),
-        ({"model": "bar", "loss": "trimmed", "loss_param": 1.5}, 422, "fraction"),
+        ({"model": "bar", "loss": "trimmed", "loss_param": 1.5}, 422, "less than or equal to 1"),
         ({"model": "bar", "colour": "red"}, 422, "Extra inputs"),
     ],
 )
