@@ -32,12 +32,12 @@ from locking_study import outward, scene_entry, tools
 
 from service.bench.anysite import CALIBRATION_SEED
 from service.bench.machine import describe
-from service.bench.truth import subdivide
+from service.bench.truth import face_midpoints, subdivide
 from service.config import limit_threads
 from service.fem.linsolve import make_solver
 from service.fem.quadratic import QuadraticAssembler
 from service.fem.rest import RestCompliance
-from service.mesh import TetMesh, edge_midpoints
+from service.mesh import TetMesh
 
 Array = np.ndarray
 
@@ -94,14 +94,8 @@ def p2_load(coarse, loaded: Array, normal: Array, n_total: int) -> Array:
 
 def refine_faces(faces: Array, mesh) -> Array:
     """Each triangle of `mesh` into four at its edge midpoints, numbered as subdivide() does."""
-    edges, _ = edge_midpoints(mesh.n_nodes, mesh.tets)
-    keys = edges[:, 0] * mesh.n_nodes + edges[:, 1]
-
-    def mid(a: Array, b: Array) -> Array:
-        return mesh.n_nodes + np.searchsorted(keys, np.minimum(a, b) * mesh.n_nodes + np.maximum(a, b))
-
     a, b, c = faces.T
-    ab, bc, ca = mid(a, b), mid(b, c), mid(c, a)
+    ab, bc, ca = face_midpoints(mesh, faces).T
     return np.concatenate([np.stack(t, axis=1) for t in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
 
 

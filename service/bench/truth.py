@@ -60,6 +60,15 @@ def coarse_edges(coarse: TetMesh) -> Array:
     return edge_midpoints(coarse.n_nodes, coarse.tets)[0]
 
 
+def face_midpoints(mesh: TetMesh, faces: Array) -> Array:
+    """The midpoint ids (as subdivide() numbers them) of each triangle's edges ab, bc, ca.
+    Shape: (f, 3) -> (f, 3)."""
+    edges = coarse_edges(mesh)
+    keys = edges[:, 0] * mesh.n_nodes + edges[:, 1]
+    pairs = np.sort(np.asarray(faces)[:, [[0, 1], [1, 2], [2, 0]]], axis=2)  # (f, 3, 2)
+    return mesh.n_nodes + np.searchsorted(keys, pairs[..., 0] * mesh.n_nodes + pairs[..., 1])
+
+
 #: the truths a benchmark may score against: linear tets on the mesh subdivided once, or
 #: ten-node tets on the mesh itself (the same nodes; nearer the converged solution,
 #: docs/performance.md "Quadratic tets")
@@ -80,10 +89,7 @@ def traction_shares(coarse: TetMesh, fine: TetMesh, tool: Array, spread: Array) 
     faces = coarse.surface_faces[inside[coarse.surface_faces].all(axis=1)]
     x = coarse.nodes[faces]
     area = 0.5 * np.linalg.norm(np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]), axis=1)
-    edges = coarse_edges(coarse)
-    keys = edges[:, 0] * coarse.n_nodes + edges[:, 1]
-    pairs = np.sort(faces[:, [[0, 1], [1, 2], [2, 0]]], axis=2)  # (f, 3, 2)
-    mids = coarse.n_nodes + np.searchsorted(keys, pairs[..., 0] * coarse.n_nodes + pairs[..., 1])
+    mids = face_midpoints(coarse, faces)
     load = np.bincount(mids.ravel(), weights=np.repeat(area / 3.0, 3), minlength=fine.n_nodes)
     if not np.isin(np.flatnonzero(load), spread).all():
         raise ValueError("the traction's midpoints lie outside the spread patch")

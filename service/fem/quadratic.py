@@ -50,20 +50,14 @@ class QuadraticAssembler:
     elements: TetMesh
     nodes: TetMesh
     material: NeoHookean
+    tets: Array = dataclasses.field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        if self.nodes.n_nodes != self.elements.n_nodes + len(self._edges):
+        edges, mid = edge_midpoints(self.elements.n_nodes, self.elements.tets)
+        if self.nodes.n_nodes != self.elements.n_nodes + len(edges):
             raise ValueError("`nodes` must be `elements` subdivided once: corners, then edge midpoints")
-
-    @cached_property
-    def _edges(self) -> Array:
-        return edge_midpoints(self.elements.n_nodes, self.elements.tets)[0]
-
-    @cached_property
-    def tets(self) -> Array:
-        """Corner ids, then midpoint ids in TET_EDGES' order. Shape: (t, 10)."""
-        mid = edge_midpoints(self.elements.n_nodes, self.elements.tets)[1]
-        return np.ascontiguousarray(np.hstack([self.elements.tets, mid]))
+        # corner ids, then midpoint ids in TET_EDGES' order (t, 10)
+        object.__setattr__(self, "tets", np.ascontiguousarray(np.hstack([self.elements.tets, mid])))
 
     @cached_property
     def _grads(self) -> Array:
