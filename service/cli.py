@@ -45,7 +45,6 @@ def _at_least_zero(text: str) -> int:
 def _train(args: argparse.Namespace) -> int:
     from .build import build
     from .scene import resolve_scene
-    from .store import check_entry_id
     from .surrogate.train import TrainConfig
 
     try:  # the config first: a bad combination of flags fails before the scene and any data
@@ -65,7 +64,6 @@ def _train(args: argparse.Namespace) -> int:
         return 2
     command = "elastreg " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     try:
-        check_entry_id(args.name or scene.name)
         report = _build_from(build, scene, config, command, args)
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
