@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import os
 from typing import Any
 
 import msgpack
@@ -163,6 +164,8 @@ def _reply(message, encoding: str) -> dict:
     return obj
 
 
+_OUT_OF_STEP = "a reply timed out, so this stream's replies no longer match its frames: open a new stream"
+
 # -- sync ----------------------------------------------------------------------------------------
 
 
@@ -172,9 +175,11 @@ def _ssl_context(verify):
 
     if isinstance(verify, ssl.SSLContext):
         return verify
-    if isinstance(verify, str):
-        return ssl.create_default_context(cafile=verify)
-    return ssl.create_default_context()
+    if isinstance(verify, (str, os.PathLike)):
+        return ssl.create_default_context(cafile=os.fspath(verify))
+    if verify is True:
+        return ssl.create_default_context()
+    raise ValueError("verify must be True, a CA file's path or an ssl.SSLContext (build your own for no checks)")
 
 
 class _Base:
@@ -341,11 +346,19 @@ class Stream:
                 pass
             return None
 
+        self._out_of_step = False
         try:
             self._send_raw(config)
             first = ws.recv(timeout=timeout)
             self.session, self.config = _opened(first, wait_close)
         except ConnectionClosed as exc:
+            try:  # the server may have refused the handshake's token before the config was sent
+                _reply(ws.recv(timeout=0.5), encoding)
+            except StreamError as refused:
+                refused.close_code = _closed_code(exc)
+                raise refused from None
+            except Exception:
+                pass
             raise StreamError(0, "the server closed the stream", close_code=_closed_code(exc)) from None
         except BaseException:
             ws.close()
@@ -362,8 +375,17 @@ class Stream:
         return _reply(self.ws.recv(timeout=timeout if timeout is not None else self.timeout), self.encoding)
 
     def frame(self, points, *, support=None, frame_id=None) -> dict:
+        """Send one frame and return its result. After a reply that timed out, the stream is out
+        of step (that reply may still come, and would be taken for the next frame's): a
+        StreamError says so, and a new stream is needed."""
+        if self._out_of_step:
+            raise StreamError(0, _OUT_OF_STEP)
         self.send(points, support=support, frame_id=frame_id)
-        return self.recv()
+        try:
+            return self.recv()
+        except TimeoutError:
+            self._out_of_step = True
+            raise
 
     def close(self) -> None:
         self.ws.close()
@@ -481,6 +503,7 @@ class AsyncStream:
         self.timeout = timeout
         self.session: str | None = None
         self.config: dict | None = None
+        self._out_of_step = False
 
     async def _open(self, config: dict) -> None:
         import asyncio
@@ -505,6 +528,13 @@ class AsyncStream:
                 await closed()
             self.session, self.config = _opened(first, lambda: codes[0] if codes else None)
         except ConnectionClosed as exc:
+            try:  # the server may have refused the handshake's token before the config was sent
+                _reply(await asyncio.wait_for(self.ws.recv(), 0.5), self.encoding)
+            except StreamError as refused:
+                refused.close_code = _closed_code(exc)
+                raise refused from None
+            except Exception:
+                pass
             raise StreamError(0, "the server closed the stream", close_code=_closed_code(exc)) from None
         except BaseException:
             await self.ws.close()
@@ -517,12 +547,22 @@ class AsyncStream:
     async def send(self, points, *, support=None, frame_id=None) -> None:
         await self._send_raw(_frame_body(points, support, frame_id))
 
-    async def recv(self) -> dict:
-        return _reply(await self.ws.recv(), self.encoding)
+    async def recv(self, timeout: float | None = None) -> dict:
+        import asyncio
+
+        wait = timeout if timeout is not None else self.timeout
+        return _reply(await asyncio.wait_for(self.ws.recv(), wait), self.encoding)
 
     async def frame(self, points, *, support=None, frame_id=None) -> dict:
+        """As :meth:`Stream.frame`: after a reply that timed out, a StreamError (out of step)."""
+        if self._out_of_step:
+            raise StreamError(0, _OUT_OF_STEP)
         await self.send(points, support=support, frame_id=frame_id)
-        return await self.recv()
+        try:
+            return await self.recv()
+        except TimeoutError:
+            self._out_of_step = True
+            raise
 
     async def close(self) -> None:
         await self.ws.close()

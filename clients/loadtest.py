@@ -109,7 +109,14 @@ async def run_load(
         config = {"method": method}
         if support is not None:
             config["support"] = support
-        opened = [await api.stream(model, **config) for _ in range(streams)]
+        opened: list = []
+        try:  # every stream opened is closed, even when a later one is refused
+            for _ in range(streams):
+                opened.append(await api.stream(model, **config))
+        except BaseException:
+            for s in opened:
+                await s.close()
+            raise
         latency: list[list[float]] = [[] for _ in range(streams)]
         solve: list[list[float]] = [[] for _ in range(streams)]
         errors = [0] * streams

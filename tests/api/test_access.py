@@ -195,6 +195,30 @@ def test_websocket_without_a_valid_token_closes_with_1008(guarded, headers, firs
     assert not set(registry._held) - before  # nothing was opened for it
 
 
+@pytest.mark.parametrize("asynchronous", [False, True])
+def test_the_client_reports_a_handshake_tokens_401(guarded, asynchronous):
+    """The server refuses an unknown handshake token before the client sends its config: the
+    client's StreamError still carries the 401, not a bare "closed" (10 tries: it raced)."""
+    import asyncio
+
+    from clients import AsyncClient, StreamError
+
+    async def open_async() -> StreamError:
+        async with AsyncClient(guarded.url, token="unknown-token-0123456789") as api:
+            with pytest.raises(StreamError) as info:
+                await api.stream("bar")
+            return info.value
+
+    def open_sync() -> StreamError:
+        with Client(guarded.url, token="unknown-token-0123456789") as api, pytest.raises(StreamError) as info:
+            api.stream("bar")
+        return info.value
+
+    for _ in range(10):
+        err = asyncio.run(open_async()) if asynchronous else open_sync()
+        assert err.status == 401 and "unknown token" in str(err.detail)
+
+
 def test_a_bad_handshake_token_is_refused_before_any_message(guarded):
     """(and a good token in a first message would not rescue it: none is read)"""
     t0 = time.monotonic()
@@ -371,11 +395,13 @@ def test_https_and_wss_with_a_certificate(bar_store, certificate, support, cloud
             httpx.get(server.url + "/health")
         with pytest.raises(httpx.HTTPError):  # and plain HTTP is not served on that port
             httpx.get(server.url.replace("https://", "http://") + "/health")
-        with Client(server.url, token=TOKEN_A, verify=str(cert)) as api:  # HTTPS and WSS
+        with Client(server.url, token=TOKEN_A, verify=cert) as api:  # HTTPS and WSS; a path's CA file
             assert api.model("bar")["id"] == "bar"
             with api.stream("bar", support=support) as s:
                 result = s.frame(clouds[0])
             assert np.isfinite(result["displacement"]).all()
+        with pytest.raises(ValueError, match="verify must be"):  # not silently the system's CAs
+            Client(server.url, token=TOKEN_A, verify=False)
 
 
 # -- watching needs the session's token ----------------------------------------------------------

@@ -121,3 +121,29 @@ def test_demo_without_the_model_names_the_command(bar_store):
     out = io.StringIO()
     assert demo(model="phantom", frames=3, store=bar_store[0], out=out) != 0
     assert "elastreg train phantom" in out.getvalue()
+
+
+def test_a_frame_whose_reply_timed_out_puts_the_stream_out_of_step(live, support, clouds):
+    """Its reply may still come, and would be taken for the next frame's: the next frame() says
+    so instead of returning the previous frame's result (sync and async alike)."""
+
+    def sync() -> None:
+        with Client(live.url) as api, api.stream("bar", method="fem", support=support) as s:
+            s.timeout = 1e-4  # no FEM frame answers this fast
+            with pytest.raises(TimeoutError):
+                s.frame(clouds[0], frame_id="a")
+            with pytest.raises(StreamError, match="open a new stream"):
+                s.frame(clouds[1], frame_id="b")
+
+    async def asynchronous() -> None:
+        async with AsyncClient(live.url) as api:
+            s = await api.stream("bar", method="fem", support=support)
+            s.timeout = 1e-4  # the async stream honours it too
+            with pytest.raises(TimeoutError):
+                await s.frame(clouds[0], frame_id="a")
+            with pytest.raises(StreamError, match="open a new stream"):
+                await s.frame(clouds[1], frame_id="b")
+            await s.close()
+
+    sync()
+    asyncio.run(asynchronous())
