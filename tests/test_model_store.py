@@ -109,3 +109,68 @@ def test_a_refused_support_leaves_the_session_as_it_was(shipped):
     assert session.support.tolist() == list(support)
     got, want = session.frame(seq.clouds[1]), fresh.frame(seq.clouds[1])
     np.testing.assert_allclose(got.outputs["forces"], want.outputs["forces"], rtol=1e-9, atol=1e-12)
+
+
+def _beam_pull(entry, n_frames: int, peak: float):
+    """The beam's free end pulled: its six nodes furthest along x."""
+    region = entry.region
+    tip = region[np.argsort(entry.mesh.nodes[region, 0])[-6:]]
+    return make_sequence(entry.mesh, entry.fem.material, tip, n_frames=n_frames, n_points=300, seed=3, peak_force=peak)
+
+
+def test_a_fem_operator_solves_again_where_a_far_trial_left_it(shipped):
+    """Newton starts from the latest equilibrium; after a trial 40 times as far (an L-BFGS-B
+    line search does that) it could not come back to forces it had just solved. It now falls
+    back on the nearest kept equilibrium, then rest."""
+    entry = shipped["beam"]
+    seq = _beam_pull(entry, 4, 0.5)
+    g = Session(entry.network, SessionConfig()).frame(seq.clouds[0]).outputs["forces"]
+    support = Session(entry.network, SessionConfig()).support
+    op = entry.fem.restrict(support)
+    op(g)
+    op(40.0 * g)
+    u, _ = op(g * (1 + 1e-9))
+    fresh, _ = entry.fem.restrict(support)(g * (1 + 1e-9))
+    np.testing.assert_allclose(u, fresh, atol=1e-9)
+
+
+def test_auto_corrects_frames_past_max_error_with_the_physics(shipped):
+    entry = shipped["beam"]
+    seq = _beam_pull(entry, 4, 0.5)
+    auto = Session(entry.network, SessionConfig(method="auto", max_error=1e-3), corrector=entry.fem)
+    for cloud in seq.clouds[:2]:
+        r = auto.frame(cloud)
+        assert r.method_used == "fem" and r.converged, (r.method_used, r.status, r.error_estimate)
+
+
+@pytest.mark.parametrize("factor", [0.1, 0.001])
+def test_the_newton_method_registers_a_softer_organ(shipped, factor):
+    """At E / 1000 the same clouds need forces 1000 times smaller: the optimizer's force unit
+    follows E as alpha does, or its first step asks the FEM for an impossible load."""
+    entry = shipped["beam"]
+    seq = _beam_pull(entry, 6, 1.0)
+    r = Session(entry.fem, SessionConfig(method="fem", E=entry.fem.material.E * factor)).frame(seq.clouds[-1])
+    assert r.converged and r.status == "converged"
+
+
+def test_a_frame_whose_estimate_is_infinite_is_not_converged(shipped):
+    """A cloud 10 m from a 0.19 m beam: the answer inverts elements, its Neo-Hookean residual is
+    infinite; API.md: such a frame is never returned as converged."""
+    entry = shipped["beam"]
+    seq = _beam_pull(entry, 6, 1.0)
+    r = Session(entry.network, SessionConfig()).frame(seq.clouds[-1] + 10.0)
+    assert not np.isfinite(r.error_estimate)
+    assert not r.converged and r.status == "non_finite" and "inverts elements" in r.message
+
+
+def test_a_failed_newton_frame_still_returns_the_fields_asked_for(shipped):
+    """E / 1000 with a force bound of 1 mN: the frame fails (forward_failed) after the FEM solved
+    its best iterate; the fields come from that solve (the failure used to forget it first, and
+    a solve from rest could not reach it)."""
+    entry = shipped["beam"]
+    seq = _beam_pull(entry, 6, 1.0)
+    outputs = ("displacement", "surface_displacement", "stress", "forces")
+    config = SessionConfig(method="fem", E=entry.fem.material.E * 1e-3, force_bound=1e-3, outputs=outputs)
+    r = Session(entry.fem, config).frame(seq.clouds[-1])
+    assert r.status == "forward_failed"
+    assert sorted(r.outputs) == sorted(outputs) and np.isfinite(r.error_estimate)

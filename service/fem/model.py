@@ -117,10 +117,22 @@ class FEMOperator:
         """The latest equilibrium (the next solve's start), None before the first."""
         return self._kept[0][1] if self._kept else None
 
+    def _starts(self, g: Array) -> list[Array | None]:
+        """Where a solve for g starts: the latest equilibrium; should Newton fail from there (a
+        far trial step before it leaves a start it cannot come back from), the kept one whose
+        forces are nearest g, then rest."""
+        if not self._kept:
+            return [None]
+        others = sorted(self._kept[1:], key=lambda kept: float(np.linalg.norm(kept[0] - g)))
+        return [self._kept[0][1], *[u for _, u in others[:1]], None]
+
     def _solve(self, g: Array) -> NewtonResult:
         G = np.zeros((self.mesh.n_nodes, 3))
         G[self.support] = g
-        res = self._newton.solve(G, self._last_u, self.deadline)
+        for u0 in self._starts(g):
+            res = self._newton.solve(G, u0, self.deadline)
+            if res.converged or res.status == "time_limit":
+                break
         self.last = res
         if res.status == "time_limit":
             raise ForwardFailed(res.status, f"time budget spent in a Newton solve, after {res.iterations} iterations")

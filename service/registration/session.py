@@ -121,6 +121,10 @@ class Session:
         self._noise = config.noise
         self._readout_gram: tuple[Array, Array] | None = None  # (jac.U, U^T U) for noise_spread
         self._options = SolveOptions.of(self.config)
+        if float(model.material.E) != E_model:  # the same problem in scaled forces: a softer organ's are smaller
+            self._options = dataclasses.replace(
+                self._options, force_scale=self._options.force_scale * float(model.material.E) / E_model
+            )
         self._rest = self.mesh.nodes[self.distance.nodes]
         self._lock = threading.Lock()
         self._set_support(support, None)
@@ -196,9 +200,11 @@ class Session:
                 self._rest_distance,
                 prefetch,
             )
-            self._commit(sol, learn=True)
             t1 = time.perf_counter()
+            # the outputs before the commit: a failed frame's commit forgets the operator's kept
+            # equilibria, the best iterate's among them, and a solve from rest may not reach it
             outputs, rms, estimate, gamma = self._outputs(self.op, self.model, sol, options.alpha)
+            self._commit(sol, learn=True)
             if sol.status not in FAILED:
                 self._learn_alpha(sol.g, len(points), gamma)
             timing = sol.timing.as_ms()
@@ -206,7 +212,7 @@ class Session:
             method_used, iterations, evaluations = self.model.method, sol.iterations, sol.evaluations
             if self.config.method == "auto" and not estimate <= self.config.max_error:
                 t2 = time.perf_counter()
-                fem = self._correct(sol, options, fallbacks)
+                fem = self._correct(sol, options, fallbacks, t0)
                 timing["correction"] = 1e3 * (time.perf_counter() - t2)
                 if fem.status in FAILED:  # the network's frame stands; its estimate says how far
                     self._corrector_op.reset()
@@ -217,14 +223,18 @@ class Session:
                     sol, method_used = fem, self.corrector.method
                     iterations, evaluations = iterations + fem.iterations, evaluations + fem.evaluations
                     outputs, rms, estimate, _ = self._outputs(self._corrector_op, self.corrector, fem, options.alpha)
+            converged, status, message = sol.converged, sol.status, sol.message
+            if not np.isfinite(estimate) and status not in FAILED:  # API.md: never as converged
+                converged, status = False, "non_finite"
+                message = "the registered displacement inverts elements: its Neo-Hookean residual is infinite"
             timing["total"] = 1e3 * (time.perf_counter() - t0)
             self.frames += 1
-            self.converged += int(sol.converged)
+            self.converged += int(converged)
             self.seconds += timing["total"] / 1e3
             return FrameResult(
                 frame_id=frame_id,
-                converged=sol.converged,
-                status=sol.status,
+                converged=converged,
+                status=status,
                 objective=sol.objective,
                 distance_rms=rms,
                 iterations=iterations,
@@ -236,7 +246,7 @@ class Session:
                 alpha=options.alpha,
                 error_estimate=estimate,
                 method_used=method_used,
-                message=sol.message,
+                message=message,
             )
 
     def _start(self) -> tuple[Array, tuple[Array, ...]]:
@@ -289,8 +299,9 @@ class Session:
             if curvature is not None:
                 curvature.shift(after - before)
 
-    def _correct(self, sol, options: SolveOptions, fallbacks: tuple):
-        """The FEM's registration of the bound cloud, from the network's answer (or its start)."""
+    def _correct(self, sol, options: SolveOptions, fallbacks: tuple, t0: float):
+        """The FEM's registration of the bound cloud, from the network's answer (or its start),
+        in what is left of the frame's time budget (the frame began at `t0`)."""
         if self._corrector_op is None:
             self._corrector_op = self.corrector.restrict(self.support, self.distance.nodes)
         # the session's optimizer where the FEM runs it for this support: Levenberg-Marquardt
@@ -302,6 +313,9 @@ class Session:
             gtol=DEFAULT_GTOL[self.corrector.method],
             optimizer="levenberg-marquardt" if lm else "lbfgsb",
             precondition=False,
+            time_budget=None
+            if options.time_budget is None
+            else max(options.time_budget - (time.perf_counter() - t0), 1e-3),
         )
         start = self.g if sol.status in FAILED else sol.g
         return solve_frame(
