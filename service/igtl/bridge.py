@@ -15,8 +15,10 @@ whose JSON holds an ``error``, and the connection goes on.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import logging
+import math
 import time
 
 import numpy as np
@@ -25,6 +27,8 @@ from . import protocol as p
 
 log = logging.getLogger(__name__)
 
+#: bodies larger than this are decoded off the event loop (a cloud's cells may be many)
+_THREAD_DECODE = 256 << 10
 SURFACE = "registered"
 STATUS = "status"
 
@@ -72,6 +76,7 @@ class Bridge:
         self.surface: Surface | None = None
         self.busy = False
         self.sessions: list[str] = []  # ids of the sessions opened so far (for logs and tests)
+        self._ignored: set[tuple[str, str]] = set()  # (type, device) of messages ignored so far
         self.announce = log.info  # what to do with a line a person should see (the CLI prints it)
 
     async def prepare(self) -> None:
@@ -107,32 +112,65 @@ class Bridge:
             await self._serve(reader, writer)
         except (ConnectionError, asyncio.IncompleteReadError):
             pass
+        except _Refused as exc:  # the API refused or could not be reached: the client is told
+            log.warning("client %s: %s", peer, exc)
+            with contextlib.suppress(Exception):
+                writer.write(_status({"error": {"code": exc.code, "detail": str(exc)}}, 2))
+                await writer.drain()
         finally:
             self.busy = False
             await _close(writer)
             log.info("client %s disconnected", peer)
 
-    async def _serve(self, reader, writer) -> None:
+    async def _open(self, api):
+        """A stream for this client; _Refused (with the API's status, 503 if it is unreachable)."""
+        from clients.client import ApiError
 
-        async with self._api() as api:
-            extra = {"token": self.token} if self.token else {}
+        extra = {"token": self.token} if self.token else {}
+        try:
             stream = await api.stream(self.model, **self.settings, **extra)
-            self.sessions.append(stream.session)
-            sid = stream.session
-            self.announce(f"session {sid}: watch it at {self.api_url}/viewer?session={sid}")
+        except ApiError as exc:
+            raise _Refused(exc.status or 503, f"the API refused the session: {exc.detail}") from None
+        except (OSError, TimeoutError, *_ws_errors()) as exc:
+            raise _Refused(503, f"the API at {self.api_url} cannot be reached ({type(exc).__name__}: {exc})") from None
+        self.sessions.append(stream.session)
+        sid = stream.session
+        self.announce(f"session {sid}: watch it at {self.api_url}/viewer?session={sid}")
+        return stream
+
+    async def _serve(self, reader, writer) -> None:
+        async with self._api() as api:
+            stream = await self._open(api)
             frame = 0
             try:
                 while True:
                     msg = await self._read(reader, writer)
                     if msg is None:
                         continue
-                    points = self._cloud(msg, writer)
+                    points = await self._cloud(msg, writer)
                     if points is None:
                         continue
-                    await self._frame(stream, frame, points, msg.version, writer)
+                    if stream is None:  # the API went away at an earlier frame: a new session
+                        try:
+                            stream = await self._open(api)
+                        except _Refused as exc:
+                            log.warning("%s", exc)
+                            writer.write(
+                                _status(
+                                    {"frame_id": frame, "error": {"code": exc.code, "detail": str(exc)}}, msg.version
+                                )
+                            )
+                            await writer.drain()
+                            frame += 1
+                            continue
+                    if not await self._frame(stream, frame, points, msg.version, writer):
+                        with contextlib.suppress(Exception):
+                            await stream.close()
+                        stream = None
                     frame += 1
             finally:
-                await stream.close()
+                if stream is not None:
+                    await stream.close()
 
     async def _read(self, reader, writer) -> p.Message | None:
         """The next message; None (answered or logged) when it is malformed or not for us."""
@@ -154,24 +192,33 @@ class Bridge:
             await self._error(writer, str(exc), version)
             return None
 
-    def _cloud(self, msg: p.Message, writer) -> np.ndarray | None:
+    async def _cloud(self, msg: p.Message, writer) -> np.ndarray | None:
         if msg.device != self.device or msg.type not in ("POLYDATA", "POINT"):
-            log.info(
+            key = (msg.type, msg.device)  # a warning the first time, then quietly (a sender may repeat it)
+            log.log(
+                logging.INFO if key in self._ignored else logging.WARNING,
                 "ignored a %s message named %r (frames are POLYDATA or POINT named %r)",
                 msg.type,
                 msg.device,
                 self.device,
             )
+            self._ignored.add(key)
             return None
+        decode = p.decode_polydata if msg.type == "POLYDATA" else p.decode_point
         try:
-            if msg.type == "POLYDATA":
-                return p.decode_polydata(msg.content).points.astype(np.float64)
-            return p.decode_point(msg.content).astype(np.float64)
+            if len(msg.content) > _THREAD_DECODE:  # a large body's cells are read off the event loop
+                decoded = await asyncio.to_thread(decode, msg.content)
+            else:
+                decoded = decode(msg.content)
         except p.ProtocolError as exc:
             writer.write(_status({"error": str(exc)}, msg.version))
             return None
+        points = decoded.points if isinstance(decoded, p.PolyData) else decoded
+        return np.asarray(points, np.float64)
 
-    async def _frame(self, stream, frame: int, points: np.ndarray, version: int, writer) -> None:
+    async def _frame(self, stream, frame: int, points: np.ndarray, version: int, writer) -> bool:
+        """Register one frame and answer it; False when the stream is lost (the API went away
+        or timed out): the frame is answered with an error and the next opens a new session."""
         from clients.client import StreamError
 
         t0 = time.perf_counter()
@@ -185,7 +232,13 @@ class Bridge:
                 )
             )
             await writer.drain()
-            return
+            return exc.status != 0 and exc.close_code is None  # a close (status 0) ends the stream
+        except (OSError, TimeoutError, *_ws_errors()) as exc:
+            log.warning("frame %d: the API stream was lost (%s: %s)", frame, type(exc).__name__, exc)
+            detail = f"the API stream was lost ({type(exc).__name__}); the next frame opens a new session"
+            writer.write(_status({"frame_id": frame, "error": {"code": 503, "detail": detail}}, version))
+            await writer.drain()
+            return False
         surface = self.surface.positions(r)
         status = {
             "frame_id": r.get("frame_id"),
@@ -206,6 +259,7 @@ class Bridge:
         )
         writer.write(_status(status, version))
         await writer.drain()
+        return True
 
     async def _error(self, writer, text: str, version: int) -> None:
         log.warning("malformed message: %s", text)
@@ -217,9 +271,34 @@ def _status(obj: dict, version: int) -> bytes:
     return p.pack(
         "STRING",
         STATUS,
-        p.encode_string(json.dumps(obj, allow_nan=False, default=float)),
+        p.encode_string(json.dumps(_json_safe(obj), allow_nan=False, default=float)),
         version=min(version, 2),
     )
+
+
+def _json_safe(obj):
+    """Non-finite numbers as null (a frame result may hold them: status non_finite)."""
+    if isinstance(obj, dict):
+        return {k: _json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_safe(v) for v in obj]
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if math.isfinite(obj) else None
+    return obj
+
+
+class _Refused(Exception):
+    """The API refused a session, or could not be reached: `code` is the status to report."""
+
+    def __init__(self, code: int, text: str) -> None:
+        super().__init__(text)
+        self.code = code
+
+
+def _ws_errors() -> tuple[type[BaseException], ...]:
+    from websockets.exceptions import WebSocketException
+
+    return (WebSocketException,)
 
 
 async def _close(writer) -> None:

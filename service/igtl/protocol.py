@@ -81,8 +81,8 @@ def _name(raw: bytes) -> str:
 def parse_header(raw: bytes) -> tuple[int, str, str, float, int, int]:
     """(version, type, device, timestamp, body size, crc) of a 58-byte header."""
     version, mtype, device, sec, frac, size, crc = HEADER.unpack(raw)
-    if version not in (1, 2, 3):
-        raise ProtocolError(f"header version {version} (this bridge reads 1 to 3)")
+    if version not in (1, 2):  # OpenIGTLink's headers: 1 (protocols 1 and 2), 2 (protocol 3)
+        raise ProtocolError(f"header version {version} (this bridge reads 1 and 2)")
     if size > MAX_BODY:
         raise ProtocolError(f"a body of {size} bytes is over this bridge's limit of {MAX_BODY}")
     return version, _name(mtype), _name(device), sec + frac / 2**32, size, crc
@@ -90,7 +90,7 @@ def parse_header(raw: bytes) -> tuple[int, str, str, float, int, int]:
 
 def parse_body(version: int, mtype: str, device: str, timestamp: float, body: bytes, crc: int | None) -> Message:
     """The message a header and its body make; ProtocolError when they do not fit."""
-    if crc is not None and crc != 0 and crc64(body) != crc:
+    if crc is not None and crc64(body) != crc:
         raise ProtocolError(f"{mtype} {device!r}: CRC mismatch (the body is corrupt)")
     msg = Message(mtype, device, version, timestamp)
     if version == 1:
@@ -198,11 +198,16 @@ def _cells(raw: bytes, count: int, n_points: int, what: str) -> list[np.ndarray]
     return cells
 
 
-def _fast_triangles(raw: bytes, count: int) -> list[np.ndarray] | None:
+def _uniform_cells(raw: bytes, count: int) -> np.ndarray | None:
+    """Cells that all have one size (a cloud's vertex cells, a mesh's triangles) as one array
+    (count, size), read without a loop; None where the sizes differ."""
     a = np.frombuffer(raw, ">u4")
-    if a.size == 4 * count and count and np.all(a[::4] == 3):
-        return list(a.reshape(-1, 4)[:, 1:].astype(np.int64))
-    return None
+    if count == 0 or a.size == 0:
+        return None
+    k = int(a[0])
+    if a.size != count * (k + 1) or not np.all(a[:: k + 1] == k):
+        return None
+    return a.reshape(count, k + 1)[:, 1:].astype(np.int64)
 
 
 _ATTR_COMPONENTS = {
@@ -235,10 +240,10 @@ def decode_polydata(content: bytes) -> PolyData:
         (ns, sstrip, "triangle strips"),
     ):
         raw = content[at : at + size]
-        cells = _fast_triangles(raw, count) if what == "polygons" else None
-        if cells is not None and npts and int(np.max(cells)) >= npts:
-            raise ProtocolError(f"POLYDATA: a polygon refers to a point beyond the {npts} points")
-        sections.append(cells if cells is not None else _cells(raw, count, npts, what))
+        uniform = _uniform_cells(raw, count)
+        if uniform is not None and uniform.size and int(uniform.max()) >= npts:
+            raise ProtocolError(f"POLYDATA: a {what} cell refers to a point beyond the {npts} points")
+        sections.append(list(uniform) if uniform is not None else _cells(raw, count, npts, what))
         at += size
     attributes = _attributes(content, at, natt)
     return PolyData(points, *sections, attributes)

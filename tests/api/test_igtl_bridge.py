@@ -107,3 +107,25 @@ def test_bridge_surface_equals_the_http_api(live, http, bridge, entry, support, 
             # outward triangles: the model's surface faces, renumbered onto the surface nodes
             np.testing.assert_array_equal(mesh.surface_nodes[got.triangles], mesh.surface_faces)
     http.delete(f"/sessions/{sid}")
+
+
+def test_a_session_the_api_refuses_is_reported_to_the_client(live, tmp_path):
+    """The API refuses the bridge's session (max_iter over its cap): the OpenIGTLink client gets
+    a status saying so, not a connection closed without a word."""
+    port = free_port()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "service.cli", "igtl", "--model", "bar", "--server", live.url, "--port", str(port),
+         "--max-iter", "100000"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+    try:
+        line = proc.stdout.readline()
+        assert "OpenIGTLink on" in line, line
+        with socket.create_connection(("127.0.0.1", port), timeout=30) as sock:
+            msg = read_message(sock)
+            assert msg.type == "STRING" and msg.device == "status"
+            status = json.loads(p.decode_string(msg.content))
+            assert status["error"]["code"] == 422 and "max_iter" in status["error"]["detail"]
+    finally:
+        proc.terminate()
+        proc.wait(10)

@@ -104,3 +104,30 @@ def test_malformed_messages_are_refused(surface):
         p.decode_point(b"\0" * 100)
     with pytest.raises(p.ProtocolError):
         p.decode_string(struct.pack(">HH", 3, 50) + b"short")
+
+
+def test_a_zero_crc_is_checked_and_header_version_3_is_refused(surface):
+    """OpenIGTLink has header versions 1 and 2, and every body carries its CRC-64: a CRC of 0
+    on a non-empty body is a corrupt message, not an unchecked one."""
+    points, tris = surface
+    good = bytearray(p.pack("POLYDATA", "cloud", p.encode_polydata(points, tris)))
+    good[50:58] = b"\0" * 8  # the header's CRC field
+    with pytest.raises(p.ProtocolError, match="CRC"):
+        split(bytes(good))
+    with pytest.raises(p.ProtocolError, match="reads 1 and 2"):
+        p.parse_header(struct.pack(">H", 3) + bytes(good[2 : p.HEADER_SIZE]))
+
+
+def test_cells_of_one_size_are_read_whole_and_checked_against_the_points():
+    """A cloud sent as VTK does it, one vertex cell a point: read without a loop over cells;
+    cells that name points the message does not hold are malformed, with no points at all too."""
+    points = np.random.default_rng(0).normal(size=(5000, 3)).astype(np.float32)
+    vertices = np.column_stack([np.ones(5000, np.uint32), np.arange(5000, dtype=np.uint32)])
+    header = struct.pack(">IIIIIIIIII", 5000, 5000, vertices.nbytes, 0, 0, 0, 0, 0, 0, 0)
+    body = header + points.astype(">f4").tobytes() + vertices.astype(">u4").tobytes()
+    decoded = p.decode_polydata(body)
+    np.testing.assert_array_equal(decoded.points, points)
+    assert len(decoded.vertices) == 5000 and decoded.vertices[17].tolist() == [17]
+    empty = struct.pack(">IIIIIIIIII", 0, 0, 0, 0, 0, 1, 16, 0, 0, 0) + struct.pack(">IIII", 3, 0, 1, 2)
+    with pytest.raises(p.ProtocolError, match="beyond the 0 points"):
+        p.decode_polydata(empty)
