@@ -107,6 +107,8 @@ def serve(
         raise SystemExit(f"error: {exc}") from None
     if bool(ssl_certfile) != bool(ssl_keyfile):
         raise SystemExit("error: --ssl-certfile and --ssl-keyfile go together")
+    if ssl_certfile:  # here, before any worker starts: uvicorn's workers would die and respawn for ever
+        check_certificate(ssl_certfile, ssl_keyfile)
     common: dict[str, Any] = dict(
         host=host,
         port=port,
@@ -128,6 +130,19 @@ def serve(
         app = create_app(settings)
         config = uvicorn.Config(app, **common)
         _draining_server(config, app).run()
+
+
+def check_certificate(certfile: str, keyfile: str | None) -> None:
+    """SystemExit naming the file when the certificate and its key cannot serve TLS."""
+    import ssl
+
+    for path in (certfile, keyfile):
+        if path and not os.path.isfile(path):
+            raise SystemExit(f"error: {path}: no such file (--ssl-certfile / --ssl-keyfile)")
+    try:
+        ssl.create_default_context(ssl.Purpose.CLIENT_AUTH).load_cert_chain(certfile, keyfile)
+    except (ssl.SSLError, OSError, ValueError) as exc:
+        raise SystemExit(f"error: {certfile} with {keyfile}: not a certificate and its private key ({exc})") from None
 
 
 def free_port(host: str = "127.0.0.1") -> int:

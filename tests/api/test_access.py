@@ -466,3 +466,22 @@ def test_a_silent_watcher_on_a_guarded_server_is_closed_with_1008(bar_store):
             assert info.value.rcvd is not None and info.value.rcvd.code == 1008
     finally:
         server.stop()
+
+
+@pytest.mark.parametrize("workers", ["1", "2"])
+def test_serve_refuses_a_missing_or_mismatched_certificate_before_it_starts(bar_store, certificate, tmp_path, workers):
+    """With workers, uvicorn's children died on it and were respawned for ever; with one, a
+    traceback that did not name the file."""
+    cert, _ = certificate
+    other = tmp_path / "other.pem"
+    subprocess.run(
+        ["openssl", "genpkey", "-algorithm", "EC", "-pkeyopt", "ec_paramgen_curve:P-256", "-out", str(other)],
+        check=True, capture_output=True,
+    )  # fmt: skip
+    for certfile, keyfile, words in ((tmp_path / "nope.pem", other, "no such file"), (cert, other, "private key")):
+        r = subprocess.run(
+            [sys.executable, "-m", "service.cli", "serve", "--store", str(bar_store[0]), "--port", str(free_port()),
+             "--workers", workers, "--ssl-certfile", str(certfile), "--ssl-keyfile", str(keyfile)],
+            capture_output=True, text=True, timeout=120,
+        )  # fmt: skip
+        assert r.returncode != 0 and words in r.stderr and str(certfile) in r.stderr, r.stderr[-500:]
