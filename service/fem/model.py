@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import time
+from collections.abc import Iterator
 from functools import cached_property
 
 import numpy as np
@@ -117,14 +118,17 @@ class FEMOperator:
         """The latest equilibrium (the next solve's start), None before the first."""
         return self._kept[0][1] if self._kept else None
 
-    def _starts(self, g: Array) -> list[Array | None]:
+    def _starts(self, g: Array) -> Iterator[Array | None]:
         """Where a solve for g starts: the latest equilibrium; should Newton fail from there (a
         far trial step before it leaves a start it cannot come back from), the kept one whose
-        forces are nearest g, then rest."""
+        forces are nearest g, then rest. Lazily: a solve that succeeds looks no further."""
         if not self._kept:
-            return [None]
-        others = sorted(self._kept[1:], key=lambda kept: float(np.linalg.norm(kept[0] - g)))
-        return [self._kept[0][1], *[u for _, u in others[:1]], None]
+            yield None
+            return
+        yield self._kept[0][1]
+        if len(self._kept) > 1:
+            yield min(self._kept[1:], key=lambda kept: float(np.linalg.norm(kept[0] - g)))[1]
+        yield None
 
     def _solve(self, g: Array) -> NewtonResult:
         G = np.zeros((self.mesh.n_nodes, 3))
