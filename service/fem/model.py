@@ -119,16 +119,20 @@ class FEMOperator:
         return self._kept[0][1] if self._kept else None
 
     def _starts(self, g: Array) -> Iterator[Array | None]:
-        """Where a solve for g starts: the latest equilibrium; should Newton fail from there (a
-        far trial step before it leaves a start it cannot come back from), the kept one whose
-        forces are nearest g, then rest. Lazily: a solve that succeeds looks no further."""
+        """Where a solve for g starts: the latest equilibrium; should Newton fail from there, the
+        kept equilibria (rest among them) whose forces are nearer g than the latest's, nearest
+        first, two at most. A far trial step leaves a start Newton cannot come back from to
+        forces it had just solved; a far trial itself has no nearer start, and fails at once."""
         if not self._kept:
             yield None
             return
-        yield self._kept[0][1]
-        if len(self._kept) > 1:
-            yield min(self._kept[1:], key=lambda kept: float(np.linalg.norm(kept[0] - g)))[1]
-        yield None
+        latest_g, latest_u = self._kept[0]
+        yield latest_u
+        near = float(np.linalg.norm(latest_g - g))
+        others = [(float(np.linalg.norm(kg - g)), u) for kg, u in self._kept[1:]]
+        others.append((float(np.linalg.norm(g)), None))  # rest
+        for _, u in sorted((o for o in others if o[0] < near), key=lambda o: o[0])[:2]:
+            yield u
 
     def _solve(self, g: Array) -> NewtonResult:
         G = np.zeros((self.mesh.n_nodes, 3))

@@ -155,12 +155,7 @@ class Bridge:
                             stream = await self._open(api)
                         except _Refused as exc:
                             log.warning("%s", exc)
-                            writer.write(
-                                _status(
-                                    {"frame_id": frame, "error": {"code": exc.code, "detail": str(exc)}}, msg.version
-                                )
-                            )
-                            await writer.drain()
+                            await _frame_error(writer, frame, exc.code, str(exc), msg.version)
                             frame += 1
                             continue
                     if not await self._frame(stream, frame, points, msg.version, writer):
@@ -225,19 +220,12 @@ class Bridge:
         try:
             r = await stream.frame(points, frame_id=frame)
         except StreamError as exc:
-            writer.write(
-                _status(
-                    {"frame_id": frame, "error": {"code": exc.status, "detail": str(exc.detail)}},
-                    version,
-                )
-            )
-            await writer.drain()
+            await _frame_error(writer, frame, exc.status, str(exc.detail), version)
             return exc.status != 0 and exc.close_code is None  # a close (status 0) ends the stream
         except (OSError, TimeoutError, *_ws_errors()) as exc:
             log.warning("frame %d: the API stream was lost (%s: %s)", frame, type(exc).__name__, exc)
             detail = f"the API stream was lost ({type(exc).__name__}); the next frame opens a new session"
-            writer.write(_status({"frame_id": frame, "error": {"code": 503, "detail": detail}}, version))
-            await writer.drain()
+            await _frame_error(writer, frame, 503, detail, version)
             return False
         surface = self.surface.positions(r)
         status = {
@@ -274,6 +262,12 @@ def _status(obj: dict, version: int) -> bytes:
         p.encode_string(json.dumps(_json_safe(obj), allow_nan=False, default=float)),
         version=min(version, 2),
     )
+
+
+async def _frame_error(writer, frame: int, code: int, detail: str, version: int) -> None:
+    """A frame's answer when it has no result: its id and the error."""
+    writer.write(_status({"frame_id": frame, "error": {"code": code, "detail": detail}}, version))
+    await writer.drain()
 
 
 def _json_safe(obj):
