@@ -70,7 +70,7 @@ def components(n_nodes: int, tets: Array) -> Array:
 def face_components(tets: Array) -> int:
     """How many parts the tets make when joined only through shared faces. Raises MeshError for
     a face that more than two tets share."""
-    faces = np.sort(tets[:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]], axis=2).reshape(-1, 3)
+    faces = np.sort(tets[:, TET_FACES], axis=2).reshape(-1, 3)
     _, inverse, counts = np.unique(faces, axis=0, return_inverse=True, return_counts=True)
     if counts.max() > 2:
         raise MeshError(f"{int((counts > 2).sum())} faces belong to more than two tets (overlapping or repeated tets)")
