@@ -121,14 +121,13 @@ class Session:
         self._noise = config.noise
         self._readout_gram: tuple[Array, Array] | None = None  # (jac.U, U^T U) for noise_spread
         self._options = SolveOptions.of(self.config)
-        if float(model.material.E) != E_model:  # the same problem in scaled forces: a softer organ's are smaller
-            self._options = dataclasses.replace(
-                self._options, force_scale=self._options.force_scale * float(model.material.E) / E_model
-            )
+        # the same problem in scaled forces, as alpha: a softer organ's are smaller (x 1.0 at E_model)
+        self._options = dataclasses.replace(
+            self._options, force_scale=self._options.force_scale * (float(model.material.E) / E_model)
+        )
         self._rest = self.mesh.nodes[self.distance.nodes]
         self._lock = threading.Lock()
         self._set_support(support, None)
-        check_optimizer(self.op, self._options)
         # the same distance, only ever at rest: a warm frame's rest state evaluated beside its
         # start (engine.solve_frame), for operators that offer it (the network)
         self._rest_distance = (
@@ -147,8 +146,12 @@ class Session:
         self.created = time.time()
         self.last_used = time.monotonic()
 
-    def _set_support(self, support: Array, g_old: Array | None, op: ForwardOperator | None = None) -> None:
-        self.op = self.model.restrict(support, self.distance.nodes) if op is None else op
+    def _set_support(self, support: Array, g_old: Array | None) -> None:
+        """Move to a new support; its operator is made and checked first, so a support this
+        session cannot take (a ValueError) changes nothing."""
+        op = self.model.restrict(support, self.distance.nodes)
+        check_optimizer(op, self._options)
+        self.op = op
         self._corrector_op = None  # restricted again to the new support when next needed
         g = np.zeros((support.size, 3))
         if g_old is not None:
@@ -178,9 +181,7 @@ class Session:
             if support is not None:
                 support = check_support(self.mesh, np.asarray(support))
                 if not np.array_equal(support, self.support):
-                    op = self.model.restrict(support, self.distance.nodes)
-                    check_optimizer(op, self._options)  # refused before the session changes at all
-                    self._set_support(support, self.g, op)
+                    self._set_support(support, self.g)
             self.distance.bind(points)
             if self._rest_distance is not None:
                 self._rest_distance.bind(points)
