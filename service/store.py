@@ -22,6 +22,7 @@ import dataclasses
 import hashlib
 import json
 import logging
+import math
 import os
 import re
 import shutil
@@ -277,8 +278,11 @@ def load_entry(path: Path, name: str | None = None) -> Entry:
         raise
     except (KeyError, ValueError, RuntimeError) as exc:
         raise StoreError(f"{name}: the weights do not fit the manifest ({exc})") from None
-    network = NetworkModel(mesh, material, region, net, E0=material.E)
-    return Entry(manifest["id"], path, manifest, mesh, region, network, FEMModel(mesh, material))
+    max_force = manifest.get("training", {}).get("load_distribution", {}).get("max_force")
+    max_force = float(max_force) if isinstance(max_force, (int, float)) and 0 < max_force < math.inf else None
+    network = NetworkModel(mesh, material, region, net, E0=material.E, max_force=max_force)
+    fem = FEMModel(mesh, material, max_force=max_force)
+    return Entry(manifest["id"], path, manifest, mesh, region, network, fem)
 
 
 def open_store(store: Path) -> tuple[dict[str, Entry], dict[str, str]]:

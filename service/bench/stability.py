@@ -142,7 +142,9 @@ def stability_part(
             if base_cfg.method == "fem" and not fem:
                 continue
             if material is not None and base_cfg.method == "fem":  # the FEM takes any material; the
-                model = FEMModel(entry.mesh, material)  # network keeps its own (a mismatch)
+                model = FEMModel(
+                    entry.mesh, material, max_force=entry.fem.max_force
+                )  # network keeps its own (a mismatch)
             cfg = dataclasses.replace(base_cfg, **overrides)
             try:
                 recs = run_case(model, case, cfg, method=name)

@@ -34,6 +34,9 @@ class FEMModel:
     mesh: TetMesh
     material: NeoHookean
     options: NewtonOptions = NewtonOptions()
+    #: N, the largest total force a tool exerts on this organ (the scene's [training] max_force):
+    #: the error estimate's prior on the forces a cloud does not determine; None: no prior
+    max_force: float | None = None
 
     method = "fem"
 
@@ -42,7 +45,7 @@ class FEMModel:
         return Assembler(self.mesh, self.material)
 
     def with_stiffness(self, E: float) -> FEMModel:
-        return FEMModel(self.mesh, self.material.with_stiffness(E), self.options)
+        return FEMModel(self.mesh, self.material.with_stiffness(E), self.options, self.max_force)
 
     def newton(self) -> NewtonSolver:
         """A fresh solver (owns a factorisation: one per thread)."""
@@ -176,7 +179,7 @@ class FEMOperator:
         preconditioner's input; the compliance's spectrum decays fast, so r modes carry it).
         Cached. Shape: U (3p, r) node-major, Q (3k, r)."""
         if self._low_rank is None:
-            J = self._support_response(self._rest_solver().solve_free)
+            J = self._rest_dense().U
             W, sv, Vt = np.linalg.svd(J, full_matrices=False)
             r = max(1, min(rank, int(np.count_nonzero(sv > 1e-8 * sv[0]))))
             self._low_rank = (np.ascontiguousarray(W[:, :r] * sv[:r]), np.ascontiguousarray(Vt[:r].T))
@@ -200,10 +203,8 @@ class FEMOperator:
             )
         g = np.asarray(g, np.float64)
         if not np.any(g):
-            if self._rest_jacobian is None:
-                self._rest_jacobian = DenseJacobian(self._support_response(self._rest_solver().solve_free))
-            self._held = self._rest_jacobian
-            return self._rest_jacobian
+            self._held = self._rest_dense()
+            return self._held
         if self._last_jacobian is not None and np.array_equal(self._last_jacobian[0], g):
             return self._last_jacobian[1]
         newton, u = self._newton, self._equilibrium(g)
@@ -217,6 +218,25 @@ class FEMOperator:
         self._held = jac
         self.n_jacobians += 1
         return jac
+
+    def estimate_jacobian(self, g: Array) -> DenseJacobian | None:
+        """du/dg for the error estimate (registration/confidence.py), with no solve at g: the
+        Jacobian formed at g if the last one was (Levenberg-Marquardt's answer), else the rest
+        one (3k solves with the rest factor, once per operator): which force directions a cloud
+        leaves undetermined is a matter of where it looks more than of the load. None past
+        MAX_JACOBIAN_SUPPORT support nodes."""
+        if not self.has_jacobian:
+            return None
+        last = self._last_jacobian
+        if last is not None and np.array_equal(last[0], np.asarray(g, np.float64)):
+            return last[1]
+        return self._rest_dense()
+
+    def _rest_dense(self) -> DenseJacobian:
+        """du/dg at rest, formed in full once (3k solves with the rest factorisation)."""
+        if self._rest_jacobian is None:
+            self._rest_jacobian = DenseJacobian(self._support_response(self._rest_solver().solve_free))
+        return self._rest_jacobian
 
     def jacobian_products(self, g: Array) -> JacobianProducts | None:
         """du/dg at g as products, one solve each with the exact tangent's factor at g's

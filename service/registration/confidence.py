@@ -15,16 +15,25 @@ the registered surface, beyond the noise the session declared (in quadrature: th
 independent), measures it where the camera looks; a calibrated factor turns it into a mean over
 the nodes (MISFIT_FACTOR).
 
-A session that declares its clouds' noise sigma also gets the noise carried into its answer,
-which no misfit shows (a fit inside the noise can still be off): linearised at the frame's
-optimum, the points' noise moves the basis coefficients by dc = -C H^-1 C^T N^T W eps, H =
-C^T A C + alpha I the Gauss-Newton Hessian (levenberg.py's notation), so their covariance is
-sigma^2 B (N^T W^2 N) B^T with B = C H^-1 C^T = M (A M + alpha I)^-1, M = C C^T: r x r algebra
-at the frame's Jacobian. The prior that noise calls for (alpha) pulls the forces towards zero
-by alpha H^-1 g, a bias the truth does not have; it adds to that spread in quadrature. Their RMS
-over the objective's nodes (U's rows: the matched surface, which moves more than the interior)
-is the third term. The network's Jacobian is low-rank; the Newton method's is dense (C the
-identity) and costs 3 solves per support node, unless its last step made it at the answer.
+A fit can be exact and still wrong: the cloud may not determine the forces. The third term
+is what the inverse problem leaves open, linearised at the frame's answer with H = C^T A C +
+alpha I the Gauss-Newton Hessian (levenberg.py's notation), B = C H^-1 C^T = M (A M + alpha
+I)^-1, M = C C^T (r x r algebra at the frame's Jacobian), in quadrature, RMS over the
+objective's nodes (U's rows: the matched surface, which moves more than the interior):
+- the prior's pull: alpha (|g|^2's weight) pulls the forces towards zero by alpha H^-1 g, a bias
+  the truth does not have. In a direction the cloud does not see (one point, a view away from
+  the tool, a pull that slides the seen surface along itself), the answer keeps none of the
+  truth's force, and the pull at the answer's own g is nil. So the pull is also taken on a
+  force prior, the model's largest tool force (max_force: the scene's, from the store) along
+  each axis, spread over the support, and the larger of the two counts;
+- the step left: H^-1 grad at the answer, the Gauss-Newton step to the optimum (an optimiser
+  stopped by its tolerance in a flat direction can be far from it);
+- the declared noise sigma, which no misfit shows (a fit inside the noise can still be off):
+  the points' noise moves the coefficients by dc = -C H^-1 C^T N^T W eps, covariance sigma^2 B
+  (N^T W^2 N) B^T.
+The network's Jacobian is low-rank and at hand; the Newton method's is dense (C the identity),
+the one its last Levenberg-Marquardt step formed at the answer, else the rest one (3 solves per
+support node, once per session and support).
 
 The estimate is the sum of the terms: it errs on the large side rather than the small one,
 which is the side a display can act on.
@@ -110,16 +119,39 @@ def estimator_for(model) -> ResidualEstimator:
 MISFIT_FACTOR = 4.9
 
 
-def noise_spread(
-    jac, match: Match, faces: Array, alpha: float, noise: float, readout_gram: Array, Cg: Array
+def force_prior(jac, k: int, max_force: float) -> Array:
+    """L (r, 3) with L L^T the prior the module's third term takes on the basis coefficients a
+    tool's force gives: one total force, spread evenly over the k support nodes, of the model's
+    largest (`max_force`) along each axis. A bound, not a mean: the estimate must not be small
+    where the error is large, and a tool pulls in any one direction as hard as in all three.
+    `jac` a Jacobian at the frame's forces (C's products)."""
+    columns = []
+    for axis in range(3):
+        e = np.zeros((k, 3))
+        e[:, axis] = float(max_force) / k
+        columns.append(np.asarray(jac.matvec(e.ravel()), np.float64))
+    return np.column_stack(columns)
+
+
+def inverse_spread(
+    jac,
+    match: Match,
+    faces: Array,
+    alpha: float,
+    noise: float,
+    readout_gram: Array,
+    Cg: Array,
+    prior: Array | None = None,
 ) -> tuple[float, float]:
-    """What the declared noise does to the displacement (see the module): its spread, and the
-    bias of the prior it calls for (alpha (C^T A C + alpha I)^-1 g: the MAP estimate's pull
-    towards zero force, which the truth does not have), added in quadrature; RMS over the
-    Jacobian's nodes. With it, gamma = tr((C^T A C + alpha I)^-1 C^T A C), the force directions
-    the cloud determines (noise_prior's rule). `jac` a low-rank Jacobian with ``gram()`` at the
-    frame's forces g, `Cg` its image C g (r,), `match` the distance's at its positions,
-    `readout_gram` U^T U (r, r) of jac.U, in float64. Returns (spread, gamma)."""
+    """What the cloud leaves uncertain in the displacement (see the module): the declared
+    `noise`'s spread, and the prior's pull alpha (C^T A C + alpha I)^-1 c towards zero force,
+    which the truth does not have, on c = C g (the answer's: the pull it had) or, where larger,
+    in mean square over the force `prior` (:func:`force_prior`'s L: where the cloud does not
+    determine a direction, the answer keeps none of the truth's force in it); in quadrature,
+    RMS over the Jacobian's nodes. With it, gamma = tr((C^T A C + alpha I)^-1 C^T A C), the
+    force directions the cloud determines (noise_prior's rule). `jac` a low-rank Jacobian with
+    ``gram()`` at the frame's forces g, `Cg` its image C g (r,), `match` the distance's at its
+    positions, `readout_gram` U^T U (r, r) of jac.U, in float64. Returns (spread, gamma)."""
     Nw, A = distance_gram(jac.U, match, faces)  # in U's precision, as the LM model's
     w = np.asarray(match.weight, np.float64)
     if w.size and w.min() == w.max():  # the squared loss: one weight, N^T W^2 N = w A
@@ -132,20 +164,25 @@ def noise_spread(
     X = np.array(jac.gram_product(A), np.float64, order="C")
     X.flat[:: len(A) + 1] += alpha
     r = len(A)
-    # B^T = (M A + alpha I)^-1 M, and the prior's pull on the coefficients, alpha X^-1 C g: one solve
-    sol = np.linalg.solve(X, np.column_stack([M, np.asarray(Cg, np.float64)]))
-    Bt, pull = sol[:, :r], alpha * sol[:, r]
+    # the objective's gradient through C: C grad = M N^T W d + alpha C g (d: the distances)
+    Cg = np.asarray(Cg, np.float64)
+    b = np.asarray(Nw.T @ (np.sqrt(w) * np.linalg.norm(match.r, axis=0)).astype(Nw.dtype), np.float64)
+    # B^T = (M A + alpha I)^-1 M; the prior's pulls alpha X^-1 (C g, L); the step left: one solve
+    L = np.zeros((r, 0)) if prior is None else np.asarray(prior, np.float64)
+    sol = np.linalg.solve(X, np.column_stack([M, Cg, M @ b + alpha * Cg, L]))
+    Bt, pull, left, prior_pull = sol[:, :r], alpha * sol[:, r], sol[:, r + 1], alpha * sol[:, r + 2 :]
     cov = Bt.T @ (A2 @ Bt)  # of the coefficients, per unit noise variance
     p = jac.U.shape[0] // 3
     spread2 = float(noise) ** 2 * max(float(np.sum(cov * readout_gram)), 0.0)
-    bias2 = max(float(pull @ (readout_gram @ pull)), 0.0)
+    bias2 = max(float(pull @ (readout_gram @ pull)), float(np.sum(prior_pull * (readout_gram @ prior_pull))), 0.0)
+    step2 = max(float(left @ (readout_gram @ left)), 0.0)
     gamma = float(np.sum(Bt * A.T))  # tr(X^-1 M A): C^T A C's eigenvalues l, sum of l / (l + alpha)
-    return math.sqrt((spread2 + bias2) / p), gamma
+    return math.sqrt((spread2 + bias2 + step2) / p), gamma
 
 
 def error_estimate(forward_error: float, distance_rms: float, noise: float | None, spread: float = 0.0) -> float:
     """The frame's estimate: forward error plus the misfit the declared noise does not explain,
-    scaled to a mean over the nodes (MISFIT_FACTOR), plus the noise's `spread` (:func:`noise_spread`).
+    scaled to a mean over the nodes (MISFIT_FACTOR), plus the inverse problem's `spread` (:func:`inverse_spread`).
     Noise and misfit are independent, so they add in quadrature: subtracting the noise from the
     RMS instead hid a 0.3 mm misfit under 0.5 mm of noise (the demo's frames with their noise
     declared: estimates a third of the error)."""

@@ -34,7 +34,7 @@ from ..fem.assembly import Assembler
 from ..fem.material import NeoHookean
 from ..forward import ForwardFailed, ForwardModel, ForwardOperator, check_support
 from ..mesh import TetMesh
-from .confidence import error_estimate, estimator_for, noise_spread
+from .confidence import error_estimate, estimator_for, force_prior, inverse_spread
 from .distance import PointToSurface
 from .engine import FrameSolution, SolveOptions, check_optimizer, solve_frame
 from .noise_prior import AlphaTracker
@@ -119,7 +119,7 @@ class Session:
             self.alpha_tracker = AlphaTracker(alpha, config.noise)  # starts at the default
         self.config = dataclasses.replace(config, E=float(model.material.E), gtol=gtol, alpha=alpha)
         self._noise = config.noise
-        self._readout_gram: tuple[Array, Array] | None = None  # (jac.U, U^T U) for noise_spread
+        self._readout_gram: tuple[Array, Array] | None = None  # (jac.U, U^T U) for inverse_spread
         self._options = SolveOptions.of(self.config)
         # the same problem in scaled forces, as alpha: a softer organ's are smaller (x 1.0 at E_model)
         self._options = dataclasses.replace(
@@ -329,14 +329,15 @@ class Session:
         """The requested fields at the frame's forces `sol.g`, the RMS point-to-surface distance
         (the solve's at g, or searched for if it has none: the best iterate was never evaluated),
         the error estimate (the whole field is read for it, requested or not), and the force
-        directions the cloud determined (:meth:`_noise_spread`'s gamma; None if not made)."""
+        directions the cloud determined (:meth:`_spread`'s gamma; None if not made)."""
         g, rms = sol.g, sol.rms
         gamma = None
         want = set(self.config.outputs)
         out: dict[str, Array] = {}
-        # with noise declared, the network's field is made on a spare core (its operator
-        # allows it, as for a warm frame's rest state) while this one carries the noise through
-        beside = op is self.op and self._rest_distance is not None and bool(self._noise) and sol.u is not None
+        # with noise declared or a force prior, the network's field is made on a spare core (its
+        # operator allows it, as for a warm frame's rest state) while this one finds the spread
+        spreads = bool(self._noise or getattr(self.model, "max_force", None))
+        beside = op is self.op and self._rest_distance is not None and spreads and sol.u is not None
         early, self._early = self._early, None
         if early is not None and op is self.op and np.array_equal(early[0], g):
             field = early[1]
@@ -346,7 +347,7 @@ class Session:
             field = spare.Beside(functools.partial(_field, op, model, g, self.support)) if beside else None
         spread = None
         if field is not None and sol.u is not None:
-            spread, gamma = self._noise_spread(op, g, self._rest + sol.u, alpha)
+            spread, gamma = self._spread(op, g, self._rest + sol.u, alpha)
         u_all, forward = field.result() if field is not None else _field(op, model, g, self.support)
         if not np.isfinite(rms):
             u_nodes = np.zeros((self.distance.nodes.size, 3)) if u_all is None else u_all[self.distance.nodes]
@@ -355,7 +356,7 @@ class Session:
         if u_all is not None and np.isfinite(u_all).all():
             if spread is None:
                 x = self._rest + (u_all[self.distance.nodes] if sol.u is None else sol.u)
-                spread, gamma = self._noise_spread(op, g, x, alpha)
+                spread, gamma = self._spread(op, g, x, alpha)
             estimate = error_estimate(forward, rms, self._noise, spread)
             if "displacement" in want:
                 out["displacement"] = u_all
@@ -375,22 +376,22 @@ class Session:
         g = np.array(g, np.float64)
         self._early = (g, spare.Beside(functools.partial(_field, self.op, self.model, g, self.support)))
 
-    def _noise_spread(self, op: ForwardOperator, g: Array, x: Array, alpha: float) -> tuple[float, float | None]:
-        """The declared noise carried into the answer and the force directions the cloud
-        determined (confidence.noise_spread), through the forward model's Jacobian at g (the
-        Newton method's: 3 solves per support node, unless its last step made it there), the
-        matching nodes at x (p, 3); (0, None) without declared noise or a Jacobian (the Newton
-        method past MAX_JACOBIAN_SUPPORT support nodes)."""
-        jacobian = getattr(op, "jacobian", None)
-        if not self._noise or jacobian is None:
+    def _spread(self, op: ForwardOperator, g: Array, x: Array, alpha: float) -> tuple[float, float | None]:
+        """What the cloud leaves uncertain (confidence.inverse_spread: the declared noise, the
+        force directions it does not determine under the model's force prior) and the force
+        directions it determined, through the operator's estimate Jacobian at g (the FEM's at
+        rest unless its last was formed at g), the matching nodes at x (p, 3); (0, None) with
+        neither noise nor prior, or no Jacobian (the paper's layout; the Newton method past
+        MAX_JACOBIAN_SUPPORT support nodes)."""
+        jacobian = getattr(op, "estimate_jacobian", None)
+        max_force = getattr(self.model, "max_force", None)
+        if not (self._noise or max_force) or jacobian is None:
             return 0.0, None
         try:
             jac = jacobian(g)
-        except ValueError:  # a support too large for the Newton method's dense Jacobian
-            return 0.0, None
         except ForwardFailed:  # g's equilibrium could not be solved again: the field is none either
             return float("inf"), None
-        if jac is None:  # the paper's layout: no basis, no Jacobian
+        if jac is None:
             return 0.0, None
         match = self.distance.last_match
         if match is None or not np.array_equal(match.x, x):  # the answer was not the last evaluation
@@ -398,9 +399,13 @@ class Session:
             match = self.distance.last_match
         if self._readout_gram is None or self._readout_gram[0] is not jac.U:
             U = np.asarray(jac.U, np.float64)
-            self._readout_gram = (jac.U, U.T @ U)  # constant per operator: once per support
+            self._readout_gram = (jac.U, U.T @ U)  # constant per Jacobian basis: once per support
         Cg = jac.matvec(np.asarray(g, np.float64).ravel())
-        return noise_spread(jac, match, self.distance.faces, alpha, self._noise, self._readout_gram[1], Cg)
+        prior = None if not max_force else force_prior(jac, self.support.size, max_force)
+        spread, gamma = inverse_spread(
+            jac, match, self.distance.faces, alpha, self._noise or 0.0, self._readout_gram[1], Cg, prior
+        )
+        return spread, gamma if self._noise else None
 
     def summary(self) -> dict:
         return {

@@ -41,6 +41,7 @@ class NetworkModel:
     region: Array  # (R,) node ids whose forces the network reads
     net: torch.nn.Module
     E0: float  # Young's modulus the network was trained at
+    max_force: float | None = None  # N: the error estimate's force prior (FEMModel.max_force)
 
     method = "network"
 
@@ -438,6 +439,11 @@ class NetworkOperator:
             # known without a product over the K inputs (a fresh object: the rest one is kept)
             jac = jac.with_gradient(pulled[1], pulled[2])
         return jac
+
+    def estimate_jacobian(self, g: Array) -> CoefficientJacobian | None:
+        """The error estimate's Jacobian (FEMOperator.estimate_jacobian): :meth:`jacobian`,
+        as cheap here."""
+        return self.jacobian(g)
 
     def displacement(self, g: Array) -> Array:
         """Every node's displacement (the readout over the whole mesh). Shape: (n, 3)."""
