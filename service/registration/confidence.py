@@ -148,34 +148,43 @@ def inverse_spread(
     which the truth does not have, on c = C g (the answer's: the pull it had) or, where larger,
     in mean square over the force `prior` (:func:`force_prior`'s L: where the cloud does not
     determine a direction, the answer keeps none of the truth's force in it); in quadrature,
-    RMS over the Jacobian's nodes. With it, gamma = tr((C^T A C + alpha I)^-1 C^T A C), the
-    force directions the cloud determines (noise_prior's rule). `jac` a low-rank Jacobian with
+    RMS over the Jacobian's nodes; and the Gauss-Newton step left to the optimum. With noise,
+    gamma = tr((C^T A C + alpha I)^-1 C^T A C), the force directions the cloud determines
+    (noise_prior's rule; NaN without: the r x r products it needs are skipped). `jac` a low-rank Jacobian with
     ``gram()`` at the frame's forces g, `Cg` its image C g (r,), `match` the distance's at its
     positions, `readout_gram` U^T U (r, r) of jac.U, in float64. Returns (spread, gamma)."""
     Nw, A = distance_gram(jac.U, match, faces)  # in U's precision, as the LM model's
     w = np.asarray(match.weight, np.float64)
-    if w.size and w.min() == w.max():  # the squared loss: one weight, N^T W^2 N = w A
-        A2 = w[0] * A
-    else:
-        A2 = (Nw.T @ (Nw * w[:, None].astype(Nw.dtype))).astype(np.float64)
-    M = np.asarray(jac.gram(), np.float64)
     # M A as the Gauss-Newton model forms it (no product with the Newton method's identity M);
     # a C-ordered copy, since alpha goes on its diagonal
     X = np.array(jac.gram_product(A), np.float64, order="C")
     X.flat[:: len(A) + 1] += alpha
     r = len(A)
-    # the objective's gradient through C: C grad = M N^T W d + alpha C g (d: the distances)
+    # the objective's gradient through C: C grad = C C^T N^T W d + alpha C g (d: the distances)
     Cg = np.asarray(Cg, np.float64)
     b = np.asarray(Nw.T @ (np.sqrt(w) * np.linalg.norm(match.r, axis=0)).astype(Nw.dtype), np.float64)
-    # B^T = (M A + alpha I)^-1 M; the prior's pulls alpha X^-1 (C g, L); the step left: one solve
+    grad = jac.matvec(jac.rmatvec(b)) + alpha * Cg
+    # the prior's pulls alpha X^-1 (C g, L), the step left, and (for the noise) B^T = X^-1 M: one solve
     L = np.zeros((r, 0)) if prior is None else np.asarray(prior, np.float64)
-    sol = np.linalg.solve(X, np.column_stack([M, Cg, M @ b + alpha * Cg, L]))
-    Bt, pull, left, prior_pull = sol[:, :r], alpha * sol[:, r], sol[:, r + 1], alpha * sol[:, r + 2 :]
-    cov = Bt.T @ (A2 @ Bt)  # of the coefficients, per unit noise variance
+    M = np.asarray(jac.gram(), np.float64) if noise else np.zeros((r, 0))
+    sol = np.linalg.solve(X, np.column_stack([Cg, grad, L, M]))
+    pull, left, prior_pull, Bt = (
+        alpha * sol[:, 0],
+        sol[:, 1],
+        alpha * sol[:, 2 : 2 + L.shape[1]],
+        sol[:, 2 + L.shape[1] :],
+    )
     p = jac.U.shape[0] // 3
-    spread2 = float(noise) ** 2 * max(float(np.sum(cov * readout_gram)), 0.0)
     bias2 = max(float(pull @ (readout_gram @ pull)), float(np.sum(prior_pull * (readout_gram @ prior_pull))), 0.0)
     step2 = max(float(left @ (readout_gram @ left)), 0.0)
+    if not noise:
+        return math.sqrt((bias2 + step2) / p), math.nan
+    if w.size and w.min() == w.max():  # the squared loss: one weight, N^T W^2 N = w A
+        A2 = w[0] * A
+    else:
+        A2 = (Nw.T @ (Nw * w[:, None].astype(Nw.dtype))).astype(np.float64)
+    cov = Bt.T @ (A2 @ Bt)  # of the coefficients, per unit noise variance
+    spread2 = float(noise) ** 2 * max(float(np.sum(cov * readout_gram)), 0.0)
     gamma = float(np.sum(Bt * A.T))  # tr(X^-1 M A): C^T A C's eigenvalues l, sum of l / (l + alpha)
     return math.sqrt((spread2 + bias2 + step2) / p), gamma
 
