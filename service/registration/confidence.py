@@ -31,9 +31,11 @@ objective's nodes (U's rows: the matched surface, which moves more than the inte
 - the declared noise sigma, which no misfit shows (a fit inside the noise can still be off):
   the points' noise moves the coefficients by dc = -C H^-1 C^T N^T W eps, covariance sigma^2 B
   (N^T W^2 N) B^T.
-The network's Jacobian is low-rank and at hand; the Newton method's is dense (C the identity),
-the one its last Levenberg-Marquardt step formed at the answer, else the rest one (3 solves per
-support node, once per session and support).
+The network's Jacobian is low-rank, the Newton method's dense (C the identity). With noise
+declared they are taken at the answer (the Newton method's: 3 solves per support node, unless
+its last step formed it there); without, the network's at rest and the Newton method's from its
+last Levenberg-Marquardt step at the answer, else at rest (3 solves per support node, once per
+session and support): FEMOperator.estimate_jacobian.
 
 The estimate is the sum of the terms: it errs on the large side rather than the small one,
 which is the side a display can act on.

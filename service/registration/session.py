@@ -378,17 +378,22 @@ class Session:
 
     def _spread(self, op: ForwardOperator, g: Array, x: Array, alpha: float) -> tuple[float, float | None]:
         """What the cloud leaves uncertain (confidence.inverse_spread: the declared noise, the
-        force directions it does not determine under the model's force prior) and the force
-        directions it determined, through the operator's estimate Jacobian at g (the FEM's at
-        rest unless its last was formed at g), the matching nodes at x (p, 3); (0, None) with
+        force directions it does not determine under the model's force prior, the step left)
+        and, with noise, the force directions it determined, at the matching nodes at x (p, 3).
+        With noise declared, through the Jacobian at g (the noise's covariance and alpha's rule
+        are taken there; the Newton method's costs 3 solves per support node, unless its last
+        step made it there); without, through the operator's estimate Jacobian (the network's
+        and, unless its last was formed at g, the Newton method's at rest, kept). (0, None) with
         neither noise nor prior, or no Jacobian (the paper's layout; the Newton method past
         MAX_JACOBIAN_SUPPORT support nodes)."""
-        jacobian = getattr(op, "estimate_jacobian", None)
         max_force = getattr(self.model, "max_force", None)
+        jacobian = getattr(op, "jacobian" if self._noise else "estimate_jacobian", None)
         if not (self._noise or max_force) or jacobian is None:
             return 0.0, None
         try:
             jac = jacobian(g)
+        except ValueError:  # a support too large for the Newton method's dense Jacobian
+            return 0.0, None
         except ForwardFailed:  # g's equilibrium could not be solved again: the field is none either
             return float("inf"), None
         if jac is None:

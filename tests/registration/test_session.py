@@ -322,3 +322,20 @@ def test_the_noise_term_beside_the_field_is_the_fields_own(entry, sequence):
         forward = estimator_for(entry.network).forward_error(u, beside.g, beside.support)
         expected = error_estimate(forward, a.distance_rms, 1e-3, spread)
         assert spread > 0 and a.error_estimate == pytest.approx(expected, rel=1e-5)
+
+
+@pytest.mark.parametrize("method", ["network", "fem"])
+def test_the_estimate_leaves_the_answers_alone(entry, sequence, method):
+    """The force prior's term reads the operator's Jacobians without moving them (the Newton
+    method's Levenberg-Marquardt steps are preconditioned by the last one it formed): the same
+    frames with and without the prior give the same answers to the bit, and only the estimate
+    differs, upwards."""
+    tool, seq = sequence
+    model = entry.model(method)
+    config = SessionConfig(method=method, support=_support(entry, tool), optimizer="levenberg-marquardt")
+    with_prior, without = Session(model, config), Session(dataclasses.replace(model, max_force=None), config)
+    for cloud in seq.clouds[::6]:
+        a, b = with_prior.frame(cloud), without.frame(cloud)
+        np.testing.assert_array_equal(a.outputs["forces"], b.outputs["forces"])
+        assert a.iterations == b.iterations
+        assert a.error_estimate > b.error_estimate
