@@ -168,6 +168,24 @@ class Session:
         self.curvature = Curvature(3 * support.size) if self.config.carry_curvature else None
         # the corrector's frames teach their own: the FEM's curvature is not the network's
         self._corrector_curvature = Curvature(3 * support.size) if self.config.carry_curvature else None
+        self._warm_spread()
+
+    def _warm_spread(self) -> None:
+        """The spread's once-per-operator work (:meth:`_spread`), made with the operator, not in
+        its first frame: the network's rest Jacobian and its readout's Gram matrix (about 0.1 s
+        on the phantom). The Newton method's rest Jacobian (3 solves per support node) waits for
+        a frame that needs it."""
+        jacobian = getattr(self.op, "estimate_jacobian", None)
+        if (
+            not (self._noise or getattr(self.model, "max_force", None))
+            or not hasattr(self.op, "at_rest")
+            or not jacobian
+        ):
+            return
+        jac = jacobian(np.zeros((self.support.size, 3)))
+        if jac is not None:
+            U = np.asarray(jac.U, np.float64)
+            self._readout_gram = (jac.U, U.T @ U)
 
     def frame(self, points: Array, support: Array | None = None, frame_id=None) -> FrameResult:
         points = np.asarray(points, np.float64)
