@@ -171,13 +171,19 @@ class Session:
         self._warm_spread()
 
     def _warm_spread(self) -> None:
-        """The spread's once-per-operator Gram matrix of the network's readout (:meth:`_spread`),
-        made with the operator, not in its first frame (about 50 ms on the phantom). Its
-        Jacobians are left to the frames: their anchor is the first one's point, and moving it
-        moves answers at rounding level, which a noise-chosen alpha amplifies (the demo's force
-        error 10.2 -> 13.8 %, docs/performance.md)."""
+        """The spread's once-per-operator work (:meth:`_spread`), made with the operator, not in
+        a frame (whose time budget it would overrun): the Gram matrix of the network's readout
+        (about 50 ms on the phantom), the Newton method's rest Jacobian and its Gram (3 solves
+        per support node). The network's Jacobians are left to the frames: their anchor is the
+        first one's point, and moving it moves answers at rounding level, which a noise-chosen
+        alpha amplifies (the demo's force error 10.2 -> 13.8 %, docs/performance.md)."""
+        if not (self._noise or getattr(self.model, "max_force", None)):
+            return
         U = getattr(self.op, "readout", None)
-        if U is not None and (self._noise or getattr(self.model, "max_force", None)):
+        if U is None and not hasattr(self.op, "at_rest"):  # the Newton method's
+            jac = getattr(self.op, "estimate_jacobian", lambda g: None)(np.zeros((self.support.size, 3)))
+            U = None if jac is None else jac.U
+        if U is not None:
             U64 = np.asarray(U, np.float64)
             self._readout_gram = (U, U64.T @ U64)
 
@@ -359,7 +365,7 @@ class Session:
             field = spare.Beside(functools.partial(_field, op, model, g, self.support)) if beside else None
         spread = None
         if field is not None and sol.u is not None:
-            spread, gamma = self._spread(op, g, self._rest + sol.u, alpha)
+            spread, gamma = self._spread(op, g, self._rest + sol.u, alpha, sol.status)
         u_all, forward = field.result() if field is not None else _field(op, model, g, self.support)
         if not np.isfinite(rms):
             u_nodes = np.zeros((self.distance.nodes.size, 3)) if u_all is None else u_all[self.distance.nodes]
@@ -368,7 +374,7 @@ class Session:
         if u_all is not None and np.isfinite(u_all).all():
             if spread is None:
                 x = self._rest + (u_all[self.distance.nodes] if sol.u is None else sol.u)
-                spread, gamma = self._spread(op, g, x, alpha)
+                spread, gamma = self._spread(op, g, x, alpha, sol.status)
             estimate = error_estimate(forward, rms, self._noise, spread)
             if "displacement" in want:
                 out["displacement"] = u_all
@@ -388,18 +394,22 @@ class Session:
         g = np.array(g, np.float64)
         self._early = (g, spare.Beside(functools.partial(_field, self.op, self.model, g, self.support)))
 
-    def _spread(self, op: ForwardOperator, g: Array, x: Array, alpha: float) -> tuple[float, float | None]:
+    def _spread(
+        self, op: ForwardOperator, g: Array, x: Array, alpha: float, status: str = "converged"
+    ) -> tuple[float, float | None]:
         """What the cloud leaves uncertain (confidence.inverse_spread: the declared noise, the
         force directions it does not determine under the model's force prior, the step left)
         and, with noise, the force directions it determined, at the matching nodes at x (p, 3).
         With noise declared, through the Jacobian at g (the noise's covariance and alpha's rule
         are taken there; the Newton method's costs 3 solves per support node, unless its last
-        step made it there); without, through the operator's estimate Jacobian (the network's
-        and, unless its last was formed at g, the Newton method's at rest, kept). (0, None) with
+        step made it there); without, or on a frame out of time (`status`), through the
+        operator's estimate Jacobian (the network's and, unless its last was formed at g, the
+        Newton method's at rest, made with the operator: :meth:`_warm_spread`). (0, None) with
         neither noise nor prior, or no Jacobian (the paper's layout; the Newton method past
         MAX_JACOBIAN_SUPPORT support nodes)."""
         max_force = getattr(self.model, "max_force", None)
-        jacobian = getattr(op, "jacobian" if self._noise else "estimate_jacobian", None)
+        exact = self._noise and status != "time_limit"
+        jacobian = getattr(op, "jacobian" if exact else "estimate_jacobian", None)
         if not (self._noise or max_force) or jacobian is None:
             return 0.0, None
         try:

@@ -339,3 +339,19 @@ def test_the_estimate_leaves_the_answers_alone(entry, sequence, method):
         np.testing.assert_array_equal(a.outputs["forces"], b.outputs["forces"])
         assert a.iterations == b.iterations
         assert a.error_estimate > b.error_estimate
+
+
+def test_a_frame_out_of_time_forms_no_jacobian_for_its_estimate(entry, sequence):
+    """The noise term takes the Newton method's Jacobian at the answer (3 solves per support
+    node), but not for a frame whose budget ran out: it reads the rest one, made with the
+    session, and the spread is still there."""
+    tool, seq = sequence
+    s = Session(entry.fem, SessionConfig(method="fem", support=_support(entry, tool), noise=1e-3))
+    s.frame(seq.clouds[-1])
+    assert s.op.n_jacobians == 1  # L-BFGS-B forms none: this one is the noise term's
+    g = 1.01 * s.g  # forces the operator has no Jacobian at
+    x = s._rest + s.op(g)[0]
+    late, _ = s._spread(s.op, g, x, s.config.alpha, "time_limit")
+    assert s.op.n_jacobians == 1 and np.isfinite(late) and late > 0
+    s._spread(s.op, g, x, s.config.alpha, "converged")
+    assert s.op.n_jacobians == 2
