@@ -221,15 +221,13 @@ class FEMOperator:
 
     def estimate_jacobian(self, g: Array) -> DenseJacobian | None:
         """du/dg for the error estimate (registration/confidence.py), with no solve at g: the
-        Jacobian formed at g if the last one was (Levenberg-Marquardt's answer), else the rest
-        one (3k solves with the rest factor, once per operator): which force directions a cloud
-        leaves undetermined is a matter of where it looks more than of the load. None past
-        MAX_JACOBIAN_SUPPORT support nodes."""
+        rest one (3k solves with the rest factor, once per operator), whose Gram the session
+        keeps: which force directions a cloud leaves undetermined is a matter of where it looks
+        more than of the load, and the one Levenberg-Marquardt formed at the answer cost a
+        Newton frame 7-27 % in a new Gram (docs/performance.md). None past MAX_JACOBIAN_SUPPORT
+        support nodes."""
         if not self.has_jacobian:
             return None
-        last = self._last_jacobian
-        if last is not None and np.array_equal(last[0], np.asarray(g, np.float64)):
-            return last[1]
         return self._rest_dense()
 
     def _rest_dense(self) -> DenseJacobian:

@@ -33,16 +33,7 @@ objective's nodes (U's rows: the matched surface, which moves more than the inte
   (N^T W^2 N) B^T.
 The network's Jacobian is low-rank, the Newton method's dense (C the identity). With noise
 declared they are taken at the answer (the Newton method's: 3 solves per support node, unless
-its last step formed it there); without, the network's at rest and the Newton method's from its
-last Levenberg-Marquardt step at the answer, else at rest (3 solves per support node, once per
-session and support): FEMOperator.estimate_jacobian.
-
-The estimate is the sum of the terms: it errs on the large side rather than the small one,
-which is the side a display can act on.
-
-The rest stiffness is factorised once per mesh and material, in single precision (fem/rest.py:
-shared by every session on the mesh, solves under a lock); one estimate costs an internal-force
-evaluation and a back-substitution.
+its last step formed it there); without, at rest, kept per operator (FEMOperator.estimate_jacobian).
 """
 
 from __future__ import annotations

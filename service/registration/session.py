@@ -403,8 +403,8 @@ class Session:
         With noise declared, through the Jacobian at g (the noise's covariance and alpha's rule
         are taken there; the Newton method's costs 3 solves per support node, unless its last
         step made it there); without, or on a frame out of time (`status`), through the
-        operator's estimate Jacobian (the network's and, unless its last was formed at g, the
-        Newton method's at rest, made with the operator: :meth:`_warm_spread`). (0, None) with
+        operator's estimate Jacobian (at rest; the Newton method's made with the operator:
+        :meth:`_warm_spread`). (0, None) with
         neither noise nor prior, or no Jacobian (the paper's layout; the Newton method past
         MAX_JACOBIAN_SUPPORT support nodes)."""
         max_force = getattr(self.model, "max_force", None)
