@@ -143,9 +143,10 @@ def inverse_spread(
     determine a direction, the answer keeps none of the truth's force in it); in quadrature,
     RMS over the Jacobian's nodes; and the Gauss-Newton step left to the optimum. With noise,
     gamma = tr((C^T A C + alpha I)^-1 C^T A C), the force directions the cloud determines
-    (noise_prior's rule; NaN without: the r x r products it needs are skipped). `jac` a low-rank Jacobian with
-    ``gram()`` at the frame's forces g, `Cg` its image C g (r,), `match` the distance's at its
-    positions, `readout_gram` U^T U (r, r) of jac.U, in float64. Returns (spread, gamma)."""
+    (noise_prior's rule; NaN without: the r x r products it needs are skipped). `jac` a
+    low-rank Jacobian with ``gram()`` at the frame's forces g, `Cg` its image C g (r,), `match`
+    the distance's at its positions, `readout_gram` U^T U (r, r) of jac.U, in float64. Returns
+    (spread, gamma)."""
     Nw, A = distance_gram(jac.U, match, faces)  # in U's precision, as the LM model's
     w = np.asarray(match.weight, np.float64)
     # M A as the Gauss-Newton model forms it (no product with the Newton method's identity M);

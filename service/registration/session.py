@@ -119,7 +119,8 @@ class Session:
             self.alpha_tracker = AlphaTracker(alpha, config.noise)  # starts at the default
         self.config = dataclasses.replace(config, E=float(model.material.E), gtol=gtol, alpha=alpha)
         self._noise = config.noise
-        self._readout_gram: tuple[Array, Array] | None = None  # (jac.U, U^T U) for inverse_spread
+        # (jac.U, U^T U) for inverse_spread, the latest first: auto's frames read two operators'
+        self._readout_grams: list[tuple[Array, Array]] = []
         self._options = SolveOptions.of(self.config)
         # the same problem in scaled forces, as alpha: a softer organ's are smaller (x 1.0 at E_model)
         self._options = dataclasses.replace(
@@ -184,8 +185,18 @@ class Session:
             jac = getattr(self.op, "estimate_jacobian", lambda g: None)(np.zeros((self.support.size, 3)))
             U = None if jac is None else jac.U
         if U is not None:
-            U64 = np.asarray(U, np.float64)
-            self._readout_gram = (U, U64.T @ U64)
+            self._readout_gram(U)
+
+    def _readout_gram(self, U: Array) -> Array:
+        """U^T U (float64) of a Jacobian's basis U, kept for the session's last two (the
+        network's and, for method auto, its corrector's): constant per operator."""
+        for i, (kept, gram) in enumerate(self._readout_grams):
+            if kept is U:
+                self._readout_grams.insert(0, self._readout_grams.pop(i))
+                return gram
+        U64 = np.asarray(U, np.float64)
+        self._readout_grams = [(U, U64.T @ U64), *self._readout_grams[:1]]
+        return self._readout_grams[0][1]
 
     def frame(self, points: Array, support: Array | None = None, frame_id=None) -> FrameResult:
         points = np.asarray(points, np.float64)
@@ -404,9 +415,8 @@ class Session:
         are taken there; the Newton method's costs 3 solves per support node, unless its last
         step made it there); without, or on a frame out of time (`status`), through the
         operator's estimate Jacobian (at rest; the Newton method's made with the operator:
-        :meth:`_warm_spread`). (0, None) with
-        neither noise nor prior, or no Jacobian (the paper's layout; the Newton method past
-        MAX_JACOBIAN_SUPPORT support nodes)."""
+        :meth:`_warm_spread`). (0, None) with neither noise nor prior, or no Jacobian (the
+        paper's layout; the Newton method past MAX_JACOBIAN_SUPPORT support nodes)."""
         max_force = getattr(self.model, "max_force", None)
         exact = self._noise and status != "time_limit"
         jacobian = getattr(op, "jacobian" if exact else "estimate_jacobian", None)
@@ -424,13 +434,10 @@ class Session:
         if match is None or not np.array_equal(match.x, x):  # the answer was not the last evaluation
             self.distance(x)
             match = self.distance.last_match
-        if self._readout_gram is None or self._readout_gram[0] is not jac.U:
-            U = np.asarray(jac.U, np.float64)
-            self._readout_gram = (jac.U, U.T @ U)  # constant per Jacobian basis: once per support
         Cg = jac.matvec(np.asarray(g, np.float64).ravel())
         prior = None if not max_force else force_prior(jac, self.support.size, max_force)
         spread, gamma = inverse_spread(
-            jac, match, self.distance.faces, alpha, self._noise or 0.0, self._readout_gram[1], Cg, prior
+            jac, match, self.distance.faces, alpha, self._noise or 0.0, self._readout_gram(jac.U), Cg, prior
         )
         return spread, gamma if self._noise else None
 

@@ -355,3 +355,19 @@ def test_a_frame_out_of_time_forms_no_jacobian_for_its_estimate(entry, sequence)
     assert s.op.n_jacobians == 1 and np.isfinite(late) and late > 0
     s._spread(s.op, g, x, s.config.alpha, "converged")
     assert s.op.n_jacobians == 2
+
+
+def test_auto_keeps_both_operators_readout_grams(entry, sequence):
+    """Method auto reads the network's Jacobian basis and its corrector's, frame after frame: the
+    session keeps both Gram matrices instead of making each again whenever the other was used."""
+    tool, seq = sequence
+    config = SessionConfig(method="auto", max_error=1e-9, support=_support(entry, tool))
+    s = Session(entry.network, config, corrector=entry.fem)
+    first = None
+    for cloud in seq.clouds[:12:4]:
+        r = s.frame(cloud)
+        assert r.method_used == "fem"  # every frame corrected: both operators read
+        grams = {id(U): G for U, G in s._readout_grams}
+        assert len(grams) == 2
+        first = first or grams
+        assert all(grams[k] is first[k] for k in first)
