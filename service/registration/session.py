@@ -119,6 +119,9 @@ class Session:
             self.alpha_tracker = AlphaTracker(alpha, config.noise)  # starts at the default
         self.config = dataclasses.replace(config, E=float(model.material.E), gtol=gtol, alpha=alpha)
         self._noise = config.noise
+        # the estimate's inverse-problem term: with declared noise or the model's force prior
+        self._max_force: float | None = getattr(model, "max_force", None)
+        self._spreads = bool(config.noise or self._max_force)
         # (jac.U, U^T U) for inverse_spread, the latest first: auto's frames read two operators'
         self._readout_grams: list[tuple[Array, Array]] = []
         self._options = SolveOptions.of(self.config)
@@ -178,7 +181,7 @@ class Session:
         per support node). The network's Jacobians are left to the frames: their anchor is the
         first one's point, and moving it moves answers at rounding level, which a noise-chosen
         alpha amplifies (the demo's force error 10.2 -> 13.8 %, docs/performance.md)."""
-        if not (self._noise or getattr(self.model, "max_force", None)):
+        if not self._spreads:
             return
         U = getattr(self.op, "readout", None)
         if U is None and not hasattr(self.op, "at_rest"):  # the Newton method's
@@ -365,8 +368,7 @@ class Session:
         out: dict[str, Array] = {}
         # with noise declared or a force prior, the network's field is made on a spare core (its
         # operator allows it, as for a warm frame's rest state) while this one finds the spread
-        spreads = bool(self._noise or getattr(self.model, "max_force", None))
-        beside = op is self.op and self._rest_distance is not None and spreads and sol.u is not None
+        beside = op is self.op and self._rest_distance is not None and self._spreads and sol.u is not None
         early, self._early = self._early, None
         if early is not None and op is self.op and np.array_equal(early[0], g):
             field = early[1]
@@ -417,10 +419,9 @@ class Session:
         operator's estimate Jacobian (at rest; the Newton method's made with the operator:
         :meth:`_warm_spread`). (0, None) with neither noise nor prior, or no Jacobian (the
         paper's layout; the Newton method past MAX_JACOBIAN_SUPPORT support nodes)."""
-        max_force = getattr(self.model, "max_force", None)
         exact = self._noise and status != "time_limit"
         jacobian = getattr(op, "jacobian" if exact else "estimate_jacobian", None)
-        if not (self._noise or max_force) or jacobian is None:
+        if not self._spreads or jacobian is None:
             return 0.0, None
         try:
             jac = jacobian(g)
@@ -435,7 +436,7 @@ class Session:
             self.distance(x)
             match = self.distance.last_match
         Cg = jac.matvec(np.asarray(g, np.float64).ravel())
-        prior = None if not max_force else force_prior(jac, self.support.size, max_force)
+        prior = None if not self._max_force else force_prior(jac, self.support.size, self._max_force)
         spread, gamma = inverse_spread(
             jac, match, self.distance.faces, alpha, self._noise or 0.0, self._readout_gram(jac.U), Cg, prior
         )
