@@ -45,14 +45,25 @@ _DTYPES = {"<f4", "<f8", "<i4", "<i8"}
 
 
 class ApiError(RuntimeError):
-    """The server refused a request: ``status`` (HTTP code, or the stream error's code) and
-    ``detail`` (its explanation)."""
+    """The server refused a request: ``status`` (HTTP code, or the stream error's code),
+    ``detail`` (its explanation) and, on a saturated server's 503, ``retry_after`` (seconds to
+    wait before trying again; None where the server gave none)."""
 
-    def __init__(self, status: int, detail: Any, instance: str | None = None) -> None:
+    def __init__(self, status: int, detail: Any, instance: str | None = None, retry_after: float | None = None) -> None:
         super().__init__(f"{status}: {detail}")
         self.status = status
         self.detail = detail
         self.instance = instance
+        self.retry_after = retry_after
+
+
+def _retry_after(value: str | None) -> float | None:
+    """Retry-After in seconds: the server sends delta-seconds; an HTTP date (another proxy's) or
+    a bad value gives None rather than a second error."""
+    try:
+        return float(value) if value is not None else None
+    except ValueError:
+        return None
 
 
 class StreamError(ApiError):
@@ -211,7 +222,8 @@ class _Base:
             body = {"detail": r.text}
         if r.status_code >= 400:
             detail = body.get("detail") if isinstance(body, dict) else body
-            raise ApiError(r.status_code, detail, r.headers.get("x-elastreg-instance"))
+            instance, retry = r.headers.get("x-elastreg-instance"), _retry_after(r.headers.get("retry-after"))
+            raise ApiError(r.status_code, detail, instance, retry)
         return body
 
 

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 from websockets.sync.client import connect
 
+from clients import ApiError, Client
 from service.api.server import BackgroundServer
 from service.api.sessions import RegistryFull
 from service.api.work import flag_non_finite
@@ -71,6 +72,20 @@ def test_a_saturated_server_answers_503_at_once(narrow, api, clouds):
     assert api.get("/health").json()["status"] == "ok"
     r = api.post(f"/sessions/{sid}/frames", json={"points": clouds[1].tolist()})
     assert r.status_code == 200 and api.get(f"/sessions/{sid}").json()["counters"]["frames"] == 1
+
+
+def test_the_client_hands_a_503s_retry_after_to_its_caller(narrow, api, clouds):
+    """A load-test or frontend backs off by the server's word: ApiError.retry_after."""
+    pool = narrow.app.state.pool
+    with Client(narrow.url) as client, client.open_session("bar", max_iter=20) as s:
+        with occupied(pool, pool.threads + pool.queue), pytest.raises(ApiError) as err:
+            s.frame(clouds[0])
+        assert err.value.status == 503 and err.value.retry_after == 1.0
+        with pytest.raises(ApiError) as err:  # a refusal that is not about load carries none
+            s.frame(np.zeros((3, 2)))
+        assert err.value.status == 422 and err.value.retry_after is None
+        s.frame(clouds[1])  # the session goes on
+        assert s.info()["counters"]["frames"] == 1
 
 
 def test_frames_of_one_session_wait_no_deeper_than_session_queue(narrow, api, clouds):
