@@ -242,6 +242,21 @@ def _check_manifest(manifest, name: str) -> None:
         raise StoreError(f"{name}: the manifest's material needs numbers E and nu")
 
 
+def _max_force(manifest: dict, name: str) -> float | None:
+    """The scene's largest tool force (N; the error estimate's prior), None in an entry built
+    before it was recorded; present, it must be a positive finite number."""
+    training = manifest.get("training", {})
+    spec = training.get("load_distribution", {}) if isinstance(training, dict) else None
+    if not isinstance(spec, dict):
+        raise StoreError(f"{name}: the manifest's training.load_distribution must be an object")
+    value = spec.get("max_force")
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < math.inf:
+        raise StoreError(f"{name}: the manifest's max_force must be a positive number of newtons, got {value!r:.40}")
+    return float(value)
+
+
 def load_entry(path: Path, name: str | None = None) -> Entry:
     """Load and verify one entry; a :class:`StoreError` says what is wrong. `name`: the id it
     is to be served as (default: its folder's name)."""
@@ -278,8 +293,7 @@ def load_entry(path: Path, name: str | None = None) -> Entry:
         raise
     except (KeyError, ValueError, RuntimeError) as exc:
         raise StoreError(f"{name}: the weights do not fit the manifest ({exc})") from None
-    max_force = manifest.get("training", {}).get("load_distribution", {}).get("max_force")
-    max_force = float(max_force) if isinstance(max_force, (int, float)) and 0 < max_force < math.inf else None
+    max_force = _max_force(manifest, name)
     network = NetworkModel(mesh, material, region, net, E0=material.E, max_force=max_force)
     fem = FEMModel(mesh, material, max_force=max_force)
     return Entry(manifest["id"], path, manifest, mesh, region, network, fem)

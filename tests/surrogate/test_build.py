@@ -66,6 +66,9 @@ def test_stiffness_scaling_matches_the_fem(bar_store):
         (lambda p: p.joinpath("manifest.json").write_text("{not json"), "not valid JSON"),
         (lambda p: _edit_manifest(p, format_version=99), "format"),
         (lambda p: _edit_manifest(p, files={}), "must list"),
+        (lambda p: _edit_manifest(p, training={"load_distribution": {"max_force": True}}), "max_force"),
+        (lambda p: _edit_manifest(p, training={"load_distribution": {"max_force": -1.0}}), "max_force"),
+        (lambda p: _edit_manifest(p, training=[]), "load_distribution"),
     ],
 )
 def test_a_corrupt_entry_is_refused_and_the_others_still_load(bar_store, tmp_path, damage, message):
