@@ -124,6 +124,7 @@ class Session:
         self._spreads = bool(config.noise or self._max_force)
         # (jac.U, U^T U) for inverse_spread, the latest first: auto's frames read two operators'
         self._readout_grams: list[tuple[Array, Array]] = []
+        self._priors: list[tuple[object, Array]] = []  # (jac, force_prior), as the Grams
         self._options = SolveOptions.of(self.config)
         # the same problem in scaled forces, as alpha: a softer organ's are smaller (x 1.0 at E_model)
         self._options = dataclasses.replace(
@@ -180,7 +181,9 @@ class Session:
         (about 50 ms on the phantom), the Newton method's rest Jacobian and its Gram (3 solves
         per support node). The network's Jacobians are left to the frames: their anchor is the
         first one's point, and moving it moves answers at rounding level, which a noise-chosen
-        alpha amplifies (the demo's force error 10.2 -> 13.8 %, docs/performance.md)."""
+        alpha amplifies (the demo's force error 10.2 -> 13.8 %, docs/performance.md). Method
+        auto's corrector's rest Jacobian and Gram too: nearly every any-site auto session
+        corrects, and its first correction had them to make inside its frame."""
         if not self._spreads:
             return
         U = getattr(self.op, "readout", None)
@@ -189,6 +192,11 @@ class Session:
             U = None if jac is None else jac.U
         if U is not None:
             self._readout_gram(U)
+        if self.corrector is not None:  # auto's first correction would form its own in its frame
+            self._corrector_op = self.corrector.restrict(self.support, self.distance.nodes)
+            jac = getattr(self._corrector_op, "estimate_jacobian", lambda g: None)(np.zeros((self.support.size, 3)))
+            if jac is not None:
+                self._readout_gram(jac.U)
 
     def _readout_gram(self, U: Array) -> Array:
         """U^T U (float64) of a Jacobian's basis U, kept for the session's last two (the
@@ -200,6 +208,17 @@ class Session:
         U64 = np.asarray(U, np.float64)
         self._readout_grams = [(U, U64.T @ U64), *self._readout_grams[:1]]
         return self._readout_grams[0][1]
+
+    def _force_prior(self, jac) -> Array:
+        """confidence.force_prior of a Jacobian, kept for the last two: the estimate Jacobians
+        (at rest, without noise) are the operators' own, so it is made once per operator."""
+        for i, (kept, prior) in enumerate(self._priors):
+            if kept is jac:
+                self._priors.insert(0, self._priors.pop(i))
+                return prior
+        assert self._max_force is not None
+        self._priors = [(jac, force_prior(jac, self.support.size, self._max_force)), *self._priors[:1]]
+        return self._priors[0][1]
 
     def frame(self, points: Array, support: Array | None = None, frame_id=None) -> FrameResult:
         points = np.asarray(points, np.float64)
@@ -436,7 +455,7 @@ class Session:
             self.distance(x)
             match = self.distance.last_match
         Cg = jac.matvec(np.asarray(g, np.float64).ravel())
-        prior = None if not self._max_force else force_prior(jac, self.support.size, self._max_force)
+        prior = None if not self._max_force else self._force_prior(jac)
         spread, gamma = inverse_spread(
             jac, match, self.distance.faces, alpha, self._noise or 0.0, self._readout_gram(jac.U), Cg, prior
         )

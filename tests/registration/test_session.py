@@ -339,6 +339,12 @@ def test_the_estimate_leaves_the_answers_alone(entry, sequence, method):
         np.testing.assert_array_equal(a.outputs["forces"], b.outputs["forces"])
         assert a.iterations == b.iterations
         assert a.error_estimate > b.error_estimate
+    # without noise the prior reads the operator's own rest Jacobian: made once, then kept
+    from service.registration.confidence import force_prior
+
+    (jac, prior), *_ = with_prior._priors
+    assert jac is with_prior.op.estimate_jacobian(with_prior.g) and len(with_prior._priors) == 1
+    np.testing.assert_array_equal(prior, force_prior(jac, with_prior.support.size, model.max_force))
 
 
 def test_a_frame_out_of_time_forms_no_jacobian_for_its_estimate(entry, sequence):
@@ -363,6 +369,8 @@ def test_auto_keeps_both_operators_readout_grams(entry, sequence):
     tool, seq = sequence
     config = SessionConfig(method="auto", max_error=1e-9, support=_support(entry, tool))
     s = Session(entry.network, config, corrector=entry.fem)
+    made = s._corrector_op._rest_jacobian
+    assert made is not None and len(s._readout_grams) == 2  # made with the session, not a frame
     first = None
     for cloud in seq.clouds[:12:4]:
         r = s.frame(cloud)
@@ -371,3 +379,4 @@ def test_auto_keeps_both_operators_readout_grams(entry, sequence):
         assert len(grams) == 2
         first = first or grams
         assert all(grams[k] is first[k] for k in first)
+        assert s._corrector_op._rest_jacobian is made
