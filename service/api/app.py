@@ -25,6 +25,7 @@ from .. import __version__
 from ..config import Settings, get_settings, limit_threads
 from . import deps, errors
 from .guard import OriginGuard
+from .memo import Memo
 from .routes import health, models, sessions, stream, viewer, watch
 from .schemas import REQUEST_MODELS
 from .sessions import SessionRegistry
@@ -91,7 +92,8 @@ async def lifespan(app: FastAPI):
         )
     app.state.models = entries
     app.state.store_errors = refused
-    app.state.mesh_cache = {}
+    app.state.mesh_cache = Memo(2 * max(len(entries), 1))  # each model's mesh in two encodings
+    app.state.demo_sequences = Memo(viewer.DEMO_CACHE)
     app.state.registry = SessionRegistry(
         max_sessions=settings.max_sessions, ttl_s=settings.session_ttl_s, instance_id=settings.instance_id
     )

@@ -34,11 +34,10 @@ async def get_model(entry: EntryDep, kind: ReplyKind):
 
 @router.get("/{model}/mesh", response_model=MeshOut, responses={**NOT_FOUND, 200: {"content": ALT_MSGPACK}})
 async def get_mesh(request: Request, entry: EntryDep, pool: PoolDep, kind: ReplyKind):
-    cache = request.app.state.mesh_cache
-    key = (entry.id, kind)
-    if key not in cache:  # encoded once per model and encoding
-        cache[key] = await pool.run(work.encode, work.mesh_payload(entry), kind)
-    return reply(cache[key], kind)
+    encoded = await request.app.state.mesh_cache.get(  # once per model and encoding
+        (entry.id, kind), lambda: pool.run(work.encode, work.mesh_payload(entry), kind)
+    )
+    return reply(encoded, kind)
 
 
 @router.post(

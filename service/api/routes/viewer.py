@@ -93,14 +93,8 @@ async def demo(
     register over, the ``tool`` nodes that were pulled and the true ``net_forces`` (T, 3)."""
     if points > request.app.state.settings.max_points:
         raise ApiError(413, f"{points} points per cloud is over this server's limit")
-    state = request.app.state
-    cache = getattr(state, "demo_sequences", None)
-    if cache is None:
-        cache = state.demo_sequences = {}
-    key = (entry.id, frames, points, seed)
-    if key not in cache:  # one FEM solve per frame: computed once, off the event loop
-        sequence = await pool.run(demo_sequence, entry, frames, points, seed)
-        while len(cache) >= DEMO_CACHE:
-            cache.pop(next(iter(cache)))
-        cache[key] = sequence
-    return reply(cache[key], kind)
+    # one FEM solve per frame: made once per key, off the event loop
+    sequence = await request.app.state.demo_sequences.get(
+        (entry.id, frames, points, seed), lambda: pool.run(demo_sequence, entry, frames, points, seed)
+    )
+    return reply(sequence, kind)
