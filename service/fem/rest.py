@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import threading
 from collections import OrderedDict
+from collections.abc import Callable
 
 import numpy as np
 
@@ -72,6 +73,24 @@ class RestCompliance:
         rhs = np.zeros((3 * self.mesh.n_nodes, len(forces)))
         rhs[(3 * np.asarray(nodes, np.int64)[:, None] + np.arange(3)).ravel()] = forces.T
         return self.solve(rhs).T
+
+
+def leading_directions(
+    forward: Callable[[Array], Array], back: Callable[[Array], Array], n_cols: int, rank: int,
+    oversample: int, power: int,
+) -> tuple[Array, Array]:  # fmt: skip
+    """The leading `rank` singular directions of a linear map J (m, n_cols) known by its
+    products alone, `forward` X -> J X and `back` Y -> J^T Y: a randomised range finder with
+    `oversample` extra directions and `power` power iterations, (2 power + 2)(rank + oversample)
+    products in all where the dense J takes n_cols and an SVD. Seeded: the same map gives the
+    same directions. Shape: columns (m, r), rows (r, n_cols) with J ~ columns @ rows and the
+    rows orthonormal."""
+    omega = np.random.default_rng(0).standard_normal((n_cols, min(rank + oversample, n_cols)))
+    Q = np.linalg.qr(forward(omega))[0]
+    for _ in range(power):
+        Q = np.linalg.qr(forward(np.linalg.qr(back(Q))[0]))[0]
+    Ub, S, Vt = np.linalg.svd(back(Q).T, full_matrices=False)  # Q^T J = Ub S Vt
+    return (Q @ Ub[:, :rank]) * S[:rank], np.ascontiguousarray(Vt[:rank])
 
 
 def rest_compliance(

@@ -436,16 +436,16 @@ class Session:
         are taken there; the Newton method's costs 3 solves per support node, unless its last
         step made it there); without, or on a frame out of time (`status`), through the
         operator's estimate Jacobian (at rest; the Newton method's made with the operator:
-        :meth:`_warm_spread`). (0, None) with neither noise nor prior, or no Jacobian (the
-        paper's layout; the Newton method past MAX_JACOBIAN_SUPPORT support nodes)."""
-        exact = self._noise and status != "time_limit"
+        :meth:`_warm_spread`; past MAX_JACOBIAN_SUPPORT support nodes its leading directions,
+        with or without noise). (0, None) with neither noise nor prior, or no Jacobian (the
+        paper's layout)."""
+        # the Newton method past MAX_JACOBIAN_SUPPORT has no Jacobian at g: its rest one's leading directions
+        exact = self._noise and status != "time_limit" and getattr(op, "has_jacobian", True)
         jacobian = getattr(op, "jacobian" if exact else "estimate_jacobian", None)
         if not self._spreads or jacobian is None:
             return 0.0, None
         try:
             jac = jacobian(g)
-        except ValueError:  # a support too large for the Newton method's dense Jacobian
-            return 0.0, None
         except ForwardFailed:  # g's equilibrium could not be solved again: the field is none either
             return float("inf"), None
         if jac is None:

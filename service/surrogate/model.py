@@ -24,7 +24,7 @@ import torch
 from scipy.linalg.blas import sgemm, strmm
 
 from ..fem.material import NeoHookean
-from ..fem.rest import RestCompliance, rest_compliance
+from ..fem.rest import RestCompliance, leading_directions, rest_compliance
 from ..forward import check_support
 from ..mesh import TetMesh
 from .network import Ensemble, PaperSurrogate, ReducedSurrogate
@@ -139,10 +139,9 @@ def _physics_input(model: NetworkModel, support: Array, x_scale: float) -> tuple
 
 def _leading_response(C, dofs: Array, scale: float) -> tuple[Array, Array]:
     """The leading LINEAR_RANK singular directions of L = scale K0^-1 P (P: unit forces on
-    `dofs`) by a randomised range finder with POWER power iterations: (2 POWER + 2)
-    (LINEAR_RANK + OVERSAMPLE) solves, where the dense route takes one per dof and an SVD
-    (on the phantom's 592-node region 2.8 s of SVD and 1.4 s of solves). Seeded: the same
-    support gives the same block. Shape: (3n, r) columns, (r, 3k) rows."""
+    `dofs`) by rest.leading_directions: (2 POWER + 2)(LINEAR_RANK + OVERSAMPLE) solves, where
+    the dense route takes one per dof and an SVD (on the phantom's 592-node region 2.8 s of SVD
+    and 1.4 s of solves). Shape: (3n, r) columns, (r, 3k) rows."""
     n3 = 3 * C.mesh.n_nodes
 
     def forward(X: Array) -> Array:  # L X
@@ -153,12 +152,7 @@ def _leading_response(C, dofs: Array, scale: float) -> tuple[Array, Array]:
     def back(Y: Array) -> Array:  # L^T Y, K0 symmetric
         return C.solve(Y)[dofs] * scale
 
-    omega = np.random.default_rng(0).standard_normal((dofs.size, LINEAR_RANK + OVERSAMPLE))
-    Q = np.linalg.qr(forward(omega))[0]
-    for _ in range(POWER):
-        Q = np.linalg.qr(forward(np.linalg.qr(back(Q))[0]))[0]
-    Ub, S, Vt = np.linalg.svd(back(Q).T, full_matrices=False)  # Q^T L = Ub S Vt
-    return (Q @ Ub[:, :LINEAR_RANK]) * S[:LINEAR_RANK], Vt[:LINEAR_RANK]
+    return leading_directions(forward, back, dofs.size, LINEAR_RANK, OVERSAMPLE, POWER)
 
 
 def _mlp_layers(mlp: torch.nn.Sequential) -> list[tuple[Array, Array, Array | None]]:

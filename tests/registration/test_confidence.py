@@ -272,3 +272,28 @@ def test_inverse_spread_is_the_linearised_covariance_and_the_priors_pull(entry, 
     lam = np.linalg.eigvalsh(C.T @ A @ C)
     assert gamma == pytest.approx(float(np.sum(lam / (lam + alpha))), rel=1e-3)
     assert 0.5 < gamma < K
+
+
+@pytest.mark.parametrize("k", [14, 40])
+def test_past_its_dense_jacobian_the_newton_method_reads_the_rest_ones_leading_directions(entry, monkeypatch, k):
+    """A support past MAX_JACOBIAN_SUPPORT gives the Newton method no dense Jacobian; its estimate
+    then reads the rest Jacobian's leading directions (64: all of them at 14 nodes, a truncation
+    at 40): the same answers, an estimate near the dense one's, and still honest on the views
+    that determine little (without it a one-point cloud on the phantom's region read nil)."""
+    import service.fem.model as fem_model
+
+    tool = _tip(entry)
+    seq = make_sequence(entry.mesh, entry.fem.material, tool, n_frames=1, peak_force=40.0, n_points=300, seed=4)
+    cloud, truth = seq.clouds[0], seq.displacements[0]
+    config = SessionConfig(method="fem", support=_support(entry, tool, k))
+    for name, points in {"whole": cloud, "one point": cloud[:1], "near the clamp": cloud[cloud[:, 0] < 1.0]}.items():
+        dense = Session(entry.fem, config).frame(points)
+        with monkeypatch.context() as m:
+            m.setattr(fem_model, "MAX_JACOBIAN_SUPPORT", k - 1)
+            s = Session(entry.fem, config)
+            leading = s.frame(points)
+            assert isinstance(s.op.estimate_jacobian(s.g), fem_model.LowRankJacobian)
+        np.testing.assert_array_equal(leading.outputs["forces"], dense.outputs["forces"])
+        assert leading.error_estimate == pytest.approx(dense.error_estimate, rel=1e-2), name
+        true = np.linalg.norm(leading.outputs["displacement"] - truth, axis=1).mean()
+        assert leading.error_estimate >= 0.5 * true, name
