@@ -202,6 +202,43 @@ def test_lagging_watcher_skips_to_the_newest_frame(live, http, support, entry):
     http.delete(f"/sessions/{sid}")
 
 
+def test_a_watcher_that_stops_reading_is_closed_and_frees_its_slot(bar_store, support, entry):
+    """A watcher that completes its handshake and never reads again (a frozen second screen)
+    fills its socket buffers; past send_timeout_s the server closes it, and its WebSocket slot
+    is free again, as a stream's client that takes no reply is (max_sockets would otherwise be
+    used up for every user, even after the session ended)."""
+    import httpx
+
+    from .conftest import start, wait_for
+
+    server = start(bar_store[0], instance_id="stall", send_timeout_s=1.0)
+    try:
+        rng = np.random.default_rng(4)
+        cloud = entry.mesh.nodes[rng.integers(0, entry.mesh.n_nodes, MAX_POINTS)]
+        body = mp({"points": packed(cloud + rng.normal(0, 1e-3, cloud.shape))})
+        with httpx.Client(base_url=server.url, timeout=60) as http:
+            sid = http.post("/sessions", json={"model": "bar", "support": support.tolist(), "max_iter": 2}).json()
+            sid = sid["session"]
+            sock = socket.socket()
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 14)
+            sock.connect(("127.0.0.1", server.port))
+            sock.sendall(
+                f"GET /sessions/{sid}/watch HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\n"
+                "Connection: Upgrade\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n"
+                "Sec-WebSocket-Version: 13\r\n\r\n".encode()
+            )
+            assert b" 101 " in sock.recv(200)  # accepted; never read from again
+            state = server.app.state
+            assert wait_for(lambda: state.registry.get(sid, touch=False).watch.watchers == 1)
+            for _ in range(30):  # about 5 MB of JSON messages: more than the buffers hold
+                assert http.post(f"/sessions/{sid}/frames", content=body, headers=MSGPACK).status_code == 200
+            assert wait_for(lambda: state.sockets == 0, timeout=15), "the stalled watcher still holds its slot"
+            assert state.registry.get(sid, touch=False).watch.watchers == 0
+        sock.close()
+    finally:
+        server.stop()
+
+
 WATCHERS = """
 import sys, threading
 from websockets.sync.client import connect

@@ -49,12 +49,21 @@ class Watcher:
         self.kind = codec.MSGPACK if enc in ("msgpack", "application/msgpack") else codec.JSON
 
     async def _send(self, data: bytes) -> bool:
+        """False when the client has gone, or took no message within send_timeout_s: a watcher
+        that stops reading would otherwise hold its socket slot (and its session's publisher)
+        for ever, past the session's end, as a stream's client would."""
         try:
-            if self.kind == codec.MSGPACK:
-                await self.ws.send_bytes(data)
-            else:
-                await self.ws.send_text(data.decode())
+            async with asyncio.timeout(self.settings.send_timeout_s):
+                if self.kind == codec.MSGPACK:
+                    await self.ws.send_bytes(data)
+                else:
+                    await self.ws.send_text(data.decode())
             return True
+        except TimeoutError:
+            log.info(
+                "a watcher of %s took no message for %g s: closing it", self.session_id, self.settings.send_timeout_s
+            )
+            return False
         except Exception:  # the client went away mid-message
             return False
 
