@@ -34,6 +34,17 @@ _at_least_one = _whole_number(1)
 _at_least_zero = _whole_number(0)
 
 
+def _port(text: str) -> int:
+    """A TCP port, 1..65535 (a larger one would wrap round: 70000 listened on 4464)."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if not 1 <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"must be a port number 1..65535, got {text!r}")
+    return value
+
+
 def _positive(text: str) -> float:
     value = float(text)
     if not (value > 0 and math.isfinite(value)):
@@ -174,7 +185,7 @@ def parser() -> argparse.ArgumentParser:
         "print error and latency per frame",
     )
     d.add_argument("--model", default="phantom", help="model id in the store (default: phantom)")
-    d.add_argument("--frames", type=int, default=20)
+    d.add_argument("--frames", type=_whole_number(2), default=20)
     d.add_argument(
         "--method",
         choices=["network", "fem", "auto"],
@@ -186,15 +197,18 @@ def parser() -> argparse.ArgumentParser:
     d.add_argument(
         "--viewer", action="store_true", help="serve and open the live viewer's demo instead (Ctrl-C to stop)"
     )
-    d.add_argument("--port", type=int, default=None, help="with --viewer: the server's port (default: a free one)")
+    d.add_argument("--port", type=_port, default=None, help="with --viewer: the server's port (default: a free one)")
     d.set_defaults(func=_demo)
 
     s = command("serve", "run the HTTP/WebSocket API over a model store")
     s.add_argument("--store", default=None, help="model store (default: $ELASTREG_STORE or the project's model_store/)")
     s.add_argument("--host", default="127.0.0.1")
-    s.add_argument("--port", type=int, default=8000)
+    s.add_argument("--port", type=_port, default=8000)
     s.add_argument(
-        "--workers", type=int, default=1, help="server processes (sessions live in the process that made them)"
+        "--workers",
+        type=_at_least_one,
+        default=1,
+        help="server processes (sessions live in the process that made them)",
     )
     s.add_argument(
         "--token-file", default=None, help="bearer tokens, one a line (or ELASTREG_API_TOKENS); see docs/deployment.md"
@@ -256,7 +270,7 @@ def parser() -> argparse.ArgumentParser:
     )
     g.add_argument("--model", required=True, help="model id in the store")
     g.add_argument("--host", default="127.0.0.1")
-    g.add_argument("--port", type=int, default=18944, help="OpenIGTLink port (default: 18944)")
+    g.add_argument("--port", type=_port, default=18944, help="OpenIGTLink port (default: 18944)")
     g.add_argument("--server", default=None, help="URL of a running API (default: serve --store in this process)")
     g.add_argument("--store", default=None, help="model store when no --server is given")
     g.add_argument("--device", default="cloud", help="device name of the incoming clouds (default: cloud)")

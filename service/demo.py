@@ -11,6 +11,7 @@ the client-side latency and the server's solve time, then a summary.
 
 from __future__ import annotations
 
+import contextlib
 import sys
 import time
 from pathlib import Path
@@ -135,7 +136,13 @@ def viewer(model: str = "phantom", store=None, port: int | None = None, *, out=N
             file=out,
         )
         return 1
-    with BackgroundServer(Settings(store=store), port=port) as server:
+    try:
+        server = BackgroundServer(Settings(store=store), port=port).start()
+    except RuntimeError as exc:  # the port is taken, or the server could not bind it
+        where = "a free port" if port is None else f"port {port} (in use? --port picks another)"
+        print(f"error: the viewer's server could not start on {where}: {exc}", file=sys.stderr)
+        return 1
+    try:
         url = f"{server.url}/viewer?model={model}&demo=1"
         print(
             f"the viewer: {url}\n(watch any session with {server.url}/viewer?session=ID; Ctrl-C to stop)",
@@ -146,9 +153,9 @@ def viewer(model: str = "phantom", store=None, port: int | None = None, *, out=N
             webbrowser.open(url)
         except Exception:  # no browser here: the URL above is enough
             pass
-        try:
+        with contextlib.suppress(KeyboardInterrupt):
             while True:
                 time.sleep(3600)
-        except KeyboardInterrupt:
-            pass
+    finally:
+        server.stop()
     return 0

@@ -13,9 +13,11 @@ import argparse
 import asyncio
 import sys
 
+import httpx
 import numpy as np
+from websockets.exceptions import WebSocketException
 
-from clients.client import AsyncClient
+from clients.client import ApiError, AsyncClient
 from clients.loadtest import MAX_SECONDS, MAX_STREAMS, LoadReport, check_target, run_load
 
 from .demo import PEAK_FRACTION, patches
@@ -60,6 +62,16 @@ async def _run(args: argparse.Namespace) -> LoadReport:
     )
 
 
+def _points(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a whole number >= 1, got {text!r}")
+    return value
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m service.loadtest", description=__doc__.split("\n\n")[0])
     p.add_argument("--url", default="http://127.0.0.1:8000", help="a loopback server (default %(default)s)")
@@ -68,14 +80,24 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seconds", type=float, default=10.0, help=f"duration (at most {MAX_SECONDS:g})")
     p.add_argument("--encoding", choices=["msgpack", "json"], default="msgpack")
     p.add_argument("--method", choices=METHODS, default=METHODS[0])
-    p.add_argument("--points", type=int, default=1000, help="points per frame")
+    p.add_argument("--points", type=_points, default=1000, help="points per frame")
     args = p.parse_args(argv)
     try:
         check_target(args.url, args.streams, args.seconds)
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    report = asyncio.run(_run(args))
+    try:
+        report = asyncio.run(_run(args))
+    except ApiError as exc:  # the server refused the model, the frames or a stream
+        print(f"error: the server at {args.url} answered {exc}", file=sys.stderr)
+        return 1
+    except WebSocketException as exc:  # a stream closed by the server (a frame over its limits)
+        print(f"error: the server at {args.url} closed a stream: {exc}", file=sys.stderr)
+        return 1
+    except (httpx.HTTPError, OSError) as exc:
+        print(f"error: cannot reach a server at {args.url} ({exc or type(exc).__name__})", file=sys.stderr)
+        return 1
     print(report.text())
     return 0 if report.errors == 0 else 1
 

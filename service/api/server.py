@@ -14,6 +14,7 @@ get 503, streams close with 1012; then uvicorn closes its connections.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import os
@@ -129,7 +130,8 @@ def serve(
 
         app = create_app(settings)
         config = uvicorn.Config(app, **common)
-        _draining_server(config, app).run()
+        with contextlib.suppress(KeyboardInterrupt):  # Ctrl-C: drained and stopped, no traceback (uvicorn.run's way)
+            _draining_server(config, app).run()
 
 
 def check_certificate(certfile: str, keyfile: str | None) -> None:
@@ -207,12 +209,21 @@ class BackgroundServer:
         import threading
         import time
 
-        self.thread = threading.Thread(target=self.server.run, name="elastreg-server", daemon=True)
+        failed: list[str] = []
+
+        def run() -> None:
+            try:
+                self.server.run()
+            except SystemExit:  # uvicorn's way out when it cannot bind: its log says why
+                failed.append("it could not bind its address")
+
+        self.thread = threading.Thread(target=run, name="elastreg-server", daemon=True)
         self.thread.start()
         deadline = time.monotonic() + self.startup_timeout
         while not self.server.started:
             if not self.thread.is_alive():
-                raise RuntimeError("the server stopped during start-up (see the log)")
+                why = failed[0] if failed else "see the log"
+                raise RuntimeError(f"the server stopped during start-up ({why})")
             if time.monotonic() > deadline:
                 raise RuntimeError(f"the server did not start within {self.startup_timeout:g} s")
             time.sleep(0.02)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import io
 import re
+import socket
 
 import numpy as np
 import pytest
@@ -97,6 +98,26 @@ def test_loadtest_bounds():
     assert loadtest_main(["--url", "http://192.168.1.1:8000", "--seconds", "1"]) == 2
 
 
+def test_loadtest_errors_are_one_line_not_tracebacks(live, capsys):
+    """A server that is not there, a model it does not serve, points it cannot take: one line on
+    stderr and a failing exit status each (they were tracebacks)."""
+    with socket.socket() as free:  # a loopback port nothing listens on
+        free.bind(("127.0.0.1", 0))
+        port = free.getsockname()[1]
+    cases = [
+        (["--url", f"http://127.0.0.1:{port}"], "cannot reach a server"),
+        (["--url", live.url, "--model", "nosuch"], "404"),
+        (["--url", live.url, "--model", "bar", "--points", "1000000"], "1009 (message too big)"),
+    ]
+    for argv, message in cases:
+        assert loadtest_main([*argv, "--seconds", "1", "--streams", "1"]) == 1
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and message in err and "Traceback" not in err, err
+    with pytest.raises(SystemExit) as exit_:
+        loadtest_main(["--points", "-5"])
+    assert exit_.value.code == 2 and "must be a whole number >= 1" in capsys.readouterr().err
+
+
 def test_loadtest_runs(live, support, clouds):
     report = asyncio.run(run_load(live.url, "bar", streams=2, seconds=1.0, frames=clouds, support=support))
     assert report.frames > 0 and report.errors == 0 and len(report.per_stream) == 2
@@ -147,3 +168,17 @@ def test_a_frame_whose_reply_timed_out_puts_the_stream_out_of_step(live, support
 
     sync()
     asyncio.run(asynchronous())
+
+
+def test_the_viewer_demo_on_a_busy_port_says_so(bar_store, capsys):
+    """`elastreg demo --viewer --port P` with P taken: one line and exit status 1 (a traceback
+    from the server's start-up before)."""
+    from service.demo import viewer
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        assert viewer(model="bar", store=bar_store[0], port=port) == 1
+    err = capsys.readouterr().err  # uvicorn's own log line, then ours
+    assert err.splitlines()[-1].startswith("error: ") and f"port {port} (in use?" in err and "Traceback" not in err

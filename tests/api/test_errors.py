@@ -144,3 +144,12 @@ def test_errors_in_msgpack_when_asked(http):
 def test_unknown_route_and_method(http):
     assert http.get("/nowhere").status_code == 404
     assert http.put("/sessions").status_code == 405
+
+
+@pytest.mark.parametrize("query", ["seed=-1", "frames=1", "points=5", "seed=x"])
+def test_the_viewers_demo_refuses_bad_queries_with_422(http, query):
+    """A negative seed was a 500 that dropped the keep-alive connection (numpy refuses it); each
+    bad query is a 422 that names it, and the connection serves the next request."""
+    r = http.get(f"/models/bar/demo?{query}")
+    assert r.status_code == 422 and query.split("=")[0] in r.text
+    assert http.get("/health").status_code == 200

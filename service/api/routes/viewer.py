@@ -87,7 +87,7 @@ async def demo(
     pool: PoolDep,
     frames: Annotated[int, Query(ge=2, le=120)] = 40,
     points: Annotated[int, Query(ge=10, le=5000)] = 500,
-    seed: int = 0,
+    seed: Annotated[int, Query(ge=0)] = 0,
 ):
     """A synthetic sequence for the viewer's demo: ``clouds`` (T, m, 3), the ``support`` to
     register over, the ``tool`` nodes that were pulled and the true ``net_forces`` (T, 3)."""
