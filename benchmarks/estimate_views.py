@@ -9,12 +9,13 @@ their error, the median and least estimate / error. Run it in any checkout (`--c
 compare code over the same sites.
 
     python benchmarks/estimate_views.py --model STORE/liver_paper --sites 3 --frames 5 \\
-        --out reports/estimate-prior/views_liver.json [--checkout OLD_CHECKOUT]
+        --out reports/estimate-prior/views_liver.json [--checkout OLD_CHECKOUT] [--support region]
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -30,6 +31,11 @@ def main() -> int:
     p.add_argument("--sites", type=int, default=3)
     p.add_argument("--frames", type=int, default=5)
     p.add_argument("--checkout", type=Path, default=ROOT, help="the code to run (default: this one)")
+    p.add_argument(
+        "--support", choices=("patch", "region"), default="patch",
+        help="each case's support (default), or the model's whole load region (a session's default; "
+        "the Newton method then runs L-BFGS-B: Levenberg-Marquardt takes 500 nodes at most)",
+    )  # fmt: skip
     p.add_argument("--out", type=Path, required=True)
     args = p.parse_args()
     sys.path.insert(0, str(args.checkout.resolve()))
@@ -41,15 +47,18 @@ def main() -> int:
     from service.store import load_entry
 
     entry = load_entry(args.model)
+    fem_config = FEM if args.support == "patch" else dataclasses.replace(FEM, optimizer="lbfgsb")
     rows = []
     for case in anysite_cases(entry, sites=args.sites, frames=args.frames, seed=CALIBRATION_SEED):
-        centre = case.mesh.nodes[case.support].mean(axis=0)
+        centre = case.mesh.nodes[case.support].mean(axis=0)  # the tool's patch and its margin
+        if args.support == "region":
+            case = dataclasses.replace(case, support=np.sort(entry.region))
         far = []
         for cloud in case.clouds:
             d = np.linalg.norm(cloud - centre, axis=1)
             far.append(cloud[d >= np.quantile(d, 0.8)])
         for view, c in (("whole", case), ("far", case.with_clouds(far, f"{case.name}, far view"))):
-            for model, config, method in ((entry.fem, FEM, "fem"), (entry.network, NETWORK_LM, "network-lm")):
+            for model, config, method in ((entry.fem, fem_config, "fem"), (entry.network, NETWORK_LM, "network-lm")):
                 for r in run_case(model, c, config):
                     rows.append({"case": case.name, "view": view, "method": method, "frame": r.frame,
                                  "tre_mm": r.tre_mm, "estimate_mm": r.error_estimate_mm})  # fmt: skip
@@ -69,7 +78,13 @@ def main() -> int:
             }
     print(json.dumps(summary, indent=1))
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    record = {"machine": describe(), "model": args.model.name, "summary": summary, "rows": rows}
+    record = {
+        "machine": describe(),
+        "model": args.model.name,
+        "support": args.support,
+        "summary": summary,
+        "rows": rows,
+    }
     args.out.write_text(json.dumps(record, indent=1))
     return 0
 

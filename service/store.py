@@ -257,6 +257,21 @@ def _max_force(manifest: dict, name: str) -> float | None:
     return float(value)
 
 
+def _tool_patch(manifest: dict, name: str) -> int | None:
+    """The most nodes one sampled load spread over (the scene's patch_nodes' upper end), None
+    in an entry that records none; present, [low, high] whole numbers, 1 <= low <= high."""
+    spec = manifest.get("training", {}).get("load_distribution", {})  # checked by _max_force
+    value = spec.get("patch_nodes")
+    if value is None:
+        return None
+    if not (
+        isinstance(value, list) and len(value) == 2
+        and all(isinstance(v, int) and not isinstance(v, bool) for v in value) and 1 <= value[0] <= value[1]
+    ):  # fmt: skip
+        raise StoreError(f"{name}: the manifest's patch_nodes must be [low, high] node counts, got {value!r:.40}")
+    return int(value[1])
+
+
 def load_entry(path: Path, name: str | None = None) -> Entry:
     """Load and verify one entry; a :class:`StoreError` says what is wrong. `name`: the id it
     is to be served as (default: its folder's name)."""
@@ -293,9 +308,9 @@ def load_entry(path: Path, name: str | None = None) -> Entry:
         raise
     except (KeyError, ValueError, RuntimeError) as exc:
         raise StoreError(f"{name}: the weights do not fit the manifest ({exc})") from None
-    max_force = _max_force(manifest, name)
-    network = NetworkModel(mesh, material, region, net, E0=material.E, max_force=max_force)
-    fem = FEMModel(mesh, material, max_force=max_force)
+    max_force, tool_patch = _max_force(manifest, name), _tool_patch(manifest, name)  # the estimate's prior
+    network = NetworkModel(mesh, material, region, net, E0=material.E, max_force=max_force, tool_patch=tool_patch)
+    fem = FEMModel(mesh, material, max_force=max_force, tool_patch=tool_patch)
     return Entry(manifest["id"], path, manifest, mesh, region, network, fem)
 
 

@@ -37,6 +37,9 @@ class FEMModel:
     #: N, the largest total force a tool exerts on this organ (the scene's [training] max_force):
     #: the error estimate's prior on the forces a cloud does not determine; None: no prior
     max_force: float | None = None
+    #: nodes a tool's force spreads over at most (the upper end of the scene's [training]
+    #: patch_nodes): where a support is larger than a tool's margin, the prior's windows
+    tool_patch: int | None = None
 
     method = "fem"
 
@@ -45,7 +48,7 @@ class FEMModel:
         return Assembler(self.mesh, self.material)
 
     def with_stiffness(self, E: float) -> FEMModel:
-        return FEMModel(self.mesh, self.material.with_stiffness(E), self.options, self.max_force)
+        return dataclasses.replace(self, material=self.material.with_stiffness(E))
 
     def newton(self) -> NewtonSolver:
         """A fresh solver (owns a factorisation: one per thread)."""

@@ -112,17 +112,44 @@ def estimator_for(model) -> ResidualEstimator:
 MISFIT_FACTOR = 4.9
 
 
-def force_prior(jac, k: int, max_force: float) -> Array:
-    """L (r, 3) with L L^T the prior the module's third term takes on the basis coefficients a
-    tool's force gives: one total force, spread evenly over the k support nodes, of the model's
-    largest (`max_force`) along each axis. A bound, not a mean: the estimate must not be small
-    where the error is large, and a tool pulls in any one direction as hard as in all three.
-    `jac` a Jacobian at the frame's forces (C's products)."""
+#: a session's support is a tool's patch with its margin: up to this many tool patches' nodes
+#: (the any-site part's and the demo's supports are three times their tool's patch)
+SUPPORT_MARGIN = 3
+
+
+def prior_windows(points: Array, tool_patch: int | None) -> list[Array]:
+    """Where the force prior puts a tool's force (:func:`force_prior`): the whole support (k
+    nodes at `points`, (k, 3)) where it is at most SUPPORT_MARGIN tool patches, else windows of
+    that many nodes, ceil(k / window) of them, each the nodes nearest a centre, the centres
+    spread by farthest-point sampling. Spread evenly over a support of hundreds of nodes, one
+    tool's force is a diffuse pull the far side of a view barely feels (the Newton method on
+    the phantom's 592-node region, views away from the tool: 3 frames in 15 under half their
+    error; windows: none). Positions into the support."""
+    k = len(points)
+    window = None if tool_patch is None else SUPPORT_MARGIN * int(tool_patch)
+    if window is None or k <= window:
+        return [np.arange(k)]
+    centres = [0]
+    d = np.linalg.norm(points - points[0], axis=1)
+    for _ in range(math.ceil(k / window) - 1):
+        centres.append(int(np.argmax(d)))
+        d = np.minimum(d, np.linalg.norm(points - points[centres[-1]], axis=1))
+    return [np.sort(np.argsort(np.linalg.norm(points - points[c], axis=1))[:window]) for c in centres]
+
+
+def force_prior(jac, windows: list[Array], k: int, max_force: float) -> Array:
+    """L (r, 3 w) with L L^T the prior the module's third term takes on the basis coefficients
+    a tool's force gives, three columns per window (:func:`prior_windows`): one total force,
+    spread evenly over the window's nodes, of the model's largest (`max_force`) along each axis.
+    A bound, not a mean: the estimate must not be small where the error is large, and a tool
+    pulls in any one direction as hard as in all three (inverse_spread takes the worst window).
+    `jac` a Jacobian at the frame's forces (C's products) on a support of k nodes."""
     columns = []
-    for axis in range(3):
-        e = np.zeros((k, 3))
-        e[:, axis] = float(max_force) / k
-        columns.append(np.asarray(jac.matvec(e.ravel()), np.float64))
+    for nodes in windows:
+        for axis in range(3):
+            e = np.zeros((k, 3))
+            e[nodes, axis] = float(max_force) / len(nodes)
+            columns.append(np.asarray(jac.matvec(e.ravel()), np.float64))
     return np.column_stack(columns)
 
 
@@ -169,7 +196,9 @@ def inverse_spread(
         sol[:, 2 + L.shape[1] :],
     )
     p = jac.U.shape[0] // 3
-    bias2 = max(float(pull @ (readout_gram @ pull)), float(np.sum(prior_pull * (readout_gram @ prior_pull))), 0.0)
+    # the prior's columns come in threes, a tool force along each axis per window: the worst window
+    per_patch = np.sum(prior_pull * (readout_gram @ prior_pull), axis=0).reshape(-1, 3).sum(axis=1)
+    bias2 = max(float(pull @ (readout_gram @ pull)), float(per_patch.max(initial=0.0)), 0.0)
     step2 = max(float(left @ (readout_gram @ left)), 0.0)
     if not noise:
         return math.sqrt((bias2 + step2) / p), math.nan

@@ -34,7 +34,7 @@ from ..fem.assembly import Assembler
 from ..fem.material import NeoHookean
 from ..forward import ForwardFailed, ForwardModel, ForwardOperator, check_support
 from ..mesh import TetMesh
-from .confidence import error_estimate, estimator_for, force_prior, inverse_spread
+from .confidence import error_estimate, estimator_for, force_prior, inverse_spread, prior_windows
 from .distance import PointToSurface
 from .engine import FrameSolution, SolveOptions, check_optimizer, solve_frame
 from .noise_prior import AlphaTracker
@@ -165,6 +165,7 @@ class Session:
             g[keep >= 0] = g_old[keep[keep >= 0]]
         self.support = support
         self.g = g
+        self._windows = prior_windows(self.mesh.nodes[support], getattr(self.model, "tool_patch", None))
         self._trend: Array | None = None  # the forces' change between the last two converged frames
         self._converged = False  # whether the last frame's answer converged
         self._trend_before: Array | None = None  # the trend one frame earlier
@@ -217,7 +218,8 @@ class Session:
                 self._priors.insert(0, self._priors.pop(i))
                 return prior
         assert self._max_force is not None
-        self._priors = [(jac, force_prior(jac, self.support.size, self._max_force)), *self._priors[:1]]
+        prior = force_prior(jac, self._windows, self.support.size, self._max_force)
+        self._priors = [(jac, prior), *self._priors[:1]]
         return self._priors[0][1]
 
     def frame(self, points: Array, support: Array | None = None, frame_id=None) -> FrameResult:

@@ -42,6 +42,7 @@ class NetworkModel:
     net: torch.nn.Module
     E0: float  # Young's modulus the network was trained at
     max_force: float | None = None  # N: the error estimate's force prior (FEMModel.max_force)
+    tool_patch: int | None = None  # nodes under one tool at most (FEMModel.tool_patch)
 
     method = "network"
 

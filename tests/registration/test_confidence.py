@@ -265,9 +265,24 @@ def test_inverse_spread_is_the_linearised_covariance_and_the_priors_pull(entry, 
     prior_pull = alpha * J @ (Hi @ Lg)
     assert np.sum(prior_pull**2) > pull @ pull
     with_prior = np.sqrt((np.trace(cov) + np.sum(prior_pull**2) + left @ left) / p)
-    prior = force_prior(jac, tool.size, F)
+    prior = force_prior(jac, [np.arange(tool.size)], tool.size, F)
     got, _ = inverse_spread(jac, match, dist.faces, alpha, sigma, U.T @ U, jac.matvec(g.ravel()), prior)
     assert got == pytest.approx(with_prior, rel=1e-3)
+    # windows: each its own tool force, along each axis; the worst window counts
+    windows = [np.arange(tool.size // 2), np.arange(tool.size // 2, tool.size)]
+    worst = 0.0
+    for w in windows:
+        Lw = np.zeros((tool.size, 3, 3))
+        for a in range(3):
+            Lw[w, a, a] = F / len(w)
+        pull_w = alpha * J @ (Hi @ Lw.reshape(K, 3))
+        worst = max(worst, float(np.sum(pull_w**2)))
+    assert worst > np.sum(prior_pull**2)  # concentrated, each pulls harder than the spread one
+    got, _ = inverse_spread(
+        jac, match, dist.faces, alpha, sigma, U.T @ U, jac.matvec(g.ravel()),
+        force_prior(jac, windows, tool.size, F),
+    )  # fmt: skip
+    assert got == pytest.approx(np.sqrt((np.trace(cov) + worst + left @ left) / p), rel=1e-3)
     # the force directions the cloud determines: sum of l / (l + alpha) over C^T A C's eigenvalues
     lam = np.linalg.eigvalsh(C.T @ A @ C)
     assert gamma == pytest.approx(float(np.sum(lam / (lam + alpha))), rel=1e-3)
@@ -297,3 +312,27 @@ def test_past_its_dense_jacobian_the_newton_method_reads_the_rest_ones_leading_d
         assert leading.error_estimate == pytest.approx(dense.error_estimate, rel=1e-2), name
         true = np.linalg.norm(leading.outputs["displacement"] - truth, axis=1).mean()
         assert leading.error_estimate >= 0.5 * true, name
+
+
+def test_a_support_larger_than_a_tools_margin_takes_the_worst_window(entry):
+    """Spread over a whole region, one tool's force is a diffuse pull a view away from the tool
+    barely feels: the prior then takes windows of SUPPORT_MARGIN tool patches and the worst of
+    them. Up to that size the support is its own one window (every benchmark's support)."""
+    from service.registration.confidence import SUPPORT_MARGIN, prior_windows
+
+    points = entry.mesh.nodes[entry.region]
+    assert [w.tolist() for w in prior_windows(points, len(points))] == [list(range(len(points)))]
+    assert len(prior_windows(points, None)) == 1
+    windows = prior_windows(points, 2)
+    assert len(windows) == -(-len(points) // (2 * SUPPORT_MARGIN))
+    assert all(len(w) == 2 * SUPPORT_MARGIN for w in windows)
+    tool = _tip(entry)
+    seq = make_sequence(entry.mesh, entry.fem.material, tool, n_frames=1, peak_force=40.0, n_points=300, seed=4)
+    cloud, truth = seq.clouds[0], seq.displacements[0]
+    config = SessionConfig(method="fem", support=tuple(int(i) for i in entry.region))
+    for name, points in {"near the clamp": cloud[cloud[:, 0] < 1.0], "one point": cloud[:1]}.items():
+        whole = Session(dataclasses.replace(entry.fem, tool_patch=None), config).frame(points)
+        windowed = Session(dataclasses.replace(entry.fem, tool_patch=2), config).frame(points)
+        np.testing.assert_array_equal(windowed.outputs["forces"], whole.outputs["forces"])
+        true = np.linalg.norm(windowed.outputs["displacement"] - truth, axis=1).mean()
+        assert windowed.error_estimate > whole.error_estimate and windowed.error_estimate >= 0.5 * true, name

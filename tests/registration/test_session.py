@@ -344,7 +344,8 @@ def test_the_estimate_leaves_the_answers_alone(entry, sequence, method):
 
     (jac, prior), *_ = with_prior._priors
     assert jac is with_prior.op.estimate_jacobian(with_prior.g) and len(with_prior._priors) == 1
-    np.testing.assert_array_equal(prior, force_prior(jac, with_prior.support.size, model.max_force))
+    expected = force_prior(jac, [np.arange(with_prior.support.size)], with_prior.support.size, model.max_force)
+    np.testing.assert_array_equal(prior, expected)
 
 
 def test_a_frame_out_of_time_forms_no_jacobian_for_its_estimate(entry, sequence):

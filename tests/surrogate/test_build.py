@@ -69,6 +69,7 @@ def test_stiffness_scaling_matches_the_fem(bar_store):
         (lambda p: _edit_manifest(p, training={"load_distribution": {"max_force": True}}), "max_force"),
         (lambda p: _edit_manifest(p, training={"load_distribution": {"max_force": -1.0}}), "max_force"),
         (lambda p: _edit_manifest(p, training=[]), "load_distribution"),
+        (lambda p: _edit_manifest(p, training={"load_distribution": {"patch_nodes": [9, 3]}}), "patch_nodes"),
     ],
 )
 def test_a_corrupt_entry_is_refused_and_the_others_still_load(bar_store, tmp_path, damage, message):
