@@ -14,35 +14,26 @@ import sys
 from pathlib import Path
 
 
-def _whole_number(minimum: int):
-    """An argparse type for whole numbers >= `minimum`: refused at parse time, not after an hour
-    of data generation."""
+def whole_number(minimum: int, maximum: int | None = None):
+    """An argparse type for whole numbers in minimum..maximum: refused at parse time, not after
+    an hour of data generation (or, for a port, not wrapped round: 70000 listened on 4464)."""
+    wanted = f">= {minimum}" if maximum is None else f"in {minimum}..{maximum}"
 
     def parse(text: str) -> int:
         try:
             value = int(text)
         except ValueError:
             value = minimum - 1
-        if value < minimum:
-            raise argparse.ArgumentTypeError(f"must be a whole number >= {minimum}, got {text!r}")
+        if value < minimum or (maximum is not None and value > maximum):
+            raise argparse.ArgumentTypeError(f"must be a whole number {wanted}, got {text!r}")
         return value
 
     return parse
 
 
-_at_least_one = _whole_number(1)
-_at_least_zero = _whole_number(0)
-
-
-def _port(text: str) -> int:
-    """A TCP port, 1..65535 (a larger one would wrap round: 70000 listened on 4464)."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if not 1 <= value <= 65535:
-        raise argparse.ArgumentTypeError(f"must be a port number 1..65535, got {text!r}")
-    return value
+_at_least_one = whole_number(1)
+_at_least_zero = whole_number(0)
+_port = whole_number(1, 65535)
 
 
 def _positive(text: str) -> float:
@@ -185,7 +176,7 @@ def parser() -> argparse.ArgumentParser:
         "print error and latency per frame",
     )
     d.add_argument("--model", default="phantom", help="model id in the store (default: phantom)")
-    d.add_argument("--frames", type=_whole_number(2), default=20)
+    d.add_argument("--frames", type=whole_number(2), default=20)
     d.add_argument(
         "--method",
         choices=["network", "fem", "auto"],

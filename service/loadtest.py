@@ -20,6 +20,7 @@ from websockets.exceptions import WebSocketException
 from clients.client import ApiError, AsyncClient
 from clients.loadtest import MAX_SECONDS, MAX_STREAMS, LoadReport, check_target, run_load
 
+from .cli import whole_number
 from .demo import PEAK_FRACTION, patches
 from .mesh import TetMesh
 from .registration.settings import METHODS
@@ -62,16 +63,6 @@ async def _run(args: argparse.Namespace) -> LoadReport:
     )
 
 
-def _points(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be a whole number >= 1, got {text!r}")
-    return value
-
-
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m service.loadtest", description=__doc__.split("\n\n")[0])
     p.add_argument("--url", default="http://127.0.0.1:8000", help="a loopback server (default %(default)s)")
@@ -80,7 +71,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seconds", type=float, default=10.0, help=f"duration (at most {MAX_SECONDS:g})")
     p.add_argument("--encoding", choices=["msgpack", "json"], default="msgpack")
     p.add_argument("--method", choices=METHODS, default=METHODS[0])
-    p.add_argument("--points", type=_points, default=1000, help="points per frame")
+    p.add_argument("--points", type=whole_number(1), default=1000, help="points per frame")
     args = p.parse_args(argv)
     try:
         check_target(args.url, args.streams, args.seconds)

@@ -11,13 +11,13 @@ from service.cli import parser
 @pytest.mark.parametrize(
     "argv, words",
     [
-        (["serve", "--port", "70000"], "port number 1..65535"),  # it bound 70000 - 65536 = 4464
-        (["serve", "--port", "-1"], "port number 1..65535"),
+        (["serve", "--port", "70000"], "whole number in 1..65535"),  # it bound 70000 - 65536 = 4464
+        (["serve", "--port", "-1"], "whole number in 1..65535"),
         (["serve", "--workers", "0"], "whole number >= 1"),
         (["serve", "--workers", "-3"], "whole number >= 1"),
-        (["igtl", "--model", "phantom", "--port", "0"], "port number 1..65535"),
+        (["igtl", "--model", "phantom", "--port", "0"], "whole number in 1..65535"),
         (["demo", "--frames", "0"], "whole number >= 2"),
-        (["demo", "--viewer", "--port", "99999"], "port number 1..65535"),
+        (["demo", "--viewer", "--port", "99999"], "whole number in 1..65535"),
     ],
 )
 def test_impossible_values_are_refused_at_parse_time(argv, words, capsys):

@@ -197,8 +197,8 @@ def inverse_spread(
     )
     p = jac.U.shape[0] // 3
     # the prior's columns come in threes, a tool force along each axis per window: the worst window
-    per_patch = np.sum(prior_pull * (readout_gram @ prior_pull), axis=0).reshape(-1, 3).sum(axis=1)
-    bias2 = max(float(pull @ (readout_gram @ pull)), float(per_patch.max(initial=0.0)), 0.0)
+    per_window = np.sum(prior_pull * (readout_gram @ prior_pull), axis=0).reshape(-1, 3).sum(axis=1)
+    bias2 = max(float(pull @ (readout_gram @ pull)), float(per_window.max(initial=0.0)), 0.0)
     step2 = max(float(left @ (readout_gram @ left)), 0.0)
     if not noise:
         return math.sqrt((bias2 + step2) / p), math.nan
