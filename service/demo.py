@@ -121,6 +121,19 @@ def run(
         )
 
 
+def _port_free(port: int) -> bool:
+    """Whether a loopback port can be bound now (the server's start-up would say so only in its
+    log, and a failed lifespan reads the same there)."""
+    import socket
+
+    with socket.socket() as probe:
+        try:
+            probe.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
+
+
 def viewer(model: str = "phantom", store=None, port: int | None = None, *, out=None) -> int:
     """``elastreg demo --viewer``: serve the model and open the viewer's demo (the page streams a
     synthetic sequence itself) until interrupted."""
@@ -136,11 +149,13 @@ def viewer(model: str = "phantom", store=None, port: int | None = None, *, out=N
             file=out,
         )
         return 1
+    if port is not None and not _port_free(port):
+        print(f"error: port {port} is in use (--port picks another, or leave it out for a free one)", file=sys.stderr)
+        return 1
     try:
         server = BackgroundServer(Settings(store=store), port=port).start()
-    except RuntimeError as exc:  # the port is taken, or the server could not bind it
-        where = "a free port" if port is None else f"port {port} (in use? --port picks another)"
-        print(f"error: the viewer's server could not start on {where}: {exc}", file=sys.stderr)
+    except RuntimeError as exc:
+        print(f"error: the viewer's server could not start: {exc}", file=sys.stderr)
         return 1
     try:
         url = f"{server.url}/viewer?model={model}&demo=1"

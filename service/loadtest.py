@@ -86,8 +86,11 @@ def main(argv: list[str] | None = None) -> int:
     except WebSocketException as exc:  # a stream closed by the server (a frame over its limits)
         print(f"error: the server at {args.url} closed a stream: {exc}", file=sys.stderr)
         return 1
-    except (httpx.HTTPError, OSError) as exc:
+    except (httpx.ConnectError, OSError) as exc:
         print(f"error: cannot reach a server at {args.url} ({exc or type(exc).__name__})", file=sys.stderr)
+        return 1
+    except httpx.HTTPError as exc:  # reached, then a timeout or a broken reply
+        print(f"error: a request to {args.url} failed ({type(exc).__name__}: {exc})", file=sys.stderr)
         return 1
     print(report.text())
     return 0 if report.errors == 0 else 1

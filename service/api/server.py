@@ -214,8 +214,8 @@ class BackgroundServer:
         def run() -> None:
             try:
                 self.server.run()
-            except SystemExit:  # uvicorn's way out when it cannot bind: its log says why
-                failed.append("it could not bind its address")
+            except SystemExit:  # uvicorn's way out of a failed start-up (a bind, the lifespan)
+                failed.append("uvicorn exited: its log above says why")
 
         self.thread = threading.Thread(target=run, name="elastreg-server", daemon=True)
         self.thread.start()

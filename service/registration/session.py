@@ -174,17 +174,18 @@ class Session:
         self.curvature = Curvature(3 * support.size) if self.config.carry_curvature else None
         # the corrector's frames teach their own: the FEM's curvature is not the network's
         self._corrector_curvature = Curvature(3 * support.size) if self.config.carry_curvature else None
-        self._warm_spread()
+        self._warm_spread(opening=g_old is None)
 
-    def _warm_spread(self) -> None:
+    def _warm_spread(self, opening: bool) -> None:
         """The spread's once-per-operator work (:meth:`_spread`), made with the operator, not in
         a frame (whose time budget it would overrun): the Gram matrix of the network's readout
         (about 50 ms on the phantom), the Newton method's rest Jacobian and its Gram (3 solves
         per support node). The network's Jacobians are left to the frames: their anchor is the
         first one's point, and moving it moves answers at rounding level, which a noise-chosen
-        alpha amplifies (the demo's force error 10.2 -> 13.8 %, docs/performance.md). Method
-        auto's corrector's rest Jacobian and Gram too: nearly every any-site auto session
-        corrects, and its first correction had them to make inside its frame."""
+        alpha amplifies (the demo's force error 10.2 -> 13.8 %, docs/performance.md). When the
+        session opens (`opening`), method auto's corrector's rest Jacobian and Gram too: nearly
+        every any-site auto session corrects, and its first correction had them to make inside
+        its frame; a support change inside a frame leaves them to its first correction."""
         if not self._spreads:
             return
         U = getattr(self.op, "readout", None)
@@ -193,7 +194,7 @@ class Session:
             U = None if jac is None else jac.U
         if U is not None:
             self._readout_gram(U)
-        if self.corrector is not None:  # auto's first correction would form its own in its frame
+        if opening and self.corrector is not None:  # auto's first correction would form them in its frame
             self._corrector_op = self.corrector.restrict(self.support, self.distance.nodes)
             jac = getattr(self._corrector_op, "estimate_jacobian", lambda g: None)(np.zeros((self.support.size, 3)))
             if jac is not None:
