@@ -22,7 +22,7 @@ from .assembly import Assembler
 from .linsolve import SparseSolver, make_solver
 from .material import NeoHookean
 from .newton import NewtonOptions, NewtonResult, NewtonSolver
-from .rest import RestCompliance, leading_directions, rest_compliance
+from .rest import OVERSAMPLE, POWER, RestCompliance, leading_directions, rest_compliance
 
 Array = np.ndarray
 
@@ -257,7 +257,7 @@ class FEMOperator:
                 rhs[read[moving]] = Y[moving]  # the nodes are distinct
                 return solve(rhs)[cols]
 
-            U, C = leading_directions(forward, back, cols.size, ESTIMATE_RANK, oversample=16, power=2)
+            U, C = leading_directions(forward, back, cols.size, ESTIMATE_RANK, OVERSAMPLE, POWER)
             self._rest_leading = LowRankJacobian(U, C)
         return self._rest_leading
 

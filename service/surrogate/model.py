@@ -24,7 +24,7 @@ import torch
 from scipy.linalg.blas import sgemm, strmm
 
 from ..fem.material import NeoHookean
-from ..fem.rest import RestCompliance, leading_directions, rest_compliance
+from ..fem.rest import OVERSAMPLE, POWER, RestCompliance, leading_directions, rest_compliance
 from ..forward import check_support
 from ..mesh import TetMesh
 from .network import Ensemble, PaperSurrogate, ReducedSurrogate
@@ -108,9 +108,6 @@ class NetworkModel:
 #: supports 64 registered as the exact block did at half its readout (calibration sites,
 #: reports/layout-study/linear_rank.json)
 LINEAR_RANK = 64
-#: the range finder's extra directions and power iterations: on the phantom's 592-node region the
-#: rank-64 block is then within 2 % of the SVD's optimum in the 2-norm (docs/performance.md)
-OVERSAMPLE, POWER = 16, 2
 
 
 def _physics_input(model: NetworkModel, support: Array, x_scale: float) -> tuple[Array, Array, Array]:
