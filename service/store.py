@@ -320,7 +320,7 @@ def open_store(store: Path) -> tuple[dict[str, Entry], dict[str, str]]:
     entries: dict[str, Entry] = {}
     errors: dict[str, str] = {}
     if not store.is_dir():
-        log.warning("model store %s does not exist", store)
+        log.warning("model store %s %s", store, "is not a folder" if store.exists() else "does not exist")
         return entries, errors
     for path in sorted(p for p in store.iterdir() if p.is_dir() and not p.name.startswith(".")):
         try:

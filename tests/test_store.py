@@ -140,3 +140,12 @@ def test_a_failed_swap_puts_the_served_entry_back(bar_store, tmp_path, monkeypat
     assert (root / "bar" / "manifest.json").read_bytes() == before
     assert [p.name for p in root.iterdir()] == ["bar"]
     load_entry(root / "bar")
+
+
+def test_a_store_path_that_is_missing_or_a_file_is_named_as_such(tmp_path, caplog):
+    a_file = tmp_path / "store.txt"
+    a_file.write_text("not a store")
+    with caplog.at_level("WARNING"):
+        assert open_store(tmp_path / "nowhere") == ({}, {})
+        assert open_store(a_file) == ({}, {})
+    assert "nowhere does not exist" in caplog.text and "store.txt is not a folder" in caplog.text
