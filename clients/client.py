@@ -143,10 +143,19 @@ def decode(data: bytes | str, encoding: str):
     return _incoming(obj)
 
 
+def _node_ids(ids, what: str) -> np.ndarray:
+    """Node ids as int64, refused here if they are not integers: a cast would truncate 1.5 to 1
+    and register over another node than the one meant (the server refuses them too)."""
+    a = np.asarray(ids)
+    if a.dtype.kind not in "iu":
+        raise ValueError(f"{what} must be integer node ids, got dtype {a.dtype}")
+    return a.astype(np.int64, copy=False)
+
+
 def _frame_body(points, support, frame_id) -> dict:
     return {
         "points": np.asarray(points, dtype=np.float64),
-        "support": None if support is None else np.asarray(support, dtype=np.int64),
+        "support": None if support is None else _node_ids(support, "support"),
         "frame_id": frame_id,
     }
 
@@ -155,7 +164,7 @@ def _config_body(model: str, config: dict) -> dict:
     body = {"model": model, **config}
     for key in ("support", "matching"):
         if body.get(key) is not None:
-            body[key] = np.asarray(body[key], dtype=np.int64)
+            body[key] = _node_ids(body[key], key)
     if body.get("outputs") is not None:
         body["outputs"] = list(body["outputs"])
     return body

@@ -174,3 +174,22 @@ def test_a_failed_newton_frame_still_returns_the_fields_asked_for(shipped):
     r = Session(entry.fem, config).frame(seq.clouds[-1])
     assert r.status == "forward_failed"
     assert sorted(r.outputs) == sorted(outputs) and np.isfinite(r.error_estimate)
+
+
+def test_an_auto_correction_out_of_time_never_replaces_a_better_network_frame(shipped):
+    """Method auto on the phantom's default support (its 592-node region) with a 300 ms budget:
+    the network's frame overruns it, and the Newton correction, left 1 ms, stopped at the rest
+    state, which replaced the network's answer (3.5x its error) and zeroed the warm start.
+    The physics' frame now replaces the network's only where it estimates better."""
+    entry = shipped["phantom"]
+    tool = _patch(entry, 12)
+    seq = make_sequence(entry.mesh, entry.fem.material, tool, n_frames=2, peak_force=0.7, n_points=300, seed=3)
+    config = SessionConfig(method="auto", max_error=1e-3, time_budget_ms=300, outputs=("displacement", "forces"))
+    s = Session(entry.network, config, corrector=entry.fem)
+    for k, cloud in enumerate(seq.clouds):
+        r = s.frame(cloud)
+        assert "correction" in r.timing_ms  # every frame's estimate is over 1 mm here
+        assert np.any(r.outputs["forces"]) and np.array_equal(s.g, r.outputs["forces"])
+        true = np.linalg.norm(r.outputs["displacement"] - seq.displacements[k], axis=1).mean()
+        rest = np.linalg.norm(seq.displacements[k], axis=1).mean()
+        assert true < 0.5 * rest, (r.method_used, r.status, true, rest)

@@ -87,7 +87,16 @@ def _force_values(v: Any) -> np.ndarray:
     return _vectors(v, "force values")
 
 
+def _no_booleans(v: Any, what: str, depth: int) -> None:
+    """JSON true and false are no node ids: NumPy would read a list mixing them with numbers
+    as 1 and 0 (nested lists: `depth` levels)."""
+    rows = [v] if depth == 1 else v
+    if isinstance(v, list) and any(isinstance(x, bool) for row in rows if isinstance(row, list) for x in row):
+        raise ValueError(f"{what} must be integers, not booleans")
+
+
 def _node_ids(v: Any) -> np.ndarray:
+    _no_booleans(v, "node ids", 1)
     a = _array(v, "node ids")
     if a.ndim != 1 or a.size == 0:
         raise ValueError(f"node ids must be a non-empty flat list, got shape {list(a.shape)}")
@@ -102,6 +111,7 @@ def _node_ids(v: Any) -> np.ndarray:
 
 
 def _triangles(v: Any) -> np.ndarray:
+    _no_booleans(v, "matching node ids", 2)
     a = _array(v, "matching")
     if a.ndim != 2 or a.shape[1] != 3 or a.shape[0] == 0:
         raise ValueError(f"matching must be a non-empty list of node-id triples, got shape {list(a.shape)}")

@@ -35,6 +35,8 @@ def test_sync_client(live, entry, support, clouds, encoding):
             with pytest.raises(ApiError) as err:
                 s.frame(np.zeros((3, 2)))
             assert err.value.status == 422
+            with pytest.raises(ValueError, match="integer node ids"):  # not truncated to [1, 2]
+                s.frame(clouds[0], support=[1.5, 2.0])
             assert s.info()["counters"]["frames"] == 1
         with api.stream("bar", support=support) as st:
             a = st.frame(clouds[0])
