@@ -180,7 +180,8 @@ def test_an_auto_correction_out_of_time_never_replaces_a_better_network_frame(sh
     """Method auto on the phantom's default support (its 592-node region) with a 300 ms budget:
     the network's frame overruns it, and the Newton correction, left 1 ms, stopped at the rest
     state, which replaced the network's answer (3.5x its error) and zeroed the warm start.
-    The physics' frame now replaces the network's only where it estimates better."""
+    A correction that did not converge now replaces the network's frame only where it
+    estimates better."""
     entry = shipped["phantom"]
     tool = _patch(entry, 12)
     seq = make_sequence(entry.mesh, entry.fem.material, tool, n_frames=2, peak_force=0.7, n_points=300, seed=3)

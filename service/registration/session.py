@@ -272,10 +272,10 @@ class Session:
                 if fem.status not in FAILED:
                     fixed = self._outputs(self._corrector_op, self.corrector, fem, options.alpha)
                 timing["correction"] = 1e3 * (time.perf_counter() - t2)
-                # the physics' frame replaces the network's where it estimates better: one out of
-                # time before it reached the network's forces is the rest state (a whole region's
-                # support, a spent budget), 3.5x worse than what it would replace
-                if fixed is None or not fixed[2] < estimate:  # the network's frame stands
+                # a converged correction stands (exact physics); one that did not converge only
+                # where it estimates better: out of time before it reached the network's forces,
+                # it is the rest state (a whole region's support, a spent budget), 3.5x worse
+                if fixed is None or not (fem.converged or fixed[2] < estimate):  # the network's frame stands
                     self._corrector_op.reset()
                     if self._corrector_curvature is not None:
                         self._corrector_curvature.reset()
