@@ -124,7 +124,7 @@ class Session:
         self._spreads = bool(config.noise or self._max_force)
         # (jac.U, U^T U) for inverse_spread, the latest first: auto's frames read two operators'
         self._readout_grams: list[tuple[Array, Array]] = []
-        self._priors: list[tuple[object, Array]] = []  # (jac, force_prior), as the Grams
+        self._priors: list[tuple[object, Array]] = []  # (jac, force_prior), kept as the Grams
         self._options = SolveOptions.of(self.config)
         # the same problem in scaled forces, as alpha: a softer organ's are smaller (x 1.0 at E_model)
         self._options = dataclasses.replace(
@@ -190,38 +190,36 @@ class Session:
             return
         U = getattr(self.op, "readout", None)
         if U is None and not hasattr(self.op, "at_rest"):  # the Newton method's
-            jac = getattr(self.op, "estimate_jacobian", lambda g: None)(np.zeros((self.support.size, 3)))
-            U = None if jac is None else jac.U
+            U = self._rest_basis(self.op)
         if U is not None:
             self._readout_gram(U)
         if opening and self.corrector is not None:  # auto's first correction would form them in its frame
             self._corrector_op = self.corrector.restrict(self.support, self.distance.nodes)
-            jac = getattr(self._corrector_op, "estimate_jacobian", lambda g: None)(np.zeros((self.support.size, 3)))
-            if jac is not None:
-                self._readout_gram(jac.U)
+            U = self._rest_basis(self._corrector_op)
+            if U is not None:
+                self._readout_gram(U)
+
+    def _rest_basis(self, op: ForwardOperator) -> Array | None:
+        """The basis U of an operator's estimate Jacobian at rest (None if it has none)."""
+        jac = getattr(op, "estimate_jacobian", lambda g: None)(np.zeros((self.support.size, 3)))
+        return None if jac is None else jac.U
 
     def _readout_gram(self, U: Array) -> Array:
         """U^T U (float64) of a Jacobian's basis U, kept for the session's last two (the
         network's and, for method auto, its corrector's): constant per operator."""
-        for i, (kept, gram) in enumerate(self._readout_grams):
-            if kept is U:
-                self._readout_grams.insert(0, self._readout_grams.pop(i))
-                return gram
-        U64 = np.asarray(U, np.float64)
-        self._readout_grams = [(U, U64.T @ U64), *self._readout_grams[:1]]
-        return self._readout_grams[0][1]
+
+        def gram() -> Array:
+            U64 = np.asarray(U, np.float64)
+            return U64.T @ U64
+
+        return _last_two(self._readout_grams, U, gram)
 
     def _force_prior(self, jac) -> Array:
         """confidence.force_prior of a Jacobian, kept for the last two: the estimate Jacobians
         (at rest, without noise) are the operators' own, so it is made once per operator."""
-        for i, (kept, prior) in enumerate(self._priors):
-            if kept is jac:
-                self._priors.insert(0, self._priors.pop(i))
-                return prior
         assert self._max_force is not None
-        prior = force_prior(jac, self._windows, self.support.size, self._max_force)
-        self._priors = [(jac, prior), *self._priors[:1]]
-        return self._priors[0][1]
+        max_force = self._max_force
+        return _last_two(self._priors, jac, lambda: force_prior(jac, self._windows, self.support.size, max_force))
 
     def frame(self, points: Array, support: Array | None = None, frame_id=None) -> FrameResult:
         points = np.asarray(points, np.float64)
@@ -478,6 +476,17 @@ class Session:
             "seconds": self.seconds,
             "support_size": int(self.support.size),
         }
+
+
+def _last_two(kept: list, key, make):
+    """What `make()` gives for `key` (an object, matched by identity), from `kept`: the last two
+    made, the latest first, held with their keys (so an identity cannot be reused)."""
+    for i, (k, value) in enumerate(kept):
+        if k is key:
+            kept.insert(0, kept.pop(i))
+            return value
+    kept[:] = [(key, make()), *kept[:1]]
+    return kept[0][1]
 
 
 def _field(op: ForwardOperator, model: ForwardModel, g: Array, support: Array) -> tuple[Array | None, float]:
