@@ -46,8 +46,9 @@ _DTYPES = {"<f4", "<f8", "<i4", "<i8"}
 
 class ApiError(RuntimeError):
     """The server refused a request: ``status`` (HTTP code, or the stream error's code),
-    ``detail`` (its explanation) and, on a saturated server's 503, ``retry_after`` (seconds to
-    wait before trying again; None where the server gave none)."""
+    ``detail`` (its explanation) and, on a 503 (saturated, at the session limit, shutting down),
+    ``retry_after`` (seconds to wait before trying again: an HTTP reply's Retry-After, a stream
+    error's ``retry_after``; None where the server gave none)."""
 
     def __init__(self, status: int, detail: Any, instance: str | None = None, retry_after: float | None = None) -> None:
         super().__init__(f"{status}: {detail}")
@@ -70,10 +71,26 @@ class StreamError(ApiError):
     """A stream's error message (the stream stays open), or a refused first message
     (``close_code`` set: the server closed the stream)."""
 
-    def __init__(self, status: int, detail: Any, frame_id=None, close_code: int | None = None) -> None:
-        super().__init__(status, detail)
+    def __init__(
+        self,
+        status: int,
+        detail: Any,
+        frame_id=None,
+        close_code: int | None = None,
+        retry_after: float | None = None,
+    ) -> None:
+        super().__init__(status, detail, retry_after=retry_after)
         self.frame_id = frame_id
         self.close_code = close_code
+
+
+def _stream_error(e, close_code: int | None = None) -> StreamError:
+    """The StreamError of a stream's ``{"error": {...}}`` message."""
+    if not isinstance(e, dict):
+        return StreamError(0, e, close_code=close_code)
+    retry = e.get("retry_after")
+    retry = float(retry) if isinstance(retry, (int, float)) and not isinstance(retry, bool) else None
+    return StreamError(int(e.get("code", 0)), e.get("detail"), e.get("frame_id"), close_code, retry)
 
 
 # -- encoding ------------------------------------------------------------------------------------
@@ -176,11 +193,21 @@ def _ws_url(base_url: str) -> str:
     return str(url.copy_with(scheme=scheme, path=url.path.rstrip("/") + "/stream"))
 
 
+def _handshake_refused(exc) -> StreamError:
+    """The StreamError of a handshake the server answered with an HTTP status instead of a
+    socket (the socket limit's 503, with its Retry-After)."""
+    r = exc.response
+    try:
+        detail = json.loads(r.body)["detail"]
+    except Exception:
+        detail = r.body.decode(errors="replace") if r.body else r.reason_phrase
+    return StreamError(r.status_code, detail, retry_after=_retry_after(r.headers.get("Retry-After")))
+
+
 def _reply(message, encoding: str) -> dict:
     obj = decode(message, "msgpack" if isinstance(message, (bytes, bytearray)) else "json")
     if isinstance(obj, dict) and set(obj) == {"error"}:
-        e = obj["error"]
-        raise StreamError(int(e.get("code", 0)), e.get("detail"), e.get("frame_id"))
+        raise _stream_error(obj["error"])
     return obj
 
 
@@ -289,10 +316,15 @@ class Client(_Base):
         return SessionHandle(self, r["session"], r["config"])
 
     def stream(self, model: str, *, max_size: int | None = 1 << 27, **config) -> Stream:
-        """A WebSocket stream (``/stream``) whose session lives with the connection."""
+        """A WebSocket stream (``/stream``) whose session lives with the connection. A refusal
+        (at the session or socket limit: a 503 with ``retry_after``) raises :class:`StreamError`."""
+        from websockets.exceptions import InvalidStatus
         from websockets.sync.client import connect
 
-        ws = connect(_ws_url(self.base_url), open_timeout=self.timeout, **self._ws_options(max_size))
+        try:
+            ws = connect(_ws_url(self.base_url), open_timeout=self.timeout, **self._ws_options(max_size))
+        except InvalidStatus as exc:
+            raise _handshake_refused(exc) from None
         ws.__enter__()  # the Stream owns the connection (and closes it): websockets >= 17 asks for this
         return Stream(ws, self.encoding, _config_body(model, config), self.timeout)
 
@@ -343,14 +375,14 @@ def _opened(first, wait_close) -> tuple[str, dict]:
     a stream whose first message it refused; ``wait_close()`` returns its close code)."""
     obj = decode(first, "msgpack" if isinstance(first, (bytes, bytearray)) else "json")
     if isinstance(obj, dict) and set(obj) == {"error"}:
-        e = obj["error"]
-        raise StreamError(int(e.get("code", 0)), e.get("detail"), e.get("frame_id"), close_code=wait_close())
+        raise _stream_error(obj["error"], close_code=wait_close())
     return obj["session"], obj["config"]
 
 
 class Stream:
     """A WebSocket stream (sync): ``send`` frames (they may be pipelined), ``recv`` results in
-    order, or ``frame`` for both. A stream error raises :class:`StreamError`; the stream goes on."""
+    order, or ``frame`` for both. A stream error raises :class:`StreamError` (a 503's with
+    ``retry_after``, the seconds to wait); the stream goes on."""
 
     def __init__(self, ws, encoding: str, config: dict, timeout: float | None = None) -> None:
         self.ws = ws
@@ -474,8 +506,12 @@ class AsyncClient(_Base):
 
     async def stream(self, model: str, *, max_size: int | None = 1 << 27, **config) -> AsyncStream:
         from websockets import connect
+        from websockets.exceptions import InvalidStatus
 
-        ws = await connect(_ws_url(self.base_url), open_timeout=self.timeout, **self._ws_options(max_size))
+        try:
+            ws = await connect(_ws_url(self.base_url), open_timeout=self.timeout, **self._ws_options(max_size))
+        except InvalidStatus as exc:
+            raise _handshake_refused(exc) from None
         stream = AsyncStream(ws, self.encoding, self.timeout)
         await stream._open(_config_body(model, config))
         return stream

@@ -168,7 +168,20 @@ class Settings(BaseSettings):
     session_queue: int = Field(
         2, ge=0, le=1000, description="HTTP frames of one session waiting behind its running one"
     )
-    retry_after_s: int = Field(1, ge=1, le=3600, description="Retry-After of a 503")
+    retry_after_s: int = Field(
+        1,
+        ge=1,
+        le=3600,
+        description="Retry-After of a 503 from the solve pool (saturated, shutting down) and at the socket limit",
+    )
+    # a session frees up when its client closes it or the sweeper drops it idle (every
+    # sweep_interval_s, 5 s by default): a retry every second would mostly meet the same full server
+    session_retry_after_s: int = Field(
+        5,
+        ge=1,
+        le=3600,
+        description="Retry-After of a 503 at the session limit (sessions free up when closed or swept as idle)",
+    )
     drain_timeout_s: float = Field(30.0, ge=0, le=3600, description="at shutdown: seconds to finish frames in flight")
     instance_id: str = Field(
         default_factory=_instance_id,

@@ -95,7 +95,10 @@ async def lifespan(app: FastAPI):
     app.state.mesh_cache = Memo(2 * max(len(entries), 1))  # each model's mesh in two encodings
     app.state.demo_sequences = Memo(viewer.DEMO_CACHE)
     app.state.registry = SessionRegistry(
-        max_sessions=settings.max_sessions, ttl_s=settings.session_ttl_s, instance_id=settings.instance_id
+        max_sessions=settings.max_sessions,
+        ttl_s=settings.session_ttl_s,
+        instance_id=settings.instance_id,
+        retry_after=settings.session_retry_after_s,
     )
     app.state.pool = SolvePool(settings.solver_threads, settings.solve_queue, retry_after=settings.retry_after_s)
     app.state.sockets = 0  # open WebSockets (deps.websocket_slot)

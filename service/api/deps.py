@@ -32,7 +32,7 @@ from ..config import Settings, get_settings
 from ..store import Entry
 from . import codec, errors
 from .errors import ApiError
-from .schemas import FrameIn, SessionCreate, SimulateIn, check_points_limit
+from .schemas import ErrorOut, FrameIn, SessionCreate, SimulateIn, check_points_limit
 from .sessions import Held, SessionRegistry
 from .work import SolvePool, not_found_model
 
@@ -277,6 +277,12 @@ SimulateBody = Annotated[Body[SimulateIn], Depends(simulate_body)]
 # -- replies -------------------------------------------------------------------------------------
 
 ALT_MSGPACK = {"application/msgpack": {"schema": {"description": "the same map in MessagePack, arrays packed"}}}
+RETRY_AFTER = {"Retry-After": {"description": "seconds to wait before trying again", "schema": {"type": "integer"}}}
+
+
+def unavailable(description: str, model: type[BaseModel] = ErrorOut) -> dict:
+    """A route's OpenAPI 503: every one says when to retry (Retry-After, in seconds)."""
+    return {503: {"model": model, "description": description, "headers": RETRY_AFTER}}
 
 
 def reply(body, kind: str, status: int = 200) -> Response:

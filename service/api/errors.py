@@ -9,7 +9,8 @@ every failure into a body in the request's encoding.
     413 a body, a point cloud or a body's array elements over the limits
     415 a Content-Type that is neither JSON nor MessagePack
     422 a body that does not decode or validate, or that the engine refuses (ValueError)
-    503 the process is at its session limit, or its solves are saturated (Retry-After)
+    503 the process is at its session limit, its solves are saturated, or it is shutting down;
+        always with Retry-After (a stream's error carries it as ``retry_after``)
     500 our bug: logged with its traceback, the reply names only the exception type
 """
 
@@ -41,12 +42,23 @@ class ApiError(Exception):
         self.headers = headers
 
     @property
+    def retry_after(self) -> int | None:
+        """The seconds of its Retry-After header (a 503's), else None."""
+        value = (self.headers or {}).get("Retry-After")
+        return int(value) if value is not None else None
+
+    @property
     def text(self) -> str:
         if isinstance(self.detail, list):
             from .schemas import error_text
 
             return error_text(self.detail)
         return str(self.detail)
+
+
+def unavailable(detail: str, retry_after: int) -> ApiError:
+    """A 503 that says when to retry: ``Retry-After`` over HTTP, ``retry_after`` on a stream."""
+    return ApiError(503, detail, {"Retry-After": str(retry_after)})
 
 
 def unprocessable(msg: str, *loc: str | int, type_: str = "value_error") -> ApiError:
@@ -73,11 +85,11 @@ def as_api_error(exc: BaseException) -> ApiError | None:
     if isinstance(exc, WrongKind):
         return ApiError(409, str(exc))
     if isinstance(exc, RegistryFull):
-        return ApiError(503, str(exc))
+        return unavailable(str(exc), exc.retry_after)
     if isinstance(exc, Dropped):
         return ApiError(404, str(exc))
     if isinstance(exc, Overloaded):
-        return ApiError(503, str(exc), {"Retry-After": str(exc.retry_after)})
+        return unavailable(str(exc), exc.retry_after)
     return None
 
 

@@ -1,13 +1,14 @@
 """The solve pool: a fixed number of threads, and admission control in front of them.
 
-Every engine call runs here, off the event loop. A job is admitted only while the jobs in
-flight (running or waiting for a thread) are fewer than ``threads + queue``: past that the
-caller gets :class:`Overloaded` at once (HTTP 503 with ``Retry-After``, or a stream's 503 error
-for that frame) instead of joining a queue without bound. A job whose client or session went
-away before a thread took it is dropped, not computed (:class:`Dropped`). The count of jobs in
-flight is kept by the jobs themselves (released when the thread is done with one, not when its
-caller stops waiting), so a solve whose client has gone still counts until it ends: nothing
-holds a thread that admission does not see.
+Every engine call runs here, off the event loop. A job is admitted only while the jobs in flight
+(running or waiting for a thread) are fewer than ``threads + queue``: past that the caller gets
+:class:`Overloaded` at once (HTTP 503 with ``Retry-After``, or a stream's 503 error for that
+frame with ``retry_after``) instead of joining a queue without bound. While the server drains
+for shutdown every job is refused the same way: retrying reaches the restarted server, or
+another replica. A job whose client or session went away before a thread took it is dropped, not
+computed (:class:`Dropped`). The count of jobs in flight is kept by the jobs themselves
+(released when the thread is done with one, not when its caller stops waiting), so a solve whose
+client has gone still counts until it ends: nothing holds a thread that admission does not see.
 """
 
 from __future__ import annotations
@@ -81,7 +82,7 @@ class SolvePool:
         with self._lock:
             refusal = None
             if self.draining:
-                refusal = "the server is shutting down"
+                refusal = f"the server is shutting down; retry in {self.retry_after} s"
             elif self.capacity is not None and self.in_flight >= self.capacity:
                 refusal = (
                     f"the server is at capacity ({self.threads} solves running, {self.queue} "
@@ -119,7 +120,7 @@ class SolvePool:
             future = self._pool.submit(job)
         except RuntimeError:  # the executor has shut down
             release(None)
-            raise Overloaded("the server is shutting down", self.retry_after) from None
+            raise Overloaded(f"the server is shutting down; retry in {self.retry_after} s", self.retry_after) from None
         future.add_done_callback(release)
         return await asyncio.wrap_future(future)
 

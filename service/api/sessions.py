@@ -36,7 +36,11 @@ ANY = object()  # an owner that matches every session (the server's own housekee
 
 
 class RegistryFull(RuntimeError):
-    """The process holds its maximum number of sessions (HTTP 503)."""
+    """The process holds its maximum number of sessions (HTTP 503; retry after ``retry_after`` s)."""
+
+    def __init__(self, message: str, retry_after: int) -> None:
+        super().__init__(message)
+        self.retry_after = retry_after
 
 
 class SessionNotFound(KeyError):
@@ -89,9 +93,11 @@ class SessionRegistry:
         max_sessions: int,
         ttl_s: float,
         instance_id: str,
+        retry_after: int,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.max_sessions = max_sessions
+        self.retry_after = retry_after  # seconds, for the 503 at the limit
         self.ttl_s = ttl_s
         self.instance_id = instance_id
         self.clock = clock
@@ -109,7 +115,8 @@ class SessionRegistry:
             if len(self._held) + self._pending + self._draining >= self.max_sessions:
                 raise RegistryFull(
                     f"this server process holds its maximum of {self.max_sessions} sessions; "
-                    "close one (DELETE /sessions/{id}) or retry later"
+                    f"close one (DELETE /sessions/{{id}}) or retry in {self.retry_after} s",
+                    self.retry_after,
                 )
             self._pending += 1
             return Reservation(f"{self.instance_id}-{secrets.token_urlsafe(9)}", kind)

@@ -5,7 +5,8 @@ then one frame per message, one result per frame, in order. Binary messages are 
 and text messages JSON; each reply comes in its message's kind. A bad frame (undecodable,
 invalid, refused by the engine, too many points) is answered ``{"error": {"code", "detail"}}``
 in its turn and the stream goes on with its state unchanged; only a bad first message closes
-the socket (1008), and a full server closes it with 1013 (try again later).
+the socket (1008), and a full server closes it with 1013 (try again later). Every 503 error
+carries ``retry_after``, the seconds to wait (an HTTP 503's ``Retry-After``).
 
 Two tasks per stream: a reader that queues messages as they arrive (bounded in messages and in
 bytes: a client that outruns the server is slowed by TCP, not by our memory) and a worker that
@@ -38,13 +39,12 @@ from . import codec
 from .deps import authorize_websocket, websocket_slot
 from .errors import ApiError, as_api_error, unprocessable
 from .schemas import FrameIn, SessionCreate, check_points_limit
-from .sessions import RegistryFull
 from .work import Dropped, check_frame_support, not_found_model, open_session, opened, solve_frame
 
 log = logging.getLogger(__name__)
 
 POLICY = 1008  # a bad first message, or no valid token
-TRY_LATER = 1013  # the server is at its session limit
+TRY_LATER = 1013  # a 503 for the first message: the session limit, or no thread to open it now
 RESTART = 1012  # the server is shutting down
 _THREAD_DECODE = 256 << 10  # messages larger than this are decoded off the event loop
 _LENIENT_ID = 64 << 10  # an undecodable message is read again for its frame_id up to this size
@@ -101,6 +101,8 @@ class StreamRunner:
         body = {"code": err.status, "detail": err.text}
         if frame_id is not None:
             body["frame_id"] = frame_id
+        if err.retry_after is not None:  # a 503's Retry-After, in seconds
+            body["retry_after"] = err.retry_after
         return await self._send(kind, codec.encode({"error": body}, kind))
 
     async def _close(self, code: int, reason: str) -> None:
@@ -190,17 +192,15 @@ class StreamRunner:
                 settings=self.settings,
                 owner=owner,
             )
-        except RegistryFull as exc:
-            await self._error(kind, ApiError(503, str(exc)))
-            await self._close(TRY_LATER, "server at its session limit")
-            return False
         except Exception as exc:
             err = as_api_error(exc)
             if err is None:
                 log.error("opening a stream failed", exc_info=exc)
                 err = ApiError(500, f"internal error ({type(exc).__name__}); it has been logged")
             await self._error(kind, err)
-            await self._close(POLICY, err.text)
+            # a 503 (the session limit, no thread to build the session now, shutting down) is
+            # not the client's fault: try again later, as its error's retry_after says
+            await self._close(TRY_LATER if err.status == 503 else POLICY, err.text)
             return False
         reply = opened(self.held, self.settings.instance_id)
         return await self._send(kind, codec.encode(reply, kind))

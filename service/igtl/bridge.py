@@ -115,7 +115,7 @@ class Bridge:
         except _Refused as exc:  # the API refused or could not be reached: the client is told
             log.warning("client %s: %s", peer, exc)
             with contextlib.suppress(Exception):
-                writer.write(_status({"error": {"code": exc.code, "detail": str(exc)}}, 2))
+                writer.write(_status({"error": _error_body(exc.code, str(exc), exc.retry_after)}, 2))
                 await writer.drain()
         finally:
             self.busy = False
@@ -130,7 +130,7 @@ class Bridge:
         try:
             stream = await api.stream(self.model, **self.settings, **extra)
         except ApiError as exc:
-            raise _Refused(exc.status or 503, f"the API refused the session: {exc.detail}") from None
+            raise _Refused(exc.status or 503, f"the API refused the session: {exc.detail}", exc.retry_after) from None
         except (OSError, TimeoutError, *_ws_errors()) as exc:
             raise _Refused(503, f"the API at {self.api_url} cannot be reached ({type(exc).__name__}: {exc})") from None
         self.sessions.append(stream.session)
@@ -155,7 +155,7 @@ class Bridge:
                             stream = await self._open(api)
                         except _Refused as exc:
                             log.warning("%s", exc)
-                            await _frame_error(writer, frame, exc.code, str(exc), msg.version)
+                            await _frame_error(writer, frame, exc.code, str(exc), msg.version, exc.retry_after)
                             frame += 1
                             continue
                     if not await self._frame(stream, frame, points, msg.version, writer):
@@ -220,7 +220,7 @@ class Bridge:
         try:
             r = await stream.frame(points, frame_id=frame)
         except StreamError as exc:
-            await _frame_error(writer, frame, exc.status, str(exc.detail), version)
+            await _frame_error(writer, frame, exc.status, str(exc.detail), version, exc.retry_after)
             return exc.status != 0 and exc.close_code is None  # a close (status 0) ends the stream
         except (OSError, TimeoutError, *_ws_errors()) as exc:
             log.warning("frame %d: the API stream was lost (%s: %s)", frame, type(exc).__name__, exc)
@@ -264,9 +264,19 @@ def _status(obj: dict, version: int) -> bytes:
     )
 
 
-async def _frame_error(writer, frame: int, code: int, detail: str, version: int) -> None:
+def _error_body(code: int, detail: str, retry_after: float | None = None) -> dict:
+    """An error as the API words it: a 503's ``retry_after`` (seconds) passed on when it gave one."""
+    body: dict = {"code": code, "detail": detail}
+    if retry_after is not None:
+        body["retry_after"] = retry_after
+    return body
+
+
+async def _frame_error(
+    writer, frame: int, code: int, detail: str, version: int, retry_after: float | None = None
+) -> None:
     """A frame's answer when it has no result: its id and the error."""
-    writer.write(_status({"frame_id": frame, "error": {"code": code, "detail": detail}}, version))
+    writer.write(_status({"frame_id": frame, "error": _error_body(code, detail, retry_after)}, version))
     await writer.drain()
 
 
@@ -284,9 +294,10 @@ def _json_safe(obj):
 class _Refused(Exception):
     """The API refused a session, or could not be reached: `code` is the status to report."""
 
-    def __init__(self, code: int, text: str) -> None:
+    def __init__(self, code: int, text: str, retry_after: float | None = None) -> None:
         super().__init__(text)
         self.code = code
+        self.retry_after = retry_after
 
 
 def _ws_errors() -> tuple[type[BaseException], ...]:

@@ -1,10 +1,10 @@
-"""Admission control (API.md, "Access"): a saturated server answers a fast 503 with
-Retry-After (HTTP) or a 503 error for that frame (the stream goes on) instead of queueing
-without bound; work for a closed session or a gone client is dropped, not computed; a session
-whose solve outlives its client keeps its slot until the solve ends; non-finite results are
-never converged; /health says degraded (503) when the solve queue is full or no model loaded.
-The solver threads are held by jobs admitted as solves are (``occupied``), standing in for long
-FEM frames."""
+"""Admission control (API.md, "Access"): a saturated server answers a fast 503 with Retry-After
+(HTTP) or a 503 error for that frame with retry_after (the stream goes on) instead of queueing
+without bound; every 503, the session limit's too, says when to retry; work for a closed session
+or a gone client is dropped, not computed; a session whose solve outlives its client keeps its
+slot until the solve ends; non-finite results are never converged; /health says degraded (503)
+when the solve queue is full or no model loaded. The solver threads are held by jobs admitted as
+solves are (``occupied``), standing in for long FEM frames."""
 
 from __future__ import annotations
 
@@ -15,9 +15,10 @@ import time
 import httpx
 import numpy as np
 import pytest
+from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
-from clients import ApiError, Client
+from clients import ApiError, Client, StreamError
 from service.api.server import BackgroundServer
 from service.api.sessions import RegistryFull
 from service.api.work import flag_non_finite
@@ -29,8 +30,16 @@ from .conftest import MSGPACK, Live, mp, occupied, packed, recv, start, wait_for
 @pytest.fixture(scope="module")
 def narrow(bar_store):
     """One solver thread, one place in its queue, no HTTP frame waiting behind another of its
-    session, two sessions at most."""
-    server = start(bar_store[0], instance_id="narrow", solver_threads=1, solve_queue=1, session_queue=0, max_sessions=2)
+    session, two sessions at most (a 503 at that limit says: retry in 3 s)."""
+    server = start(
+        bar_store[0],
+        instance_id="narrow",
+        solver_threads=1,
+        solve_queue=1,
+        session_queue=0,
+        max_sessions=2,
+        session_retry_after_s=3,
+    )
     yield Live(server)
     server.stop()
 
@@ -62,6 +71,7 @@ def test_a_saturated_server_answers_503_at_once(narrow, api, clouds):
                 assert time.perf_counter() - t0 < 2.0  # refused, not queued
             health = api.get("/health")
             assert health.status_code == 503 and health.json()["status"] == "degraded"
+            assert health.headers["retry-after"] == "1"
             assert "saturated" in health.json()["reasons"][0]
             ws.send(mp({"points": packed(clouds[0]), "frame_id": 1}))
             err = recv(ws)["error"]
@@ -86,6 +96,74 @@ def test_the_client_hands_a_503s_retry_after_to_its_caller(narrow, api, clouds):
         assert err.value.status == 422 and err.value.retry_after is None
         s.frame(clouds[1])  # the session goes on
         assert s.info()["counters"]["frames"] == 1
+
+
+def close_code(ws) -> int:
+    with pytest.raises(ConnectionClosed) as info:
+        while True:
+            ws.recv(timeout=10)
+    return info.value.rcvd.code
+
+
+def test_a_streams_503_says_when_to_retry(narrow, api, clouds):
+    """A frame refused for load, and a stream refused at opening for want of a thread, carry
+    retry_after (the HTTP 503's Retry-After, seconds); the first goes on, the second closes with
+    1013 (try again later), not 1008 (a bad config)."""
+    pool = narrow.app.state.pool
+    with connect(ws_url(narrow)) as ws, connect(ws_url(narrow)) as late:
+        ws.send(mp({"model": "bar", "max_iter": 20}))
+        recv(ws)
+        with occupied(pool, pool.threads + pool.queue):
+            ws.send(mp({"points": packed(clouds[0]), "frame_id": 7}))
+            err = recv(ws)["error"]
+            assert err == {"code": 503, "detail": err["detail"], "frame_id": 7, "retry_after": 1}
+            late.send(mp({"model": "bar"}))  # building its session needs a thread
+            err = recv(late)["error"]
+            assert err["code"] == 503 and err["retry_after"] == 1
+            assert close_code(late) == 1013
+        ws.send(mp({"points": np.zeros((3, 2)).tolist(), "frame_id": 8}))  # not about load: none
+        err = recv(ws)["error"]
+        assert err["code"] == 422 and "retry_after" not in err
+        ws.send(mp({"points": packed(clouds[1]), "frame_id": 9}))
+        assert recv(ws)["frame_id"] == 9
+
+
+def test_the_client_hands_a_streams_retry_after_to_its_caller(narrow, api, clouds):
+    """Stream.frame raises StreamError with retry_after, as the HTTP path's ApiError has it."""
+    pool = narrow.app.state.pool
+    with Client(narrow.url) as client, client.stream("bar", max_iter=20) as s:
+        with occupied(pool, pool.threads + pool.queue), pytest.raises(StreamError) as err:
+            s.frame(clouds[0], frame_id=1)
+        assert err.value.status == 503 and err.value.retry_after == 1.0 and err.value.frame_id == 1
+        assert err.value.close_code is None  # the stream goes on
+        with pytest.raises(StreamError) as err:
+            s.frame(np.zeros((3, 2)))
+        assert err.value.status == 422 and err.value.retry_after is None
+        assert s.frame(clouds[1], frame_id=2)["frame_id"] == 2
+
+
+def test_the_session_limit_503_says_when_to_retry(narrow, api):
+    """At max_sessions, POST /sessions is a 503 with Retry-After (session_retry_after_s, not the
+    solve pool's retry_after_s), a stream's first message a 503 error with retry_after and a
+    close with 1013; the client gives both to its caller as retry_after."""
+    for _ in range(narrow.settings.max_sessions):
+        assert api.post("/sessions", json={"model": "bar"}).status_code == 201
+    r = api.post("/sessions", json={"model": "bar"})
+    assert r.status_code == 503 and r.headers.get("retry-after") == "3"  # narrow's, not retry_after_s (1)
+    assert "maximum of 2 sessions" in r.json()["detail"] and "retry in 3 s" in r.json()["detail"]
+    with connect(ws_url(narrow)) as ws:
+        ws.send(mp({"model": "bar"}))
+        err = recv(ws)["error"]
+        assert err["code"] == 503 and err["retry_after"] == 3
+        assert close_code(ws) == 1013
+    with Client(narrow.url) as client:
+        with pytest.raises(ApiError) as http_err:
+            client.open_session("bar")
+        assert http_err.value.status == 503 and http_err.value.retry_after == 3.0
+        with pytest.raises(StreamError) as stream_err:
+            client.stream("bar")
+        assert stream_err.value.status == 503 and stream_err.value.retry_after == 3.0
+        assert stream_err.value.close_code == 1013
 
 
 def test_frames_of_one_session_wait_no_deeper_than_session_queue(narrow, api, clouds):

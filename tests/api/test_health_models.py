@@ -149,6 +149,8 @@ def test_openapi_and_docs(http):
     body = spec["paths"]["/sessions/{session_id}/frames"]["post"]["requestBody"]["content"]
     assert set(body) == {"application/json", "application/msgpack"}
     assert {"SessionCreate", "FrameIn", "SimulateIn", "FrameResult"} <= set(spec["components"]["schemas"])
+    busy = [op["responses"]["503"] for ops in spec["paths"].values() for op in ops.values() if "503" in op["responses"]]
+    assert len(busy) >= 5 and all("Retry-After" in r["headers"] for r in busy)  # every 503 says when to retry
     assert http.get("/docs").status_code == 200
 
 

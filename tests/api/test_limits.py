@@ -15,6 +15,7 @@ import pytest
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 from websockets.sync.client import connect
 
+from clients import Client, StreamError
 from service.api import codec
 from service.config import LIMITS
 
@@ -198,6 +199,10 @@ def test_open_sockets_are_capped(tight):
         with pytest.raises(InvalidStatus) as err:
             connect(ws_url(tight))
         assert err.value.response.status_code == 503 and err.value.response.headers["retry-after"] == "1"
+        with Client(tight.url) as client, pytest.raises(StreamError) as refused:  # the client says so too
+            client.stream("bar")
+        assert refused.value.status == 503 and refused.value.retry_after == 1.0
+        assert "maximum of 4 open WebSockets" in refused.value.detail
         socks.pop().close()
         assert wait_for(lambda: tight.app.state.sockets < 4)
         with connect(ws_url(tight)) as ws:

@@ -24,7 +24,7 @@ def held(reg: SessionRegistry, kind: str = "http") -> Held:
 
 
 def test_limit_counts_reservations_and_frees_on_cancel():
-    reg = SessionRegistry(max_sessions=2, ttl_s=10, instance_id="i1")
+    reg = SessionRegistry(max_sessions=2, ttl_s=10, instance_id="i1", retry_after=5)
     a = held(reg)
     r = reg.reserve("http")
     with pytest.raises(RegistryFull):
@@ -39,7 +39,7 @@ def test_limit_counts_reservations_and_frees_on_cancel():
 
 def test_idle_http_sessions_expire_streams_and_busy_ones_do_not():
     clock = Clock()
-    reg = SessionRegistry(max_sessions=8, ttl_s=10, instance_id="i1", clock=clock)
+    reg = SessionRegistry(max_sessions=8, ttl_s=10, instance_id="i1", retry_after=5, clock=clock)
     idle, busy, stream = held(reg), held(reg), held(reg, "stream")
     reg.begin(busy)
     clock.t = 11
@@ -56,7 +56,7 @@ def test_idle_http_sessions_expire_streams_and_busy_ones_do_not():
 
 def test_get_touches_unless_told_not_to():
     clock = Clock()
-    reg = SessionRegistry(max_sessions=8, ttl_s=10, instance_id="i1", clock=clock)
+    reg = SessionRegistry(max_sessions=8, ttl_s=10, instance_id="i1", retry_after=5, clock=clock)
     h = held(reg)
     clock.t = 8
     reg.get(h.id, touch=False)
@@ -66,7 +66,7 @@ def test_get_touches_unless_told_not_to():
 
 
 def test_not_found_messages():
-    reg = SessionRegistry(max_sessions=8, ttl_s=10, instance_id="i1")
+    reg = SessionRegistry(max_sessions=8, ttl_s=10, instance_id="i1", retry_after=5)
     with pytest.raises(SessionNotFound, match="opened by instance 'other'.*affinity"):
         reg.get("other-abc")
     with pytest.raises(SessionNotFound, match="never existed"):

@@ -45,6 +45,7 @@ def test_shutdown_answers_the_frames_in_flight(bar_store, support, clouds):
             replies = [unpack(ws.recv(timeout=60)) for _ in range(4)]
             assert replies[0]["frame_id"] == 0 and "converged" in replies[0]  # solved and answered
             assert [r["error"]["code"] for r in replies[1:]] == [503] * 3
+            assert [r["error"]["retry_after"] for r in replies[1:]] == [1] * 3  # a restart, or another replica
             assert [r["error"]["frame_id"] for r in replies[1:]] == [1, 2, 3]
             with pytest.raises(ConnectionClosed) as closed:
                 ws.recv(timeout=30)

@@ -15,11 +15,13 @@ from ..deps import (
     SimulateBody,
     reply,
     request_body,
+    unavailable,
 )
 from ..schemas import ErrorOut, MeshOut, ModelSummary, SimulateIn, SimulateOut
 
 router = APIRouter(prefix="/models", tags=["models"])
 NOT_FOUND = {404: {"model": ErrorOut, "description": "unknown model"}}
+BUSY = unavailable("at capacity, or shutting down: retry after Retry-After seconds (retry_after_s)")
 
 
 @router.get("", response_model=list[ModelSummary], responses={200: {"content": ALT_MSGPACK}})
@@ -32,7 +34,7 @@ async def get_model(entry: EntryDep, kind: ReplyKind):
     return reply(work.summary(entry), kind)
 
 
-@router.get("/{model}/mesh", response_model=MeshOut, responses={**NOT_FOUND, 200: {"content": ALT_MSGPACK}})
+@router.get("/{model}/mesh", response_model=MeshOut, responses={**NOT_FOUND, **BUSY, 200: {"content": ALT_MSGPACK}})
 async def get_mesh(request: Request, entry: EntryDep, pool: PoolDep, kind: ReplyKind):
     encoded = await request.app.state.mesh_cache.get(  # once per model and encoding
         (entry.id, kind), lambda: pool.run(work.encode, work.mesh_payload(entry), kind)
@@ -47,7 +49,7 @@ async def get_mesh(request: Request, entry: EntryDep, pool: PoolDep, kind: Reply
         **NOT_FOUND,
         200: {"content": ALT_MSGPACK},
         422: {"model": ErrorOut},
-        503: {"model": ErrorOut, "description": "at capacity: retry after Retry-After seconds"},
+        **BUSY,
     },
     openapi_extra=request_body(SimulateIn),
 )

@@ -22,6 +22,7 @@ from ..deps import (
     client_gone,
     reply,
     request_body,
+    unavailable,
 )
 from ..schemas import ErrorOut, FrameIn, FrameResult, SessionCreate, SessionInfo, SessionOpened
 
@@ -32,7 +33,10 @@ NOT_FOUND = {
         "description": "no such session in this process (see session affinity), or another token's",
     }
 }
-BUSY = {503: {"model": ErrorOut, "description": "at capacity: retry after Retry-After seconds"}}
+BUSY = unavailable(
+    "at capacity (every solve thread busy and the queue full, or this session's frames queue full), or "
+    "shutting down: retry after Retry-After seconds (retry_after_s)"
+)
 INVALID = {422: {"model": ErrorOut, "description": "a body that does not validate"}}
 
 
@@ -43,7 +47,10 @@ INVALID = {422: {"model": ErrorOut, "description": "a body that does not validat
     responses={
         201: {"content": ALT_MSGPACK},
         404: {"model": ErrorOut, "description": "unknown model"},
-        503: {"model": ErrorOut, "description": "at the session limit, or at capacity"},
+        **unavailable(
+            "at the session limit (Retry-After: session_retry_after_s), or at capacity or shutting down "
+            "(Retry-After: retry_after_s)"
+        ),
         **INVALID,
     },
     openapi_extra=request_body(SessionCreate),
