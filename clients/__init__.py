@@ -7,10 +7,12 @@ from .client import (
     AsyncClient,
     AsyncSessionHandle,
     AsyncStream,
+    AsyncWatch,
     Client,
     SessionHandle,
     Stream,
     StreamError,
+    Watch,
 )
 
 __all__ = [
@@ -18,8 +20,10 @@ __all__ = [
     "AsyncClient",
     "AsyncSessionHandle",
     "AsyncStream",
+    "AsyncWatch",
     "Client",
     "SessionHandle",
     "Stream",
     "StreamError",
+    "Watch",
 ]

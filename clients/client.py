@@ -7,6 +7,10 @@ MessagePack; NumPy arrays in, NumPy arrays out.
 ...         result = stream.frame(points)                              # (m, 3) in, a dict out
 ...     result["displacement"].shape                                    # (n, 3)
 
+>>> with Client(url) as api, api.watch(session_id) as frames:           # doctest: +SKIP
+...     for frame in frames:                                           # a second screen's loop
+...         show(frame["points"], frame["result"])                     # slow? the newest comes next
+
 HTTP sessions (``open_session``) live in the server process that opened them: behind several
 processes, route them with affinity (see the README) or use ``stream``, whose session lives
 with its connection. With ``encoding="msgpack"`` (the default) arrays travel as packed bytes.
@@ -20,6 +24,7 @@ import importlib.util
 import json
 import os
 from typing import Any
+from urllib.parse import quote
 
 import msgpack
 import numpy as np
@@ -38,7 +43,9 @@ except ImportError:  # pragma: no cover
 
 JSON_MEDIA = "application/json"
 MSGPACK_MEDIA = "application/msgpack"
-_FLOAT_KEYS = frozenset({"displacement", "surface_displacement", "forces", "stress", "net_force", "nodes", "values"})
+_FLOAT_KEYS = frozenset(
+    {"displacement", "surface_displacement", "forces", "stress", "net_force", "nodes", "values", "points"}
+)
 _INT_KEYS = frozenset({"support", "tets", "surface_faces", "surface_nodes", "fixed_nodes", "region_nodes", "matching"})
 _PACKED = frozenset({"dtype", "shape", "data"})
 _DTYPES = {"<f4", "<f8", "<i4", "<i8"}
@@ -187,10 +194,15 @@ def _config_body(model: str, config: dict) -> dict:
     return body
 
 
-def _ws_url(base_url: str) -> str:
+def _ws_url(base_url: str, path: str = "/stream", query: str | None = None) -> str:
     url = httpx.URL(base_url)
     scheme = "wss" if url.scheme == "https" else "ws"
-    return str(url.copy_with(scheme=scheme, path=url.path.rstrip("/") + "/stream"))
+    return str(url.copy_with(scheme=scheme, path=url.path.rstrip("/") + path, query=query and query.encode()))
+
+
+def _watch_url(base_url: str, session_id: str, encoding: str) -> str:
+    path = f"/sessions/{quote(session_id, safe='')}/watch"
+    return _ws_url(base_url, path, "encoding=msgpack" if encoding == "msgpack" else None)
 
 
 def _handshake_refused(exc) -> StreamError:
@@ -328,6 +340,15 @@ class Client(_Base):
         ws.__enter__()  # the Stream owns the connection (and closes it): websockets >= 17 asks for this
         return Stream(ws, self.encoding, _config_body(model, config), self.timeout)
 
+    def watch(self, session_id: str, *, max_size: int | None = 1 << 27) -> Watch:
+        """Watch a session (``WS /sessions/{id}/watch``): its frames as they are solved."""
+        from websockets.sync.client import connect
+
+        url = _watch_url(self.base_url, session_id, self.encoding)
+        ws = connect(url, open_timeout=self.timeout, **self._ws_options(max_size))
+        ws.__enter__()  # the Watch owns the connection, as a Stream does
+        return Watch(ws, self.encoding, self.timeout)
+
     def close(self) -> None:
         self.http.close()
 
@@ -450,6 +471,96 @@ class Stream:
         self.close()
 
 
+def _ack(seq: int, encoding: str) -> bytes | str:
+    data = encode({"ack": seq}, encoding)
+    return data if encoding == "msgpack" else data.decode()
+
+
+def _watching(hello, close_code) -> tuple[str, str, dict]:
+    """The session, model and config from a watch's first message, or StreamError (the server
+    refuses an unknown session, or another token's, and closes the socket)."""
+    obj = decode(hello, "msgpack" if isinstance(hello, (bytes, bytearray)) else "json")
+    if isinstance(obj, dict) and set(obj) == {"error"}:
+        e = obj["error"]
+        raise StreamError(int(e.get("code", 0)), e.get("detail"), close_code=close_code())
+    return obj["watching"], obj["model"], obj["config"]
+
+
+def _watch_closed(exc: Exception) -> StreamError:
+    code = _closed_code(exc)
+    reason = getattr(getattr(exc, "rcvd", None), "reason", "") or "the server closed the watch"
+    return StreamError(0, reason, close_code=code)
+
+
+class Watch:
+    """A session's frames as it solves them (sync): ``{"seq", "time", "points", "result"}``.
+
+    Iterate (or call ``recv``) for the next frame, waiting while the session is idle; iteration
+    ends when the session does. ``timeout`` bounds the wait for the first message only. Each
+    frame is acknowledged when the next is asked for (the caller has handled it), so the server
+    sends only a frame or two ahead: a caller slower than the session gets the newest frame next
+    and the ones it missed are the gaps in ``seq``. A closed watch raises :class:`StreamError`
+    with its ``close_code`` (1000 when the session ended)."""
+
+    def __init__(self, ws, encoding: str, timeout: float | None = None) -> None:
+        self.ws = ws
+        self.encoding = encoding
+        self._handled: int | None = None  # the seq returned last, acknowledged at the next recv
+        from websockets.exceptions import ConnectionClosed
+
+        def close_code() -> int | None:
+            try:
+                ws.recv(timeout=2.0)
+            except ConnectionClosed as exc:
+                return _closed_code(exc)
+            except Exception:
+                pass
+            return None
+
+        try:
+            self.session, self.model, self.config = _watching(ws.recv(timeout=timeout), close_code)
+            ws.send(_ack(0, encoding))  # acknowledging from the first frame on
+        except ConnectionClosed as exc:
+            ws.close()
+            raise _watch_closed(exc) from None
+        except BaseException:
+            ws.close()
+            raise
+
+    def recv(self, timeout: float | None = None) -> dict:
+        """The next frame, after acknowledging the one returned before; with no ``timeout`` it
+        waits as long as the session is idle."""
+        from websockets.exceptions import ConnectionClosed
+
+        try:
+            if self._handled is not None:
+                self.ws.send(_ack(self._handled, self.encoding))
+                self._handled = None
+            frame = _reply(self.ws.recv(timeout=timeout), self.encoding)
+        except ConnectionClosed as exc:
+            raise _watch_closed(exc) from None
+        self._handled = frame["seq"]
+        return frame
+
+    def __iter__(self):
+        while True:
+            try:
+                yield self.recv()
+            except StreamError as exc:
+                if exc.close_code == 1000:
+                    return
+                raise
+
+    def close(self) -> None:
+        self.ws.close()
+
+    def __enter__(self) -> Watch:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
 # -- async ---------------------------------------------------------------------------------------
 
 
@@ -515,6 +626,16 @@ class AsyncClient(_Base):
         stream = AsyncStream(ws, self.encoding, self.timeout)
         await stream._open(_config_body(model, config))
         return stream
+
+    async def watch(self, session_id: str, *, max_size: int | None = 1 << 27) -> AsyncWatch:
+        """Watch a session; see :meth:`Client.watch`."""
+        from websockets import connect
+
+        url = _watch_url(self.base_url, session_id, self.encoding)
+        ws = await connect(url, open_timeout=self.timeout, **self._ws_options(max_size))
+        watch = AsyncWatch(ws, self.encoding, self.timeout)
+        await watch._open()
+        return watch
 
     async def aclose(self) -> None:
         await self.http.aclose()
@@ -625,6 +746,84 @@ class AsyncStream:
         await self.ws.close()
 
     async def __aenter__(self) -> AsyncStream:
+        return self
+
+    async def __aexit__(self, *exc) -> None:
+        await self.close()
+
+
+class AsyncWatch:
+    """A session's frames as it solves them (asyncio); see :class:`Watch`."""
+
+    def __init__(self, ws, encoding: str, timeout: float | None = None) -> None:
+        self.ws = ws
+        self.encoding = encoding
+        self.timeout = timeout  # for the first message only: a session may be idle for long
+        self.session: str | None = None
+        self.model: str | None = None
+        self.config: dict | None = None
+        self._handled: int | None = None
+
+    async def _open(self) -> None:
+        import asyncio
+
+        from websockets.exceptions import ConnectionClosed
+
+        codes: list[int | None] = []
+
+        async def closed() -> None:
+            try:
+                await asyncio.wait_for(self.ws.recv(), 2.0)
+            except ConnectionClosed as exc:
+                codes.append(_closed_code(exc))
+            except Exception:
+                pass
+
+        try:
+            hello = await asyncio.wait_for(self.ws.recv(), self.timeout)
+            obj = decode(hello, "msgpack" if isinstance(hello, (bytes, bytearray)) else "json")
+            if isinstance(obj, dict) and set(obj) == {"error"}:
+                await closed()
+            self.session, self.model, self.config = _watching(hello, lambda: codes[0] if codes else None)
+            await self.ws.send(_ack(0, self.encoding))
+        except ConnectionClosed as exc:
+            await self.ws.close()
+            raise _watch_closed(exc) from None
+        except BaseException:
+            await self.ws.close()
+            raise
+
+    async def recv(self, timeout: float | None = None) -> dict:
+        """As :meth:`Watch.recv`."""
+        import asyncio
+
+        from websockets.exceptions import ConnectionClosed
+
+        try:
+            if self._handled is not None:
+                await self.ws.send(_ack(self._handled, self.encoding))
+                self._handled = None
+            frame = _reply(await asyncio.wait_for(self.ws.recv(), timeout), self.encoding)
+        except ConnectionClosed as exc:
+            raise _watch_closed(exc) from None
+        self._handled = frame["seq"]
+        return frame
+
+    def __aiter__(self):
+        return self
+
+    async def __anext__(self) -> dict:
+        try:
+            return await self.recv()
+        except StreamError as exc:
+            if exc.close_code == 1000:
+                raise StopAsyncIteration from None
+            raise
+
+    async def close(self) -> None:
+        await self.ws.close()
+
+    async def __aenter__(self) -> AsyncWatch:
         return self
 
     async def __aexit__(self, *exc) -> None:

@@ -151,7 +151,10 @@ class Settings(BaseSettings):
     )
     body_timeout_s: float = Field(30.0, gt=0, le=3600, description="seconds to receive a request body (408 past it)")
     send_timeout_s: float = Field(
-        30.0, gt=0, le=3600, description="a stream or watcher whose client takes no message for this long is closed"
+        30.0,
+        gt=0,
+        le=3600,
+        description="a stream or watcher whose client takes (or acknowledges) no message for this long is closed",
     )
     ws_ping_interval_s: float = Field(10.0, gt=0, le=3600, description="WebSocket keepalive pings")
     ws_ping_timeout_s: float = Field(

@@ -6,11 +6,16 @@ one-slot :class:`Mailbox` and wakes its task: no encoding, no waiting, no queue 
 watcher that falls behind finds only the newest frame in its slot (the ones it missed show as
 gaps in ``seq``). Encoding happens in the watcher's own task, off the event loop, once per frame
 and encoding however many watchers there are (:meth:`Published.encoded`).
+
+The slot drops frames only once the watcher's socket stops taking them, which on loopback is
+megabytes of buffered frames later. A watcher that acknowledges what it has handled (:class:`Acks`)
+is sent at most :data:`WINDOW` frames ahead of its acknowledgements, so it skips at once.
 """
 
 from __future__ import annotations
 
 import asyncio
+import collections
 import dataclasses
 import threading
 import time
@@ -77,6 +82,11 @@ class Mailbox:
             return None
         return self.take()
 
+    @property
+    def pending(self) -> bool:
+        """A frame waits in the slot."""
+        return self._item is not None
+
     def take(self) -> Published | None:
         """The newest frame if one is waiting, without waiting."""
         with self._lock:
@@ -84,6 +94,42 @@ class Mailbox:
             self._waking = False
             self._ready.clear()
         return item
+
+
+WINDOW = 2  # frames an acknowledging watcher may hold unacknowledged: one being shown, one on its way
+
+
+class Acks:
+    """One watcher's acknowledgements, on its event loop. Until its first ack a watcher is sent
+    every frame its socket takes (as before acks existed); after it, at most :data:`WINDOW`
+    frames beyond the newest it acknowledged. An ack is cumulative: ``ack(n)`` covers every frame
+    sent with a ``seq`` up to ``n``; ``ack(0)`` (nothing handled yet) turns the window on before
+    the first frame."""
+
+    def __init__(self) -> None:
+        self._sent: collections.deque[int] = collections.deque(maxlen=WINDOW)  # newest seqs sent
+        self.acked: int | None = None  # newest seq acknowledged; None: this watcher does not ack
+        self.freed = asyncio.Event()  # set when an ack opens a full window
+
+    @property
+    def full(self) -> bool:
+        """No frame may be sent until an ack comes (seqs only grow: the unacked ones are the newest)."""
+        return self.acked is not None and len(self._sent) == WINDOW and self._sent[0] > self.acked
+
+    def sent(self, seq: int) -> None:
+        self._sent.append(seq)
+
+    def ack(self, seq: object) -> None:
+        """Take an ack; ValueError (its text for the client) for one that is not a ``seq`` this
+        watcher was sent, or 0."""
+        if not isinstance(seq, int) or isinstance(seq, bool):
+            raise ValueError(f"ack must be an integer seq, got {type(seq).__name__}")
+        newest = self._sent[-1] if self._sent else 0
+        if not 0 <= seq <= newest:
+            raise ValueError(f"ack {seq} is not a frame sent to this watcher (0 to {newest})")
+        self.acked = max(seq, self.acked or 0)
+        if not self.full:
+            self.freed.set()
 
 
 class Channel:

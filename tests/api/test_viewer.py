@@ -1,11 +1,14 @@
 """GET /viewer in a real browser (Debian's chromium, headless, driven by Playwright): the demo
-mode streams by itself and the watch mode follows a session posted to over HTTP; in both the
-frame counter grows with no error, and the picture is not blank and changes as frames arrive.
+mode streams by itself and the watch mode follows a session posted to over HTTP (acknowledging
+the frames it draws); in both the frame counter grows with no error, and the picture is not
+blank and changes as frames arrive.
 Screenshots are kept under the test's tmp folder (and /tmp/elastreg-viewer-*.png) to look at."""
 
 from __future__ import annotations
 
 import io
+import logging
+import re
 import shutil
 import threading
 import time
@@ -76,7 +79,8 @@ def test_demo_mode_renders_frames(live, browser, tmp_path):
     page.close()
 
 
-def test_watch_mode_follows_a_session(live, http, browser, support, clouds, tmp_path):
+def test_watch_mode_follows_a_session(live, http, browser, support, clouds, tmp_path, caplog):
+    caplog.set_level(logging.DEBUG, logger="service.api.routes.watch")  # its last line: the acks taken
     sid = http.post("/sessions", json={"model": "bar", "support": support.tolist()}).json()["session"]
     page = browser.new_page(viewport={"width": 960, "height": 640})
     page.goto(f"{live.url}/viewer?session={sid}#token=not-needed-here")
@@ -105,9 +109,22 @@ def test_watch_mode_follows_a_session(live, http, browser, support, clouds, tmp_
         s2 = wait_frames(page, s["framesRendered"] + 4)
         b = picture(page, tmp_path / "watch-2.png")
         assert s2["lastSeq"] > s["lastSeq"]
+        assert s2["lastAck"] >= s["lastSeq"]  # it acknowledges what it has drawn
     finally:
         stop.set()
         poster.join()
     check_pictures(a, b)
     page.close()
+
+    def acked() -> int | None:
+        for rec in caplog.records:
+            m = re.search(rf"watcher of {sid}: .* acknowledged up to (\d+)", rec.getMessage())
+            if m:
+                return int(m.group(1))
+        return None
+
+    deadline = time.monotonic() + 10
+    while acked() is None and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert (acked() or 0) >= s["lastSeq"], "the server took no acks from the viewer"
     http.delete(f"/sessions/{sid}")

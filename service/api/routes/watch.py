@@ -6,22 +6,34 @@ optionally sending a first message ``{"token": ...}``. The server answers ``{"wa
 "points", "result"}`` (``result`` as the session's own client received it). A watcher that
 falls behind gets the newest frame next; the frames it missed are the gaps in ``seq``. When the
 session ends the socket is closed (1000); an unknown session gets ``{"error": {"code": 404}}``
-and a close with 1008. Messages the client sends after the first are ignored.
+and a close with 1008.
+
+Acknowledgements (optional): a watcher may send ``{"ack": seq}`` (JSON text, or MessagePack
+binary) once it has handled the frame with that ``seq``; ``{"ack": 0}`` says it will, before
+any frame. From its first ack on it is sent at most :data:`~..watch.WINDOW` frames beyond the
+newest it acknowledged, so one that handles frames slowly gets the newest next instead of the
+frames its socket buffers hold. One whose window stays full for ``send_timeout_s`` while a
+newer frame waits is closed (1008), as one that takes no message is. A message that cannot be
+read, or an ack of a ``seq`` never sent, is answered ``{"error": {"code": 422, "detail"}}``
+(413 over 64 KiB) and the watcher goes on, its window as it was; any other map (a token) is
+ignored.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
+import time
 
 from fastapi import APIRouter, WebSocket
+from starlette.types import Message
 from starlette.websockets import WebSocketState
 
 from .. import codec
 from ..deps import authorize_websocket, websocket_slot
-from ..errors import ApiError
+from ..errors import ApiError, as_api_error
 from ..sessions import Held, SessionNotFound, SessionRegistry
-from ..watch import Mailbox
+from ..watch import Acks, Mailbox
 from ..work import config_of
 
 router = APIRouter(tags=["watch"])
@@ -29,6 +41,7 @@ log = logging.getLogger(__name__)
 
 POLICY = 1008
 POLL_S = 0.25  # how often an idle watcher checks that its session and its client still exist
+MAX_ACK_BYTES = 1 << 16  # an ack is a few bytes; a first message (a token) is as small
 
 
 def find_session(registry: SessionRegistry, session_id: str, owner: str | None) -> Held:
@@ -47,13 +60,16 @@ class Watcher:
         self.settings = ws.app.state.settings
         enc = ws.query_params.get("encoding", "json").lower()
         self.kind = codec.MSGPACK if enc in ("msgpack", "application/msgpack") else codec.JSON
+        self.acks = Acks()
+        self._sending = asyncio.Lock()  # frames and error replies come from two tasks
+        self._complaint: asyncio.Task | None = None
 
     async def _send(self, data: bytes) -> bool:
         """False when the client has gone, or took no message within send_timeout_s: a watcher
         that stops reading would otherwise hold its socket slot (and its session's publisher)
         for ever, past the session's end, as a stream's client would."""
         try:
-            async with asyncio.timeout(self.settings.send_timeout_s):
+            async with self._sending, asyncio.timeout(self.settings.send_timeout_s):
                 if self.kind == codec.MSGPACK:
                     await self.ws.send_bytes(data)
                 else:
@@ -93,22 +109,41 @@ class Watcher:
             return False, None
         if msg["type"] == "websocket.disconnect":
             return False, None
-        raw = msg.get("bytes") if msg.get("bytes") is not None else (msg.get("text") or "")
         try:
-            obj = codec.decode(raw, codec.MSGPACK if isinstance(raw, bytes) else codec.JSON, max_bytes=1 << 16)
+            obj = _decoded(msg)
         except Exception:
             obj = None
         return True, obj if isinstance(obj, dict) else None
 
-    async def _drain(self) -> None:
-        """Read (and ignore) what the client sends; returns when it disconnects."""
+    async def _read(self) -> None:
+        """Take the client's acks (and answer bad messages) until it disconnects."""
         try:
             while True:
                 msg = await self.ws.receive()
                 if msg["type"] == "websocket.disconnect":
                     return
+                self._take(msg)
         except Exception:  # the connection broke: the same as a disconnect
             return
+
+    def _take(self, msg: Message) -> None:
+        try:
+            obj = _decoded(msg)
+            if not isinstance(obj, dict):
+                raise ApiError(422, 'a watcher sends maps: {"ack": seq} (or a token first)')
+            if "ack" in obj:
+                self.acks.ack(obj["ack"])
+        except Exception as exc:  # a DecodeError, TooLarge or a refused ack
+            err = as_api_error(exc) or ApiError(422, str(exc))
+            self._complain(err)
+
+    def _complain(self, err: ApiError) -> None:
+        """Answer a bad message without holding up the reader (its acks open the window); while
+        one answer waits for the socket, later ones are only logged."""
+        log.debug("a watcher of %s sent a bad message: %s", self.session_id, err.text)
+        if self._complaint is None or self._complaint.done():
+            body = codec.encode({"error": {"code": err.status, "detail": err.text}}, self.kind)
+            self._complaint = asyncio.create_task(self._send(body))
 
     async def run(self) -> None:
         async with websocket_slot(self.ws) as ok:
@@ -140,35 +175,76 @@ class Watcher:
             return
         box = Mailbox(asyncio.get_running_loop())
         held.watch.subscribe(box)
-        reader = asyncio.create_task(self._drain())
+        reader = asyncio.create_task(self._read())
         try:
             await self._forward(held, box, reader)
         finally:
             held.watch.unsubscribe(box)
             reader.cancel()
+            if self._complaint is not None:
+                self._complaint.cancel()
             log.debug(
-                "watcher of %s: %d frames published, %d overwritten",
+                "watcher of %s: %d frames published, %d overwritten, acknowledged up to %s",
                 held.id,
                 box.received,
                 box.overwritten,
+                self.acks.acked,
             )
 
     async def _forward(self, held: Held, box: Mailbox, reader: asyncio.Task) -> None:
         while not reader.done():
-            item = await box.get(POLL_S)
-            if item is None:
-                try:
-                    self.registry.get(held.id, touch=False)
-                except SessionNotFound:
-                    last = box.take()  # published just before it closed
-                    if last is not None:
-                        await self._send(await asyncio.to_thread(last.encoded, self.kind))
-                    await self._close(1000, "the session has ended")
+            if self.acks.full:
+                if not await self._await_ack(held, box, reader):
                     return
                 continue
+            item = await box.get(POLL_S)
+            if item is None:
+                if await self._ended(held, box):
+                    return
+                continue
+            self.acks.sent(item.seq)  # before the send: its ack may come before the send returns
             data = await asyncio.to_thread(item.encoded, self.kind)  # off the loop, once per frame
             if not await self._send(data):
                 return
+
+    async def _await_ack(self, held: Held, box: Mailbox, reader: asyncio.Task) -> bool:
+        """Wait for an ack to open the full window (frames meanwhile overwrite the mailbox);
+        False when the watcher is done: it left, its session ended, or it acknowledged nothing
+        for send_timeout_s while a newer frame waited."""
+        since = time.monotonic()
+        while self.acks.full and not reader.done():
+            self.acks.freed.clear()
+            try:
+                await asyncio.wait_for(self.acks.freed.wait(), POLL_S)
+            except TimeoutError:
+                if await self._ended(held, box):
+                    return False
+                wait = self.settings.send_timeout_s
+                if box.pending and time.monotonic() - since > wait:
+                    log.info("a watcher of %s acknowledged no frame for %g s: closing it", self.session_id, wait)
+                    await self._close(POLICY, f"no frame acknowledged for {wait:g} s")
+                    return False
+        return True
+
+    async def _ended(self, held: Held, box: Mailbox) -> bool:
+        """True, after sending the frame published last and closing the socket (1000), when the
+        session has ended."""
+        try:
+            self.registry.get(held.id, touch=False)
+            return False
+        except SessionNotFound:
+            pass
+        last = box.take()  # published just before it closed
+        if last is not None:
+            await self._send(await asyncio.to_thread(last.encoded, self.kind))
+        await self._close(1000, "the session has ended")
+        return True
+
+
+def _decoded(msg: Message):
+    """A client's message, decoded by its own kind (binary is MessagePack, text JSON)."""
+    raw = msg.get("bytes") if msg.get("bytes") is not None else (msg.get("text") or "")
+    return codec.decode(raw, codec.MSGPACK if isinstance(raw, bytes) else codec.JSON, max_bytes=MAX_ACK_BYTES)
 
 
 @router.websocket("/sessions/{session_id}/watch")

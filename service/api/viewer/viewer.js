@@ -12,7 +12,7 @@ const fragment = new URLSearchParams(location.hash.slice(1));
 const token = fragment.get('token');
 const state = {
   framesRendered: 0, lastError: null, mode: null, session: null, model: null,
-  lastFrameId: null, lastSeq: null, errorEstimate: null, latencyMs: null, fps: null,
+  lastFrameId: null, lastSeq: null, lastAck: null, errorEstimate: null, latencyMs: null, fps: null,
   renderLog: [],  // {frame_id, seq, t}: t = wall clock (ms) when the frame was on screen
 };
 window.elastregViewer = state;
@@ -246,6 +246,15 @@ let pending = null;
 const shownAt = [];
 function queue(points, result, t0, seq) { pending = { points, result, t0, seq }; }
 
+// a watch socket is told each frame we have drawn, so it sends the newest next, not a backlog
+let watchSocket = null;
+function ack(seq) {
+  if (watchSocket && watchSocket.readyState === WebSocket.OPEN && seq > (state.lastAck ?? -1)) {
+    watchSocket.send(JSON.stringify({ ack: seq }));
+    state.lastAck = seq;
+  }
+}
+
 function loop() {
   requestAnimationFrame(loop);
   try {
@@ -258,6 +267,7 @@ function loop() {
       state.framesRendered++;
       state.lastSeq = p.seq;
       showStatus(p.result, now - p.t0);
+      if (state.mode === 'watch') ack(p.seq);
       state.renderLog.push({ frame_id: p.result.frame_id ?? null, seq: p.seq, t: now });
       if (state.renderLog.length > 5000) state.renderLog.splice(0, 1000);
       shownAt.push(now);
@@ -297,16 +307,20 @@ async function watch(sessionId) {
   state.session = hello.watching;
   state.model = hello.model;
   state.maxError = hello.config && hello.config.max_error;
-  setMesh(await api(`/models/${encodeURIComponent(hello.model)}/mesh`));
-  $('status').textContent = 'waiting for frames';
+  // frames are taken from now on (drawn once the mesh is in): a frame lost here would go unacked
   ws.onmessage = (e) => {
     const msg = JSON.parse(e.data);
     if (msg.error) return fail(new Error(`${msg.error.code}: ${msg.error.detail}`));
     queue(msg.points, msg.result, 1e3 * msg.time - (msg.result.timing_ms?.server ?? 0), msg.seq);
+    if (document.hidden) ack(msg.seq);  // a hidden page draws nothing: it has handled the frame
   };
   ws.onclose = (e) => {
     $('status').textContent = e.code === 1000 ? `ended: ${e.reason || 'closed'}` : `closed (${e.code})`;
   };
+  watchSocket = ws;
+  ack(0);
+  setMesh(await api(`/models/${encodeURIComponent(hello.model)}/mesh`));
+  $('status').textContent = 'waiting for frames';  // drawn frames replace it at the next animation frame
 }
 
 async function demo(model) {
