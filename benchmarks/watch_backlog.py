@@ -47,10 +47,11 @@ def main() -> None:
 
     from clients import Client
     from service.api.server import BackgroundServer
+    from service.bench.machine import describe
     from service.config import Settings
     from service.synthetic import sample_surface
 
-    settings = Settings(store=args.store, blas_threads=0, max_points=3000, solver_threads=1)
+    settings = Settings(store=args.store, max_points=3000, solver_threads=1)
     server = BackgroundServer(settings).start()
     try:
         with Client(server.url, encoding="json") as api, httpx.Client(base_url=server.url, timeout=60) as http:
@@ -72,6 +73,8 @@ def main() -> None:
                 }
     finally:
         server.stop()
+    machine = describe()
+    print(f"{machine.get('cpu')}, commit {machine.get('commit')}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}")
     print(f"{args.frames} frames of {args.model} ({args.points} points) posted in {posted:.1f} s")
     for name, (seqs, seconds) in rows.items():
         print(f"  {name:8s}: {len(seqs) - 1} stale frames before the newest, {seconds:.1f} s to reach it")
