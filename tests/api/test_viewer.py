@@ -128,3 +128,28 @@ def test_watch_mode_follows_a_session(live, http, browser, support, clouds, tmp_
         time.sleep(0.1)
     assert (acked() or 0) >= s["lastSeq"], "the server took no acks from the viewer"
     http.delete(f"/sessions/{sid}")
+
+
+def test_a_hidden_watch_page_acknowledges_what_it_cannot_draw(live, http, browser, support, clouds):
+    """A hidden tab gets no animation frames, so it draws nothing; it acknowledges each frame as
+    it arrives, or its window would stay full and the server would close it."""
+    sid = http.post("/sessions", json={"model": "bar", "support": support.tolist()}).json()["session"]
+    page = browser.new_page(viewport={"width": 640, "height": 480})
+    page.goto(f"{live.url}/viewer?session={sid}")
+    page.wait_for_function("() => window.elastregViewer.model === 'bar' || window.elastregViewer.lastError")
+    http.post(f"/sessions/{sid}/frames", json={"points": clouds[0].tolist()})
+    drawn = wait_frames(page, 1)["framesRendered"]
+    # hidden, as a background tab is: no more animation frames, document.hidden true
+    page.evaluate(
+        "() => { window.requestAnimationFrame = () => 0;"
+        " Object.defineProperty(document, 'hidden', {configurable: true, get: () => true}); }"
+    )
+    time.sleep(0.2)  # an animation frame already scheduled may still run once
+    drawn = state(page)["framesRendered"]
+    for t in range(1, 7):
+        http.post(f"/sessions/{sid}/frames", json={"points": clouds[t % len(clouds)].tolist()})
+    page.wait_for_function("() => window.elastregViewer.lastAck >= 7", timeout=30_000)
+    s = state(page)
+    assert s["framesRendered"] == drawn and s["lastError"] is None  # acknowledged, not drawn
+    page.close()
+    http.delete(f"/sessions/{sid}")
