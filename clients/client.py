@@ -327,25 +327,27 @@ class Client(_Base):
         r = self._call("POST", "/sessions", _config_body(model, config))
         return SessionHandle(self, r["session"], r["config"])
 
-    def stream(self, model: str, *, max_size: int | None = 1 << 27, **config) -> Stream:
-        """A WebSocket stream (``/stream``) whose session lives with the connection. A refusal
-        (at the session or socket limit: a 503 with ``retry_after``) raises :class:`StreamError`."""
+    def _connect(self, url: str, max_size: int | None):
+        """A WebSocket to `url`; a handshake the server refuses (the socket limit's 503, with its
+        Retry-After) raises :class:`StreamError`."""
         from websockets.exceptions import InvalidStatus
         from websockets.sync.client import connect
 
         try:
-            ws = connect(_ws_url(self.base_url), open_timeout=self.timeout, **self._ws_options(max_size))
+            return connect(url, open_timeout=self.timeout, **self._ws_options(max_size))
         except InvalidStatus as exc:
             raise _handshake_refused(exc) from None
+
+    def stream(self, model: str, *, max_size: int | None = 1 << 27, **config) -> Stream:
+        """A WebSocket stream (``/stream``) whose session lives with the connection. A refusal
+        (at the session or socket limit: a 503 with ``retry_after``) raises :class:`StreamError`."""
+        ws = self._connect(_ws_url(self.base_url), max_size)
         ws.__enter__()  # the Stream owns the connection (and closes it): websockets >= 17 asks for this
         return Stream(ws, self.encoding, _config_body(model, config), self.timeout)
 
     def watch(self, session_id: str, *, max_size: int | None = 1 << 27) -> Watch:
         """Watch a session (``WS /sessions/{id}/watch``): its frames as they are solved."""
-        from websockets.sync.client import connect
-
-        url = _watch_url(self.base_url, session_id, self.encoding)
-        ws = connect(url, open_timeout=self.timeout, **self._ws_options(max_size))
+        ws = self._connect(_watch_url(self.base_url, session_id, self.encoding), max_size)
         ws.__enter__()  # the Watch owns the connection, as a Stream does
         return Watch(ws, self.encoding, self.timeout)
 
@@ -481,8 +483,7 @@ def _watching(hello, close_code) -> tuple[str, str, dict]:
     refuses an unknown session, or another token's, and closes the socket)."""
     obj = decode(hello, "msgpack" if isinstance(hello, (bytes, bytearray)) else "json")
     if isinstance(obj, dict) and set(obj) == {"error"}:
-        e = obj["error"]
-        raise StreamError(int(e.get("code", 0)), e.get("detail"), close_code=close_code())
+        raise _stream_error(obj["error"], close_code=close_code())
     return obj["watching"], obj["model"], obj["config"]
 
 
@@ -615,24 +616,25 @@ class AsyncClient(_Base):
         r = await self._call("POST", "/sessions", _config_body(model, config))
         return AsyncSessionHandle(self, r["session"], r["config"])
 
-    async def stream(self, model: str, *, max_size: int | None = 1 << 27, **config) -> AsyncStream:
+    async def _connect(self, url: str, max_size: int | None):
+        """See :meth:`Client._connect`."""
         from websockets import connect
         from websockets.exceptions import InvalidStatus
 
         try:
-            ws = await connect(_ws_url(self.base_url), open_timeout=self.timeout, **self._ws_options(max_size))
+            return await connect(url, open_timeout=self.timeout, **self._ws_options(max_size))
         except InvalidStatus as exc:
             raise _handshake_refused(exc) from None
+
+    async def stream(self, model: str, *, max_size: int | None = 1 << 27, **config) -> AsyncStream:
+        ws = await self._connect(_ws_url(self.base_url), max_size)
         stream = AsyncStream(ws, self.encoding, self.timeout)
         await stream._open(_config_body(model, config))
         return stream
 
     async def watch(self, session_id: str, *, max_size: int | None = 1 << 27) -> AsyncWatch:
         """Watch a session; see :meth:`Client.watch`."""
-        from websockets import connect
-
-        url = _watch_url(self.base_url, session_id, self.encoding)
-        ws = await connect(url, open_timeout=self.timeout, **self._ws_options(max_size))
+        ws = await self._connect(_watch_url(self.base_url, session_id, self.encoding), max_size)
         watch = AsyncWatch(ws, self.encoding, self.timeout)
         await watch._open()
         return watch

@@ -203,6 +203,9 @@ def test_open_sockets_are_capped(tight):
             client.stream("bar")
         assert refused.value.status == 503 and refused.value.retry_after == 1.0
         assert "maximum of 4 open WebSockets" in refused.value.detail
+        with Client(tight.url) as client, pytest.raises(StreamError) as refused:  # a watch is a socket too
+            client.watch("any-session")
+        assert refused.value.status == 503 and refused.value.retry_after == 1.0
         socks.pop().close()
         assert wait_for(lambda: tight.app.state.sockets < 4)
         with connect(ws_url(tight)) as ws:
