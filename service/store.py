@@ -129,6 +129,42 @@ def network_from_manifest(spec: dict, state: dict[str, torch.Tensor]) -> torch.n
     return net.eval()
 
 
+#: an entry moved aside while its replacement goes in: ..ID-XXXXXXXX (no build's temporary
+#: folder, .ID-XXXXXXXX, nor any entry starts so)
+_ASIDE = ".."
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap two folders in one atomic step (Linux's renameat2 with RENAME_EXCHANGE); False where
+    the system cannot, and nothing moved."""
+    import ctypes
+    import ctypes.util
+
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or None, use_errno=True)
+        renameat2 = libc.renameat2
+    except (OSError, AttributeError):  # not Linux, or a C library older than glibc 2.28
+        return False
+    at_fdcwd, rename_exchange = -100, 2
+    return renameat2(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), rename_exchange) == 0
+
+
+def _restore_aside(store: Path) -> None:
+    """Put back an entry a build moved aside (..ID-XXXXXXXX) where the process died before its
+    replacement went in: the store serves the old entry rather than none."""
+    for path in store.iterdir():
+        if not path.name.startswith(_ASIDE):
+            continue
+        entry_id = path.name[len(_ASIDE) :].rsplit("-", 1)[0]
+        final = store / entry_id
+        if path.is_dir() and not final.exists() and ENTRY_ID.fullmatch(entry_id):
+            try:
+                os.replace(path, final)
+                log.warning("model %s: restored the entry a build had moved aside (%s)", entry_id, path.name)
+            except OSError as exc:
+                log.error("model %s: cannot restore %s: %s", entry_id, path.name, exc)
+
+
 def write_entry(
     store: Path,
     entry_id: str,
@@ -169,8 +205,12 @@ def write_entry(
         }
         (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1, default=_jsonable))
         load_entry(tmp, name=entry_id)
-        if final.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{entry_id}-old-", dir=store))
+        if not final.exists():
+            os.replace(tmp, final)
+        elif _exchange(tmp, final):  # one atomic step: no moment, crash or not, without the entry
+            shutil.rmtree(tmp, ignore_errors=True)  # it holds the entry it replaced
+        else:  # two renames; a crash between them leaves the old entry aside, and open_store restores it
+            old = Path(tempfile.mkdtemp(prefix=f"{_ASIDE}{entry_id}-", dir=store))
             os.replace(final, old)
             try:
                 os.replace(tmp, final)
@@ -179,8 +219,6 @@ def write_entry(
                     os.replace(old, final)
                 raise
             shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(tmp, final)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -322,6 +360,7 @@ def open_store(store: Path) -> tuple[dict[str, Entry], dict[str, str]]:
     if not store.is_dir():
         log.warning("model store %s %s", store, "is not a folder" if store.exists() else "does not exist")
         return entries, errors
+    _restore_aside(store)
     for path in sorted(p for p in store.iterdir() if p.is_dir() and not p.name.startswith(".")):
         try:
             entry = load_entry(path)

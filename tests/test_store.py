@@ -133,6 +133,7 @@ def test_a_failed_swap_puts_the_served_entry_back(bar_store, tmp_path, monkeypat
             raise OSError(39, "Directory not empty")
         return real(src, dst)
 
+    monkeypatch.setattr(store_module, "_exchange", lambda a, b: False)  # a system without renameat2
     monkeypatch.setattr(store_module.os, "replace", second_fails)
     with pytest.raises(OSError, match="not empty"):
         _rewrite(entry, root)
@@ -140,6 +141,34 @@ def test_a_failed_swap_puts_the_served_entry_back(bar_store, tmp_path, monkeypat
     assert (root / "bar" / "manifest.json").read_bytes() == before
     assert [p.name for p in root.iterdir()] == ["bar"]
     load_entry(root / "bar")
+
+
+def test_a_replaced_entry_never_leaves_its_folder(bar_store, tmp_path, monkeypatch):
+    """The new entry and the served one change places in one step: a process killed at any
+    moment leaves the store serving one of them, never neither."""
+    import service.store as store_module
+
+    root = tmp_path / "store"
+    shutil.copytree(bar_store[0] / "bar", root / "bar")
+    entry = load_entry(root / "bar")
+    moved = []
+    real = os.replace
+    monkeypatch.setattr(store_module.os, "replace", lambda a, b: (moved.append(a), real(a, b))[1])
+    _rewrite(entry, root)
+    assert root / "bar" not in moved  # never renamed away, even for a moment
+    assert [p.name for p in root.iterdir()] == ["bar"]
+    assert load_entry(root / "bar").manifest["created"]
+
+
+def test_an_entry_a_killed_build_left_aside_is_served_again(bar_store, tmp_path, caplog):
+    """Where the atomic exchange is missing, a build moves the served entry aside before its own
+    goes in; killed between the two, it left the store without the model. The store puts it back."""
+    root = tmp_path / "store"
+    shutil.copytree(bar_store[0] / "bar", root / "..bar-k7x2q9_a")
+    entries, errors = open_store(root)
+    assert list(entries) == ["bar"] and not errors
+    assert [p.name for p in root.iterdir()] == ["bar"]
+    assert "restored the entry a build had moved aside" in caplog.text
 
 
 def test_a_store_path_that_is_missing_or_a_file_is_named_as_such(tmp_path, caplog):
