@@ -43,7 +43,9 @@ def load_spec(scene: Scene, region: np.ndarray) -> LoadSpec:
     return LoadSpec(
         region=tuple(int(i) for i in region),
         max_force=float(t.max_force),
-        patch_nodes=(int(t.patch_nodes[0]), int(t.patch_nodes[1])),
+        # a patch cannot outgrow its region (Scene refuses one whose smallest does): the range the
+        # loads really take, which the manifest records and the estimate reads as the tool's size
+        patch_nodes=(int(t.patch_nodes[0]), min(int(t.patch_nodes[1]), len(region))),
         steps=int(t.load_steps),
         multi_patch=float(t.multi_patch),
         normal_fraction=float(t.normal_fraction),

@@ -296,12 +296,15 @@ class Scene(_Table):
         """
         loaded, default_fixed = self._load()
         b = self.boundary
+        key = "[boundary]"
         if b.fixed_nodes is not None:
-            fixed = self._map_ids(b.fixed_nodes, "[boundary] fixed_nodes", loaded)
+            key = "[boundary] fixed_nodes"
+            fixed = self._map_ids(b.fixed_nodes, key, loaded)
         elif b.fixed_nodes_file is not None:
-            ids = self._read_ids(b.fixed_nodes_file, "[boundary] fixed_nodes_file")
-            fixed = self._map_ids(ids, "[boundary] fixed_nodes_file", loaded)
+            key = "[boundary] fixed_nodes_file"
+            fixed = self._map_ids(self._read_ids(b.fixed_nodes_file, key), key, loaded)
         elif b.fixed_box is not None:
+            key = "[boundary] fixed_box"
             lo, hi = np.asarray(b.fixed_box, np.float64)
             fixed = np.flatnonzero(((loaded.nodes >= lo) & (loaded.nodes <= hi)).all(axis=1))
             if fixed.size == 0:
@@ -332,6 +335,9 @@ class Scene(_Table):
                 "can still turn about them and the static problem is singular: fix three or more nodes not in a line",
             )
         mesh = loaded.to_mesh(fixed)
+        if mesh.free_surface_nodes.size == 0:  # nothing a tool could push: say so here, not as an empty load region
+            what = "every node" if fixed.size == mesh.n_nodes else "every surface node"
+            raise self._error(key, f"fixes {what} ({fixed.size} of {mesh.n_nodes} nodes): nothing is left free to load")
         self._loaded[mesh.hash] = loaded
         log.info("%s: %d nodes, %d tets, %d fixed", self._origin, mesh.n_nodes, mesh.n_tets, mesh.fixed.size)
         size = float(np.linalg.norm(np.ptp(mesh.nodes, axis=0)))
@@ -369,7 +375,7 @@ class Scene(_Table):
                 )
             if ids.size == 0:
                 raise self._error(key, "lists no node: the load region holds no free surface node")
-            return ids
+            return self._check_patch(ids)
         if t.region_box is not None:
             key = "[training] region_box"
             lo, hi = np.asarray(t.region_box, np.float64)
@@ -384,7 +390,20 @@ class Scene(_Table):
             key, ids = "[training]", free_surface
         if ids.size == 0:
             raise self._error(key, "the load region holds no free surface node")
-        return np.asarray(ids, np.int64)
+        return self._check_patch(np.asarray(ids, np.int64))
+
+    def _check_patch(self, region: Array) -> Array:
+        """Refuses a region smaller than the smallest load patch: every sampled load would cover
+        fewer nodes than the scene says, and the served model's estimate would take the scene's
+        patch as its tool's size (store.tool_patch)."""
+        low = int(self.training.patch_nodes[0])
+        if region.size < low:
+            raise self._error(
+                "[training] patch_nodes",
+                f"a load spreads over at least {low} nodes, but the load region holds {region.size} free "
+                f"surface nodes: lower patch_nodes or widen the region",
+            )
+        return region
 
     def support_nodes(self, mesh: TetMesh, loaded: LoadedMesh | None = None) -> Array | None:
         """[registration] support nodes in mesh ids, or None when the scene names none.

@@ -146,6 +146,7 @@ def test_ids_are_mapped_when_unused_nodes_are_dropped(tmp_path):
     text = (
         GOOD.replace("meshes/block.vtu", "m.vtu")
         .replace("scale = 0.001", "")
+        .replace("patch_nodes = [2, 6]", "patch_nodes = [1, 1]")  # a one-node region: one-node loads
         .format(boundary="fixed_nodes = [1, 2, 3, 4]", training="region = [12]")
     )
     scene = load_scene(write(tmp_path, text=text))
@@ -314,3 +315,22 @@ def test_a_mesh_in_the_wrong_unit_is_warned_of(folder, caplog):
     with caplog.at_level("WARNING", logger="service.scene"):
         load_scene(write(folder)).build_mesh()
     assert "scale right" not in caplog.text
+
+
+def test_a_boundary_that_fixes_everything_is_named(folder):
+    msg = error_of(folder, boundary="fixed_box = [[-1, -1, -1], [1, 1, 1]]")
+    assert "[boundary] fixed_box: fixes every node (45 of 45 nodes): nothing is left free to load" in msg
+
+
+def test_a_region_smaller_than_its_patches(folder):
+    from service.build import load_spec
+
+    scene = load_scene(write(folder))
+    mesh, _ = scene.build_mesh()
+    few = mesh.free_surface_nodes[:3].tolist()
+    msg = error_of(folder, training=f"region = {few[:1]}")
+    assert "[training] patch_nodes: a load spreads over at least 2 nodes, but the load region holds 1" in msg
+    scene = load_scene(write(folder, training=f"region = {few}"))
+    mesh, _ = scene.build_mesh()
+    spec = load_spec(scene, scene.region_nodes(mesh))
+    assert spec.patch_nodes == (2, 3)  # what the loads really take, not the scene's 6
