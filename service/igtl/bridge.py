@@ -19,6 +19,7 @@ import contextlib
 import json
 import logging
 import math
+import socket
 import time
 
 import numpy as np
@@ -31,6 +32,12 @@ log = logging.getLogger(__name__)
 _THREAD_DECODE = 256 << 10
 SURFACE = "registered"
 STATUS = "status"
+#: what a client that vanished without closing (cable pulled, laptop asleep) is probed with:
+#: idle seconds, seconds between probes, probes unanswered before the connection is dropped
+_KEEPALIVE = (60, 10, 6)
+#: close codes of a stream the API ended on purpose (idle past session_ttl_s, going away,
+#: restarting): the frame was not taken, so it is sent again over a new session
+_CLEAN_CLOSE = (1000, 1001, 1012)
 
 
 class Surface:
@@ -44,6 +51,14 @@ class Surface:
         self.triangles = where[np.asarray(mesh["surface_faces"], np.int64)]
         if (self.triangles < 0).any():
             raise ValueError("the model's surface faces use nodes outside its surface nodes")
+
+    def same(self, other: Surface) -> bool:
+        return (
+            self.nodes.shape == other.nodes.shape
+            and np.array_equal(self.nodes, other.nodes)
+            and np.array_equal(self.surface_nodes, other.surface_nodes)
+            and np.array_equal(self.triangles, other.triangles)
+        )
 
     def positions(self, result: dict) -> np.ndarray:
         """(s, 3) registered positions of the surface nodes."""
@@ -74,14 +89,37 @@ class Bridge:
         self.settings["outputs"] = sorted(outputs | {"surface_displacement"})
         self.encoding = encoding
         self.surface: Surface | None = None
+        #: the API's limits (its /health), read at prepare(): max_points, max_message_bytes,
+        #: body_timeout_s (also how long the rest of a message may take once its header began)
+        self.limits: dict = {}
         self.busy = False
+        self._version = 1  # the connected client's header version (1 until its first message)
         self.sessions: list[str] = []  # ids of the sessions opened so far (for logs and tests)
         self._ignored: set[tuple[str, str]] = set()  # (type, device) of messages ignored so far
         self.announce = log.info  # what to do with a line a person should see (the CLI prints it)
 
     async def prepare(self) -> None:
+        """Read the API's limits and the model's mesh; BridgeError (one line) when it cannot."""
+        from clients.client import ApiError
+
         async with self._api() as api:
-            self.surface = Surface(await api.mesh(self.model))
+            try:
+                try:
+                    self.limits = dict((await api.health()).get("limits") or {})
+                except ApiError:  # a degraded server (503) still names its limits; the mesh says more
+                    self.limits = {}
+                self.surface = Surface(await api.mesh(self.model))
+            except ApiError as exc:
+                raise BridgeError(f"the API at {self.api_url} refused model {self.model!r}: {exc}") from None
+            except (OSError, _http_error()) as exc:
+                raise BridgeError(
+                    f"the API at {self.api_url} cannot be reached ({type(exc).__name__}: {exc})"
+                ) from None
+
+    @property
+    def read_timeout(self) -> float:
+        """Seconds the rest of a message may take once its first byte came (the API's body_timeout_s)."""
+        return float(self.limits.get("body_timeout_s") or 30.0)
 
     def _api(self):
         from clients import AsyncClient
@@ -107,6 +145,8 @@ class Bridge:
             await _close(writer)
             return
         self.busy = True
+        self._version = 1
+        _keepalive(writer.get_extra_info("socket"))
         log.info("client %s connected", peer)
         try:
             await self._serve(reader, writer)
@@ -114,16 +154,29 @@ class Bridge:
             pass
         except _Refused as exc:  # the API refused or could not be reached: the client is told
             log.warning("client %s: %s", peer, exc)
-            with contextlib.suppress(Exception):
-                writer.write(_status({"error": _error_body(exc.code, str(exc), exc.retry_after)}, 2))
-                await writer.drain()
+            await self._tell(writer, _error_body(exc.code, str(exc), exc.retry_after))
+        except _Stalled as exc:  # the slot is freed: a stalled or vanished client holds it no longer
+            log.warning("client %s: %s; closing it", peer, exc)
+            await self._tell(writer, str(exc))
+        except Exception as exc:  # a bug: this client is told and closed, the next is served
+            log.exception("client %s: internal error", peer)
+            await self._tell(
+                writer, _error_body(500, f"internal error in the bridge ({type(exc).__name__}); it has been logged")
+            )
         finally:
             self.busy = False
             await _close(writer)
             log.info("client %s disconnected", peer)
 
+    async def _tell(self, writer, error) -> None:
+        """A last status (an ``error``) before the connection closes; nothing if it cannot go."""
+        with contextlib.suppress(Exception):
+            writer.write(_status({"error": error}, self._version))
+            await asyncio.wait_for(writer.drain(), 5)
+
     async def _open(self, api):
-        """A stream for this client; _Refused (with the API's status, 503 if it is unreachable)."""
+        """A stream for this client, and the model's mesh read again (the API may have restarted
+        with the model rebuilt); _Refused (with the API's status, 503 if it is unreachable)."""
         from clients.client import ApiError
 
         extra = {"token": self.token} if self.token else {}
@@ -133,6 +186,23 @@ class Bridge:
             raise _Refused(exc.status or 503, f"the API refused the session: {exc.detail}", exc.retry_after) from None
         except (OSError, TimeoutError, *_ws_errors()) as exc:
             raise _Refused(503, f"the API at {self.api_url} cannot be reached ({type(exc).__name__}: {exc})") from None
+        try:
+            surface = Surface(await api.mesh(self.model))
+        except BaseException as exc:
+            with contextlib.suppress(Exception):
+                await stream.close()
+            if isinstance(exc, ApiError):
+                raise _Refused(exc.status or 503, f"the API refused the model's mesh: {exc.detail}") from None
+            if isinstance(exc, (OSError, TimeoutError, _http_error())):
+                raise _Refused(
+                    503, f"the API at {self.api_url} cannot be reached ({type(exc).__name__}: {exc})"
+                ) from None
+            raise
+        if self.surface is not None and not self.surface.same(surface):
+            log.warning(
+                "model %r: its mesh changed (the API restarted with it rebuilt?); the new one is used", self.model
+            )
+        self.surface = surface
         self.sessions.append(stream.session)
         sid = stream.session
         self.announce(f"session {sid}: watch it at {self.api_url}/viewer?session={sid}")
@@ -150,36 +220,41 @@ class Bridge:
                     points = await self._cloud(msg, writer)
                     if points is None:
                         continue
-                    if stream is None:  # the API went away at an earlier frame: a new session
-                        try:
-                            stream = await self._open(api)
-                        except _Refused as exc:
-                            log.warning("%s", exc)
-                            await _frame_error(writer, frame, exc.code, str(exc), msg.version, exc.retry_after)
-                            frame += 1
-                            continue
-                    if not await self._frame(stream, frame, points, msg.version, writer):
-                        with contextlib.suppress(Exception):
-                            await stream.close()
-                        stream = None
+                    too_large = self._too_large(points)
+                    if too_large is not None:  # answered as the API would, and the session is kept
+                        log.warning("frame %d: %s", frame, too_large)
+                        await _frame_error(writer, frame, 413, too_large, msg.version)
+                    else:
+                        stream = await self._frame(api, stream, frame, points, msg.version, writer)
                     frame += 1
             finally:
-                if stream is not None:
-                    await stream.close()
+                if stream is not None:  # the session ends with its client
+                    await _close_stream(stream)
 
     async def _read(self, reader, writer) -> p.Message | None:
-        """The next message; None (answered or logged) when it is malformed or not for us."""
-        raw = await reader.readexactly(p.HEADER_SIZE)
+        """The next message; None (answered or logged) when it is malformed or not for us.
+        A client may be quiet between messages as long as it likes; once a message began, the
+        rest must come within read_timeout (_Stalled past it)."""
+        first = await reader.readexactly(1)
+        try:
+            async with asyncio.timeout(self.read_timeout):
+                return await self._read_rest(first, reader, writer)
+        except TimeoutError:
+            raise _Stalled(f"no complete message within {self.read_timeout:g} s of its start") from None
+
+    async def _read_rest(self, first: bytes, reader, writer) -> p.Message | None:
+        raw = first + await reader.readexactly(p.HEADER_SIZE - 1)
         try:
             version, mtype, device, ts, size, crc = p.parse_header(raw)
         except p.ProtocolError as exc:
             size = int.from_bytes(raw[42:50], "big")
             if size > p.MAX_BODY:  # cannot find the next message: the connection is lost
-                await self._error(writer, str(exc), 1)
+                await self._error(writer, str(exc), self._version)
                 raise ConnectionError(str(exc)) from None
             await reader.readexactly(size)
-            await self._error(writer, str(exc), 1)
+            await self._error(writer, str(exc), self._version)
             return None
+        self._version = min(version, 2)
         body = await reader.readexactly(size)
         try:
             return p.parse_body(version, mtype, device, ts, body, crc)
@@ -209,24 +284,67 @@ class Bridge:
             writer.write(_status({"error": str(exc)}, msg.version))
             return None
         points = decoded.points if isinstance(decoded, p.PolyData) else decoded
-        return np.asarray(points, np.float64)
+        # OpenIGTLink carries float32, and the API reads packed float32 ("<f4"): sent as it came
+        # in MessagePack (half the bytes of float64); JSON numbers are written from float64
+        return np.asarray(points, np.float32 if self.encoding == "msgpack" else np.float64)
 
-    async def _frame(self, stream, frame: int, points: np.ndarray, version: int, writer) -> bool:
-        """Register one frame and answer it; False when the stream is lost (the API went away
-        or timed out): the frame is answered with an error and the next opens a new session."""
+    def _too_large(self, points: np.ndarray) -> str | None:
+        """Why the API would refuse this cloud for its size (413), or None: told here, so that
+        the stream (and its session) lives on (a message over max_message_bytes closes it)."""
+        n = len(points)
+        max_points = self.limits.get("max_points")
+        if max_points and n > max_points:
+            return f"{n} points is over this server's limit of {max_points} per frame"  # the API's words
+        max_bytes = self.limits.get("max_message_bytes")
+        size = points.nbytes + 256  # a packed array and the frame's map around it
+        if max_bytes and self.encoding == "msgpack" and size > max_bytes:
+            return f"a frame of {n} points ({size} bytes) is over this server's limit of {max_bytes} bytes per message"
+        return None
+
+    async def _frame(self, api, stream, frame: int, points: np.ndarray, version: int, writer):
+        """Register one frame and answer it; the stream to use next (None when it was lost: the
+        frame is answered with an error and the next opens a new session). A stream the API
+        closed cleanly (idle past its session_ttl_s, restarting) before it answered is reopened
+        and the frame sent once more: only a second failure is an error."""
         from clients.client import StreamError
 
         t0 = time.perf_counter()
-        try:
-            r = await stream.frame(points, frame_id=frame)
-        except StreamError as exc:
-            await _frame_error(writer, frame, exc.status, str(exc.detail), version, exc.retry_after)
-            return exc.status != 0 and exc.close_code is None  # a close (status 0) ends the stream
-        except (OSError, TimeoutError, *_ws_errors()) as exc:
-            log.warning("frame %d: the API stream was lost (%s: %s)", frame, type(exc).__name__, exc)
-            detail = f"the API stream was lost ({type(exc).__name__}); the next frame opens a new session"
-            await _frame_error(writer, frame, 503, detail, version)
-            return False
+        r = None
+        for attempt in (0, 1):
+            if stream is None:  # the API went away at an earlier frame, or closed the stream
+                try:
+                    stream = await self._open(api)
+                except _Refused as exc:
+                    log.warning("%s", exc)
+                    await _frame_error(writer, frame, exc.code, str(exc), version, exc.retry_after)
+                    return None
+            try:
+                r = await stream.frame(points, frame_id=frame)
+                break
+            except StreamError as exc:
+                await _frame_error(writer, frame, exc.status, str(exc.detail), version, exc.retry_after)
+                if exc.status != 0 and exc.close_code is None:  # an error message: the stream goes on
+                    return stream
+                await _close_stream(stream)  # a close (status 0) ends the stream
+                return None
+            except (OSError, TimeoutError, *_ws_errors()) as exc:
+                await _close_stream(stream)
+                stream = None
+                code = _clean_close(exc)
+                if attempt == 0 and code is not None:
+                    reason = getattr(getattr(exc, "rcvd", None), "reason", "") or ""
+                    log.warning(
+                        "frame %d: the API closed the stream (%d%s); a new session for it (the warm start is lost)",
+                        frame,
+                        code,
+                        f" {reason}" if reason else "",
+                    )
+                    continue
+                log.warning("frame %d: the API stream was lost (%s: %s)", frame, type(exc).__name__, exc)
+                detail = f"the API stream was lost ({type(exc).__name__}); the next frame opens a new session"
+                await _frame_error(writer, frame, 503, detail, version)
+                return None
+        assert r is not None and stream is not None and self.surface is not None
         surface = self.surface.positions(r)
         status = {
             "frame_id": r.get("frame_id"),
@@ -247,7 +365,7 @@ class Bridge:
         )
         writer.write(_status(status, version))
         await writer.drain()
-        return True
+        return stream
 
     async def _error(self, writer, text: str, version: int) -> None:
         log.warning("malformed message: %s", text)
@@ -291,6 +409,15 @@ def _json_safe(obj):
     return obj
 
 
+class BridgeError(RuntimeError):
+    """The bridge cannot start (the API refuses the model or cannot be reached, the port is
+    taken): its text is one line that says why."""
+
+
+class _Stalled(Exception):
+    """A client began a message and did not finish it in time (or vanished)."""
+
+
 class _Refused(Exception):
     """The API refused a session, or could not be reached: `code` is the status to report."""
 
@@ -306,18 +433,54 @@ def _ws_errors() -> tuple[type[BaseException], ...]:
     return (WebSocketException,)
 
 
+def _http_error() -> type[BaseException]:
+    import httpx
+
+    return httpx.TransportError
+
+
+def _clean_close(exc: BaseException) -> int | None:
+    """The close code of a stream the API closed on purpose (see _CLEAN_CLOSE), else None."""
+    from websockets.exceptions import ConnectionClosed
+
+    if not isinstance(exc, ConnectionClosed) or exc.rcvd is None:
+        return None
+    return exc.rcvd.code if exc.rcvd.code in _CLEAN_CLOSE else None
+
+
+async def _close_stream(stream) -> None:
+    with contextlib.suppress(Exception):
+        await stream.close()
+
+
+def _keepalive(sock) -> None:
+    """TCP keepalive on an accepted socket: a peer gone without a word is noticed (_KEEPALIVE)."""
+    if sock is None:
+        return
+    with contextlib.suppress(OSError):
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
+        for name, value in zip(("TCP_KEEPIDLE", "TCP_KEEPINTVL", "TCP_KEEPCNT"), _KEEPALIVE, strict=True):
+            if hasattr(socket, name):  # Linux; elsewhere the system's defaults
+                sock.setsockopt(socket.IPPROTO_TCP, getattr(socket, name), value)
+
+
 async def _close(writer) -> None:
+    """Close a client's connection; one that does not take its last bytes in time is aborted."""
     try:
         writer.close()
-        await writer.wait_closed()
+        await asyncio.wait_for(writer.wait_closed(), 5)
     except Exception:
-        pass
+        with contextlib.suppress(Exception):
+            writer.transport.abort()
 
 
 async def serve(bridge: Bridge, host: str, port: int, ready=None) -> None:
     """Serve until cancelled; ``ready`` (a callable) is told the bound port."""
     await bridge.prepare()
-    server = await asyncio.start_server(bridge.handle, host, port)
+    try:
+        server = await asyncio.start_server(bridge.handle, host, port)
+    except OSError as exc:
+        raise BridgeError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from None
     bound = server.sockets[0].getsockname()[1]
     log.info(
         "OpenIGTLink bridge for model %r on %s:%d (API %s)",
@@ -367,4 +530,6 @@ def run(
             asyncio.run(serve(bridge, host, port, ready))
         except KeyboardInterrupt:
             pass
+        except BridgeError as exc:  # one line, as `elastreg serve` refuses a bad start
+            raise SystemExit(f"error: {exc}") from None
     return 0

@@ -1,0 +1,198 @@
+"""The bridge keeps serving its client through what happens to the API: a stream closed for
+idleness is reopened for the frame, a cloud over the API's limits gets the API's 413 and keeps
+its session, an API restarted with the model rebuilt gets the new surface; an internal error
+is reported and the next client served; a stalled client does not hold the only slot."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+
+from service.api.server import BackgroundServer
+from service.config import Settings
+from service.igtl import protocol as p
+from service.igtl.bridge import Surface
+
+from .conftest import point_frame, polydata_frame, read_answer, read_message
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def surface_cloud(mesh, n: int = 120, seed: int = 0) -> np.ndarray:
+    """Points on a model's boundary (its surface nodes), float32 as OpenIGTLink carries them."""
+    nodes = np.asarray(mesh["nodes"])[np.asarray(mesh["surface_nodes"])]
+    rng = np.random.default_rng(seed)
+    return nodes[rng.choice(len(nodes), n, replace=len(nodes) < n)].astype(np.float32)
+
+
+def get_mesh(url: str, model: str) -> dict:
+    return httpx.get(f"{url}/models/{model}/mesh", timeout=30).json()
+
+
+def registered(answer, n_surface: int) -> dict:
+    """The status of a frame that was registered (no error, the whole surface back)."""
+    surface, status = answer
+    assert "error" not in status, status
+    assert surface is not None and len(surface.points) == n_surface
+    return status
+
+
+def test_a_stream_closed_for_idleness_is_reopened_for_the_frame(api_server, run_bridge):
+    """The API closes a stream idle past session_ttl_s (1000, "idle for N s"): the frame that
+    finds it closed opens a new session and is registered, the first frame of a client that
+    connected long before its first cloud included."""
+    api = api_server(session_ttl_s=1.0, sweep_interval_s=0.1)
+    mesh = get_mesh(api.url, "bar")
+    n = len(mesh["surface_nodes"])
+    frame = point_frame(surface_cloud(mesh))
+    bridge = run_bridge(api.url)
+    with bridge.connect() as sock:
+        first = bridge.wait_sessions(1)[0]
+        time.sleep(2.0)  # connected early (as Slicer does), the first cloud comes later
+        sock.sendall(frame)
+        status = registered(read_answer(sock), n)
+        assert status["frame_id"] == 0 and status["session"] != first
+        sock.sendall(frame)  # at once: the same (new) session
+        assert registered(read_answer(sock), n)["session"] == status["session"]
+        time.sleep(2.0)  # a pause in surgery, past session_ttl_s
+        sock.sendall(frame)
+        after = registered(read_answer(sock), n)
+        assert after["frame_id"] == 2 and after["session"] not in (first, status["session"])
+    assert len(bridge.bridge.sessions) == 3
+
+
+def test_a_cloud_over_the_api_limits_gets_413_and_keeps_the_session(api_server, run_bridge):
+    """A cloud over max_points, even one whose message would be over max_message_bytes (the
+    API would close the stream, 1009), is answered 413 in the API's words; the session goes on."""
+    api = api_server()  # max_points 3000, max_message_bytes 1 MiB
+    mesh = get_mesh(api.url, "bar")
+    n = len(mesh["surface_nodes"])
+    cloud = surface_cloud(mesh)
+    bridge = run_bridge(api.url)
+    with bridge.connect() as sock:
+        sock.sendall(point_frame(cloud))
+        sid = registered(read_answer(sock), n)["session"]
+        for t, size in enumerate((100_000, 5_000), start=1):  # 2.4 MB and 120 kB as float64
+            sock.sendall(polydata_frame(np.resize(cloud, (size, 3))))
+            surface, status = read_answer(sock)
+            assert surface is None and status["frame_id"] == t
+            assert status["error"] == {
+                "code": 413,
+                "detail": f"{size} points is over this server's limit of 3000 per frame",
+            }
+        sock.sendall(point_frame(cloud))
+        after = registered(read_answer(sock), n)
+        assert after["frame_id"] == 3 and after["session"] == sid
+    assert bridge.bridge.sessions == [sid]
+
+
+def _entry_as(src: Path, store: Path, name: str) -> None:
+    """Model ``src`` (an entry folder) in ``store`` under the id ``name``."""
+    dst = store / name
+    shutil.rmtree(dst, ignore_errors=True)
+    shutil.copytree(src, dst)
+    manifest = json.loads((dst / "manifest.json").read_text())
+    manifest["id"] = name
+    (dst / "manifest.json").write_text(json.dumps(manifest))
+
+
+def test_an_api_restarted_with_the_model_rebuilt_serves_the_new_surface(bar_store, tmp_path, run_bridge):
+    """The API restarts on the same address with model "m" rebuilt over another mesh: the
+    connected client's next frame is registered on the new model, its surface the new one."""
+    store = tmp_path / "store"
+    store.mkdir()
+    _entry_as(bar_store[0] / "bar", store, "m")
+    settings = {"max_points": 3000, "blas_threads": 0}
+    api = BackgroundServer(Settings(store=store, **settings)).start()
+    try:
+        old = get_mesh(api.url, "m")
+        bridge = run_bridge(api.url, "m")
+        with bridge.connect() as sock:
+            sock.sendall(point_frame(surface_cloud(old)))
+            registered(read_answer(sock), len(old["surface_nodes"]))
+            api.stop()
+            _entry_as(REPO / "model_store" / "beam", store, "m")  # rebuilt: another mesh, same id
+            api = BackgroundServer(Settings(store=store, **settings), port=api.port).start()
+            new = get_mesh(api.url, "m")
+            assert len(new["surface_nodes"]) != len(old["surface_nodes"])
+            sock.sendall(point_frame(surface_cloud(new)))
+            surface, status = read_answer(sock)
+            registered((surface, status), len(new["surface_nodes"]))
+            assert surface is not None
+            np.testing.assert_array_equal(np.asarray(new["surface_nodes"])[surface.triangles], new["surface_faces"])
+        bridge.wait_free()
+        with bridge.connect() as sock:  # and the next client too
+            sock.sendall(point_frame(surface_cloud(new)))
+            registered(read_answer(sock), len(new["surface_nodes"]))
+    finally:
+        api.stop()
+
+
+def test_an_internal_error_is_reported_and_the_next_client_is_served(api_server, run_bridge):
+    """A bug in the bridge (here: a surface that does not fit the result, as a stale mesh did)
+    ends that client with a 500 status, and the bridge serves the next one."""
+    api = api_server()
+    mesh = get_mesh(api.url, "bar")
+    frame = point_frame(surface_cloud(mesh))
+    bridge = run_bridge(api.url)
+    with bridge.connect() as sock:
+        bridge.wait_sessions(1)
+        tet = {
+            "nodes": np.eye(4, 3),
+            "surface_nodes": [0, 1, 2, 3],
+            "surface_faces": [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]],
+        }
+        bridge.bridge.surface = Surface(tet)  # what the session's result cannot fit
+        sock.sendall(frame)
+        msg = read_message(sock)
+        assert (msg.type, msg.device) == ("STRING", "status")
+        error = json.loads(p.decode_string(msg.content))["error"]
+        assert error["code"] == 500 and "internal error" in error["detail"], error
+        with pytest.raises(ConnectionError):
+            read_message(sock)  # closed
+    with bridge.connect() as sock:
+        sock.sendall(frame)
+        registered(read_answer(sock), len(mesh["surface_nodes"]))
+    assert len(bridge.bridge.sessions) == 2
+
+
+def test_a_status_before_the_first_message_uses_header_version_1(api_server, run_bridge):
+    """The API cannot be reached when a client connects: the refusal is a version-1 message,
+    which a client of any protocol version reads (it has not told its version yet)."""
+    api = api_server()
+    bridge = run_bridge(api.url)
+    api.stop()
+    with bridge.connect(timeout=30) as sock:
+        msg = read_message(sock)
+        assert (msg.type, msg.device, msg.version) == ("STRING", "status", 1)
+        assert json.loads(p.decode_string(msg.content))["error"]["code"] == 503
+
+
+def test_a_stalled_client_frees_the_only_slot(api_server, run_bridge):
+    """A client that stops in the middle of a message is closed after the API's body_timeout_s
+    (its session with it); the next client is served, not refused as a second one."""
+    api = api_server(body_timeout_s=1.0)
+    mesh = get_mesh(api.url, "bar")
+    frame = point_frame(surface_cloud(mesh))
+    bridge = run_bridge(api.url)
+    with bridge.connect() as stalled:
+        stalled.sendall(frame[:30])  # half a header, then nothing
+        sid = bridge.wait_sessions(1)[0]
+        msg = read_message(stalled)  # told, then closed
+        assert "no complete message" in json.loads(p.decode_string(msg.content))["error"]
+        with pytest.raises(ConnectionError):
+            read_message(stalled)
+        deadline = time.monotonic() + 10
+        while sid in httpx.get(f"{api.url}/sessions", timeout=10).text and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert sid not in httpx.get(f"{api.url}/sessions", timeout=10).text  # closed with its client
+        with bridge.connect() as sock:
+            sock.sendall(frame)
+            status = registered(read_answer(sock), len(mesh["surface_nodes"]))
+            assert status["session"] != sid
