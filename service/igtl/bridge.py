@@ -19,6 +19,7 @@ import contextlib
 import json
 import logging
 import math
+import os
 import socket
 import time
 
@@ -480,7 +481,8 @@ async def serve(bridge: Bridge, host: str, port: int, ready=None) -> None:
     try:
         server = await asyncio.start_server(bridge.handle, host, port)
     except OSError as exc:
-        raise BridgeError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from None
+        why = os.strerror(exc.errno) if exc.errno else str(exc)  # not asyncio's whole sentence
+        raise BridgeError(f"cannot listen on {host}:{port}: {why}") from None
     bound = server.sockets[0].getsockname()[1]
     log.info(
         "OpenIGTLink bridge for model %r on %s:%d (API %s)",
