@@ -62,7 +62,8 @@ class Watcher:
         self.kind = codec.MSGPACK if enc in ("msgpack", "application/msgpack") else codec.JSON
         self.acks = Acks()
         self._sending = asyncio.Lock()  # frames and error replies come from two tasks
-        self._complaint: asyncio.Task | None = None
+        self._complaint: asyncio.Task | None = None  # sends the answers to bad messages
+        self._unanswered: bytes | None = None  # the newest answer not sent yet
 
     async def _send(self, data: bytes) -> bool:
         """False when the client has gone, or took no message within send_timeout_s: a watcher
@@ -138,12 +139,19 @@ class Watcher:
             self._complain(err)
 
     def _complain(self, err: ApiError) -> None:
-        """Answer a bad message without holding up the reader (its acks open the window); while
-        one answer waits for the socket, later ones are only logged."""
+        """Answer a bad message without holding up the reader (its acks open the window). While
+        an answer waits for the socket, only the newest later one waits behind it: a flood of bad
+        messages costs one pending answer, and a client that sends one at a time gets each."""
         log.debug("a watcher of %s sent a bad message: %s", self.session_id, err.text)
+        self._unanswered = codec.encode({"error": {"code": err.status, "detail": err.text}}, self.kind)
         if self._complaint is None or self._complaint.done():
-            body = codec.encode({"error": {"code": err.status, "detail": err.text}}, self.kind)
-            self._complaint = asyncio.create_task(self._send(body))
+            self._complaint = asyncio.create_task(self._answer())
+
+    async def _answer(self) -> None:
+        while self._unanswered is not None:
+            body, self._unanswered = self._unanswered, None
+            if not await self._send(body):
+                return
 
     async def run(self) -> None:
         async with websocket_slot(self.ws) as ok:
