@@ -201,8 +201,9 @@ class SessionSettings(_SessionSettingsBase):
 
     skip_stale: bool = Field(
         False,
-        description="WebSocket only: when frames queue up behind a solve, solve only the newest and say how "
-        "many were skipped",
+        description="WebSocket only: when frames queue up behind a solve, solve only the newest good one "
+        "(a frame whose support is refused gets its own 422) and say which were skipped (skipped, "
+        "skipped_ids; in the error, where the answered frame fails); a skipped frame's support still applies",
     )
 
     @field_validator("outputs")

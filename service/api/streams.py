@@ -97,10 +97,13 @@ class StreamRunner:
             self.gone = True
             return False
 
-    async def _error(self, kind: str, err: ApiError, frame_id=None) -> bool:
+    async def _error(self, kind: str, err: ApiError, frame_id=None, extra: dict | None = None) -> bool:
+        """An error message; `extra` names the frames skip_stale skipped for it (none was answered)."""
         body = {"code": err.status, "detail": err.text}
         if frame_id is not None:
             body["frame_id"] = frame_id
+        if extra and extra.get("skipped"):
+            body.update(extra)
         if err.retry_after is not None:  # a 503's Retry-After, in seconds
             body["retry_after"] = err.retry_after
         return await self._send(kind, codec.encode({"error": body}, kind))
@@ -299,25 +302,31 @@ class StreamRunner:
                     return False
                 continue
             good.append((kind, frame, t_received, 1e3 * (time.perf_counter() - t0)))
+        extra, support = None, None
+        if self.held.skip_stale:
+            # every frame's support is checked, the answered one's too: one refused is answered
+            # under its own id and the newest good frame before it is answered in its place
+            valid = []
+            for item in good:
+                f = item[1]
+                try:
+                    if f.support is not None:
+                        check_frame_support(self.held, f.support)
+                except ValueError as exc:
+                    if not await self._error(item[0], unprocessable(str(exc), "support"), f.frame_id):
+                        return False
+                    continue
+                valid.append(item)
+            good = valid
+            skipped = [f for _, f, _, _ in good[:-1]]
+            extra = {"skipped": len(skipped), "skipped_ids": [f.frame_id for f in skipped]}
+            for f in skipped:  # a support sent with a skipped frame still applies
+                support = f.support if f.support is not None else support
+            if good and good[-1][1].support is not None:
+                support = None  # the answered frame's own
         if not good:
             return True
         kind, frame, t_received, decode_ms = good[-1]
-        extra, support = None, None
-        if self.held.skip_stale:
-            skipped = [f for _, f, _, _ in good[:-1]]
-            extra = {"skipped": len(skipped), "skipped_ids": [f.frame_id for f in skipped]}
-            for f in skipped:  # a support sent with a skipped frame still applies, if it is one
-                if f.support is None:
-                    continue
-                try:
-                    check_frame_support(self.held, f.support)
-                except ValueError as exc:  # refused under its own id; the one before it stands
-                    if not await self._error(kind, unprocessable(str(exc), "support"), f.frame_id):
-                        return False
-                    continue
-                support = f.support
-            if frame.support is not None:
-                support = None  # the answered frame's own
         if self.gone:
             return False
         self.busy = True
@@ -354,7 +363,7 @@ class StreamRunner:
             if err is None:
                 log.error("a stream frame failed", exc_info=exc)
                 err = ApiError(500, f"internal error ({type(exc).__name__}); it has been logged")
-            return await self._error(kind, err, frame.frame_id)
+            return await self._error(kind, err, frame.frame_id, extra)
         finally:
             self.busy = False
         return await self._send(kind, body)

@@ -213,6 +213,28 @@ def test_stream_at_the_session_limit_closes_with_1013(small):
             assert close_code(c) == 1013
 
 
+def test_skip_stale_answers_the_newest_good_frame_when_the_last_is_refused(live, support, clouds):
+    """The newest queued frame's support is refused: it gets its own error, and the newest good
+    frame before it is answered in its place, with its support, which then stands."""
+    other = support[:-2].tolist()
+    with connect(live.ws) as ws:
+        config = {"model": "bar", "method": "fem", "max_iter": 30, "support": support.tolist(), "skip_stale": True}
+        ws.send(json.dumps(config))
+        recv(ws)
+        for t in range(4):  # keeps the worker busy while the next ones queue up
+            ws.send(json.dumps({"points": clouds[t % len(clouds)].tolist(), "frame_id": t}))
+        ws.send(json.dumps({"points": clouds[1].tolist(), "frame_id": "moved", "support": other}))
+        ws.send(json.dumps({"points": clouds[0].tolist(), "frame_id": "bad", "support": [10_000]}))
+        replies = []
+        while not replies or replies[-1].get("frame_id") != "moved":
+            replies.append(recv(ws))
+        errors = [r["error"] for r in replies if "error" in r]
+        assert [(e["frame_id"], e["code"]) for e in errors] == [("bad", 422)], errors
+        assert replies[-1]["support"] == other
+        ws.send(json.dumps({"points": clouds[2].tolist(), "frame_id": "next"}))
+        assert recv(ws)["support"] == other
+
+
 def test_skip_stale_refuses_a_skipped_frames_bad_support_under_its_own_id(live, support, clouds):
     """Skipped or not, a frame whose support the session cannot take gets its own error; the
     next frame runs on the support that stood."""
