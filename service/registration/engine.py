@@ -161,7 +161,10 @@ def _forward_stop(exc: ForwardFailed) -> _Stop:
 
 
 class _Done(Exception):
-    """Nothing to optimise: the rest state is the answer."""
+    """Nothing to optimise: the rest state is the answer, for the reason given."""
+
+    def __init__(self, message: str) -> None:
+        self.message = message
 
 
 class Objective:
@@ -333,8 +336,11 @@ def solve_frame(
             best = _Start(zero, v_rest, grad_rest, evaluate.rest_u)
         # the stopping test, in force space whatever variables the optimiser runs in
         g_tol = options.gtol * float(np.abs(grad_rest).max())
-        if g_tol == 0.0:
-            raise _Done()
+        if g_tol == 0.0:  # no force on the support moves what the points match (a cloud off a held face)
+            raise _Done(
+                f"no force on the support moves the surface the points match: the rest state stands "
+                f"({evaluate.rest_rms:.3g} m rms from the cloud)"
+            )
         # the optimiser's trial points only: the starts' share the spare core with the rest state
         evaluate.prefetch = prefetch
         if options.optimizer == "levenberg-marquardt":
@@ -345,8 +351,8 @@ def solve_frame(
             status, message, nit = _lbfgsb(
                 op, distance, evaluate, best, v_rest, g_tol, options, curvature, max_eval, deadline
             )
-    except _Done:
-        status, message = "converged", "the cloud lies on the rest surface: no force needed"
+    except _Done as done:
+        status, message = "converged", done.message
         evaluate.best_g, evaluate.best_value, evaluate.best_J = np.zeros((k, 3)), v_rest, v_rest
         evaluate.best_u = evaluate.rest_u
         evaluate.best_rms = evaluate.rest_rms
@@ -394,7 +400,7 @@ def _check_rest(v_rest: float, rest_positions: Array) -> None:
     # coordinates first: NumPy reduces a (p, 3) array along its long axis 9x slower
     size = float(np.linalg.norm(np.ptp(np.ascontiguousarray(rest_positions.T), axis=1))) or 1.0
     if v_rest <= 0.5 * (1e-9 * size) ** 2:
-        raise _Done()
+        raise _Done("the cloud lies on the rest surface: no force needed")
 
 
 def _best_start(evaluate: Objective, candidates: tuple[Array, ...], options: SolveOptions) -> _Start | None:
@@ -520,6 +526,8 @@ def _lbfgsb(
         stop.iterations = len(path_g) - 1
         raise
     nit, message, status = int(res.nit), str(res.message), _status(res)
+    if "CALLBACK" in message.upper():  # our own gradient test stopped it, not SciPy's
+        message = "projected gradient below gtol"
     if curvature is not None and not bounded and status == "converged":
         curvature.update(path_g, path_grad)  # only converged frames teach the carried curvature
     if failures and status != "converged":

@@ -65,6 +65,13 @@ class FrameResult:
     message: str = ""
 
 
+def _non_finite(sol: FrameSolution) -> FrameSolution:
+    """A frame whose field folds elements: its residual, so its estimate, is infinite (API.md:
+    never as converged; a failed frame leaves the warm start as it was)."""
+    message = "the registered displacement inverts elements: its Neo-Hookean residual is infinite"
+    return dataclasses.replace(sol, converged=False, status="non_finite", message=message)
+
+
 def default_support(model: ForwardModel) -> Array:
     """Every node the model can put a force on: its load region, or the free surface."""
     region = getattr(model, "region", None)
@@ -257,6 +264,8 @@ class Session:
             # the outputs before the commit: a failed frame's commit forgets the operator's kept
             # equilibria, the best iterate's among them, and a solve from rest may not reach it
             outputs, rms, estimate, gamma = self._outputs(self.op, self.model, sol, options.alpha)
+            if not np.isfinite(estimate) and sol.status not in FAILED:  # failed before it moves the warm start
+                sol = _non_finite(sol)
             self._commit(sol, learn=True)
             if sol.status not in FAILED:
                 self._learn_alpha(sol.g, len(points), gamma)
@@ -282,10 +291,9 @@ class Session:
                     sol, method_used = fem, self.corrector.method
                     iterations, evaluations = iterations + fem.iterations, evaluations + fem.evaluations
                     outputs, rms, estimate, _ = fixed
+            if not np.isfinite(estimate) and sol.status not in FAILED:  # API.md: never as converged
+                sol = _non_finite(sol)
             converged, status, message = sol.converged, sol.status, sol.message
-            if not np.isfinite(estimate) and status not in FAILED:  # API.md: never as converged
-                converged, status = False, "non_finite"
-                message = "the registered displacement inverts elements: its Neo-Hookean residual is infinite"
             timing["total"] = 1e3 * (time.perf_counter() - t0)
             self.frames += 1
             self.converged += int(converged)

@@ -381,3 +381,32 @@ def test_auto_keeps_both_operators_readout_grams(entry, sequence):
         first = first or grams
         assert all(grams[k] is first[k] for k in first)
         assert s._corrector_op._rest_jacobian is made
+
+
+def test_a_frame_whose_field_folds_leaves_the_warm_start_as_it_was(entry):
+    """A cloud far off the bar: the solve ends, but its field inverts elements, so its estimate
+    is infinite and the frame is non_finite. Failed, it must not move the next frame's start."""
+    tool = np.flatnonzero(entry.mesh.nodes[:, 0] == entry.mesh.nodes[:, 0].max())[:6]
+    seq = make_sequence(entry.mesh, entry.fem.material, tool, n_frames=3, peak_force=40.0, n_points=300, seed=4)
+    session = Session(entry.network, SessionConfig(support=_support(entry, tool)))
+    session.frame(seq.clouds[0])
+    before = session.g.copy()
+    far = seq.clouds[1] + [0.0, 0.0, 5.0]  # 5 m above a 1 m thick bar
+    r = session.frame(far)
+    assert r.status == "non_finite" and not r.converged and not np.isfinite(r.error_estimate)
+    assert np.array_equal(session.g, before) and session.failed == 1
+    assert session.frame(seq.clouds[2]).converged
+
+
+def test_messages_say_why_a_frame_stopped(entry, sequence):
+    """Not SciPy's internals ('`callback` raised `StopIteration`'), and not 'the cloud lies on the
+    rest surface' for a cloud that only faces held nodes, 2 cm away."""
+    tool, seq = sequence
+    r = Session(entry.network, SessionConfig(support=_support(entry, tool))).frame(seq.clouds[5])
+    assert r.converged and r.message == "projected gradient below gtol"
+    mesh = entry.mesh
+    held = mesh.surface_faces[np.isin(mesh.surface_faces, mesh.fixed).all(axis=1)]
+    points = mesh.nodes[held].mean(axis=1) + [-0.02, 0.0, 0.0]  # off the clamped face x = 0
+    r = Session(entry.fem, SessionConfig(support=_support(entry, tool))).frame(points)
+    assert r.iterations == 0 and "no force on the support moves the surface the points match" in r.message
+    assert "0.02 m rms" in r.message
