@@ -37,7 +37,10 @@ _port = whole_number(1, 65535)
 
 
 def _positive(text: str) -> float:
-    value = float(text)
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
     if not (value > 0 and math.isfinite(value)):
         raise argparse.ArgumentTypeError(f"must be a positive finite number, got {text!r}")
     return value
@@ -282,12 +285,25 @@ def parser() -> argparse.ArgumentParser:
     return p
 
 
+def _quiet_dask() -> None:
+    """distributed's loggers at WARNING: its import sets them to INFO, and a build's ~30 lines of
+    cluster start and stop would bury the scene's own warnings. Imported here (it is imported
+    anyway for worker processes or a scheduler) so that the level set is the one that stays."""
+    try:
+        import distributed  # noqa: F401  (its import configures its loggers)
+    except ImportError:
+        return
+    logging.getLogger("distributed").setLevel(logging.WARNING)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.WARNING,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
+    if args.command == "train" and not args.verbose and (args.workers or args.scheduler):
+        _quiet_dask()
     return int(args.func(args) or 0)
 
 
