@@ -12,6 +12,7 @@ import json
 import logging
 import math
 import os
+import tempfile
 import time
 from pathlib import Path
 
@@ -69,6 +70,20 @@ def default_data_root() -> Path:
     return Path(env) if env else Path.home() / ".cache" / "elastreg" / "data"
 
 
+def check_writable(folder: Path, what: str) -> None:
+    """Create `folder` and probe that a folder can be made in it and removed again (as the
+    store's entries and the data's paths are): a store or data root that cannot be written is
+    refused before the data and the training, not after them."""
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise ValueError(f"{what} {folder} is a file, not a folder")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        os.rmdir(tempfile.mkdtemp(prefix=".write-probe-", dir=folder))
+    except OSError as exc:
+        raise ValueError(f"{what} {folder} cannot be written: {exc.strerror or exc}") from exc
+
+
 @dataclasses.dataclass
 class BuildReport:
     entry: Path
@@ -105,6 +120,9 @@ def build(
     if minutes is not None and minutes <= 0:
         raise ValueError(f"minutes must be positive, got {minutes}")
     deadline = None if minutes is None else t_start + 60.0 * minutes
+    data_root = Path(data_root or default_data_root())
+    check_writable(Path(store), "the model store")
+    check_writable(data_root, "the data folder")
     mesh, loaded = scene.build_mesh()
     region = scene.region_nodes(mesh, loaded)
     material = NeoHookean.of(scene.material)
@@ -113,7 +131,7 @@ def build(
     n_paths = max(2, math.ceil(n_samples / spec.steps))
     max_newton = None if minutes is None else TIMED_NEWTON_CAP
     key = data_key(mesh.hash, material, spec, max_newton)
-    data_dir = Path(data_root or default_data_root()) / f"{scene.name}-{key}"
+    data_dir = data_root / f"{scene.name}-{key}"
     log.info("data for %s in %s (%d paths)", scene.name, data_dir, n_paths)
 
     t0 = time.perf_counter()

@@ -49,6 +49,7 @@ def _positive(text: str) -> float:
 def _train(args: argparse.Namespace) -> int:
     from .build import build
     from .scene import resolve_scene
+    from .surrogate.data import ClusterError
     from .surrogate.train import TrainConfig
 
     try:  # the config first: a bad combination of flags fails before the scene and any data
@@ -72,9 +73,11 @@ def _train(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    except (OSError, TimeoutError) as exc:  # a scheduler or worker that cannot be reached
-        where = f"the Dask scheduler at {args.scheduler}" if args.scheduler else "the local Dask workers"
-        print(f"error: cannot reach {where}: {exc}", file=sys.stderr)
+    except ClusterError as exc:  # a scheduler or workers that cannot be reached (it names which)
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # the disk: its message names the file
+        print(f"error: {exc}", file=sys.stderr)
         return 2
     m = report.metrics
     print(

@@ -12,13 +12,14 @@ nodes, ``u`` (s, n, 3) float32 for all nodes, ``newton_iterations`` (s,), s <= s
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import os
 import re
 import tempfile
 import time
-from collections.abc import Generator
+from collections.abc import Generator, Iterator
 from functools import lru_cache
 from pathlib import Path
 
@@ -33,6 +34,21 @@ from ..optional import need
 log = logging.getLogger(__name__)
 
 Array = np.ndarray
+
+
+class ClusterError(RuntimeError):
+    """The Dask scheduler or workers of a generation could not be reached (or went away)."""
+
+
+@contextlib.contextmanager
+def _from_dask(scheduler: str | None) -> Iterator[None]:
+    """An OSError (a comm closed, a connect timed out) out of Dask as a ClusterError that says
+    which cluster: the writes to the data folder are outside these blocks and keep their own."""
+    try:
+        yield
+    except OSError as exc:
+        where = f"the Dask scheduler at {scheduler}" if scheduler else "the local Dask workers"
+        raise ClusterError(f"cannot reach {where}: {exc}") from exc
 
 
 @dataclasses.dataclass(frozen=True)
@@ -241,27 +257,36 @@ def generate(
     cluster = None
     if scheduler is None:
         one_thread = {k: "1" for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
-        cluster = LocalCluster(
-            n_workers=workers,
-            threads_per_worker=1,
-            processes=True,
-            dashboard_address=":0",
-            env=one_thread,
-        )
-    client = Client(scheduler or cluster)
+        with _from_dask(None):
+            cluster = LocalCluster(
+                n_workers=workers,
+                threads_per_worker=1,
+                processes=True,
+                dashboard_address=":0",
+                env=one_thread,
+            )
     try:
-        m, mat, s = client.scatter([mesh, material, spec], broadcast=True)
-        futures = client.map(
-            solve_path, [m] * len(todo), [mat] * len(todo), [s] * len(todo), todo, max_newton=max_newton, pure=False
-        )
-        timeout = None if until is None else max(until - time.perf_counter(), 1e-3)
-        done = as_completed(futures, timeout=timeout)
+        with _from_dask(scheduler):
+            client = Client(scheduler or cluster)
+    except BaseException:
+        if cluster is not None:
+            cluster.close()
+        raise
+    try:
+        with _from_dask(scheduler):
+            m, mat, s = client.scatter([mesh, material, spec], broadcast=True)
+            futures = client.map(
+                solve_path, [m] * len(todo), [mat] * len(todo), [s] * len(todo), todo, max_newton=max_newton, pure=False
+            )
+            timeout = None if until is None else max(until - time.perf_counter(), 1e-3)
+            done = as_completed(futures, timeout=timeout)
         while True:
             try:
                 fut = next(done)
             except (StopIteration, TimeoutError):  # all written, or the clock ran out
                 return
-            result = fut.result()
+            with _from_dask(scheduler):
+                result = fut.result()
             write_path(data_dir, result)
             bar.update(1)
             bar.set_postfix(samples=_count(bar, result))
