@@ -139,6 +139,7 @@ def build(
     paths = generate(
         mesh, material, spec, data_dir, n_paths,
         workers=workers, scheduler=scheduler, progress=progress, max_newton=max_newton, until=data_until,
+        deadline=deadline,
     )  # fmt: skip
     for _ in paths:
         if data_until is not None and time.perf_counter() > data_until:

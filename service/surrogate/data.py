@@ -12,6 +12,7 @@ nodes, ``u`` (s, n, 3) float32 for all nodes, ``newton_iterations`` (s,), s <= s
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import dataclasses
 import logging
@@ -49,6 +50,23 @@ def _from_dask(scheduler: str | None) -> Iterator[None]:
     except OSError as exc:
         where = f"the Dask scheduler at {scheduler}" if scheduler else "the local Dask workers"
         raise ClusterError(f"cannot reach {where}: {exc}") from exc
+
+
+def _probe_scheduler(address: str, seconds: float) -> None:
+    """Raise ClusterError unless a Dask scheduler answers at `address` (the comm's handshake)
+    within `seconds`. Client(address) alone can wait forever: a port that accepts and never
+    answers (a web server, the scheduler's dashboard) leaves its handshake unread, whatever its
+    timeout. Here the wait is cancelled at the bound, and the half-open comm goes with it."""
+    from distributed.comm import connect
+
+    async def probe() -> None:
+        comm = await connect(address, timeout=seconds)  # retries a refused port until then
+        await comm.close()
+
+    try:
+        asyncio.run(asyncio.wait_for(probe(), seconds))
+    except OSError as exc:  # TimeoutError is one
+        raise ClusterError(f"no Dask scheduler answers at {address} within {round(seconds, 1):g} s") from exc
 
 
 @dataclasses.dataclass(frozen=True)
@@ -224,6 +242,7 @@ def generate(
     progress: bool = True,
     max_newton: int | None = None,
     until: float | None = None,
+    deadline: float | None = None,
 ) -> Generator[dict, None, None]:
     """Solve paths 0..n_paths-1 that are not on disk yet, in parallel; yields each as written.
 
@@ -233,6 +252,8 @@ def generate(
     `max_newton` caps each step's Newton iterations (solve_path); a data folder should hold
     paths of one cap (build.data_key). `until` (a time.perf_counter() value): with workers, the
     generation stops there even while paths are being solved (those still running are dropped).
+    Connecting to `scheduler` waits at most Dask's connect timeout (distributed.comm.timeouts.connect),
+    and never past `deadline` (a time.perf_counter() value: the build's end).
     """
     data_dir = Path(data_dir)
     data_dir.mkdir(parents=True, exist_ok=True)
@@ -254,26 +275,22 @@ def generate(
     distributed = need("dask.distributed", "training with worker processes")
     Client, LocalCluster, as_completed = distributed.Client, distributed.LocalCluster, distributed.as_completed
 
-    cluster = None
-    if scheduler is None:
-        one_thread = {k: "1" for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
-        with _from_dask(None):
-            cluster = LocalCluster(
-                n_workers=workers,
-                threads_per_worker=1,
-                processes=True,
-                dashboard_address=":0",
-                env=one_thread,
-            )
+    cluster = client = None
     try:
+        if scheduler is None:
+            one_thread = {k: "1" for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
+            with _from_dask(None):
+                cluster = LocalCluster(
+                    n_workers=workers,
+                    threads_per_worker=1,
+                    processes=True,
+                    dashboard_address=":0",
+                    env=one_thread,
+                )
+        else:
+            _probe_scheduler(scheduler, _connect_seconds(deadline))
         with _from_dask(scheduler):
             client = Client(scheduler or cluster)
-    except BaseException:
-        if cluster is not None:
-            cluster.close()
-        raise
-    try:
-        with _from_dask(scheduler):
             m, mat, s = client.scatter([mesh, material, spec], broadcast=True)
             futures = client.map(
                 solve_path, [m] * len(todo), [mat] * len(todo), [s] * len(todo), todo, max_newton=max_newton, pure=False
@@ -294,9 +311,22 @@ def generate(
             yield result
     finally:
         bar.close()
-        client.close()
+        if client is not None:
+            client.close()
         if cluster is not None:
             cluster.close()
+
+
+def _connect_seconds(deadline: float | None) -> float:
+    """Dask's connect timeout (distributed.comm.timeouts.connect), cut to what is left before
+    `deadline` (a time.perf_counter() value)."""
+    import dask.config
+    from dask.utils import parse_timedelta
+
+    seconds = float(parse_timedelta(dask.config.get("distributed.comm.timeouts.connect"), default="seconds"))
+    if deadline is not None:
+        seconds = max(min(seconds, deadline - time.perf_counter()), 0.1)
+    return seconds
 
 
 def _progress(total: int, initial: int, enabled: bool):

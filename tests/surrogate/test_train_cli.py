@@ -3,8 +3,12 @@ sees when something goes wrong (a wrong --scheduler, a store it cannot write, Ct
 
 from __future__ import annotations
 
+import os
+import re
+import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -15,12 +19,40 @@ pytest.importorskip("distributed")
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def train(scene: Path, tmp_path: Path, *flags: str, timeout: float = 300) -> subprocess.CompletedProcess:
+def train(scene: Path, tmp_path: Path, *flags: str, timeout: float = 300, env=None) -> subprocess.CompletedProcess:
     return subprocess.run(
         [sys.executable, "-m", "service.cli", "train", str(scene), "--store", str(tmp_path / "store"),
          "--data", str(tmp_path / "data"), "--hidden", "32", "--rank", "8", "--epochs", "5", *flags],
-        capture_output=True, text=True, timeout=timeout, cwd=ROOT,
+        capture_output=True, text=True, timeout=timeout, cwd=ROOT, env={**os.environ, **(env or {})},
     )  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("listening", "flags", "env", "bound"),
+    [
+        (True, ["--minutes", "0.1"], {}, 6),  # the build's deadline bounds the wait
+        (True, [], {"DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT": "3s"}, 3),  # untimed: Dask's connect timeout
+        (False, ["--minutes", "0.1"], {}, 6),  # a refused port was retried for Dask's 30 s
+    ],
+    ids=["silent-timed", "silent-untimed", "refused-timed"],
+)
+def test_a_scheduler_address_where_no_scheduler_answers_fails_within_its_bound(tmp_path, bar, listening, flags, env,
+                                                                               bound):  # fmt: skip
+    """--scheduler at a port that accepts and never answers (a web server, the dashboard's
+    port) hung forever, ignoring --minutes; a refused port took Dask's 30 s connect timeout."""
+    scene = write_bar_scene(tmp_path / "scene", bar, samples=30)
+    with socket.socket() as silent:  # the kernel accepts connections into the backlog; nobody reads
+        silent.bind(("127.0.0.1", 0))
+        if listening:
+            silent.listen(8)
+        address = f"tcp://127.0.0.1:{silent.getsockname()[1]}"
+        t0 = time.perf_counter()
+        r = train(scene, tmp_path, "--scheduler", address, *flags, timeout=60, env=env)
+        wall = time.perf_counter() - t0
+    assert r.returncode == 2, r.stderr[-3000:]
+    said = re.search(rf"error: no Dask scheduler answers at {address} within ([0-9.]+) s", r.stderr)
+    assert said and float(said[1]) <= bound, r.stderr[-3000:]
+    assert wall < bound + 20  # the interpreter's start (torch) on a loaded machine, and the bound
 
 
 def test_a_build_with_workers_keeps_dasks_info_logs_out_of_the_way(tmp_path, bar):
