@@ -15,6 +15,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import itertools
 import logging
 import os
 import re
@@ -292,17 +293,31 @@ def generate(
         with _from_dask(scheduler):
             client = Client(scheduler or cluster)
             m, mat, s = client.scatter([mesh, material, spec], broadcast=True)
-            futures = client.map(
-                solve_path, [m] * len(todo), [mat] * len(todo), [s] * len(todo), todo, max_newton=max_newton, pure=False
-            )
+            pending = iter(todo)
+
+            def submit(n: int) -> list:
+                """The next n paths, in index order."""
+                return [
+                    client.submit(solve_path, m, mat, s, i, max_newton=max_newton, pure=False)
+                    for i in itertools.islice(pending, n)
+                ]
+
+            # a few paths per worker thread in flight, topped up as they finish: submitting every
+            # path at once spent a timed build's minutes in Dask's bookkeeping (100,000 paths)
+            slots, checked = _slots(client), time.perf_counter()
             timeout = None if until is None else max(until - time.perf_counter(), 1e-3)
-            done = as_completed(futures, timeout=timeout)
+            done = as_completed(submit(slots), timeout=timeout)
         while True:
             try:
                 fut = next(done)
             except (StopIteration, TimeoutError):  # all written, or the clock ran out
                 return
             with _from_dask(scheduler):
+                more = 1
+                if scheduler is not None and time.perf_counter() - checked > SLOTS_CHECK_S:  # workers may join
+                    slots, wanted, checked = _slots(client), slots, time.perf_counter()
+                    more += max(slots - wanted, 0)
+                done.update(submit(more))
                 result = fut.result()
             write_path(data_dir, result)
             bar.update(1)
@@ -315,6 +330,17 @@ def generate(
             client.close()
         if cluster is not None:
             cluster.close()
+
+
+#: paths a generation keeps in flight per worker thread (one solving, the next ones queued)
+PATHS_PER_THREAD = 3
+#: seconds between looks at a scheduler's worker threads (a cluster's workers may join late)
+SLOTS_CHECK_S = 5.0
+
+
+def _slots(client) -> int:
+    """Paths to keep in flight on the client's cluster: PATHS_PER_THREAD per worker thread."""
+    return PATHS_PER_THREAD * max(sum(client.nthreads().values()), 1)
 
 
 def _connect_seconds(deadline: float | None) -> float:

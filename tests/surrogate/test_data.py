@@ -82,9 +82,10 @@ def test_generation_resumes_without_losing_or_redoing_paths(tmp_path, bar, spec)
 
 
 def test_dask_cluster_gives_the_same_samples(tmp_path, bar, spec):
-    local = list(generate(bar, MAT, spec, tmp_path / "a", 3, workers=0, progress=False))
-    dask = list(generate(bar, MAT, spec, tmp_path / "b", 3, workers=1, progress=False))
-    assert sorted(r["index"] for r in local) == sorted(r["index"] for r in dask) == [0, 1, 2]
+    # more paths than a worker keeps in flight (PATHS_PER_THREAD): the topped-up ones count too
+    local = list(generate(bar, MAT, spec, tmp_path / "a", 8, workers=0, progress=False))
+    dask = list(generate(bar, MAT, spec, tmp_path / "b", 8, workers=1, progress=False))
+    assert sorted(r["index"] for r in local) == sorted(r["index"] for r in dask) == list(range(8))
     Fa, Ua, _ = load_dataset(tmp_path / "a")
     Fb, Ub, _ = load_dataset(tmp_path / "b")
     np.testing.assert_array_equal(Fa, Fb)
@@ -129,3 +130,15 @@ def test_two_builds_writing_one_path_never_trip_over_each_others_temporaries(tmp
     assert [p.name for p in tmp_path.iterdir()] == ["path_000003.npz"]
     F, _, _ = load_dataset(tmp_path)
     assert F.shape == (2, 4, 3)
+
+
+def test_a_timed_generation_of_very_many_paths_keeps_to_its_clock(tmp_path, bar, spec):
+    """A timed build's `samples` is an upper bound: 200,000 paths asked of one worker must not
+    spend the clock submitting them all to Dask (it took ~30 s before the first path)."""
+    import time
+
+    until = time.perf_counter() + 10.0  # the LocalCluster's start comes out of it
+    got = list(generate(bar, MAT, spec, tmp_path / "d", 200_000, workers=1, progress=False, until=until))
+    over = time.perf_counter() - until
+    assert over < 6.0  # closing the cluster (slack: a loaded machine)
+    assert len(got) >= 1 and len(got) == len(done_indices(tmp_path / "d"))
