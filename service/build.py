@@ -84,6 +84,15 @@ def check_writable(folder: Path, what: str) -> None:
         raise ValueError(f"{what} {folder} cannot be written: {exc.strerror or exc}") from exc
 
 
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C during a build, once its data folder is known: the paths written there stay, and
+    the same command resumes from them (generate skips the paths on disk)."""
+
+    def __init__(self, data_dir: Path):
+        super().__init__(str(data_dir))
+        self.data_dir = data_dir
+
+
 @dataclasses.dataclass
 class BuildReport:
     entry: Path
@@ -134,67 +143,72 @@ def build(
     data_dir = data_root / f"{scene.name}-{key}"
     log.info("data for %s in %s (%d paths)", scene.name, data_dir, n_paths)
 
-    t0 = time.perf_counter()
-    data_until = None if deadline is None else t_start + DATA_SHARE * (deadline - t_start)
-    paths = generate(
-        mesh, material, spec, data_dir, n_paths,
-        workers=workers, scheduler=scheduler, progress=progress, max_newton=max_newton, until=data_until,
-        deadline=deadline,
-    )  # fmt: skip
-    for _ in paths:
-        if data_until is not None and time.perf_counter() > data_until:
-            paths.close()  # cancels the paths still running; those written stay for a rerun
-            break
-    data_seconds = time.perf_counter() - t0
-    done = sorted(i for i in done_indices(data_dir) if i < n_paths)
-    if len(done) < 2:
-        raise ValueError(f"{minutes} minutes gave {len(done)} finished load paths; a build needs 2 (give it more time)")
-    F, U, P = load_dataset(data_dir, done)
-    if np.unique(P).size < 2:  # paths whose first step failed hold no sample
-        raise ValueError(
-            f"{len(done)} load paths finished but {np.unique(P).size} hold a sample (their first steps did not "
-            "converge): check the boundary conditions and the load range, or give the build more time"
-        )
-    if deadline is not None:
-        left = deadline - time.perf_counter() - WRITE_RESERVE_S
-        # the clock bounds training, not an epoch count: as many epochs as fit
-        config = dataclasses.replace(config, max_seconds=max(left, 1.0), epochs=max(config.epochs, 100_000))
-    if config.members is None:  # the scene's ensemble is the reduced layout's; the paper's has none
-        config = dataclasses.replace(config, members=scene.training.members if config.layout == "reduced" else 1)
-    result = train(F, U, P, Assembler(mesh, material), region, config, progress=progress)
-    net = result.model
-    training = {
-        "samples": int(len(F)),
-        "paths": len(done),
-        "minutes": minutes,
-        "data_seconds": round(data_seconds, 1),
-        "validation": result.metrics,
-        "train_seconds": round(result.metrics["train_seconds"], 1),
-        "config": dataclasses.asdict(config),
-        "load_distribution": {k: v for k, v in dataclasses.asdict(spec).items() if k != "region"},
-        "data_key": data_dir.name,
-        "max_newton": max_newton,
-    }
-    features = int(net.feature_basis.shape[1]) if getattr(net, "physics", False) else None
-    network = {
-        "layout": config.layout,
-        "hidden": list(net.hidden),
-        "n_in": features if features is not None else 3 * len(region),
-        "n_out": 3 * mesh.n_nodes,
-        "rank": int(net.basis.shape[1]) if hasattr(net, "basis") else None,
-        "members": int(getattr(net, "members", 1)),
-        "physics_skip": features is not None,
-        "features": features,
-    }
-    entry = write_entry(
-        store, name or scene.name, mesh, region, net,
-        material=material,
-        scene=json.loads(scene.model_dump_json()),
-        training=training,
-        network=network,
-        rebuild=command,
-        renumbered=loaded.kept is not None,
-    )  # fmt: skip
+    try:
+        t0 = time.perf_counter()
+        data_until = None if deadline is None else t_start + DATA_SHARE * (deadline - t_start)
+        paths = generate(
+            mesh, material, spec, data_dir, n_paths,
+            workers=workers, scheduler=scheduler, progress=progress, max_newton=max_newton, until=data_until,
+            deadline=deadline,
+        )  # fmt: skip
+        for _ in paths:
+            if data_until is not None and time.perf_counter() > data_until:
+                paths.close()  # cancels the paths still running; those written stay for a rerun
+                break
+        data_seconds = time.perf_counter() - t0
+        done = sorted(i for i in done_indices(data_dir) if i < n_paths)
+        if len(done) < 2:
+            raise ValueError(
+                f"{minutes} minutes gave {len(done)} finished load paths; a build needs 2 (give it more time)"
+            )
+        F, U, P = load_dataset(data_dir, done)
+        if np.unique(P).size < 2:  # paths whose first step failed hold no sample
+            raise ValueError(
+                f"{len(done)} load paths finished but {np.unique(P).size} hold a sample (their first steps did not "
+                "converge): check the boundary conditions and the load range, or give the build more time"
+            )
+        if deadline is not None:
+            left = deadline - time.perf_counter() - WRITE_RESERVE_S
+            # the clock bounds training, not an epoch count: as many epochs as fit
+            config = dataclasses.replace(config, max_seconds=max(left, 1.0), epochs=max(config.epochs, 100_000))
+        if config.members is None:  # the scene's ensemble is the reduced layout's; the paper's has none
+            config = dataclasses.replace(config, members=scene.training.members if config.layout == "reduced" else 1)
+        result = train(F, U, P, Assembler(mesh, material), region, config, progress=progress)
+        net = result.model
+        training = {
+            "samples": int(len(F)),
+            "paths": len(done),
+            "minutes": minutes,
+            "data_seconds": round(data_seconds, 1),
+            "validation": result.metrics,
+            "train_seconds": round(result.metrics["train_seconds"], 1),
+            "config": dataclasses.asdict(config),
+            "load_distribution": {k: v for k, v in dataclasses.asdict(spec).items() if k != "region"},
+            "data_key": data_dir.name,
+            "max_newton": max_newton,
+        }
+        features = int(net.feature_basis.shape[1]) if getattr(net, "physics", False) else None
+        network = {
+            "layout": config.layout,
+            "hidden": list(net.hidden),
+            "n_in": features if features is not None else 3 * len(region),
+            "n_out": 3 * mesh.n_nodes,
+            "rank": int(net.basis.shape[1]) if hasattr(net, "basis") else None,
+            "members": int(getattr(net, "members", 1)),
+            "physics_skip": features is not None,
+            "features": features,
+        }
+        entry = write_entry(
+            store, name or scene.name, mesh, region, net,
+            material=material,
+            scene=json.loads(scene.model_dump_json()),
+            training=training,
+            network=network,
+            rebuild=command,
+            renumbered=loaded.kept is not None,
+        )  # fmt: skip
+    except KeyboardInterrupt:
+        raise Interrupted(data_dir) from None
     log.info(
         "wrote %s: validation mean %.3f mm, p95 %.3f mm", entry, result.metrics["mean_mm"], result.metrics["p95_mm"]
     )

@@ -47,9 +47,9 @@ def _positive(text: str) -> float:
 
 
 def _train(args: argparse.Namespace) -> int:
-    from .build import build
+    from .build import Interrupted, build
     from .scene import resolve_scene
-    from .surrogate.data import ClusterError
+    from .surrogate.data import ClusterError, done_indices
     from .surrogate.train import TrainConfig
 
     try:  # the config first: a bad combination of flags fails before the scene and any data
@@ -73,6 +73,13 @@ def _train(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt as exc:  # Ctrl-C: one line, not the workers' tracebacks
+        if isinstance(exc, Interrupted):
+            kept = len(done_indices(exc.data_dir))
+            print(f"interrupted: {kept} load paths kept in {exc.data_dir}; the same command resumes", file=sys.stderr)
+        else:
+            print("interrupted before any data", file=sys.stderr)
+        return 130
     except ClusterError as exc:  # a scheduler or workers that cannot be reached (it names which)
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -19,7 +19,9 @@ import itertools
 import logging
 import os
 import re
+import signal
 import tempfile
+import threading
 import time
 from collections.abc import Generator, Iterator
 from functools import lru_cache
@@ -280,7 +282,7 @@ def generate(
     try:
         if scheduler is None:
             one_thread = {k: "1" for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
-            with _from_dask(None):
+            with _from_dask(None), _sigint_ignored_by_children():
                 cluster = LocalCluster(
                     n_workers=workers,
                     threads_per_worker=1,
@@ -330,6 +332,21 @@ def generate(
             client.close()
         if cluster is not None:
             cluster.close()
+
+
+@contextlib.contextmanager
+def _sigint_ignored_by_children() -> Iterator[None]:
+    """SIGINT ignored while the block starts worker processes, which inherit that: Ctrl-C at a
+    terminal goes to the whole process group, and each worker printed its own KeyboardInterrupt
+    tracebacks. This process still takes it (after the block) and closes the cluster."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 #: paths a generation keeps in flight per worker thread (one solving, the next ones queued)

@@ -82,3 +82,41 @@ def test_a_store_or_data_folder_that_cannot_be_written_is_refused_before_any_wor
     assert "Dask" not in err
     if unwritable == "store":  # no FEM was solved for a build that could not be kept
         assert not list(folders["data"].rglob("path_*.npz"))
+
+
+def test_ctrl_c_during_the_data_prints_one_line_and_keeps_the_paths(tmp_path, bar):
+    """Ctrl-C at a terminal (SIGINT to the whole process group, workers too) printed 150-270
+    lines of tracebacks: now one line that says what was kept, exit status 130, no process left."""
+    import signal
+
+    scene = write_bar_scene(tmp_path / "scene", bar, samples=30_000)  # far more than it has time for
+    data = tmp_path / "data"
+    p = subprocess.Popen(
+        [sys.executable, "-m", "service.cli", "train", str(scene), "--store", str(tmp_path / "store"),
+         "--data", str(data), "--workers", "1", "--hidden", "32", "--rank", "8", "--epochs", "5"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=ROOT, start_new_session=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # as a shell's foreground job
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 120
+        while not list(data.rglob("path_*.npz")):  # the workers are solving
+            assert p.poll() is None and time.monotonic() < deadline, "no path was written"
+            time.sleep(0.2)
+        os.killpg(p.pid, signal.SIGINT)
+        out, _ = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+    assert p.returncode == 130, out[-3000:]
+    assert "Traceback" not in out, out[-3000:]
+    (folder,) = data.iterdir()
+    kept = len(list(folder.glob("path_*.npz")))
+    assert kept >= 1
+    assert f"interrupted: {kept} load paths kept in {folder}; the same command resumes" in out, out[-3000:]
+    for _ in range(50):  # the workers went with it
+        left = subprocess.run(["pgrep", "-g", str(p.pid)], capture_output=True, text=True).stdout.split()
+        if not left:
+            break
+        time.sleep(0.2)
+    assert not left
