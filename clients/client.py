@@ -441,25 +441,14 @@ class Stream:
             raise
 
     def _send_raw(self, body: dict) -> None:
-        from websockets.exceptions import ConnectionClosed
-
         data = encode(body, self.encoding)
-        try:
-            self.ws.send(data if self.encoding == "msgpack" else data.decode())
-        except ConnectionClosed as exc:  # the server closed it (idle past its ttl, shutting down)
-            raise _closed_by_server(exc) from None
+        self.ws.send(data if self.encoding == "msgpack" else data.decode())
 
     def send(self, points, *, support=None, frame_id=None) -> None:
         self._send_raw(_frame_body(points, support, frame_id))
 
     def recv(self, timeout: float | None = None) -> dict:
-        from websockets.exceptions import ConnectionClosed
-
-        try:
-            message = self.ws.recv(timeout=timeout if timeout is not None else self.timeout)
-        except ConnectionClosed as exc:
-            raise _closed_by_server(exc) from None
-        return _reply(message, self.encoding)
+        return _reply(self.ws.recv(timeout=timeout if timeout is not None else self.timeout), self.encoding)
 
     def frame(self, points, *, support=None, frame_id=None) -> dict:
         """Send one frame and return its result. After a reply that timed out, the stream is out
@@ -498,9 +487,7 @@ def _watching(hello, close_code) -> tuple[str, str, dict]:
     return obj["watching"], obj["model"], obj["config"]
 
 
-def _closed_by_server(exc: Exception) -> StreamError:
-    """The StreamError of a socket the server closed (its close code and reason: 1000 where a
-    watched session ended or an idle stream timed out)."""
+def _watch_closed(exc: Exception) -> StreamError:
     code = _closed_code(exc)
     reason = getattr(getattr(exc, "rcvd", None), "reason", "") or "the server closed the watch"
     return StreamError(0, reason, close_code=code)
@@ -536,7 +523,7 @@ class Watch:
             ws.send(_ack(0, encoding))  # acknowledging from the first frame on
         except ConnectionClosed as exc:
             ws.close()
-            raise _closed_by_server(exc) from None
+            raise _watch_closed(exc) from None
         except BaseException:
             ws.close()
             raise
@@ -552,7 +539,7 @@ class Watch:
                 self._handled = None
             frame = _reply(self.ws.recv(timeout=timeout), self.encoding)
         except ConnectionClosed as exc:
-            raise _closed_by_server(exc) from None
+            raise _watch_closed(exc) from None
         self._handled = frame["seq"]
         return frame
 
@@ -735,12 +722,7 @@ class AsyncStream:
 
     async def _send_raw(self, body: dict) -> None:
         data = encode(body, self.encoding)
-        from websockets.exceptions import ConnectionClosed
-
-        try:
-            await self.ws.send(data if self.encoding == "msgpack" else data.decode())
-        except ConnectionClosed as exc:
-            raise _closed_by_server(exc) from None
+        await self.ws.send(data if self.encoding == "msgpack" else data.decode())
 
     async def send(self, points, *, support=None, frame_id=None) -> None:
         await self._send_raw(_frame_body(points, support, frame_id))
@@ -748,14 +730,8 @@ class AsyncStream:
     async def recv(self, timeout: float | None = None) -> dict:
         import asyncio
 
-        from websockets.exceptions import ConnectionClosed
-
         wait = timeout if timeout is not None else self.timeout
-        try:
-            message = await asyncio.wait_for(self.ws.recv(), wait)
-        except ConnectionClosed as exc:
-            raise _closed_by_server(exc) from None
-        return _reply(message, self.encoding)
+        return _reply(await asyncio.wait_for(self.ws.recv(), wait), self.encoding)
 
     async def frame(self, points, *, support=None, frame_id=None) -> dict:
         """As :meth:`Stream.frame`: after a reply that timed out, a StreamError (out of step)."""
@@ -814,7 +790,7 @@ class AsyncWatch:
             await self.ws.send(_ack(0, self.encoding))
         except ConnectionClosed as exc:
             await self.ws.close()
-            raise _closed_by_server(exc) from None
+            raise _watch_closed(exc) from None
         except BaseException:
             await self.ws.close()
             raise
@@ -831,7 +807,7 @@ class AsyncWatch:
                 self._handled = None
             frame = _reply(await asyncio.wait_for(self.ws.recv(), timeout), self.encoding)
         except ConnectionClosed as exc:
-            raise _closed_by_server(exc) from None
+            raise _watch_closed(exc) from None
         self._handled = frame["seq"]
         return frame
 
