@@ -19,9 +19,9 @@ Keys beyond SCENES.md (all optional):
   ``twist_fraction`` (0: how often a patch carries a torque instead of a single direction),
   ``members`` (1: the surrogate's ensemble size, see :mod:`service.surrogate.network`;
   ``elastreg train --members`` overrides it).
-- ``[registration]``: read by the benchmark and the trainer, permissive (other keys are kept in
-  ``model_extra``): ``support`` or ``support_file`` (node ids where registration may put
-  forces), ``matching_file`` (a .npy (f, 3) array of the boundary triangles point clouds lie on).
+- ``[registration]``: read by the benchmark and the trainer: ``support`` or ``support_file``
+  (node ids where registration may put forces), ``matching_file`` (a .npy (f, 3) array of the
+  boundary triangles point clouds lie on).
 
 Paths (``path`` and every ``*_file`` key) are relative to the TOML file. Node ids in a scene are
 the file's ids; when loading drops unused nodes they are mapped onto the mesh's numbering.
@@ -197,27 +197,14 @@ class TrainingSpec(_Table):
 
 
 class RegistrationSpec(BaseModel):
-    """[registration]: optional inputs of the benchmark; unknown keys are kept, not refused."""
+    """[registration]: optional inputs of the benchmark; a misspelt key is refused, as in every
+    other table (`suport` kept quietly would leave the default support in its place)."""
 
-    model_config = ConfigDict(extra="allow", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True)
 
     support: list[NodeId] | None = None
     support_file: ScenePath | None = None
     matching_file: ScenePath | None = None
-
-    @model_validator(mode="before")
-    @classmethod
-    def _resolve_extra_files(cls, data: Any, info: ValidationInfo) -> Any:
-        """Other *_file keys are paths too, relative to the TOML file (not checked here)."""
-        base = (info.context or {}).get("base")
-        if not isinstance(data, dict) or base is None:
-            return data
-        return {
-            k: str((Path(base) / v).resolve())
-            if k.endswith("_file") and k not in cls.model_fields and isinstance(v, str)
-            else v
-            for k, v in data.items()
-        }
 
     @model_validator(mode="after")
     def _at_most_one(self) -> RegistrationSpec:

@@ -334,3 +334,9 @@ def test_a_region_smaller_than_its_patches(folder):
     mesh, _ = scene.build_mesh()
     spec = load_spec(scene, scene.region_nodes(mesh))
     assert spec.patch_nodes == (2, 3)  # what the loads really take, not the scene's 6
+
+
+def test_a_misspelt_registration_key_is_refused(folder):
+    text = GOOD.format(boundary="fixed_nodes = [0, 1, 3]", training="") + "\n[registration]\nsuport = [5]\n"
+    with pytest.raises(SceneError, match=r"\[registration\] suport"):
+        load_scene(write(folder, text=text))
