@@ -265,6 +265,28 @@ def test_idle_sessions_expire(small, clouds):
         assert r.status_code == 404 and "expired" in r.json()["detail"]
 
 
+def test_an_open_whose_client_left_is_closed_at_once(tmp_path):
+    """The shipped phantom's whole-region session takes about a second to build; a client that
+    gives up before the 201 never learns the id, so the session must not hold a slot for its ttl."""
+    from pathlib import Path
+
+    from .conftest import start
+
+    server = start(Path(__file__).resolve().parents[2] / "model_store", instance_id="gone")
+    try:
+        with httpx.Client(base_url=server.url) as c:
+            with pytest.raises(httpx.TimeoutException):
+                c.post("/sessions", json={"model": "phantom"}, timeout=0.1)
+            registry = server.app.state.registry
+            deadline = time.monotonic() + 60
+            while registry._pending and time.monotonic() < deadline:  # until the build is over
+                time.sleep(0.05)
+            time.sleep(0.2)  # the handler's last steps after the build
+            assert not registry._pending and c.get("/health").json()["sessions"]["http"] == 0
+    finally:
+        server.stop()
+
+
 def test_stream_session_visible_but_not_addressable_over_http(live, http, clouds):
     from websockets.sync.client import connect
 

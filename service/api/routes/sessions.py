@@ -5,6 +5,8 @@ A session lives in the server process that opened it (see the README on session 
 
 from __future__ import annotations
 
+import logging
+
 from fastapi import APIRouter, Request, Response
 
 from .. import work
@@ -26,6 +28,7 @@ from ..deps import (
 )
 from ..schemas import ErrorOut, FrameIn, FrameResult, SessionCreate, SessionInfo, SessionOpened
 
+log = logging.getLogger(__name__)
 router = APIRouter(prefix="/sessions", tags=["sessions"])
 NOT_FOUND = {
     404: {
@@ -56,6 +59,7 @@ INVALID = {422: {"model": ErrorOut, "description": "a body that does not validat
     openapi_extra=request_body(SessionCreate),
 )
 async def open_session(
+    request: Request,
     body: CreateBody,
     models: ModelsDep,
     registry: RegistryDep,
@@ -68,9 +72,13 @@ async def open_session(
     entry = models.get(create.model)
     if entry is None:
         raise work.not_found_model(create.model, models)
-    held = await work.open_session(
-        entry, create, kind="http", registry=registry, pool=pool, settings=settings, owner=owner
-    )
+    with client_gone(request) as gone:
+        held = await work.open_session(
+            entry, create, kind="http", registry=registry, pool=pool, settings=settings, owner=owner
+        )
+        if gone():  # nobody will learn its id: it would hold a slot until session_ttl_s
+            registry.close(held.id, kind="http", owner=owner)
+            log.info("session %s closed at once: its client left while it was being built", held.id)
     return reply(work.opened(held, settings.instance_id), kind, status=201)
 
 
