@@ -23,7 +23,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import os
-from typing import Any
+from typing import Any, Self
 from urllib.parse import quote
 
 import msgpack
@@ -388,6 +388,41 @@ class SessionHandle:
             pass
 
 
+def _close_code(ws) -> int | None:
+    """The close code of a socket the server is closing (after refusing its first message),
+    waiting 2 s at most; None if it stays open."""
+    from websockets.exceptions import ConnectionClosed
+
+    try:
+        ws.recv(timeout=2.0)
+    except ConnectionClosed as exc:
+        return _closed_code(exc)
+    except Exception:
+        pass
+    return None
+
+
+async def _aclose_code(ws) -> int | None:
+    """:func:`_close_code` for an asyncio socket."""
+    import asyncio
+
+    from websockets.exceptions import ConnectionClosed
+
+    try:
+        await asyncio.wait_for(ws.recv(), 2.0)
+    except ConnectionClosed as exc:
+        return _closed_code(exc)
+    except Exception:
+        pass
+    return None
+
+
+def _is_error(message) -> bool:
+    """Whether a stream's or a watch's message is its error, ``{"error": {...}}``."""
+    obj = decode(message, "msgpack" if isinstance(message, (bytes, bytearray)) else "json")
+    return isinstance(obj, dict) and set(obj) == {"error"}
+
+
 def _closed_code(exc: Exception) -> int | None:
     rcvd = getattr(exc, "rcvd", None)
     return getattr(rcvd, "code", None)
@@ -402,7 +437,37 @@ def _opened(first, wait_close) -> tuple[str, dict]:
     return obj["session"], obj["config"]
 
 
-class Stream:
+class _Socket:
+    """A handle that owns its WebSocket (``ws``): closed with it, or by leaving its block."""
+
+    ws: Any
+
+    def close(self) -> None:
+        self.ws.close()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class _AsyncSocket:
+    """:class:`_Socket` for an asyncio WebSocket."""
+
+    ws: Any
+
+    async def close(self) -> None:
+        await self.ws.close()
+
+    async def __aenter__(self) -> Self:
+        return self
+
+    async def __aexit__(self, *exc) -> None:
+        await self.close()
+
+
+class Stream(_Socket):
     """A WebSocket stream (sync): ``send`` frames (they may be pipelined), ``recv`` results in
     order, or ``frame`` for both. A stream error raises :class:`StreamError` (a 503's with
     ``retry_after``, the seconds to wait); the stream goes on."""
@@ -413,20 +478,11 @@ class Stream:
         self.timeout = timeout
         from websockets.exceptions import ConnectionClosed
 
-        def wait_close() -> int | None:
-            try:
-                ws.recv(timeout=2.0)
-            except ConnectionClosed as exc:
-                return _closed_code(exc)
-            except Exception:
-                pass
-            return None
-
         self._out_of_step = False
         try:
             self._send_raw(config)
             first = ws.recv(timeout=timeout)
-            self.session, self.config = _opened(first, wait_close)
+            self.session, self.config = _opened(first, lambda: _close_code(ws))
         except ConnectionClosed as exc:
             try:  # the server may have refused the handshake's token before the config was sent
                 _reply(ws.recv(timeout=0.5), encoding)
@@ -463,15 +519,6 @@ class Stream:
             self._out_of_step = True
             raise
 
-    def close(self) -> None:
-        self.ws.close()
-
-    def __enter__(self) -> Stream:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
 
 def _ack(seq: int, encoding: str) -> bytes | str:
     data = encode({"ack": seq}, encoding)
@@ -493,7 +540,7 @@ def _watch_closed(exc: Exception) -> StreamError:
     return StreamError(0, reason, close_code=code)
 
 
-class Watch:
+class Watch(_Socket):
     """A session's frames as it solves them (sync): ``{"seq", "time", "points", "result"}``.
 
     Iterate (or call ``recv``) for the next frame, waiting while the session is idle; iteration
@@ -509,17 +556,8 @@ class Watch:
         self._handled: int | None = None  # the seq returned last, acknowledged at the next recv
         from websockets.exceptions import ConnectionClosed
 
-        def close_code() -> int | None:
-            try:
-                ws.recv(timeout=2.0)
-            except ConnectionClosed as exc:
-                return _closed_code(exc)
-            except Exception:
-                pass
-            return None
-
         try:
-            self.session, self.model, self.config = _watching(ws.recv(timeout=timeout), close_code)
+            self.session, self.model, self.config = _watching(ws.recv(timeout=timeout), lambda: _close_code(ws))
             ws.send(_ack(0, encoding))  # acknowledging from the first frame on
         except ConnectionClosed as exc:
             ws.close()
@@ -551,15 +589,6 @@ class Watch:
                 if exc.close_code == 1000:
                     return
                 raise
-
-    def close(self) -> None:
-        self.ws.close()
-
-    def __enter__(self) -> Watch:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
 
 # -- async ---------------------------------------------------------------------------------------
@@ -674,7 +703,7 @@ class AsyncSessionHandle:
             pass
 
 
-class AsyncStream:
+class AsyncStream(_AsyncSocket):
     """A WebSocket stream (asyncio); see :class:`Stream`."""
 
     def __init__(self, ws, encoding: str, timeout: float | None = None) -> None:
@@ -690,23 +719,11 @@ class AsyncStream:
 
         from websockets.exceptions import ConnectionClosed
 
-        codes = []
-
-        async def closed() -> None:
-            try:
-                await asyncio.wait_for(self.ws.recv(), 2.0)
-            except ConnectionClosed as exc:
-                codes.append(_closed_code(exc))
-            except Exception:
-                pass
-
         try:
             await self._send_raw(config)
             first = await asyncio.wait_for(self.ws.recv(), self.timeout)
-            obj = decode(first, "msgpack" if isinstance(first, (bytes, bytearray)) else "json")
-            if isinstance(obj, dict) and set(obj) == {"error"}:
-                await closed()
-            self.session, self.config = _opened(first, lambda: codes[0] if codes else None)
+            code = await _aclose_code(self.ws) if _is_error(first) else None
+            self.session, self.config = _opened(first, lambda: code)
         except ConnectionClosed as exc:
             try:  # the server may have refused the handshake's token before the config was sent
                 _reply(await asyncio.wait_for(self.ws.recv(), 0.5), self.encoding)
@@ -744,17 +761,8 @@ class AsyncStream:
             self._out_of_step = True
             raise
 
-    async def close(self) -> None:
-        await self.ws.close()
 
-    async def __aenter__(self) -> AsyncStream:
-        return self
-
-    async def __aexit__(self, *exc) -> None:
-        await self.close()
-
-
-class AsyncWatch:
+class AsyncWatch(_AsyncSocket):
     """A session's frames as it solves them (asyncio); see :class:`Watch`."""
 
     def __init__(self, ws, encoding: str, timeout: float | None = None) -> None:
@@ -771,22 +779,10 @@ class AsyncWatch:
 
         from websockets.exceptions import ConnectionClosed
 
-        codes: list[int | None] = []
-
-        async def closed() -> None:
-            try:
-                await asyncio.wait_for(self.ws.recv(), 2.0)
-            except ConnectionClosed as exc:
-                codes.append(_closed_code(exc))
-            except Exception:
-                pass
-
         try:
             hello = await asyncio.wait_for(self.ws.recv(), self.timeout)
-            obj = decode(hello, "msgpack" if isinstance(hello, (bytes, bytearray)) else "json")
-            if isinstance(obj, dict) and set(obj) == {"error"}:
-                await closed()
-            self.session, self.model, self.config = _watching(hello, lambda: codes[0] if codes else None)
+            code = await _aclose_code(self.ws) if _is_error(hello) else None
+            self.session, self.model, self.config = _watching(hello, lambda: code)
             await self.ws.send(_ack(0, self.encoding))
         except ConnectionClosed as exc:
             await self.ws.close()
@@ -821,12 +817,3 @@ class AsyncWatch:
             if exc.close_code == 1000:
                 raise StopAsyncIteration from None
             raise
-
-    async def close(self) -> None:
-        await self.ws.close()
-
-    async def __aenter__(self) -> AsyncWatch:
-        return self
-
-    async def __aexit__(self, *exc) -> None:
-        await self.close()
