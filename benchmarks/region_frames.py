@@ -57,7 +57,7 @@ def main() -> int:
     for name, config in VARIANTS.items():
         times, iters, errors = [], [], []
         for _ in range(args.repeats):
-            session, rep = Session(entry.network, config), []
+            session, rep = Session(entry.model("network"), config), []
             for k, cloud in enumerate(seq.clouds):
                 t0 = time.perf_counter()
                 r = session.frame(cloud)
