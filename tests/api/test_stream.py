@@ -213,22 +213,32 @@ def test_stream_at_the_session_limit_closes_with_1013(small):
             assert close_code(c) == 1013
 
 
+def _behind_a_busy_worker(ws, support, clouds, queued: list[dict], until) -> tuple[list[dict], list[dict]]:
+    """Opens a skip_stale Newton stream on `ws`, keeps its worker busy with four frames, sends
+    `queued` behind them and reads replies up to the one for frame `until`: (replies, errors)."""
+    config = {"model": "bar", "method": "fem", "max_iter": 30, "support": support.tolist(), "skip_stale": True}
+    ws.send(json.dumps(config))
+    recv(ws)
+    for t in range(4):  # keeps the worker busy while the queued frames wait
+        ws.send(json.dumps({"points": clouds[t % len(clouds)].tolist(), "frame_id": t}))
+    for body in queued:
+        ws.send(json.dumps(body))
+    replies: list[dict] = []
+    while not replies or replies[-1].get("frame_id") != until:
+        replies.append(recv(ws))
+    return replies, [r["error"] for r in replies if "error" in r]
+
+
 def test_skip_stale_answers_the_newest_good_frame_when_the_last_is_refused(live, support, clouds):
     """The newest queued frame's support is refused: it gets its own error, and the newest good
     frame before it is answered in its place, with its support, which then stands."""
     other = support[:-2].tolist()
     with connect(live.ws) as ws:
-        config = {"model": "bar", "method": "fem", "max_iter": 30, "support": support.tolist(), "skip_stale": True}
-        ws.send(json.dumps(config))
-        recv(ws)
-        for t in range(4):  # keeps the worker busy while the next ones queue up
-            ws.send(json.dumps({"points": clouds[t % len(clouds)].tolist(), "frame_id": t}))
-        ws.send(json.dumps({"points": clouds[1].tolist(), "frame_id": "moved", "support": other}))
-        ws.send(json.dumps({"points": clouds[0].tolist(), "frame_id": "bad", "support": [10_000]}))
-        replies = []
-        while not replies or replies[-1].get("frame_id") != "moved":
-            replies.append(recv(ws))
-        errors = [r["error"] for r in replies if "error" in r]
+        queued = [
+            {"points": clouds[1].tolist(), "frame_id": "moved", "support": other},
+            {"points": clouds[0].tolist(), "frame_id": "bad", "support": [10_000]},
+        ]
+        replies, errors = _behind_a_busy_worker(ws, support, clouds, queued, until="moved")
         assert [(e["frame_id"], e["code"]) for e in errors] == [("bad", 422)], errors
         assert replies[-1]["support"] == other
         ws.send(json.dumps({"points": clouds[2].tolist(), "frame_id": "next"}))
@@ -239,17 +249,11 @@ def test_skip_stale_refuses_a_skipped_frames_bad_support_under_its_own_id(live, 
     """Skipped or not, a frame whose support the session cannot take gets its own error; the
     next frame runs on the support that stood."""
     with connect(live.ws) as ws:
-        config = {"model": "bar", "method": "fem", "max_iter": 30, "support": support.tolist(), "skip_stale": True}
-        ws.send(json.dumps(config))
-        recv(ws)
-        for t in range(4):  # keeps the worker busy while the next two queue up
-            ws.send(json.dumps({"points": clouds[t % len(clouds)].tolist(), "frame_id": t}))
-        ws.send(json.dumps({"points": clouds[0].tolist(), "frame_id": "bad", "support": [10_000]}))
-        ws.send(json.dumps({"points": clouds[1].tolist(), "frame_id": "good"}))
-        replies = []
-        while not replies or replies[-1].get("frame_id") != "good":
-            replies.append(recv(ws))
-        errors = [r["error"] for r in replies if "error" in r]
+        queued = [
+            {"points": clouds[0].tolist(), "frame_id": "bad", "support": [10_000]},
+            {"points": clouds[1].tolist(), "frame_id": "good"},
+        ]
+        replies, errors = _behind_a_busy_worker(ws, support, clouds, queued, until="good")
         assert [(e["frame_id"], e["code"]) for e in errors] == [("bad", 422)], errors
         assert "0..80" in errors[0]["detail"]
         assert replies[-1]["support"] == support.tolist()
