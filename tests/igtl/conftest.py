@@ -10,6 +10,7 @@ import socket
 import threading
 import time
 
+import httpx
 import numpy as np
 import pytest
 
@@ -144,3 +145,36 @@ def point_frame(points: np.ndarray, version: int = 1) -> bytes:
 def polydata_frame(points: np.ndarray) -> bytes:
     """A POLYDATA message named ``cloud``: points only."""
     return p.pack("POLYDATA", "cloud", p.encode_polydata(points, np.zeros((0, 3), int)))
+
+
+def surface_cloud(mesh, n: int = 120, seed: int = 0) -> np.ndarray:
+    """Points on a model's boundary (its surface nodes), float32 as OpenIGTLink carries them."""
+    nodes = np.asarray(mesh["nodes"])[np.asarray(mesh["surface_nodes"])]
+    rng = np.random.default_rng(seed)
+    return nodes[rng.choice(len(nodes), n, replace=len(nodes) < n)].astype(np.float32)
+
+
+def get_mesh(url: str, model: str) -> dict:
+    return httpx.get(f"{url}/models/{model}/mesh", timeout=30).json()
+
+
+def registered(answer, n_surface: int) -> dict:
+    """The status of a frame that was registered (no error, the whole surface back)."""
+    surface, status = answer
+    assert "error" not in status, status
+    assert surface is not None and len(surface.points) == n_surface
+    return status
+
+
+def is_open(url: str, sid: str) -> bool:
+    """Whether the API holds session ``sid`` (200), or has closed it (404)."""
+    code = httpx.get(f"{url}/sessions/{sid}", timeout=10).status_code
+    assert code in (200, 404), code
+    return code == 200
+
+
+def wait_closed(url: str, sid: str, timeout: float = 20) -> None:
+    deadline = time.monotonic() + timeout
+    while is_open(url, sid) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not is_open(url, sid)

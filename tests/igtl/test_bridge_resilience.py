@@ -10,7 +10,6 @@ import shutil
 import time
 from pathlib import Path
 
-import httpx
 import numpy as np
 import pytest
 
@@ -19,28 +18,18 @@ from service.config import Settings
 from service.igtl import protocol as p
 from service.igtl.bridge import Surface
 
-from .conftest import point_frame, polydata_frame, read_answer, read_message
+from .conftest import (
+    get_mesh,
+    point_frame,
+    polydata_frame,
+    read_answer,
+    read_message,
+    registered,
+    surface_cloud,
+    wait_closed,
+)
 
 REPO = Path(__file__).resolve().parents[2]
-
-
-def surface_cloud(mesh, n: int = 120, seed: int = 0) -> np.ndarray:
-    """Points on a model's boundary (its surface nodes), float32 as OpenIGTLink carries them."""
-    nodes = np.asarray(mesh["nodes"])[np.asarray(mesh["surface_nodes"])]
-    rng = np.random.default_rng(seed)
-    return nodes[rng.choice(len(nodes), n, replace=len(nodes) < n)].astype(np.float32)
-
-
-def get_mesh(url: str, model: str) -> dict:
-    return httpx.get(f"{url}/models/{model}/mesh", timeout=30).json()
-
-
-def registered(answer, n_surface: int) -> dict:
-    """The status of a frame that was registered (no error, the whole surface back)."""
-    surface, status = answer
-    assert "error" not in status, status
-    assert surface is not None and len(surface.points) == n_surface
-    return status
 
 
 def test_a_stream_closed_for_idleness_is_reopened_for_the_frame(api_server, run_bridge):
@@ -188,10 +177,7 @@ def test_a_stalled_client_frees_the_only_slot(api_server, run_bridge):
         assert "no complete message" in json.loads(p.decode_string(msg.content))["error"]
         with pytest.raises(ConnectionError):
             read_message(stalled)
-        deadline = time.monotonic() + 10
-        while sid in httpx.get(f"{api.url}/sessions", timeout=10).text and time.monotonic() < deadline:
-            time.sleep(0.05)
-        assert sid not in httpx.get(f"{api.url}/sessions", timeout=10).text  # closed with its client
+        wait_closed(api.url, sid)  # closed with its client
         with bridge.connect() as sock:
             sock.sendall(frame)
             status = registered(read_answer(sock), len(mesh["surface_nodes"]))
