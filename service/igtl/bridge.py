@@ -3,7 +3,9 @@ front of the registration API.
 
 The bridge is a client of the HTTP/WebSocket API (:class:`clients.AsyncClient`), never a part
 of the engine: each OpenIGTLink client gets one ``/stream`` session, which a viewer can watch
-(``/viewer?session=ID``). One client at a time; a second is told so and closed.
+(``/viewer?session=ID``). One client at a time: a second, while the first is connected, is told
+so and closed; one that comes as the first leaves (a reconnect) is served at once, while the
+first's session closes.
 
 In: ``POLYDATA`` (a model's points, as Slicer sends one) or ``POINT`` named ``cloud`` (the
 device name is configurable) is one frame. Out, per frame: ``POLYDATA`` ``registered`` (the
@@ -22,10 +24,14 @@ import math
 import os
 import socket
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from . import protocol as p
+
+if TYPE_CHECKING:
+    from clients.client import AsyncStream
 
 log = logging.getLogger(__name__)
 
@@ -36,6 +42,10 @@ STATUS = "status"
 #: what a client that vanished without closing (cable pulled, laptop asleep) is probed with:
 #: idle seconds, seconds between probes, probes unanswered before the connection is dropped
 _KEEPALIVE = (60, 10, 6)
+#: seconds a client that connects while another holds the slot waits for that one to leave
+#: before it is refused: a client that reconnects closes its old connection first, but the two
+#: may arrive together and the close be seen a moment after the new connection
+_RECONNECT_GRACE = 1.0
 #: close codes of a stream the API ended on purpose (idle past session_ttl_s, going away,
 #: restarting): the frame was not taken, so it is sent again over a new session
 _CLEAN_CLOSE = (1000, 1001, 1012)
@@ -93,8 +103,7 @@ class Bridge:
         #: the API's limits (its /health), read at prepare(): max_points, max_message_bytes,
         #: body_timeout_s (also how long the rest of a message may take once its header began)
         self.limits: dict = {}
-        self.busy = False
-        self._version = 1  # the connected client's header version (1 until its first message)
+        self._client: _Client | None = None  # the client that holds the one slot
         self.sessions: list[str] = []  # ids of the sessions opened so far (for logs and tests)
         self._ignored: set[tuple[str, str]] = set()  # (type, device) of messages ignored so far
         self.announce = log.info  # what to do with a line a person should see (the CLI prints it)
@@ -118,6 +127,16 @@ class Bridge:
                 ) from None
 
     @property
+    def busy(self) -> bool:
+        """Whether a client holds the slot: connected, and not leaving (see _Client.left)."""
+        return self._client is not None and not self._client.left.is_set()
+
+    async def _left(self) -> None:
+        """Until no client holds the slot."""
+        while (held := self._client) is not None and not held.left.is_set():
+            await held.left.wait()
+
+    @property
     def read_timeout(self) -> float:
         """Seconds the rest of a message may take once its first byte came (the API's body_timeout_s)."""
         return float(self.limits.get("body_timeout_s") or 30.0)
@@ -133,47 +152,50 @@ class Bridge:
     # -- one connection --------------------------------------------------------------------------
 
     async def handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        peer = writer.get_extra_info("peername")
+        client = _Client(reader, writer)
+        if self.busy:  # a reconnecting client's close may be seen a moment after its new connection
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._left(), _RECONNECT_GRACE)
         if self.busy:
-            log.warning("refusing %s: a client is already connected", peer)
-            writer.write(
-                p.pack(
-                    "STRING",
-                    STATUS,
-                    p.encode_string(json.dumps({"error": "this bridge serves one client at a time; one is connected"})),
-                )
-            )
+            log.warning("refusing %s: a client is already connected", client.peer)
+            await self._tell(client, "this bridge serves one client at a time; one is connected")
             await _close(writer)
             return
-        self.busy = True
-        self._version = 1
+        self._client = client
         _keepalive(writer.get_extra_info("socket"))
-        log.info("client %s connected", peer)
+        log.info("client %s connected", client.peer)
+        error: dict | str | None = None  # the last status, when the connection ends on an error
         try:
-            await self._serve(reader, writer)
+            await self._serve(client)
         except (ConnectionError, asyncio.IncompleteReadError):
             pass
         except _Refused as exc:  # the API refused or could not be reached: the client is told
-            log.warning("client %s: %s", peer, exc)
-            await self._tell(writer, _error_body(exc.code, str(exc), exc.retry_after))
+            log.warning("client %s: %s", client.peer, exc)
+            error = _error_body(exc.code, str(exc), exc.retry_after)
         except _Stalled as exc:  # the slot is freed: a stalled or vanished client holds it no longer
-            log.warning("client %s: %s; closing it", peer, exc)
-            await self._tell(writer, str(exc))
+            log.warning("client %s: %s; closing it", client.peer, exc)
+            error = str(exc)
         except Exception as exc:  # a bug: this client is told and closed, the next is served
-            log.exception("client %s: internal error", peer)
-            await self._tell(
-                writer, _error_body(500, f"internal error in the bridge ({type(exc).__name__}); it has been logged")
-            )
+            log.exception("client %s: internal error", client.peer)
+            error = _error_body(500, f"internal error in the bridge ({type(exc).__name__}); it has been logged")
         finally:
-            self.busy = False
+            # the slot is freed before the teardown (the last status, the API stream, the socket
+            # can take a while): a client that reconnects at once is served meanwhile, and the
+            # teardown closes only what is this client's own
+            client.left.set()
+            if self._client is client:
+                self._client = None
+            if error is not None:
+                await self._tell(client, error)
+            await _close_stream(client.stream)
             await _close(writer)
-            log.info("client %s disconnected", peer)
+            log.info("client %s disconnected", client.peer)
 
-    async def _tell(self, writer, error) -> None:
+    async def _tell(self, client: _Client, error) -> None:
         """A last status (an ``error``) before the connection closes; nothing if it cannot go."""
         with contextlib.suppress(Exception):
-            writer.write(_status({"error": error}, self._version))
-            await asyncio.wait_for(writer.drain(), 5)
+            client.writer.write(_status({"error": error}, client.version))
+            await asyncio.wait_for(client.writer.drain(), 5)
 
     async def _open(self, api):
         """A stream for this client, and the model's mesh read again (the API may have restarted
@@ -209,53 +231,53 @@ class Bridge:
         self.announce(f"session {sid}: watch it at {self.api_url}/viewer?session={sid}")
         return stream
 
-    async def _serve(self, reader, writer) -> None:
+    async def _serve(self, client: _Client) -> None:
+        """Frames until the client leaves; its stream is left open on ``client`` (the caller
+        closes it once the slot is free)."""
+        writer = client.writer
         async with self._api() as api:
-            stream = await self._open(api)
+            client.stream = await self._open(api)
             frame = 0
-            try:
-                while True:
-                    msg = await self._read(reader, writer)
-                    if msg is None:
-                        continue
-                    points = await self._cloud(msg, writer)
-                    if points is None:
-                        continue
-                    too_large = self._too_large(points)
-                    if too_large is not None:  # answered as the API would, and the session is kept
-                        log.warning("frame %d: %s", frame, too_large)
-                        await _frame_error(writer, frame, 413, too_large, msg.version)
-                    else:
-                        stream = await self._frame(api, stream, frame, points, msg.version, writer)
-                    frame += 1
-            finally:
-                if stream is not None:  # the session ends with its client
-                    await _close_stream(stream)
+            while True:
+                msg = await self._read(client)
+                if msg is None:
+                    continue
+                points = await self._cloud(msg, writer)
+                if points is None:
+                    continue
+                too_large = self._too_large(points)
+                if too_large is not None:  # answered as the API would, and the session is kept
+                    log.warning("frame %d: %s", frame, too_large)
+                    await _frame_error(writer, frame, 413, too_large, msg.version)
+                else:
+                    await self._frame(api, client, frame, points, msg.version)
+                frame += 1
 
-    async def _read(self, reader, writer) -> p.Message | None:
+    async def _read(self, client: _Client) -> p.Message | None:
         """The next message; None (answered or logged) when it is malformed or not for us.
         A client may be quiet between messages as long as it likes; once a message began, the
         rest must come within read_timeout (_Stalled past it)."""
-        first = await reader.readexactly(1)
+        first = await client.reader.readexactly(1)
         try:
             async with asyncio.timeout(self.read_timeout):
-                return await self._read_rest(first, reader, writer)
+                return await self._read_rest(first, client)
         except TimeoutError:
             raise _Stalled(f"no complete message within {self.read_timeout:g} s of its start") from None
 
-    async def _read_rest(self, first: bytes, reader, writer) -> p.Message | None:
+    async def _read_rest(self, first: bytes, client: _Client) -> p.Message | None:
+        reader, writer = client.reader, client.writer
         raw = first + await reader.readexactly(p.HEADER_SIZE - 1)
         try:
             version, mtype, device, ts, size, crc = p.parse_header(raw)
         except p.ProtocolError as exc:
             size = int.from_bytes(raw[42:50], "big")
             if size > p.MAX_BODY:  # cannot find the next message: the connection is lost
-                await self._error(writer, str(exc), self._version)
+                await self._error(writer, str(exc), client.version)
                 raise ConnectionError(str(exc)) from None
             await reader.readexactly(size)
-            await self._error(writer, str(exc), self._version)
+            await self._error(writer, str(exc), client.version)
             return None
-        self._version = min(version, 2)
+        client.version = min(version, 2)
         body = await reader.readexactly(size)
         try:
             return p.parse_body(version, mtype, device, ts, body, crc)
@@ -302,35 +324,38 @@ class Bridge:
             return f"a frame of {n} points ({size} bytes) is over this server's limit of {max_bytes} bytes per message"
         return None
 
-    async def _frame(self, api, stream, frame: int, points: np.ndarray, version: int, writer):
-        """Register one frame and answer it; the stream to use next (None when it was lost: the
-        frame is answered with an error and the next opens a new session). A stream the API
-        closed cleanly (idle past its session_ttl_s, restarting) before it answered is reopened
-        and the frame sent once more: only a second failure is an error."""
+    async def _frame(self, api, client: _Client, frame: int, points: np.ndarray, version: int) -> None:
+        """Register one frame and answer it. ``client.stream`` is the stream to use next (None
+        when it was lost: the frame is answered with an error and the next opens a new session).
+        A stream the API closed cleanly (idle past its session_ttl_s, restarting) before it
+        answered is reopened and the frame sent once more: only a second failure is an error."""
         from clients.client import StreamError
 
+        writer = client.writer
         t0 = time.perf_counter()
         r = None
         for attempt in (0, 1):
-            if stream is None:  # the API went away at an earlier frame, or closed the stream
+            if client.stream is None:  # the API went away at an earlier frame, or closed the stream
                 try:
-                    stream = await self._open(api)
+                    client.stream = await self._open(api)
                 except _Refused as exc:
                     log.warning("%s", exc)
                     await _frame_error(writer, frame, exc.code, str(exc), version, exc.retry_after)
-                    return None
+                    return
+            stream = client.stream
             try:
                 r = await stream.frame(points, frame_id=frame)
                 break
             except StreamError as exc:
                 await _frame_error(writer, frame, exc.status, str(exc.detail), version, exc.retry_after)
                 if exc.status != 0 and exc.close_code is None:  # an error message: the stream goes on
-                    return stream
+                    return
+                client.stream = None
                 await _close_stream(stream)  # a close (status 0) ends the stream
-                return None
+                return
             except (OSError, TimeoutError, *_ws_errors()) as exc:
+                client.stream = None
                 await _close_stream(stream)
-                stream = None
                 code = _clean_close(exc)
                 if attempt == 0 and code is not None:
                     reason = getattr(getattr(exc, "rcvd", None), "reason", "") or ""
@@ -344,7 +369,8 @@ class Bridge:
                 log.warning("frame %d: the API stream was lost (%s: %s)", frame, type(exc).__name__, exc)
                 detail = f"the API stream was lost ({type(exc).__name__}); the next frame opens a new session"
                 await _frame_error(writer, frame, 503, detail, version)
-                return None
+                return
+        stream = client.stream
         assert r is not None and stream is not None and self.surface is not None
         surface = self.surface.positions(r)
         status = {
@@ -366,7 +392,6 @@ class Bridge:
         )
         writer.write(_status(status, version))
         await writer.drain()
-        return stream
 
     async def _error(self, writer, text: str, version: int) -> None:
         log.warning("malformed message: %s", text)
@@ -408,6 +433,39 @@ def _json_safe(obj):
     if isinstance(obj, (float, np.floating)):
         return float(obj) if math.isfinite(obj) else None
     return obj
+
+
+class _Client:
+    """One OpenIGTLink connection and what is its own: the header version it speaks and its API
+    stream. Per connection, not on the Bridge: a client that leaves is torn down while the next
+    is served, and its teardown must reach nothing of the next one's."""
+
+    def __init__(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        self.reader = reader
+        self.writer = writer
+        self.peer = writer.get_extra_info("peername")
+        self.version = 1  # its header version (1 until its first message)
+        self.stream: AsyncStream | None = None  # its API stream, while one is open
+        #: set once it sends nothing more: it closed its side of the connection or lost it (what
+        #: it sent before is still read, registered and answered), or its frames are over
+        self.left = reader.ended if isinstance(reader, _Reader) else asyncio.Event()
+
+
+class _Reader(asyncio.StreamReader):
+    """A StreamReader whose ``ended`` is set when its peer closes its side or the connection is
+    lost, even while bytes it sent before are unread (at_eof() waits for those)."""
+
+    def __init__(self, *, loop: asyncio.AbstractEventLoop) -> None:
+        super().__init__(loop=loop)
+        self.ended = asyncio.Event()
+
+    def feed_eof(self) -> None:
+        self.ended.set()
+        super().feed_eof()
+
+    def set_exception(self, exc: Exception) -> None:
+        self.ended.set()
+        super().set_exception(exc)
 
 
 class BridgeError(RuntimeError):
@@ -478,8 +536,13 @@ async def _close(writer) -> None:
 async def serve(bridge: Bridge, host: str, port: int, ready=None) -> None:
     """Serve until cancelled; ``ready`` (a callable) is told the bound port."""
     await bridge.prepare()
+    loop = asyncio.get_running_loop()
+
+    def connection() -> asyncio.StreamReaderProtocol:  # asyncio.start_server's, with a _Reader
+        return asyncio.StreamReaderProtocol(_Reader(loop=loop), bridge.handle, loop=loop)
+
     try:
-        server = await asyncio.start_server(bridge.handle, host, port)
+        server = await loop.create_server(connection, host, port)
     except OSError as exc:
         why = os.strerror(exc.errno) if exc.errno else str(exc)  # not asyncio's whole sentence
         raise BridgeError(f"cannot listen on {host}:{port}: {why}") from None

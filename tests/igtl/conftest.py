@@ -63,7 +63,8 @@ class RunningBridge:
         return socket.create_connection(("127.0.0.1", self.port), timeout=timeout)
 
     def wait_free(self, timeout: float = 30) -> None:
-        """Until the bridge has let its last client go (it serves one at a time)."""
+        """Until no client holds the bridge's one slot (free once a client leaves, before its
+        session is closed)."""
         deadline = time.monotonic() + timeout
         while self.bridge.busy and time.monotonic() < deadline:
             time.sleep(0.02)

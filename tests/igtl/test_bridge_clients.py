@@ -1,0 +1,63 @@
+"""One client at a time, as docs/frontends.md says: a client that reconnects at once (Slicer's
+connector toggled off and on, a client that dropped with a frame in flight) is served while the
+bridge still closes its old connection, and that late teardown closes only the old session."""
+
+from __future__ import annotations
+
+import asyncio
+
+from service.igtl import bridge as bridge_module
+
+from .conftest import get_mesh, is_open, point_frame, read_answer, registered, surface_cloud, wait_closed
+
+
+def test_a_client_that_reconnects_at_once_is_served(api_server, run_bridge, monkeypatch):
+    """Closing a session here takes 2 s (as an API slow to answer the close would): a client
+    that closes and connects again at once is served meanwhile, over a new session, and the old
+    connection's late teardown closes the old session only; the new one goes on."""
+    api = api_server()
+    mesh = get_mesh(api.url, "bar")
+    n = len(mesh["surface_nodes"])
+    frame = point_frame(surface_cloud(mesh))
+    close_stream = bridge_module._close_stream
+
+    async def slow_close(stream) -> None:
+        await asyncio.sleep(2.0)
+        await close_stream(stream)
+
+    monkeypatch.setattr(bridge_module, "_close_stream", slow_close)
+    bridge = run_bridge(api.url)
+    with bridge.connect() as old:
+        old.sendall(frame)
+        old_sid = registered(read_answer(old), n)["session"]
+    with bridge.connect() as new:  # at once, while the old session is being closed
+        new.sendall(frame)
+        new_sid = registered(read_answer(new), n)["session"]
+        assert new_sid != old_sid and is_open(api.url, old_sid)  # not waited for
+        wait_closed(api.url, old_sid)  # the old teardown is over
+        assert is_open(api.url, new_sid)
+        new.sendall(frame)
+        after = registered(read_answer(new), n)
+        assert after["session"] == new_sid and after["frame_id"] == 1
+    assert bridge.bridge.sessions == [old_sid, new_sid]
+
+
+def test_a_client_that_dropped_with_a_frame_in_flight_is_served_when_it_reconnects(api_server, run_bridge):
+    """A client sends a frame and closes without its answer, then connects again at once: the
+    bridge is still registering the old frame (or opening the old session) and not yet reading,
+    yet the new connection is served, not refused; the old session is closed after."""
+    api = api_server()
+    mesh = get_mesh(api.url, "bar")
+    n = len(mesh["surface_nodes"])
+    frame = point_frame(surface_cloud(mesh))
+    bridge = run_bridge(api.url)
+    for tries in range(1, 4):
+        with bridge.connect() as old:
+            old.sendall(frame)
+        with bridge.connect() as new:
+            new.sendall(frame)
+            sid = registered(read_answer(new), n)["session"]
+            (old_sid,) = set(bridge.wait_sessions(2 * tries)[-2:]) - {sid}  # the two opened in either order
+            wait_closed(api.url, old_sid)
+            assert is_open(api.url, sid)
+        wait_closed(api.url, sid)
