@@ -158,7 +158,7 @@ class Bridge:
                 await asyncio.wait_for(self._left(), _RECONNECT_GRACE)
         if self.busy:
             log.warning("refusing %s: a client is already connected", client.peer)
-            await self._tell(client, "this bridge serves one client at a time; one is connected")
+            await self._tell(client, _error_body(503, "this bridge serves one client at a time; one is connected"))
             await _close(writer)
             return
         self._client = client

@@ -1,14 +1,44 @@
-"""One client at a time, as docs/frontends.md says: a client that reconnects at once (Slicer's
-connector toggled off and on, a client that dropped with a frame in flight) is served while the
-bridge still closes its old connection, and that late teardown closes only the old session."""
+"""One client at a time, as docs/frontends.md says: a second client while the first is connected
+is refused (a 503 status, then closed) and the first goes on; a client that reconnects at once
+(Slicer's connector toggled off and on, a client that dropped with a frame in flight) is served
+while the bridge still closes its old connection, and that late teardown closes only the old
+session."""
 
 from __future__ import annotations
 
 import asyncio
+import json
+
+import pytest
 
 from service.igtl import bridge as bridge_module
+from service.igtl import protocol as p
 
-from .conftest import get_mesh, is_open, point_frame, read_answer, registered, surface_cloud, wait_closed
+from .conftest import get_mesh, is_open, point_frame, read_answer, read_message, registered, surface_cloud, wait_closed
+
+
+def test_a_second_client_while_one_is_connected_is_refused(api_server, run_bridge):
+    """The second is sent a version-1 status {"error": {"code": 503, "detail"}} and closed; the
+    first keeps its session."""
+    api = api_server()
+    mesh = get_mesh(api.url, "bar")
+    n = len(mesh["surface_nodes"])
+    frame = point_frame(surface_cloud(mesh))
+    bridge = run_bridge(api.url)
+    with bridge.connect() as first:
+        first.sendall(frame)
+        sid = registered(read_answer(first), n)["session"]
+        with bridge.connect(timeout=30) as second:
+            msg = read_message(second)
+            assert (msg.type, msg.device, msg.version) == ("STRING", "status", 1)
+            assert json.loads(p.decode_string(msg.content)) == {
+                "error": {"code": 503, "detail": "this bridge serves one client at a time; one is connected"}
+            }
+            with pytest.raises(ConnectionError):
+                read_message(second)  # closed
+        first.sendall(frame)
+        assert registered(read_answer(first), n)["session"] == sid
+    assert bridge.bridge.sessions == [sid]
 
 
 def test_a_client_that_reconnects_at_once_is_served(api_server, run_bridge, monkeypatch):
