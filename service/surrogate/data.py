@@ -255,8 +255,9 @@ def generate(
     `max_newton` caps each step's Newton iterations (solve_path); a data folder should hold
     paths of one cap (build.data_key). `until` (a time.perf_counter() value): with workers, the
     generation stops there even while paths are being solved (those still running are dropped).
-    Connecting to `scheduler` waits at most Dask's connect timeout (distributed.comm.timeouts.connect),
-    and never past `deadline` (a time.perf_counter() value: the build's end).
+    Connecting to `scheduler`, and waiting for its first worker, each take at most Dask's connect
+    timeout (distributed.comm.timeouts.connect), never past `deadline` (a time.perf_counter() value:
+    the build's end); the wait for a worker never past `until` either.
     """
     data_dir = Path(data_dir)
     data_dir.mkdir(parents=True, exist_ok=True)
@@ -294,6 +295,8 @@ def generate(
             _probe_scheduler(scheduler, _connect_seconds(deadline))
         with _from_dask(scheduler):
             client = Client(scheduler or cluster)
+            if scheduler is not None:
+                _wait_for_workers(client, scheduler, _connect_seconds(until if until is not None else deadline), bar)
             m, mat, s = client.scatter([mesh, material, spec], broadcast=True)
             pending = iter(todo)
 
@@ -347,6 +350,24 @@ def _sigint_ignored_by_children() -> Iterator[None]:
         yield
     finally:
         signal.signal(signal.SIGINT, previous)
+
+
+def _wait_for_workers(client, address: str, seconds: float, bar) -> None:
+    """Raise ClusterError unless the scheduler at `address` has a worker within `seconds`; the
+    progress bar says that it waits, and how long. Without this, a scheduler with no workers (not
+    started yet, or pointed at another scheduler) held the build in scatter for Dask's own
+    timeout with no word, then blamed the connection ("No valid workers found")."""
+    if client.nthreads():
+        return
+    bar.set_postfix_str(f"waiting up to {round(seconds, 1):g} s for a worker at {address}")
+    try:
+        client.wait_for_workers(1, timeout=seconds)
+    except TimeoutError as exc:  # an OSError: raised as it is, _from_dask would call it unreachable
+        raise ClusterError(
+            f"the Dask scheduler at {address} has no workers (waited {round(seconds, 1):g} s): "
+            f"start some with `dask worker {address}`"
+        ) from exc
+    bar.set_postfix_str("")
 
 
 #: paths a generation keeps in flight per worker thread (one solving, the next ones queued)

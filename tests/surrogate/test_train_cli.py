@@ -55,6 +55,33 @@ def test_a_scheduler_address_where_no_scheduler_answers_fails_within_its_bound(t
     assert wall < bound + 20  # the interpreter's start (torch) on a loaded machine, and the bound
 
 
+@pytest.mark.parametrize(
+    ("flags", "env", "bound"),
+    [
+        (["--minutes", "0.1"], {}, 3.6),  # the build's data share of its minutes bounds the wait
+        ([], {"DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT": "3s"}, 3),  # untimed: Dask's connect timeout
+    ],
+    ids=["timed", "untimed"],
+)
+def test_a_scheduler_with_no_workers_says_it_waits_and_fails_within_its_bound(tmp_path, bar, flags, env, bound):
+    """A real scheduler with no workers held the build in scatter for Dask's 30 s (whatever its
+    --minutes) with no word, then blamed the connection: "cannot reach ... No valid workers found"."""
+    from distributed import LocalCluster
+
+    scene = write_bar_scene(tmp_path / "scene", bar, samples=30)
+    with LocalCluster(n_workers=0, host="127.0.0.1", dashboard_address=":0") as cluster:
+        address = cluster.scheduler_address
+        t0 = time.perf_counter()
+        r = train(scene, tmp_path, "--scheduler", address, *flags, timeout=120, env=env)
+        wall = time.perf_counter() - t0
+    assert r.returncode == 2, r.stderr[-3000:]
+    assert re.search(rf"waiting up to [0-9.]+ s for a worker at {address}", r.stderr), r.stderr[-3000:]
+    said = re.search(rf"error: the Dask scheduler at {address} has no workers \(waited ([0-9.]+) s\): "
+                     rf"start some with `dask worker {address}`", r.stderr)  # fmt: skip
+    assert said and float(said[1]) <= bound, r.stderr[-3000:]
+    assert wall < bound + 20  # the interpreter's start (torch) on a loaded machine, and the bound
+
+
 def test_a_build_with_workers_keeps_dasks_info_logs_out_of_the_way(tmp_path, bar):
     """Without -v the cluster's start and stop (~30 INFO lines from distributed) would bury the
     scene's own warnings: only the build's result is printed."""
