@@ -283,7 +283,8 @@ def generate(
     try:
         if scheduler is None:
             one_thread = {k: "1" for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
-            with _from_dask(None), _sigint_ignored_by_children():
+            with _from_dask(None), _sigint_held_from_children():
+                bar.set_postfix_str(f"starting {workers} local Dask workers")  # a Ctrl-C from here on is held
                 cluster = LocalCluster(
                     n_workers=workers,
                     threads_per_worker=1,
@@ -291,6 +292,7 @@ def generate(
                     dashboard_address=":0",
                     env=one_thread,
                 )
+            bar.set_postfix_str("")
         else:
             _probe_scheduler(scheduler, _connect_seconds(deadline))
         with _from_dask(scheduler):
@@ -338,18 +340,34 @@ def generate(
 
 
 @contextlib.contextmanager
-def _sigint_ignored_by_children() -> Iterator[None]:
-    """SIGINT ignored while the block starts worker processes, which inherit that: Ctrl-C at a
-    terminal goes to the whole process group, and each worker printed its own KeyboardInterrupt
-    tracebacks. This process still takes it (after the block) and closes the cluster."""
-    if threading.current_thread() is not threading.main_thread():
+def _sigint_held_from_children() -> Iterator[None]:
+    """Ctrl-C held while the block starts worker processes, and raised once it is done (so the
+    caller closes what the block started).
+
+    SIGINT is blocked in this thread, and so in every thread and process the block starts: they
+    inherit the mask and keep it, since Ctrl-C at a terminal goes to the whole process group and
+    each worker printed its own KeyboardInterrupt tracebacks. One that lands meanwhile on an
+    older thread (tqdm's monitor, the BLAS pool) is kept by a handler. SIGINT ignored instead
+    (which the workers inherit too) lost a Ctrl-C in the seconds a LocalCluster takes to start.
+    """
+    if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "pthread_sigmask"):
         yield
         return
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    from multiprocessing import resource_tracker
+
+    # started now, not by the block's first worker: its start unblocks SIGINT in the thread that
+    # starts it, and that thread then starts a worker
+    resource_tracker.ensure_running()
+    caught: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
         yield
     finally:
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})  # one pending lands on the handler
         signal.signal(signal.SIGINT, previous)
+    if caught:
+        raise KeyboardInterrupt
 
 
 def _wait_for_workers(client, address: str, seconds: float, bar) -> None:

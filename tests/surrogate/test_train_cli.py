@@ -147,3 +147,43 @@ def test_ctrl_c_during_the_data_prints_one_line_and_keeps_the_paths(tmp_path, ba
             break
         time.sleep(0.2)
     assert not left
+
+
+def test_ctrl_c_while_the_local_cluster_starts_stops_the_build_with_one_line(tmp_path, bar):
+    """SIGINT was ignored for the 1-3 s a LocalCluster takes to start (so that the workers, which
+    inherit that, print no tracebacks): a Ctrl-C then was lost and the build carried on. Now it
+    is held until the cluster is up, then ends the build as a Ctrl-C anywhere else does."""
+    import signal
+
+    scene = write_bar_scene(tmp_path / "scene", bar, samples=30)  # seconds of work: it finished before
+    log = tmp_path / "train.log"
+    with open(log, "w") as out:
+        p = subprocess.Popen(
+            [sys.executable, "-m", "service.cli", "train", str(scene), "--store", str(tmp_path / "store"),
+             "--data", str(tmp_path / "data"), "--workers", "1", "--hidden", "32", "--rank", "8", "--epochs", "5"],
+            stdout=out, stderr=subprocess.STDOUT, cwd=ROOT, start_new_session=True,
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # as a shell's foreground job
+        )  # fmt: skip
+        try:
+            deadline = time.monotonic() + 120
+            while "starting 1 local Dask workers" not in log.read_text():  # the progress bar's word
+                assert p.poll() is None and time.monotonic() < deadline, log.read_text()[-3000:]
+                time.sleep(0.02)
+            os.killpg(p.pid, signal.SIGINT)
+            p.wait(timeout=60)
+        finally:
+            if p.poll() is None:
+                os.killpg(p.pid, signal.SIGKILL)
+                p.wait()
+    text = log.read_text()
+    assert p.returncode == 130, text[-3000:]
+    assert "Traceback" not in text, text[-3000:]
+    (folder,) = (tmp_path / "data").iterdir()
+    assert f"interrupted: 0 load paths kept in {folder}; the same command resumes" in text, text[-3000:]
+    assert not (tmp_path / "store" / "bar").exists()
+    for _ in range(50):  # the workers went with it
+        left = subprocess.run(["pgrep", "-g", str(p.pid)], capture_output=True, text=True).stdout.split()
+        if not left:
+            break
+        time.sleep(0.2)
+    assert not left
