@@ -21,8 +21,8 @@ import numpy as np
 from .fem.assembly import Assembler
 from .fem.material import NeoHookean
 from .fem.newton import NewtonOptions
-from .scene import Scene
-from .store import check_entry_id, write_entry
+from .scene import Scene, check_model_id
+from .store import write_entry
 from .surrogate.data import LoadSpec, done_indices, generate, load_dataset
 from .surrogate.train import TrainConfig, train
 
@@ -125,7 +125,7 @@ def build(
     TIMED_NEWTON_CAP), training in what is left.
     """
     t_start = time.perf_counter()
-    check_entry_id(name or scene.name)
+    check_model_id(name or scene.name)
     if minutes is not None and minutes <= 0:
         raise ValueError(f"minutes must be positive, got {minutes}")
     deadline = None if minutes is None else t_start + 60.0 * minutes

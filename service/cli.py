@@ -46,6 +46,16 @@ def _positive(text: str) -> float:
     return value
 
 
+def _model_id(text: str) -> str:
+    """An argparse type for a model id: the scene's own rule for its name (scene.MODEL_ID)."""
+    from .scene import check_model_id
+
+    try:
+        return check_model_id(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def _train(args: argparse.Namespace) -> int:
     from .build import Interrupted, build
     from .scene import resolve_scene
@@ -225,7 +235,9 @@ def parser() -> argparse.ArgumentParser:
     t = command("train", "generate FEM data for a scene and train its surrogate into the model store")
     t.add_argument("scene", help="a scene .toml, or a shipped scene name (beam, phantom)")
     t.add_argument("--store", default=None, help="model store (default: $ELASTREG_STORE or the project's model_store/)")
-    t.add_argument("--name", default=None, help="model id in the store (default: the scene's name)")
+    t.add_argument(
+        "--name", type=_model_id, default=None, help="model id in the store (default: the scene's name; the same rule)"
+    )
     t.add_argument("--samples", type=_at_least_one, default=None, help="samples to generate (default: the scene's)")
     t.add_argument(
         "--minutes",

@@ -30,6 +30,7 @@ the file's ids; when loading drops unused nodes they are mapped onto the mesh's 
 from __future__ import annotations
 
 import logging
+import re
 import tomllib
 from importlib import resources
 from pathlib import Path
@@ -54,6 +55,22 @@ from .meshfile import LoadedMesh, load_mesh, mesh_quality
 log = logging.getLogger(__name__)
 
 Array = np.ndarray
+
+#: A model id, the one rule for every place one is named: a scene's `name`, `elastreg train
+#: --name`, a store entry's folder and manifest, the {model} segment of the API's URLs. A letter
+#: or digit first: never "." or "..", nor a hidden folder (the store's temporaries, .ID-*, and
+#: the entries it sets aside, ..ID-*); then only URL-unreserved characters, so a URL needs no
+#: escaping; 64 at most.
+MODEL_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+MODEL_ID_RULE = "must start with a letter or digit and hold only letters, digits, '_', '.' and '-' (64 at most)"
+
+
+def check_model_id(model_id: str) -> str:
+    """`model_id` if it is one (MODEL_ID), else a ValueError that says the rule."""
+    if not isinstance(model_id, str) or not MODEL_ID.fullmatch(model_id):
+        raise ValueError(f"model id {model_id!r:.80} {MODEL_ID_RULE}")
+    return model_id
+
 
 #: Scenes shipped in the package (service/scenes/NAME.toml).
 BUILTIN_SCENES = ("beam", "phantom")
@@ -219,7 +236,7 @@ class RegistrationSpec(BaseModel):
 class Scene(_Table):
     """One organ's scene: mesh, material, boundary conditions, and the loads to learn."""
 
-    name: Annotated[str, Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_-]*$", max_length=64)]  # a store id
+    name: Annotated[str, Field(pattern=MODEL_ID.pattern)]  # the model id in the store and the API
     mesh: MeshSpec
     material: MaterialSpec
     boundary: BoundarySpec = BoundarySpec()
@@ -491,7 +508,7 @@ def _describe(err: dict) -> str:
     elif kind == "literal_error":
         what = f"must be {ctx['expected']}, got {got}"
     elif kind == "string_pattern_mismatch":
-        what = f"must start with a letter or digit and hold only letters, digits, '-' and '_', got {got}"
+        what = f"{MODEL_ID_RULE}, got {got}"  # the name's, the only pattern
     elif kind == "value_error":
         what = str(ctx.get("error", err["msg"]))
     elif kind == "model_type" or kind == "dict_type":

@@ -39,6 +39,7 @@ from . import __version__
 from .fem.material import NeoHookean
 from .fem.model import FEMModel
 from .mesh import TetMesh
+from .scene import MODEL_ID, check_model_id
 from .surrogate.model import NetworkModel
 from .surrogate.network import PaperSurrogate, ReducedSurrogate
 
@@ -48,21 +49,11 @@ FORMAT_VERSION = 1
 MANIFEST = "manifest.json"
 MESH = "mesh.npz"
 WEIGHTS = "weights.safetensors"
-ENTRY_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")  # a folder name and a URL segment
 _MAX_MANIFEST = 1 << 20  # bytes
 
 
 class StoreError(RuntimeError):
     """An entry that cannot be used, and why."""
-
-
-def check_entry_id(entry_id: str) -> None:
-    """Refuse an id the store could not serve (before a build spends its time)."""
-    if not isinstance(entry_id, str) or not ENTRY_ID.fullmatch(entry_id):
-        raise ValueError(
-            f"model id {entry_id!r:.80} must start with a letter or digit and hold only letters, digits, "
-            "'_', '.' and '-' (64 at most)"
-        )
 
 
 def sha256(path: Path) -> str:
@@ -157,7 +148,7 @@ def _restore_aside(store: Path) -> None:
             continue
         entry_id = path.name[len(_ASIDE) :].rsplit("-", 1)[0]
         final = store / entry_id
-        if path.is_dir() and not final.exists() and ENTRY_ID.fullmatch(entry_id):
+        if path.is_dir() and not final.exists() and MODEL_ID.fullmatch(entry_id):
             try:
                 os.replace(path, final)
                 log.warning("model %s: restored the entry a build had moved aside (%s)", entry_id, path.name)
@@ -181,7 +172,7 @@ def write_entry(
 ) -> Path:
     """Write an entry atomically: built in a temporary folder and loaded back from it (an entry
     the store would refuse never replaces one it serves), then renamed into place."""
-    check_entry_id(entry_id)
+    check_model_id(entry_id)
     store = Path(store)
     store.mkdir(parents=True, exist_ok=True)
     final = store / entry_id
@@ -268,8 +259,8 @@ def _check_manifest(manifest, name: str) -> None:
     if not all(isinstance(d, str) and re.fullmatch(r"[0-9a-f]{64}", d) for d in files.values()):
         raise StoreError(f"{name}: each file's checksum must be a SHA-256 hex digest")
     entry_id = manifest.get("id")
-    if not isinstance(entry_id, str) or not ENTRY_ID.fullmatch(entry_id):
-        raise StoreError(f"{name}: the manifest's id must match {ENTRY_ID.pattern}, got {entry_id!r:.80}")
+    if not isinstance(entry_id, str) or not MODEL_ID.fullmatch(entry_id):
+        raise StoreError(f"{name}: the manifest's id must match {MODEL_ID.pattern}, got {entry_id!r:.80}")
     for key in ("mesh", "material", "network"):
         if not isinstance(manifest.get(key), dict):
             raise StoreError(f"{name}: the manifest has no {key!r} object")
@@ -315,8 +306,8 @@ def load_entry(path: Path, name: str | None = None) -> Entry:
     is to be served as (default: its folder's name)."""
     path = Path(path)
     name = path.name if name is None else name
-    if not ENTRY_ID.fullmatch(name):
-        raise StoreError(f"{name!r:.80}: an entry's folder name must match {ENTRY_ID.pattern}")
+    if not MODEL_ID.fullmatch(name):
+        raise StoreError(f"{name!r:.80}: an entry's folder name must match {MODEL_ID.pattern}")
     _regular_file(path / MANIFEST, path, name, MANIFEST)
     if (path / MANIFEST).stat().st_size > _MAX_MANIFEST:
         raise StoreError(f"{name}: {MANIFEST} is over {_MAX_MANIFEST} bytes")

@@ -3,9 +3,15 @@ status 2, before any server starts or store loads."""
 
 from __future__ import annotations
 
+import json
+from importlib import resources
+
 import pytest
 
-from service.cli import parser
+from service.cli import main, parser
+from service.scene import SceneError, parse_scene
+from service.store import open_store
+from tests.conftest import write_bar_scene
 
 
 @pytest.mark.parametrize(
@@ -30,3 +36,61 @@ def test_good_values_parse():
     args = parser().parse_args(["serve", "--port", "8080", "--workers", "2"])
     assert (args.port, args.workers) == (8080, 2)
     assert parser().parse_args(["demo", "--frames", "2"]).frames == 2
+
+
+NAMES = {  # a model id the scene and --name both take, or both refuse
+    "liver": True,
+    "liver.v2": True,  # the scene refused it, --name took it
+    "liver_2-b.3": True,
+    "L" * 64: True,
+    "L" * 65: False,
+    "..": False,  # a URL's parent segment
+    ".": False,
+    ".liver": False,  # hidden: the store skips it
+    "..liver-1a2b3c4d": False,  # the name of an entry the store set aside (and restores)
+    "-liver": False,
+    "liver v2": False,
+    "liver/v2": False,
+    "liver%2f": False,
+    "": False,
+}
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_the_scene_name_and_the_name_flag_keep_one_rule(name, capsys):
+    """A scene's `name` and `elastreg train --name` both give the model id in the store and in
+    the API's URLs: they differed about '.', so a name one took the other refused."""
+    text = resources.files("service.scenes").joinpath("beam.toml").read_text()
+    text = text.replace('name = "beam"', f"name = {json.dumps(name)}")
+    try:
+        parse_scene(text, "scene.toml")
+        scene_takes = True
+    except SceneError as exc:
+        assert "name: must start with a letter or digit" in str(exc), exc
+        scene_takes = False
+    try:
+        parser().parse_args(["train", "scene.toml", f"--name={name}"])
+        flag_takes = True
+    except SystemExit as exit_:
+        assert exit_.code == 2 and "argument --name: model id" in capsys.readouterr().err
+        flag_takes = False
+    assert scene_takes == flag_takes == NAMES[name]
+
+
+def test_a_model_id_with_a_dot_is_built_stored_and_served_by_it(tmp_path, bar):
+    """From the scene's name through the store to the API's URL: /models/bar.v2 is that model."""
+    import httpx
+
+    from service.api.server import BackgroundServer
+    from service.config import Settings
+
+    scene = write_bar_scene(tmp_path / "scene", bar, name="bar.v2", samples=6)
+    store = tmp_path / "store"
+    rc = main(["train", str(scene), "--store", str(store), "--data", str(tmp_path / "data"), "--workers", "0",
+               "--hidden", "16", "--rank", "4", "--features", "8", "--epochs", "2"])  # fmt: skip
+    assert rc == 0
+    entries, errors = open_store(store)
+    assert sorted(entries) == ["bar.v2"] and not errors
+    with BackgroundServer(Settings(store=store, blas_threads=0)) as server:
+        r = httpx.get(f"{server.url}/models/bar.v2", timeout=30)
+    assert r.status_code == 200 and r.json()["id"] == "bar.v2"

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from service.phantoms import grid_tets
-from service.scene import SceneError, builtin_scene, load_scene, parse_scene, resolve_scene
+from service.scene import MODEL_ID_RULE, SceneError, builtin_scene, load_scene, parse_scene, resolve_scene
 from tests.conftest import LIVER, needs_liver
 
 REPO = Path(__file__).resolve().parents[1]
@@ -231,7 +231,7 @@ def test_region_not_on_surface(folder):
         (
             "block-1",
             "a b",
-            "name: must start with a letter or digit and hold only letters, digits, '-' and '_', got 'a b'",
+            f"name: {MODEL_ID_RULE}, got 'a b'",
         ),
         ("block.vtu", "nope.vtu", "[mesh] path: file not found"),
         ('"neo-hookean"', '"st-venant"', "[material] law: must be 'neo-hookean'"),
@@ -242,7 +242,7 @@ def test_region_not_on_surface(folder):
         (
             "block-1",
             "-block",
-            "name: must start with a letter or digit and hold only letters, digits, '-' and '_', got '-block'",
+            f"name: {MODEL_ID_RULE}, got '-block'",
         ),
     ],
 )

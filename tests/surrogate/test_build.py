@@ -292,8 +292,10 @@ def test_the_command_line_refuses_numbers_no_build_can_take(flags, message, caps
 def test_a_model_id_the_store_would_refuse_is_refused_before_any_work(name, tmp_path, capsys):
     from service.cli import main
 
-    assert main(["train", "beam", f"--name={name}", "--store", str(tmp_path / "store")]) == 2
-    assert "must start with a letter or digit" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as info:  # at parse time, as the scene's own name is at load
+        main(["train", "beam", f"--name={name}", "--store", str(tmp_path / "store")])
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and "--name: model id" in err and "must start with a letter or digit" in err, err
     assert not (tmp_path / "store").exists()
 
 
