@@ -22,7 +22,7 @@ from .fem.assembly import Assembler
 from .fem.material import NeoHookean
 from .fem.newton import NewtonOptions
 from .scene import Scene, check_model_id
-from .store import write_entry
+from .store import StoreError, load_entry, write_entry
 from .surrogate.data import LoadSpec, done_indices, generate, load_dataset
 from .surrogate.train import TrainConfig, train
 
@@ -37,6 +37,11 @@ WRITE_RESERVE_S = 5.0
 #: the path: two cuts' worth of a load step's own budget. The steps past it are extreme shapes
 #: that took half of a slow organ's FEM time (docs/performance.md); an untimed build keeps them
 TIMED_NEWTON_CAP = 2 * NewtonOptions.max_step_iter
+#: a rebuild whose relative validation error is more than this many times the installed entry's
+#: is not installed without `replace`: twice is past the spread between seeds of one build (1.2x
+#: on the audit's 181-node liver, 10 validation paths) and short of what a build without the
+#: physics layout gave there (3.2x), or an untrained one (7.7x)
+REPLACE_WORSE_FACTOR = 2.0
 
 
 def load_spec(scene: Scene, region: np.ndarray) -> LoadSpec:
@@ -93,6 +98,52 @@ class Interrupted(KeyboardInterrupt):
         self.data_dir = data_dir
 
 
+class WorseThanInstalled(RuntimeError):
+    """A build that validates more than REPLACE_WORSE_FACTOR times worse than the entry the store
+    already serves under its id: the store keeps that one (and the data stay for a rerun)."""
+
+    def __init__(self, entry_id: str, new: dict, installed: dict, times: float):
+        self.entry_id, self.new, self.installed, self.times = entry_id, new, installed, times
+        super().__init__(
+            f"this build of {entry_id} validates {times:.1f}x worse than the installed one "
+            f"(more than {REPLACE_WORSE_FACTOR:g}x): mean {_figure(new)}, against {_figure(installed)}"
+        )
+
+
+def relative_error(validation: dict) -> float | None:
+    """A build's validation mean nodal error over its mean displacement (the error of u = 0): a
+    figure two builds of an organ share even where their load ranges differ. None without one."""
+    try:
+        mean, zero = float(validation["mean_mm"]), float(validation["zero_mean_mm"])
+    except (KeyError, TypeError, ValueError):
+        return None
+    return mean / zero if math.isfinite(mean) and math.isfinite(zero) and zero > 0 else None
+
+
+def worse_by(new: dict, installed: dict | None) -> float | None:
+    """The new build's relative validation error over the installed entry's; None where there is
+    no installed entry, or either lacks the figure."""
+    a, b = relative_error(new), None if installed is None else relative_error(installed)
+    return None if a is None or not b else a / b
+
+
+def _figure(validation: dict) -> str:
+    return f"{validation['mean_mm']:.3f} mm ({100 * (relative_error(validation) or 0):.1f} % of the mean displacement)"
+
+
+def installed_validation(store: Path, entry_id: str) -> dict | None:
+    """The validation figures of the entry the store serves as `entry_id`; None where it serves
+    none (a broken entry is no model to keep)."""
+    folder = Path(store) / entry_id
+    if not folder.is_dir():
+        return None
+    try:
+        validation = load_entry(folder).manifest["training"]["validation"]
+    except (StoreError, KeyError, TypeError):
+        return None
+    return validation if isinstance(validation, dict) else None
+
+
 @dataclasses.dataclass
 class BuildReport:
     entry: Path
@@ -116,6 +167,7 @@ def build(
     progress: bool = True,
     name: str | None = None,
     minutes: float | None = None,
+    replace: bool = False,
 ) -> BuildReport:
     """Generate (or resume) the scene's data, train, and write the store entry (id: `name`,
     else the scene's name; variants of one scene share its data).
@@ -123,6 +175,10 @@ def build(
     With `minutes` the whole build keeps to that wall time: data until DATA_SHARE of it (the
     paths finished by then, up to the scene's samples, each step's Newton work capped at
     TIMED_NEWTON_CAP), training in what is left.
+
+    An entry already in the store under the id is replaced, unless this build's relative
+    validation error is more than REPLACE_WORSE_FACTOR times its own: then WorseThanInstalled
+    is raised and the store is left as it was; `replace` installs the build anyway.
     """
     t_start = time.perf_counter()
     check_model_id(name or scene.name)
@@ -198,6 +254,12 @@ def build(
             "physics_skip": features is not None,
             "features": features,
         }
+        installed = installed_validation(store, name or scene.name)
+        times = worse_by(result.metrics, installed)
+        if installed is not None and times is not None and times > REPLACE_WORSE_FACTOR:
+            if not replace:
+                raise WorseThanInstalled(name or scene.name, result.metrics, installed, times)
+            log.warning("%s: installing a build that validates %.1fx worse (replace)", name or scene.name, times)
         entry = write_entry(
             store, name or scene.name, mesh, region, net,
             material=material,

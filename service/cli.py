@@ -57,7 +57,7 @@ def _model_id(text: str) -> str:
 
 
 def _train(args: argparse.Namespace) -> int:
-    from .build import Interrupted, build
+    from .build import Interrupted, WorseThanInstalled, build
     from .scene import resolve_scene
     from .surrogate.data import ClusterError, done_indices
     from .surrogate.train import TrainConfig
@@ -90,6 +90,14 @@ def _train(args: argparse.Namespace) -> int:
         else:
             print("interrupted before any data", file=sys.stderr)
         return 130
+    except WorseThanInstalled as exc:  # the store keeps the better model it has
+        print(f"error: {exc}", file=sys.stderr)
+        print(
+            f"kept the installed {exc.entry_id}; rerun with --replace to install this build anyway "
+            "(its data are kept for the rerun)",
+            file=sys.stderr,
+        )
+        return 3
     except ClusterError as exc:  # a scheduler or workers that cannot be reached (it names which)
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -121,6 +129,7 @@ def _build_from(build, scene, config, command: str, args: argparse.Namespace):
         command=command,
         name=args.name,
         minutes=args.minutes,
+        replace=args.replace,
     )
 
 
@@ -250,6 +259,12 @@ def parser() -> argparse.ArgumentParser:
         type=_at_least_zero,
         default=2,
         help="local Dask worker processes (one per core; 0: in this process)",
+    )
+    t.add_argument(
+        "--replace",
+        action="store_true",
+        help="install the build even where it validates much worse than the model it replaces "
+        "(without it the store keeps that one: exit status 3)",
     )
     t.add_argument("--scheduler", default=None, help="address of an existing Dask scheduler for the data generation")
     t.add_argument("--data", default=None, help="data folder root (default: $ELASTREG_DATA or ~/.cache/elastreg/data)")

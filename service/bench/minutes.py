@@ -94,7 +94,7 @@ def timed_build(
         load0 = os.getloadavg()[0]
         store = keep if keep is not None else Path(tmp) / "store"
         report = build(scene, store, workers=workers, data_root=Path(tmp) / "data", progress=False,
-                       minutes=minutes, config=TrainConfig(physics_skip=physics_skip),
+                       minutes=minutes, config=TrainConfig(physics_skip=physics_skip), replace=True,
                        command=f"elastreg train {scene.name}.toml --minutes {minutes:g}")  # fmt: skip
         wall = time.perf_counter() - t0
         tested = score(store / scene.name, *test)

@@ -187,3 +187,42 @@ def test_ctrl_c_while_the_local_cluster_starts_stops_the_build_with_one_line(tmp
             break
         time.sleep(0.2)
     assert not left
+
+
+def test_a_much_worse_rebuild_keeps_the_installed_model_unless_replace_is_given(tmp_path, bar, capsys):
+    """A rebuild replaced the store's entry whatever it scored: a build botched by a flag (here an
+    untrained network on raw forces) silently took a good model's place."""
+    import json
+
+    from service.build import REPLACE_WORSE_FACTOR
+    from service.cli import main
+
+    scene = write_bar_scene(tmp_path / "scene", bar, samples=30)
+    store = tmp_path / "store"
+    common = ["train", str(scene), "--store", str(store), "--data", str(tmp_path / "data"), "--workers", "0",
+              "--hidden", "32", "--rank", "8"]  # fmt: skip
+    good, bad = ["--epochs", "20"], ["--epochs", "1", "--no-physics-skip"]
+    manifest = store / "bar" / "manifest.json"
+
+    def validation() -> dict:
+        return json.loads(manifest.read_text())["training"]["validation"]
+
+    assert main([*common, *good]) == 0
+    installed, before = validation(), manifest.read_bytes()
+    capsys.readouterr()
+
+    assert main([*common, *bad]) == 3
+    err = capsys.readouterr().err
+    assert manifest.read_bytes() == before and sorted(p.name for p in store.iterdir()) == ["bar"]
+    said = re.search(r"error: this build of bar validates ([0-9.]+)x worse than the installed one \(more than "
+                     r"([0-9.]+)x\): mean ([0-9.]+) mm \([0-9.]+ % of the mean displacement\), against ([0-9.]+) mm",
+                     err)  # fmt: skip
+    assert said, err
+    assert float(said[1]) > REPLACE_WORSE_FACTOR == float(said[2])
+    assert float(said[4]) == round(installed["mean_mm"], 3) and float(said[3]) > float(said[4])
+    assert "kept the installed bar; rerun with --replace to install this build anyway" in err
+
+    assert main([*common, *bad, "--replace"]) == 0  # asked for: installed
+    assert json.loads(manifest.read_text())["network"]["physics_skip"] is False
+    assert main([*common, *good]) == 0  # a better build needs no flag
+    assert validation()["mean_mm"] == pytest.approx(installed["mean_mm"], rel=1e-6)
