@@ -10,10 +10,11 @@ Loading checks the manifest's shape and every name in it before any other file i
 file names must be exactly the two above, regular files inside the entry's folder: a manifest
 naming ``../../../dev/zero`` is refused without reading it), re-hashes every file against the
 manifest and the mesh arrays against the recorded mesh hash, builds the network from the
-manifest and loads the weights strictly; any mismatch is a :class:`StoreError` naming the entry
-and what is wrong. :func:`open_store` isolates entries: whatever goes wrong with one (a
-StoreError, or any other exception) skips it with a logged reason while the others load.
-Weights are read with safetensors: no pickle anywhere.
+manifest and loads the weights strictly; any mismatch, and any file the system will not let us
+read or whose own format refuses it, is a :class:`StoreError` naming the entry, the file and
+what is wrong. :func:`open_store` isolates entries: whatever goes wrong with one (a StoreError,
+or any other exception) skips it with one logged line while the others load (the traceback of
+an unexpected exception only at DEBUG). Weights are read with safetensors: no pickle anywhere.
 """
 
 from __future__ import annotations
@@ -29,10 +30,13 @@ import shutil
 import stat
 import tempfile
 import time
+import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
 import torch
+from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
 from . import __version__
@@ -242,6 +246,17 @@ def _regular_file(path: Path, folder: Path, name: str, fname: str) -> None:
         raise StoreError(f"{name}: {fname} is not a regular file")
 
 
+def _unreadable(name: str, fname: str, exc: OSError) -> StoreError:
+    """The system would not let us read a file (permissions, I/O): named, in one line."""
+    return StoreError(f"{name}: {fname} cannot be read ({exc.strerror or exc})")
+
+
+def _one_line(text: str, limit: int = 300) -> str:
+    """An exception's text as one log line (torch's and NumPy's messages span several)."""
+    text = " ".join(text.split())
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
 def _check_manifest(manifest, name: str) -> None:
     """The manifest's shape and names, before any other file is opened."""
     if not isinstance(manifest, dict):
@@ -315,23 +330,38 @@ def load_entry(path: Path, name: str | None = None) -> Entry:
         manifest = json.loads((path / MANIFEST).read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise StoreError(f"{name}: {MANIFEST} is not valid JSON ({exc})") from None
+    except OSError as exc:
+        raise _unreadable(name, MANIFEST, exc) from None
     _check_manifest(manifest, name)
     for fname in (MESH, WEIGHTS):  # every name checked before any file is read
         _regular_file(path / fname, path, name, fname)
     for fname, digest in manifest["files"].items():
-        if sha256(path / fname) != digest:
+        try:
+            actual = sha256(path / fname)
+        except OSError as exc:
+            raise _unreadable(name, fname, exc) from None
+        if actual != digest:
             raise StoreError(f"{name}: {fname} does not match its checksum in the manifest (corrupt or changed)")
-    try:
+    try:  # a zip of .npy arrays, read without pickle
         with np.load(path / MESH, allow_pickle=False) as z:
-            mesh = TetMesh(z["nodes"], z["tets"], z["fixed"])
-            region = z["region"].astype(np.int64)
-    except (KeyError, ValueError, OSError) as exc:
-        raise StoreError(f"{name}: {MESH} is unreadable ({exc})") from None
+            arrays = {key: z[key] for key in ("nodes", "tets", "fixed", "region")}
+    except (KeyError, ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
+        raise StoreError(f"{name}: {MESH} is unreadable ({_one_line(str(exc))})") from None
+    try:
+        mesh = TetMesh(arrays["nodes"], arrays["tets"], arrays["fixed"])
+        region = arrays["region"].astype(np.int64)
+    except ValueError as exc:  # a MeshError is one
+        raise StoreError(f"{name}: {MESH} does not hold a usable mesh ({_one_line(str(exc))})") from None
     if mesh.hash != manifest["mesh"].get("hash"):
         raise StoreError(f"{name}: the mesh does not match the hash recorded in the manifest")
+    try:  # safetensors: a header and raw tensors, nothing a file could run (no pickle)
+        state = load_file(str(path / WEIGHTS))
+    except SafetensorError as exc:  # truncated, empty, another format under this name
+        raise StoreError(f"{name}: {WEIGHTS} is not a readable safetensors file ({exc})") from None
+    except OSError as exc:
+        raise _unreadable(name, WEIGHTS, exc) from None
     try:
         material = NeoHookean.of(manifest["material"])
-        state = load_file(str(path / WEIGHTS))
         net = network_from_manifest(manifest["network"], state)
     except StoreError:
         raise
@@ -360,8 +390,9 @@ def open_store(store: Path) -> tuple[dict[str, Entry], dict[str, str]]:
             errors[path.name] = str(exc)
             continue
         except Exception as exc:  # one entry never stops the others: skipped, with its reason
-            msg = f"{path.name}: cannot be loaded ({type(exc).__name__}: {exc})"
-            log.error("skipping model %s", msg, exc_info=exc)
+            msg = f"{path.name}: cannot be loaded ({type(exc).__name__}: {_one_line(str(exc))})"
+            log.error("skipping model %s", msg)  # one line; the traceback only with DEBUG on
+            log.debug("model %s: where loading it failed", path.name, exc_info=exc)
             errors[path.name] = msg
             continue
         if entry.id in entries:

@@ -178,3 +178,81 @@ def test_a_store_path_that_is_missing_or_a_file_is_named_as_such(tmp_path, caplo
         assert open_store(tmp_path / "nowhere") == ({}, {})
         assert open_store(a_file) == ({}, {})
     assert "nowhere does not exist" in caplog.text and "store.txt is not a folder" in caplog.text
+
+
+def _rehash(path) -> None:
+    """The manifest's checksums made to match the files as they now are: the damage reaches the
+    loader's later checks, as a file corrupted before the manifest was written would."""
+    from service.store import sha256
+
+    m = json.loads((path / "manifest.json").read_text())
+    m["files"] = {name: sha256(path / name) for name in m["files"]}
+    (path / "manifest.json").write_text(json.dumps(m))
+
+
+def _pickled(path) -> None:
+    import torch
+
+    torch.save({"x": torch.zeros(3)}, path / "weights.safetensors")
+
+
+CORRUPT = {  # under checksums that match: the files' own formats must refuse them
+    "weights_truncated": (lambda p: _truncate(p / "weights.safetensors"), "weights.safetensors is not a readable"),
+    "weights_empty": (lambda p: (p / "weights.safetensors").write_bytes(b""), "weights.safetensors is not a readable"),
+    "weights_pickled": (_pickled, "weights.safetensors is not a readable"),
+    "mesh_truncated": (lambda p: _truncate(p / "mesh.npz"), "mesh.npz is unreadable"),
+}
+
+
+def _truncate(path) -> None:
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+
+
+def test_a_corrupt_file_is_named_in_one_line_without_a_traceback(bar_store, tmp_path, caplog):
+    """A truncated or foreign weights file or mesh whose checksum matches (safetensors' and zip's
+    own errors) is a one-line reason naming the file: it was a traceback per entry in the log."""
+    root = tmp_path / "store"
+    shutil.copytree(bar_store[0] / "bar", root / "bar")
+    for name, (damage, _) in CORRUPT.items():
+        shutil.copytree(bar_store[0] / "bar", root / name)
+        _edit(root / name, id=name)
+        damage(root / name)
+        _rehash(root / name)
+    with caplog.at_level(logging.DEBUG, logger="service.store"):
+        entries, errors = open_store(root)
+    assert set(entries) == {"bar"} and set(errors) == set(CORRUPT)
+    for name, (_, words) in CORRUPT.items():
+        assert words in errors[name] and "\n" not in errors[name], errors[name]
+        said = [r for r in caplog.records if r.levelno >= logging.ERROR and name in r.getMessage()]
+        assert len(said) == 1 and said[0].exc_info is None, name  # once, and no traceback
+
+
+@pytest.mark.skipif(os.name != "posix", reason="file modes")
+def test_an_unreadable_file_is_named_in_one_line(bar_store, tmp_path):
+    """chmod 000 on a manifest or the weights (a store copied with the wrong owner): one line
+    naming the file. Root reads such files anyway, so as root the store is opened in a process
+    without the capabilities that let it (setpriv)."""
+    import subprocess
+    import sys
+
+    root = tmp_path / "store"
+    shutil.copytree(bar_store[0] / "bar", root / "bar")
+    for name in ("no_manifest", "no_weights"):
+        shutil.copytree(bar_store[0] / "bar", root / name)
+        _edit(root / name, id=name)
+    (root / "no_manifest" / "manifest.json").chmod(0)
+    (root / "no_weights" / "weights.safetensors").chmod(0)
+    script = "import json, sys; from service.store import open_store; print(json.dumps(open_store(sys.argv[1])[1]))"
+    argv = [sys.executable, "-c", script, str(root)]
+    if os.geteuid() == 0:
+        setpriv = shutil.which("setpriv")
+        if setpriv is None:
+            pytest.skip("root reads any file, and setpriv (util-linux) is not here to drop that")
+        argv = [setpriv, "--bounding-set", "-dac_override,-dac_read_search", *argv]
+    run = subprocess.run(argv, capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    errors = json.loads(run.stdout)
+    assert set(errors) == {"no_manifest", "no_weights"}
+    assert "manifest.json cannot be read (Permission denied)" in errors["no_manifest"]
+    assert "weights.safetensors cannot be read (Permission denied)" in errors["no_weights"]
+    assert "Traceback" not in run.stderr, run.stderr
