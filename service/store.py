@@ -108,11 +108,14 @@ class Entry:
 
 
 def network_from_manifest(spec: dict, state: dict[str, torch.Tensor]) -> torch.nn.Module:
-    """Rebuild the module the manifest describes (shapes come from the saved tensors)."""
+    """Rebuild the module the manifest describes (shapes come from the saved tensors). A
+    ValueError in one line when the tensors do not fit it (``spec`` checked by _check_network)."""
     layout = spec.get("layout")
     if layout == "reduced":
-        basis = state["basis"]
-        net = ReducedSurrogate(
+        basis = state.get("basis")
+        if basis is None or basis.ndim != 2:
+            raise ValueError("no 'basis' matrix among its tensors" if basis is None else "its 'basis' is not a matrix")
+        net: torch.nn.Module = ReducedSurrogate(
             int(spec["n_in"]), basis, [int(h) for h in spec["hidden"]], members=int(spec.get("members", 1)),
             feature_basis=state.get("feature_basis"),  # the physics layout's (older entries: none)
         )  # fmt: skip
@@ -120,8 +123,35 @@ def network_from_manifest(spec: dict, state: dict[str, torch.Tensor]) -> torch.n
         net = PaperSurrogate(int(spec["n_in"]), int(spec["n_out"]), depth=len(spec["hidden"]) + 1)
     else:
         raise StoreError(f"unknown network layout {layout!r}")
+    mismatch = _state_mismatch(net.state_dict(), state)
+    if mismatch:
+        raise ValueError(mismatch)
     net.load_state_dict(state, strict=True)
     return net.eval()
+
+
+def _state_mismatch(wanted: dict[str, torch.Tensor], got: dict[str, torch.Tensor]) -> str | None:
+    """What differs between the tensors a network needs and those a file holds, in one line
+    (torch's own message takes a line per tensor); None when they fit."""
+
+    def some(names) -> str:
+        names = sorted(names)
+        return ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
+
+    parts = []
+    missing, extra = wanted.keys() - got.keys(), got.keys() - wanted.keys()
+    if missing:
+        parts.append(f"{len(missing)} missing ({some(missing)})")
+    if extra:
+        parts.append(f"{len(extra)} not in the network ({some(extra)})")
+    shaped = sorted(k for k in wanted.keys() & got.keys() if wanted[k].shape != got[k].shape)
+    if shaped:
+        k = shaped[0]
+        parts.append(
+            f"{len(shaped)} of another shape ({k}: {list(got[k].shape)} in the file, {list(wanted[k].shape)} "
+            f"in the network{' ...' if len(shaped) > 1 else ''})"
+        )
+    return "tensors " + "; ".join(parts) if parts else None
 
 
 #: an entry moved aside while its replacement goes in: ..ID-XXXXXXXX (no build's temporary
@@ -284,6 +314,44 @@ def _check_manifest(manifest, name: str) -> None:
         isinstance(material.get(k), (int, float)) and not isinstance(material.get(k), bool) for k in ("E", "nu")
     ):
         raise StoreError(f"{name}: the manifest's material needs numbers E and nu")
+    if material.get("law", NeoHookean.law) != NeoHookean.law:
+        raise StoreError(f"{name}: the manifest's material law {material['law']!r:.40} is not {NeoHookean.law!r}")
+    try:
+        NeoHookean.of(material)
+    except ValueError as exc:
+        raise StoreError(f"{name}: the manifest's material: {exc}") from None
+    renumbered = manifest["mesh"].get("renumbered", False)
+    if not isinstance(renumbered, bool):
+        raise StoreError(f"{name}: the manifest's mesh.renumbered must be true or false, got {renumbered!r:.40}")
+    _check_network(manifest["network"], name)
+
+
+def _whole(value, minimum: int = 1) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= minimum
+
+
+def _check_network(spec: dict, name: str) -> None:
+    """The manifest's network object: a layout this code builds, and whole numbers where the
+    build reads them (a string "512" was read as the widths [5, 1, 2])."""
+    layout = spec.get("layout")
+    if layout not in ("reduced", "paper"):
+        raise StoreError(f"{name}: the manifest's network layout {layout!r:.40} is not 'reduced' or 'paper'")
+    keys = ("n_in", "n_out") if layout == "paper" else ("n_in",)
+    for key in keys:
+        if not _whole(spec.get(key)):
+            raise StoreError(
+                f"{name}: the manifest's network.{key} must be a whole number >= 1, got {spec.get(key)!r:.40}"
+            )
+    hidden = spec.get("hidden")
+    if not (isinstance(hidden, list) and all(_whole(h) for h in hidden)):
+        raise StoreError(
+            f"{name}: the manifest's network.hidden must be a list of layer widths (whole numbers >= 1), "
+            f"got {hidden!r:.40}"
+        )
+    if not _whole(spec.get("members", 1)):
+        raise StoreError(
+            f"{name}: the manifest's network.members must be a whole number >= 1, got {spec.get('members')!r:.40}"
+        )
 
 
 def _max_force(manifest: dict, name: str) -> float | None:
@@ -360,13 +428,11 @@ def load_entry(path: Path, name: str | None = None) -> Entry:
         raise StoreError(f"{name}: {WEIGHTS} is not a readable safetensors file ({exc})") from None
     except OSError as exc:
         raise _unreadable(name, WEIGHTS, exc) from None
+    material = NeoHookean.of(manifest["material"])  # checked by _check_manifest
     try:
-        material = NeoHookean.of(manifest["material"])
         net = network_from_manifest(manifest["network"], state)
-    except StoreError:
-        raise
     except (KeyError, ValueError, RuntimeError) as exc:
-        raise StoreError(f"{name}: the weights do not fit the manifest ({exc})") from None
+        raise StoreError(f"{name}: the weights do not fit the manifest ({WEIGHTS}: {_one_line(str(exc))})") from None
     max_force, tool_patch = _max_force(manifest, name), _tool_patch(manifest, name)  # the estimate's prior
     network = NetworkModel(mesh, material, region, net, E0=material.E, max_force=max_force, tool_patch=tool_patch)
     fem = FEMModel(mesh, material, max_force=max_force, tool_patch=tool_patch)
