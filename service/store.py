@@ -384,6 +384,47 @@ def _tool_patch(manifest: dict, name: str) -> int | None:
     return int(value[1])
 
 
+def _region(value: np.ndarray, n_nodes: int, name: str) -> np.ndarray:
+    """The load region's node ids: distinct whole numbers in 0..n-1."""
+    if value.ndim != 1 or value.dtype.kind not in "iu":
+        raise StoreError(f"{name}: {MESH}'s region must be a list of node ids, got a {value.dtype} array {value.shape}")
+    if value.size and (value.min() < 0 or value.max() >= n_nodes):
+        raise StoreError(f"{name}: {MESH}'s region names nodes outside 0..{n_nodes - 1} (the mesh's)")
+    if np.unique(value).size != value.size:
+        raise StoreError(f"{name}: {MESH}'s region repeats node ids")
+    return value.astype(np.int64)
+
+
+def _check_fit(net: torch.nn.Module, mesh: TetMesh, region: np.ndarray, name: str) -> None:
+    """The network answers for this mesh's nodes and reads this region's forces: a mesh.npz
+    from another entry (under checksums made to match) loaded, and its first frame was a 500."""
+    n3 = 3 * mesh.n_nodes
+    shapes = {k: tuple(v.shape) for k, v in net.state_dict().items()}
+    by_region = f"3 per node of the {region.size}-node region"
+    if "basis" in shapes:  # the reduced layout: u = basis (3n, r) times the coefficients
+        rows = {"basis": shapes["basis"][0]}
+        n_in = shapes["skip.weight"][1]
+        if "feature_basis" in shapes:  # the physics layout reads K0^-1 g in its features
+            rows["feature_basis"] = shapes["feature_basis"][0]
+            inputs, wanted = shapes["feature_basis"][1], "its feature_basis's columns"
+        else:
+            inputs, wanted = 3 * region.size, by_region
+    else:  # the paper's: forces on the region in, displacements (3n) out
+        layers = sorted((int(k.split(".")[1]), v) for k, v in shapes.items() if k.endswith(".weight") and len(v) == 2)
+        rows = {"output": layers[-1][1][0]}
+        n_in, inputs, wanted = layers[0][1][1], 3 * region.size, by_region
+    for what, n in rows.items():
+        if n != n3:
+            raise StoreError(
+                f"{name}: {MESH} does not fit {WEIGHTS}: the network's {what} has {n} rows (a {n // 3}-node "
+                f"mesh's), the mesh has {mesh.n_nodes} nodes"
+            )
+    if n_in != inputs:
+        raise StoreError(
+            f"{name}: {MESH} does not fit {WEIGHTS}: the network reads {n_in} inputs, {wanted} would be {inputs}"
+        )
+
+
 def load_entry(path: Path, name: str | None = None) -> Entry:
     """Load and verify one entry; a :class:`StoreError` says what is wrong. `name`: the id it
     is to be served as (default: its folder's name)."""
@@ -417,9 +458,9 @@ def load_entry(path: Path, name: str | None = None) -> Entry:
         raise StoreError(f"{name}: {MESH} is unreadable ({_one_line(str(exc))})") from None
     try:
         mesh = TetMesh(arrays["nodes"], arrays["tets"], arrays["fixed"])
-        region = arrays["region"].astype(np.int64)
     except ValueError as exc:  # a MeshError is one
         raise StoreError(f"{name}: {MESH} does not hold a usable mesh ({_one_line(str(exc))})") from None
+    region = _region(arrays["region"], mesh.n_nodes, name)
     if mesh.hash != manifest["mesh"].get("hash"):
         raise StoreError(f"{name}: the mesh does not match the hash recorded in the manifest")
     try:  # safetensors: a header and raw tensors, nothing a file could run (no pickle)
@@ -433,6 +474,7 @@ def load_entry(path: Path, name: str | None = None) -> Entry:
         net = network_from_manifest(manifest["network"], state)
     except (KeyError, ValueError, RuntimeError) as exc:
         raise StoreError(f"{name}: the weights do not fit the manifest ({WEIGHTS}: {_one_line(str(exc))})") from None
+    _check_fit(net, mesh, region, name)
     max_force, tool_patch = _max_force(manifest, name), _tool_patch(manifest, name)  # the estimate's prior
     network = NetworkModel(mesh, material, region, net, E0=material.E, max_force=max_force, tool_patch=tool_patch)
     fem = FEMModel(mesh, material, max_force=max_force, tool_patch=tool_patch)

@@ -10,6 +10,7 @@ import os
 import shutil
 import time
 
+import numpy as np
 import pytest
 
 from service.store import StoreError, load_entry, open_store
@@ -282,3 +283,50 @@ def test_an_unreadable_file_is_named_in_one_line(bar_store, tmp_path):
     assert "manifest.json cannot be read (Permission denied)" in errors["no_manifest"]
     assert "weights.safetensors cannot be read (Permission denied)" in errors["no_weights"]
     assert "Traceback" not in run.stderr, run.stderr
+
+
+def _swap_mesh(path, **arrays) -> None:
+    """mesh.npz rewritten with these arrays (the others as they were), and the manifest's
+    checksums and mesh hash made to match it: the file is consistent with the manifest, so only
+    a check of the mesh against the weights can tell."""
+    from service.mesh import TetMesh
+
+    with np.load(path / "mesh.npz") as z:
+        mesh = {**dict(z), **arrays}
+    np.savez(path / "mesh.npz", **mesh)
+    m = json.loads((path / "manifest.json").read_text())
+    m["mesh"]["hash"] = TetMesh(mesh["nodes"], mesh["tets"], mesh["fixed"]).hash
+    (path / "manifest.json").write_text(json.dumps(m))
+    _rehash(path)
+
+
+def _shipped_beam_mesh() -> dict:
+    from pathlib import Path
+
+    with np.load(Path(__file__).resolve().parents[1] / "model_store" / "beam" / "mesh.npz") as z:
+        return dict(z)
+
+
+MISFITS = {
+    "another_mesh": (lambda p: _swap_mesh(p, **_shipped_beam_mesh()), "mesh.npz does not fit weights.safetensors"),
+    "region_out_of_range": (lambda p: _swap_mesh(p, region=np.array([0, 1, 10**6])), "region names nodes outside"),
+    "region_negative": (lambda p: _swap_mesh(p, region=np.array([-1, 0])), "region names nodes outside"),
+    "region_floats": (lambda p: _swap_mesh(p, region=np.array([0.5, 1.5])), "region must be a list of node ids"),
+    "region_repeats": (lambda p: _swap_mesh(p, region=np.array([0, 0, 1])), "region repeats"),
+}
+
+
+def test_a_mesh_that_does_not_fit_the_weights_is_refused(bar_store, tmp_path):
+    """Another model's mesh.npz (or a region the mesh has no nodes for) under a manifest made to
+    match it: loaded before, and the model's first frame was a 500 (an IndexError, or torch's
+    'mat1 and mat2 shapes cannot be multiplied'). Refused, naming both files."""
+    root = tmp_path / "store"
+    shutil.copytree(bar_store[0] / "bar", root / "bar")
+    for name, (damage, _) in MISFITS.items():
+        shutil.copytree(bar_store[0] / "bar", root / name)
+        _edit(root / name, id=name)
+        damage(root / name)
+    entries, errors = open_store(root)
+    assert set(entries) == {"bar"} and set(errors) == set(MISFITS)
+    for name, (_, words) in MISFITS.items():
+        assert words in errors[name], (name, errors[name])
