@@ -482,7 +482,9 @@ def load_entry(path: Path, name: str | None = None) -> Entry:
 
 
 def open_store(store: Path) -> tuple[dict[str, Entry], dict[str, str]]:
-    """Every loadable entry by id, and the refused ones with the reason (each one logged)."""
+    """Every loadable entry by id, and the refused ones with the reason (each one logged). An
+    entry is served under its folder's name, which must be its manifest's id: a copy of an entry
+    under another name (a backup, a symbolic link) is refused, not served in its place."""
     store = Path(store)
     entries: dict[str, Entry] = {}
     errors: dict[str, str] = {}
@@ -503,8 +505,11 @@ def open_store(store: Path) -> tuple[dict[str, Entry], dict[str, str]]:
             log.debug("model %s: where loading it failed", path.name, exc_info=exc)
             errors[path.name] = msg
             continue
-        if entry.id in entries:
-            msg = f"{path.name}: duplicate model id {entry.id!r}"
+        if entry.id != path.name:  # else a copy (aaa_backup/, a link) would take the id's place by name order
+            msg = (
+                f"{path.name}: its {MANIFEST} says it is model {entry.id!r}; a model's folder must be named "
+                "after its id (rename the folder, or set the id, for it to be served)"
+            )
             log.error("skipping model %s", msg)
             errors[path.name] = msg
             continue

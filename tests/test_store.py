@@ -330,3 +330,18 @@ def test_a_mesh_that_does_not_fit_the_weights_is_refused(bar_store, tmp_path):
     assert set(entries) == {"bar"} and set(errors) == set(MISFITS)
     for name, (_, words) in MISFITS.items():
         assert words in errors[name], (name, errors[name])
+
+
+def test_a_copy_under_another_folder_name_never_takes_the_models_place(bar_store, tmp_path):
+    """A backup of bar (aaa_backup/, whose manifest says "bar") sorts before bar/: it was served
+    as bar and bar/ itself refused as a "duplicate model id". A symbolic link to the entry under
+    another name did the same. Each folder is served only under its own name."""
+    root = tmp_path / "store"
+    shutil.copytree(bar_store[0] / "bar", root / "bar")
+    shutil.copytree(bar_store[0] / "bar", root / "aaa_backup")
+    (root / "a_link").symlink_to(root / "bar", target_is_directory=True)
+    entries, errors = open_store(root)
+    assert list(entries) == ["bar"] and entries["bar"].path == root / "bar"
+    assert set(errors) == {"aaa_backup", "a_link"}
+    for name in errors:
+        assert "says it is model 'bar'" in errors[name], errors[name]
