@@ -481,6 +481,22 @@ def load_entry(path: Path, name: str | None = None) -> Entry:
     return Entry(manifest["id"], path, manifest, mesh, region, network, fem)
 
 
+def check_store(store: Path) -> None:
+    """A :class:`StoreError` unless ``store`` is a folder this process can list (``elastreg
+    serve`` refuses to start over anything else: a typo in --store is not a server without
+    models)."""
+    store = Path(store)
+    try:
+        if not stat.S_ISDIR(os.stat(store).st_mode):
+            raise StoreError(f"model store {store} is not a folder")
+        with os.scandir(store) as listing:
+            next(listing, None)
+    except FileNotFoundError:
+        raise StoreError(f"model store {store} does not exist") from None
+    except OSError as exc:
+        raise StoreError(f"model store {store} cannot be read ({exc.strerror or exc})") from None
+
+
 def open_store(store: Path) -> tuple[dict[str, Entry], dict[str, str]]:
     """Every loadable entry by id, and the refused ones with the reason (each one logged). An
     entry is served under its folder's name, which must be its manifest's id: a copy of an entry
@@ -488,8 +504,10 @@ def open_store(store: Path) -> tuple[dict[str, Entry], dict[str, str]]:
     store = Path(store)
     entries: dict[str, Entry] = {}
     errors: dict[str, str] = {}
-    if not store.is_dir():
-        log.warning("model store %s %s", store, "is not a folder" if store.exists() else "does not exist")
+    try:
+        check_store(store)
+    except StoreError as exc:
+        log.error("%s", exc)
         return entries, errors
     _restore_aside(store)
     for path in sorted(p for p in store.iterdir() if p.is_dir() and not p.name.startswith(".")):

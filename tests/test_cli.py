@@ -4,6 +4,11 @@ status 2, before any server starts or store loads."""
 from __future__ import annotations
 
 import json
+import os
+import shutil
+import socket
+import subprocess
+import sys
 from importlib import resources
 
 import pytest
@@ -94,3 +99,37 @@ def test_a_model_id_with_a_dot_is_built_stored_and_served_by_it(tmp_path, bar):
     with BackgroundServer(Settings(store=store, blas_threads=0)) as server:
         r = httpx.get(f"{server.url}/models/bar.v2", timeout=30)
     assert r.status_code == 200 and r.json()["id"] == "bar.v2"
+
+
+def _serve(store, *prefix: str) -> subprocess.CompletedProcess:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    argv = [*prefix, sys.executable, "-m", "service.cli", "serve", "--store", str(store), "--port", str(port)]
+    return subprocess.run(argv, capture_output=True, text=True, timeout=60)  # a server that starts never ends
+
+
+def test_serve_over_a_store_that_is_not_a_readable_folder_stops_at_once(tmp_path):
+    """`elastreg serve --store` at a typo or a file started a server that could serve nothing
+    (one warning in its log, /health degraded); an unreadable folder crashed its start-up with a
+    traceback. Each is now one line and a non-zero exit, before uvicorn starts."""
+    a_file = tmp_path / "store.txt"
+    a_file.write_text("not a store")
+    for store, words in ((tmp_path / "nowhere", "does not exist"), (a_file, "is not a folder")):
+        r = _serve(store)
+        assert r.returncode == 1, r.stderr
+        assert r.stderr.strip() == f"error: model store {store} {words}; check --store or ELASTREG_STORE", r.stderr
+
+
+@pytest.mark.skipif(os.name != "posix", reason="file modes")
+def test_serve_over_an_unreadable_store_stops_at_once(tmp_path):
+    store = tmp_path / "store"
+    store.mkdir(mode=0)
+    prefix: tuple[str, ...] = ()
+    if os.geteuid() == 0:  # root lists any folder: drop the capabilities that let it
+        if shutil.which("setpriv") is None:
+            pytest.skip("root reads any folder, and setpriv (util-linux) is not here to drop that")
+        prefix = ("setpriv", "--bounding-set", "-dac_override,-dac_read_search")
+    r = _serve(store, *prefix)
+    assert r.returncode == 1 and "Traceback" not in r.stderr, r.stderr
+    assert r.stderr.strip().startswith(f"error: model store {store} cannot be read (Permission denied)"), r.stderr

@@ -7,7 +7,8 @@ the process that opened it, so its requests must reach that process (see docs/de
 
 What uvicorn offers is used for the transport's limits (message size, keepalive pings,
 connections in progress, the graceful-shutdown timeout) and for TLS. A server without tokens
-refuses to bind beyond loopback unless told ``insecure``. On SIGTERM or Ctrl-C the one-process
+refuses to bind beyond loopback unless told ``insecure``, and ``serve`` refuses a store that is
+not a folder it can read. On SIGTERM or Ctrl-C the one-process
 server drains first (:func:`~.app.drain`): solves in flight finish and are answered, the rest
 get 503, streams close with 1012; then uvicorn closes its connections.
 """
@@ -106,6 +107,12 @@ def serve(
         check_bind(host, settings)
     except BindRefused as exc:
         raise SystemExit(f"error: {exc}") from None
+    from ..store import StoreError, check_store
+
+    try:  # a missing or mistyped store is an error here, not a server that can serve nothing
+        check_store(settings.store)
+    except StoreError as exc:
+        raise SystemExit(f"error: {exc}; check --store or ELASTREG_STORE") from None
     if bool(ssl_certfile) != bool(ssl_keyfile):
         raise SystemExit("error: --ssl-certfile and --ssl-keyfile go together")
     if ssl_certfile:  # here, before any worker starts: uvicorn's workers would die and respawn for ever
