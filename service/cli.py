@@ -152,9 +152,13 @@ def _serve(args: argparse.Namespace) -> int:
 def _demo(args: argparse.Namespace) -> int:
     from .demo import run, viewer
 
-    if args.viewer:
-        return viewer(model=args.model, store=args.store, port=args.port)
-    return run(model=args.model, frames=args.frames, method=args.method, encoding=args.encoding, store=args.store)
+    try:
+        if args.viewer:
+            return viewer(model=args.model, store=args.store, port=args.port)
+        return run(model=args.model, frames=args.frames, method=args.method, encoding=args.encoding, store=args.store)
+    except KeyboardInterrupt:  # Ctrl-C, at any stage: the server stopped, one line, not a traceback
+        print("interrupted", file=sys.stderr)
+        return 130
 
 
 def _igtl(args: argparse.Namespace) -> int:

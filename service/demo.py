@@ -11,7 +11,6 @@ the client-side latency and the server's solve time, then a summary.
 
 from __future__ import annotations
 
-import contextlib
 import sys
 import time
 from pathlib import Path
@@ -136,7 +135,8 @@ def _port_free(port: int) -> bool:
 
 def viewer(model: str = "phantom", store=None, port: int | None = None, *, out=None) -> int:
     """``elastreg demo --viewer``: serve the model and open the viewer's demo (the page streams a
-    synthetic sequence itself) until interrupted."""
+    synthetic sequence itself) until interrupted: the server stops and the KeyboardInterrupt
+    goes on to the caller (the command line's exit status 130). 1 when it cannot start."""
     import webbrowser
 
     from .api.server import BackgroundServer
@@ -168,9 +168,7 @@ def viewer(model: str = "phantom", store=None, port: int | None = None, *, out=N
             webbrowser.open(url)
         except Exception:  # no browser here: the URL above is enough
             pass
-        with contextlib.suppress(KeyboardInterrupt):
-            while True:
-                time.sleep(3600)
+        while True:  # until Ctrl-C: its KeyboardInterrupt goes up, after the server stopped
+            time.sleep(3600)
     finally:
         server.stop()
-    return 0

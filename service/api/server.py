@@ -227,13 +227,17 @@ class BackgroundServer:
         self.thread = threading.Thread(target=run, name="elastreg-server", daemon=True)
         self.thread.start()
         deadline = time.monotonic() + self.startup_timeout
-        while not self.server.started:
-            if not self.thread.is_alive():
-                why = failed[0] if failed else "see the log"
-                raise RuntimeError(f"the server stopped during start-up ({why})")
-            if time.monotonic() > deadline:
-                raise RuntimeError(f"the server did not start within {self.startup_timeout:g} s")
-            time.sleep(0.02)
+        try:
+            while not self.server.started:
+                if not self.thread.is_alive():
+                    why = failed[0] if failed else "see the log"
+                    raise RuntimeError(f"the server stopped during start-up ({why})")
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"the server did not start within {self.startup_timeout:g} s")
+                time.sleep(0.02)
+        except BaseException:  # Ctrl-C (or a timeout) while it starts: stopped, not left running
+            self.stop()  # (a context manager's __exit__ never runs when __enter__ raised)
+            raise
         return self
 
     def stop(self) -> None:
