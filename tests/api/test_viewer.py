@@ -153,3 +153,25 @@ def test_a_hidden_watch_page_acknowledges_what_it_cannot_draw(live, http, browse
     assert s["framesRendered"] == drawn and s["lastError"] is None  # acknowledged, not drawn
     page.close()
     http.delete(f"/sessions/{sid}")
+
+
+def test_a_watch_that_the_server_ends_is_an_error(bar_store, browser):
+    """The server going away under a watching page (a restart, a crash) ended its socket with a
+    code other than 1000; the page wrote "closed (1012)" where the status goes and left lastError
+    null, so a test or a tool polling it saw a healthy page that would never draw again."""
+    import httpx
+
+    from .conftest import start
+
+    server = start(bar_store[0], instance_id="going")
+    try:
+        sid = httpx.post(f"{server.url}/sessions", json={"model": "bar"}).json()["session"]
+        page = browser.new_page(viewport={"width": 640, "height": 480})
+        page.goto(f"{server.url}/viewer?session={sid}")
+        page.wait_for_function("() => window.elastregViewer.model === 'bar' || window.elastregViewer.lastError")
+        assert state(page)["lastError"] is None
+    finally:
+        server.stop()
+    page.wait_for_function("() => window.elastregViewer.lastError !== null", timeout=30_000)
+    assert "closed" in state(page)["lastError"]
+    page.close()

@@ -314,8 +314,9 @@ async function watch(sessionId) {
     queue(msg.points, msg.result, 1e3 * msg.time - (msg.result.timing_ms?.server ?? 0), msg.seq);
     if (document.hidden) ack(msg.seq);  // a hidden page draws nothing: it has handled the frame
   };
-  ws.onclose = (e) => {
-    $('status').textContent = e.code === 1000 ? `ended: ${e.reason || 'closed'}` : `closed (${e.code})`;
+  ws.onclose = (e) => {  // 1000: the session ended; anything else (the server gone, a policy close) is an error
+    if (e.code === 1000) $('status').textContent = `ended: ${e.reason || 'closed'}`;
+    else fail(new Error(`watch closed (${e.code})${e.reason ? ` ${e.reason}` : ''}: no more frames will come`));
   };
   watchSocket = ws;
   ack(0);
