@@ -136,7 +136,8 @@ def _port_free(port: int) -> bool:
 def viewer(model: str = "phantom", store=None, port: int | None = None, *, out=None) -> int:
     """``elastreg demo --viewer``: serve the model and open the viewer's demo (the page streams a
     synthetic sequence itself) until interrupted: the server stops and the KeyboardInterrupt
-    goes on to the caller (the command line's exit status 130). 1 when it cannot start."""
+    goes on to the caller (the command line's exit status 130). 1 when it cannot start, or the
+    store refused the model."""
     import webbrowser
 
     from .api.server import BackgroundServer
@@ -158,6 +159,10 @@ def viewer(model: str = "phantom", store=None, port: int | None = None, *, out=N
         print(f"error: the viewer's server could not start: {exc}", file=sys.stderr)
         return 1
     try:
+        if model not in server.app.state.models:  # refused by the store: the page could only fail
+            why = server.app.state.store_errors.get(model, "not in the store")
+            print(f"error: model {model!r} could not be loaded: {why}", file=sys.stderr)
+            return 1
         url = f"{server.url}/viewer?model={model}&demo=1"
         print(
             f"the viewer: {url}\n(watch any session with {server.url}/viewer?session=ID; Ctrl-C to stop)",

@@ -239,3 +239,26 @@ def test_ctrl_c_in_the_demo_is_one_line_and_exit_status_130(bar_store, argv, aft
     status, text = _interrupt(["demo", "--store", str(bar_store[0]), "--model", "bar", *argv], after)
     assert status == 130 and "Traceback" not in text, text
     assert text.rstrip().splitlines()[-1] == "interrupted", text
+
+
+def test_the_viewer_demo_of_a_model_the_store_refused_says_why(bar_store, tmp_path):
+    """`elastreg demo --viewer --model M` where the store refuses M (a corrupt file) served and
+    printed the page's URL anyway, for a page that could only show a 404, and ran until Ctrl-C;
+    the streaming demo says why and exits 1, and so does the viewer now."""
+    import os
+    import shutil
+    import subprocess
+    import sys
+
+    store = tmp_path / "store"
+    shutil.copytree(bar_store[0] / "bar", store / "bar")
+    (store / "bar" / "weights.safetensors").write_bytes(b"not the weights")
+    r = subprocess.run(
+        [sys.executable, "-m", "service.cli", "demo", "--viewer", "--store", str(store), "--model", "bar"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "BROWSER": "true"},
+    )
+    assert r.returncode == 1 and "the viewer: " not in r.stdout, r.stdout + r.stderr
+    assert "error: model 'bar' could not be loaded: bar: weights.safetensors does not match" in r.stderr, r.stderr
