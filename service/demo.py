@@ -54,8 +54,10 @@ def run(
     noise: float = NOISE,
     seed: int = 0,
     out=None,
+    err=None,
 ) -> int:
-    """Run the demo; the exit code (0 when every frame came back)."""
+    """Run the demo; the exit code (0 when every frame came back). Progress and scores go to
+    `out` (stdout), errors to `err` (stderr)."""
     from .api.server import BackgroundServer  # uvicorn and FastAPI: only when a server runs
 
     out = out or sys.stdout
@@ -63,11 +65,14 @@ def run(
     def say(*args, **kw) -> None:
         print(*args, **kw, file=out, flush=True)
 
+    def fail(text: str) -> int:
+        print(text, file=err or sys.stderr, flush=True)
+        return 1
+
     store = Path(store) if store else default_store()
     build = f"elastreg train {model}" + (f" --store {store}" if store != default_store() else "")
     if not (store / model / "manifest.json").exists():
-        say(f"error: no model {model!r} in the store at {store}.\nBuild it first with:  {build}")
-        return 1
+        return fail(f"error: no model {model!r} in the store at {store}.\nBuild it first with:  {build}")
 
     say(f"starting the server over {store} ...", end=" ")
     t0 = time.perf_counter()
@@ -76,8 +81,7 @@ def run(
         ids = [m["id"] for m in api.models()]
         if model not in ids:
             why = api.health()["skipped_models"].get(model, "not in the store")
-            say(f"error: model {model!r} could not be loaded: {why}\nRebuild it with:  {build}")
-            return 1
+            return fail(f"error: model {model!r} could not be loaded: {why}\nRebuild it with:  {build}")
         summary = api.model(model)
         m = api.mesh(model)
         mesh = TetMesh(m["nodes"], m["tets"], m["fixed_nodes"])
@@ -97,8 +101,7 @@ def run(
         )
         say(f"{len(seq.clouds)} frames in {time.perf_counter() - t0:.1f} s")
         if not seq.clouds:
-            say("error: the FEM could not follow the first frame of the sequence")
-            return 1
+            return fail("error: the FEM could not follow the first frame of the sequence")
 
         settings = session_settings(noise)
         say(f"the clouds' noise ({noise * 1e3:.3g} mm per axis) is declared; it chooses alpha, frame by frame")
@@ -133,7 +136,7 @@ def _port_free(port: int) -> bool:
     return True
 
 
-def viewer(model: str = "phantom", store=None, port: int | None = None, *, out=None) -> int:
+def viewer(model: str = "phantom", store=None, port: int | None = None, *, out=None, err=None) -> int:
     """``elastreg demo --viewer``: serve the model and open the viewer's demo (the page streams a
     synthetic sequence itself) until interrupted: the server stops and the KeyboardInterrupt
     goes on to the caller (the command line's exit status 130). 1 when it cannot start, or the
@@ -143,25 +146,26 @@ def viewer(model: str = "phantom", store=None, port: int | None = None, *, out=N
     from .api.server import BackgroundServer
 
     out = out or sys.stdout
+    err = err or sys.stderr
     store = Path(store) if store else default_store()
     if not (store / model / "manifest.json").exists():
         print(
             f"error: no model {model!r} in the store at {store}.\nBuild it first with:  elastreg train {model}",
-            file=out,
+            file=err,
         )
         return 1
     if port is not None and not _port_free(port):
-        print(f"error: port {port} is in use (--port picks another, or leave it out for a free one)", file=sys.stderr)
+        print(f"error: port {port} is in use (--port picks another, or leave it out for a free one)", file=err)
         return 1
     try:
         server = BackgroundServer(Settings(store=store), port=port).start()
     except RuntimeError as exc:
-        print(f"error: the viewer's server could not start: {exc}", file=sys.stderr)
+        print(f"error: the viewer's server could not start: {exc}", file=err)
         return 1
     try:
         if model not in server.app.state.models:  # refused by the store: the page could only fail
             why = server.app.state.store_errors.get(model, "not in the store")
-            print(f"error: model {model!r} could not be loaded: {why}", file=sys.stderr)
+            print(f"error: model {model!r} could not be loaded: {why}", file=err)
             return 1
         url = f"{server.url}/viewer?model={model}&demo=1"
         print(

@@ -141,9 +141,23 @@ def test_demo_on_the_bar(bar_store):
 
 
 def test_demo_without_the_model_names_the_command(bar_store):
-    out = io.StringIO()
-    assert demo(model="phantom", frames=3, store=bar_store[0], out=out) != 0
-    assert "elastreg train phantom" in out.getvalue()
+    """On stderr, as the rest of the command line's errors (it went to stdout, where a run
+    redirected to a file hid it)."""
+    out, err = io.StringIO(), io.StringIO()
+    assert demo(model="phantom", frames=3, store=bar_store[0], out=out, err=err) != 0
+    assert err.getvalue().startswith("error: no model 'phantom'") and "elastreg train phantom" in err.getvalue()
+    assert "error" not in out.getvalue()
+    import subprocess
+    import sys
+
+    for flags in ([], ["--viewer"]):  # the command line, both modes
+        r = subprocess.run(
+            [sys.executable, "-m", "service.cli", "demo", *flags, "--store", str(bar_store[0]), "--model", "phantom"],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        assert r.returncode == 1 and r.stdout == "" and r.stderr.startswith("error: no model 'phantom'"), r
 
 
 def test_a_frame_whose_reply_timed_out_puts_the_stream_out_of_step(live, support, clouds):
