@@ -469,6 +469,9 @@ def load_entry(path: Path, name: str | None = None) -> Entry:
         raise StoreError(f"{name}: {WEIGHTS} is not a readable safetensors file ({exc})") from None
     except OSError as exc:
         raise _unreadable(name, WEIGHTS, exc) from None
+    broken = sorted(k for k, t in state.items() if t.is_floating_point() and not bool(torch.isfinite(t).all()))
+    if broken:  # a training run that diverged: every answer would be NaN (a 200 of nulls, a frame's 422)
+        raise StoreError(f"{name}: {WEIGHTS} holds NaN or infinite values (in {', '.join(broken[:3])})")
     material = NeoHookean.of(manifest["material"])  # checked by _check_manifest
     try:
         net = network_from_manifest(manifest["network"], state)

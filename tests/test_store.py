@@ -228,7 +228,18 @@ CORRUPT = {  # under checksums that match: the files' own formats must refuse th
     "weights_empty": (lambda p: (p / "weights.safetensors").write_bytes(b""), "weights.safetensors is not a readable"),
     "weights_pickled": (_pickled, "weights.safetensors is not a readable"),
     "mesh_truncated": (lambda p: _truncate(p / "mesh.npz"), "mesh.npz is unreadable"),
+    # a diverged training's weights: every answer NaN (simulate's 200 of nulls, a frame's 422)
+    "weights_nan": (lambda p: _poison(p / "weights.safetensors"), "weights.safetensors holds NaN or infinite values"),
 }
+
+
+def _poison(path) -> None:
+    from safetensors.torch import load_file, save_file
+
+    state = load_file(str(path))
+    name = next(k for k, t in state.items() if t.is_floating_point() and t.ndim == 2)
+    state[name][0, 0] = float("nan")
+    save_file(state, str(path))
 
 
 def _truncate(path) -> None:
