@@ -35,7 +35,7 @@ from scipy.optimize import minimize
 
 from ..forward import ForwardFailed, ForwardOperator
 from ..spare import Beside
-from .distance import PointToSurface
+from .distance import NonFinitePositions, PointToSurface
 from .levenberg import GaussNewtonModel, KrylovGaussNewton, distance_gram, prepare
 from .precondition import Curvature, gauss_newton
 from .settings import DEFAULT_ALPHA, DEFAULT_GTOL, NAMES, OPTIMIZERS, Optimizer, SessionConfig
@@ -200,7 +200,11 @@ class Objective:
         g2 = float(flat @ flat)  # |g|^2: one BLAS call, where np.sum(g * g) or np.any(g) cost 15 us
         if self.prefetch is not None and g2 > 0.0:
             self.prefetch(g)
-        J, dJ_dx = self.distance(self.rest + u)
+        try:
+            J, dJ_dx = self.distance(self.rest + u)
+        except NonFinitePositions:
+            self.timing.forward += t1 - t0
+            raise _not_finite() from None
         if g2 == 0.0:
             self.rest_u, self.rest_rms = u, self.distance.last_rms
         t2 = time.perf_counter()
@@ -211,7 +215,7 @@ class Objective:
         self.timing.gradient += t3 - t2
         value = J + 0.5 * self.alpha * g2
         if not (math.isfinite(value) and _finite(grad)):
-            raise _Stop("non_finite", "the objective or its gradient is not finite")
+            raise _not_finite("the objective or its gradient")
         if value < self.best_value:
             self.best_value, self.best_g, self.best_J = value, np.array(g, np.float64), J
             self.best_u = u
@@ -432,7 +436,10 @@ def _rest_state(at_rest, distance: PointToSurface, rest_positions: Array) -> tup
     its gradient, u, the RMS distance and the seconds it took. Touches nothing of the frame's."""
     t0 = time.perf_counter()
     u, pullback = at_rest()
-    J, dJ_dx = distance(rest_positions + u)
+    try:
+        J, dJ_dx = distance(rest_positions + u)
+    except NonFinitePositions:
+        raise _not_finite() from None
     grad = pullback(dJ_dx, rows=distance.gradient_nodes)
     return J, grad, u, distance.last_rms, time.perf_counter() - t0
 
@@ -633,6 +640,11 @@ def _stopped(exc: ForwardFailed, nit: int) -> _Stop:
     stop = _forward_stop(exc)
     stop.iterations = nit
     return stop
+
+
+def _not_finite(what: str = "the forward model's displacement") -> _Stop:
+    """A frame's stop where a value is not finite: its result says so (status non_finite)."""
+    return _Stop("non_finite", f"{what} is not finite")
 
 
 def _spent(options: SolveOptions) -> str:

@@ -414,11 +414,12 @@ class Session:
         if field is not None and sol.u is not None:
             spread, gamma = self._spread(op, g, self._rest + sol.u, alpha, sol.status)
         u_all, forward = field.result() if field is not None else _field(op, model, g, self.support)
-        if not np.isfinite(rms):
+        finite = u_all is not None and bool(np.isfinite(u_all).all())
+        if not np.isfinite(rms) and (finite or u_all is None):  # a field not finite has no distance
             u_nodes = np.zeros((self.distance.nodes.size, 3)) if u_all is None else u_all[self.distance.nodes]
             rms = float(np.sqrt(np.mean(self.distance.closest(self._rest + u_nodes).sq_distances)))
         estimate = float("inf")
-        if u_all is not None and np.isfinite(u_all).all():
+        if finite:
             if spread is None:
                 x = self._rest + (u_all[self.distance.nodes] if sol.u is None else sol.u)
                 spread, gamma = self._spread(op, g, x, alpha, sol.status)

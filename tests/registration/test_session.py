@@ -410,3 +410,25 @@ def test_messages_say_why_a_frame_stopped(entry, sequence):
     r = Session(entry.fem, SessionConfig(support=_support(entry, tool))).frame(points)
     assert r.iterations == 0 and "no force on the support moves the surface the points match" in r.message
     assert "0.02 m rms" in r.message
+
+
+def test_a_forward_model_that_answers_nan_gives_a_non_finite_frame(bar_store, sequence):
+    """A network whose weights went NaN after it loaded (the store refuses such files, not a
+    model changed in memory): its displacement reached the distance, whose check on the
+    positions raised a ValueError, and the API answered the client's good points with a 422.
+    API.md: a frame result with converged false and status non_finite, and the session lives."""
+    import torch
+
+    from service.store import load_entry
+
+    broken = load_entry(bar_store[0] / "bar")  # a copy of its own: the shared entry stays sound
+    with torch.no_grad():
+        next(broken.network.net.parameters()).fill_(float("nan"))
+    tool, seq = sequence
+    for optimizer in ("lbfgsb", "levenberg-marquardt"):
+        session = Session(broken.network, SessionConfig(support=_support(broken, tool), optimizer=optimizer))
+        for cloud in seq.clouds[3:5]:  # cold, then warm (the rest state beside the start)
+            r = session.frame(cloud)
+            assert r.status == "non_finite" and not r.converged, (optimizer, r.status, r.message)
+            assert "not finite" in r.message
+        assert session.failed == 2 and not np.any(session.g)

@@ -25,6 +25,7 @@ threads.
 
 from ...jit import available as numba_available
 from .geometry import closest_point_on_triangles
+from .index import NonFinitePositions
 from .point_to_surface import Closest, Match, PointToSurface
 
-__all__ = ["Closest", "Match", "PointToSurface", "closest_point_on_triangles", "numba_available"]
+__all__ = ["Closest", "Match", "NonFinitePositions", "PointToSurface", "closest_point_on_triangles", "numba_available"]

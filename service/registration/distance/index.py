@@ -32,6 +32,11 @@ _RELAYOUT_HIERARCHY = 8.0
 _RELAYOUT_TREE = 0.5
 
 
+class NonFinitePositions(ValueError):
+    """The surface's positions hold NaN or infinite values: the forward model's answer, never
+    the client's cloud (checked on arrival), so the engine reports the frame non_finite."""
+
+
 @dataclasses.dataclass(frozen=True)
 class Index:
     """Candidate pairs (point, triangle) of one build.
@@ -150,13 +155,13 @@ class Candidates:
         for i, ix in enumerate(self._indices):
             moved = self.motion(x, ix.x0)
             if not np.isfinite(moved):
-                raise ValueError("x contains NaN or infinite coordinates")
+                raise NonFinitePositions("x contains NaN or infinite coordinates")
             if moved <= ix.margin * ix.margin:
                 if i:
                     self._indices.insert(0, self._indices.pop(i))
                 return ix
         if not self._indices and not np.isfinite(x).all():
-            raise ValueError("x contains NaN or infinite coordinates")
+            raise NonFinitePositions("x contains NaN or infinite coordinates")
         space = self._space_at(x)
         M = self._margin(space.edge, x)
         ix = self._build(x, space, M if self._dwells(x, M) else 0.0, hint)
