@@ -140,6 +140,9 @@ async def good_streams(url: str, token: str, frames, support, seconds: float, ta
                         await stream.frame(frames[k % len(frames)], frame_id=k)
                         latencies.append(1e3 * (time.perf_counter() - t0))
                     except StreamError as err:
+                        if err.close_code is not None:  # the server closed this stream: it is over
+                            tally.ws("good", err.close_code)  # tallied as the abusive sockets' codes
+                            return
                         tally.ws("good", f"error:{err.status}")
                     k += 1
                     t_next += 1.0 / RATE_HZ

@@ -20,6 +20,7 @@ handshake too); over HTTPS, ``verify=`` takes a CA file for a private certificat
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import json
 import os
@@ -75,8 +76,12 @@ def _retry_after(value: str | None) -> float | None:
 
 
 class StreamError(ApiError):
-    """A stream's error message (the stream stays open), or a refused first message
-    (``close_code`` set: the server closed the stream)."""
+    """A stream's or a watch's error: an error message (``close_code`` None: the stream stays
+    open), or a socket the server closed (``close_code`` set, and ``reason`` its words: a
+    refused first message, 1008; an idle stream past ``session_ttl_s`` or a watched session
+    that ended, 1000; a message over the size limit, 1009; a connection lost without a close
+    frame, 1006). A closed socket's ``status`` is 0 and its ``__cause__`` websockets' own
+    ``ConnectionClosed``; a new stream is needed."""
 
     def __init__(
         self,
@@ -85,10 +90,14 @@ class StreamError(ApiError):
         frame_id=None,
         close_code: int | None = None,
         retry_after: float | None = None,
+        reason: str = "",
     ) -> None:
         super().__init__(status, detail, retry_after=retry_after)
+        if status == 0 and close_code is not None:  # a close, not an error message: no status to show
+            self.args = (f"closed {close_code}: {detail}",)
         self.frame_id = frame_id
         self.close_code = close_code
+        self.reason = reason
 
 
 def _stream_error(e, close_code: int | None = None) -> StreamError:
@@ -428,6 +437,31 @@ def _closed_code(exc: Exception) -> int | None:
     return getattr(rcvd, "code", None)
 
 
+# RFC 6455 7.1.5: the close code of a connection that ended without a close frame received
+_ABNORMAL_CLOSURE = 1006
+
+
+def _closed_by_server(exc: Exception, what: str = "stream") -> StreamError:
+    """The StreamError of a socket found closed (``exc``, websockets' ConnectionClosed): the
+    server's close code and reason (1006 where no close frame came), status 0."""
+    rcvd = getattr(exc, "rcvd", None)
+    code = getattr(rcvd, "code", None) or _ABNORMAL_CLOSURE
+    reason = getattr(rcvd, "reason", "") or ""
+    detail = reason or f"the server closed the {what} ({rcvd if rcvd is not None else exc})"
+    return StreamError(0, detail, close_code=code, reason=reason)
+
+
+@contextlib.contextmanager
+def _closes_as_stream_error(what: str = "stream"):
+    """Raise a socket found closed as :class:`StreamError` (websockets' exception its cause)."""
+    from websockets.exceptions import ConnectionClosed
+
+    try:
+        yield
+    except ConnectionClosed as exc:
+        raise _closed_by_server(exc, what) from exc
+
+
 def _opened(first, wait_close) -> tuple[str, dict]:
     """The session id and config from a stream's first reply, or StreamError (the server closes
     a stream whose first message it refused; ``wait_close()`` returns its close code)."""
@@ -470,7 +504,9 @@ class _AsyncSocket:
 class Stream(_Socket):
     """A WebSocket stream (sync): ``send`` frames (they may be pipelined), ``recv`` results in
     order, or ``frame`` for both. A stream error raises :class:`StreamError` (a 503's with
-    ``retry_after``, the seconds to wait); the stream goes on."""
+    ``retry_after``, the seconds to wait); the stream goes on. A stream the server closed (idle
+    past its ``session_ttl_s``, shutting down, a message over its size limit) raises
+    :class:`StreamError` too, with ``close_code`` and ``reason`` set: open a new stream."""
 
     def __init__(self, ws, encoding: str, config: dict, timeout: float | None = None) -> None:
         self.ws = ws
@@ -491,7 +527,7 @@ class Stream(_Socket):
                 raise refused from None
             except Exception:
                 pass
-            raise StreamError(0, "the server closed the stream", close_code=_closed_code(exc)) from None
+            raise _closed_by_server(exc) from exc
         except BaseException:
             ws.close()
             raise
@@ -501,10 +537,13 @@ class Stream(_Socket):
         self.ws.send(data if self.encoding == "msgpack" else data.decode())
 
     def send(self, points, *, support=None, frame_id=None) -> None:
-        self._send_raw(_frame_body(points, support, frame_id))
+        with _closes_as_stream_error():
+            self._send_raw(_frame_body(points, support, frame_id))
 
     def recv(self, timeout: float | None = None) -> dict:
-        return _reply(self.ws.recv(timeout=timeout if timeout is not None else self.timeout), self.encoding)
+        with _closes_as_stream_error():
+            message = self.ws.recv(timeout=timeout if timeout is not None else self.timeout)
+        return _reply(message, self.encoding)
 
     def frame(self, points, *, support=None, frame_id=None) -> dict:
         """Send one frame and return its result. After a reply that timed out, the stream is out
@@ -534,12 +573,6 @@ def _watching(hello, close_code) -> tuple[str, str, dict]:
     return obj["watching"], obj["model"], obj["config"]
 
 
-def _watch_closed(exc: Exception) -> StreamError:
-    code = _closed_code(exc)
-    reason = getattr(getattr(exc, "rcvd", None), "reason", "") or "the server closed the watch"
-    return StreamError(0, reason, close_code=code)
-
-
 class Watch(_Socket):
     """A session's frames as it solves them (sync): ``{"seq", "time", "points", "result"}``.
 
@@ -561,7 +594,7 @@ class Watch(_Socket):
             ws.send(_ack(0, encoding))  # acknowledging from the first frame on
         except ConnectionClosed as exc:
             ws.close()
-            raise _watch_closed(exc) from None
+            raise _closed_by_server(exc, "watch") from exc
         except BaseException:
             ws.close()
             raise
@@ -577,7 +610,7 @@ class Watch(_Socket):
                 self._handled = None
             frame = _reply(self.ws.recv(timeout=timeout), self.encoding)
         except ConnectionClosed as exc:
-            raise _watch_closed(exc) from None
+            raise _closed_by_server(exc, "watch") from exc
         self._handled = frame["seq"]
         return frame
 
@@ -732,7 +765,7 @@ class AsyncStream(_AsyncSocket):
                 raise refused from None
             except Exception:
                 pass
-            raise StreamError(0, "the server closed the stream", close_code=_closed_code(exc)) from None
+            raise _closed_by_server(exc) from exc
         except BaseException:
             await self.ws.close()
             raise
@@ -742,13 +775,16 @@ class AsyncStream(_AsyncSocket):
         await self.ws.send(data if self.encoding == "msgpack" else data.decode())
 
     async def send(self, points, *, support=None, frame_id=None) -> None:
-        await self._send_raw(_frame_body(points, support, frame_id))
+        with _closes_as_stream_error():
+            await self._send_raw(_frame_body(points, support, frame_id))
 
     async def recv(self, timeout: float | None = None) -> dict:
         import asyncio
 
         wait = timeout if timeout is not None else self.timeout
-        return _reply(await asyncio.wait_for(self.ws.recv(), wait), self.encoding)
+        with _closes_as_stream_error():
+            message = await asyncio.wait_for(self.ws.recv(), wait)
+        return _reply(message, self.encoding)
 
     async def frame(self, points, *, support=None, frame_id=None) -> dict:
         """As :meth:`Stream.frame`: after a reply that timed out, a StreamError (out of step)."""
@@ -786,7 +822,7 @@ class AsyncWatch(_AsyncSocket):
             await self.ws.send(_ack(0, self.encoding))
         except ConnectionClosed as exc:
             await self.ws.close()
-            raise _watch_closed(exc) from None
+            raise _closed_by_server(exc, "watch") from exc
         except BaseException:
             await self.ws.close()
             raise
@@ -803,7 +839,7 @@ class AsyncWatch(_AsyncSocket):
                 self._handled = None
             frame = _reply(await asyncio.wait_for(self.ws.recv(), timeout), self.encoding)
         except ConnectionClosed as exc:
-            raise _watch_closed(exc) from None
+            raise _closed_by_server(exc, "watch") from exc
         self._handled = frame["seq"]
         return frame
 

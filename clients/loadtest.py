@@ -131,8 +131,10 @@ async def run_load(
                 t0 = time.perf_counter()
                 try:
                     r = await stream.frame(frames[k % len(frames)], frame_id=k)
-                except StreamError:
-                    errors[i] += 1
+                except StreamError as exc:
+                    if exc.close_code is not None:  # the server closed the stream: the run ends
+                        raise
+                    errors[i] += 1  # an error message: the stream goes on
                 else:
                     latency[i].append(1e3 * (time.perf_counter() - t0))
                     solve[i].append(float(r["timing_ms"]["total"]))

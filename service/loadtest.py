@@ -17,7 +17,7 @@ import httpx
 import numpy as np
 from websockets.exceptions import WebSocketException
 
-from clients.client import ApiError, AsyncClient
+from clients.client import ApiError, AsyncClient, StreamError
 from clients.loadtest import MAX_SECONDS, MAX_STREAMS, LoadReport, check_target, run_load
 
 from .cli import whole_number
@@ -80,11 +80,18 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         report = asyncio.run(_run(args))
-    except ApiError as exc:  # the server refused the model, the frames or a stream
+    except StreamError as exc:
+        if exc.status == 0 and exc.close_code is not None:  # the server closed a stream (a frame
+            # over its limits); websockets' exception, its cause, names the close code and its meaning
+            print(f"error: the server at {args.url} closed a stream: {exc.__cause__ or exc.detail}", file=sys.stderr)
+        else:  # the server refused a stream
+            print(f"error: the server at {args.url} answered {exc}", file=sys.stderr)
+        return 1
+    except ApiError as exc:  # the server refused the model or the frames
         print(f"error: the server at {args.url} answered {exc}", file=sys.stderr)
         return 1
-    except WebSocketException as exc:  # a stream closed by the server (a frame over its limits)
-        print(f"error: the server at {args.url} closed a stream: {exc}", file=sys.stderr)
+    except WebSocketException as exc:  # a socket that went wrong otherwise (not a server's)
+        print(f"error: the server at {args.url} broke a stream: {exc}", file=sys.stderr)
         return 1
     except (httpx.ConnectError, OSError) as exc:
         print(f"error: cannot reach a server at {args.url} ({exc or type(exc).__name__})", file=sys.stderr)

@@ -343,33 +343,39 @@ class Bridge:
                     await _frame_error(writer, frame, exc.code, str(exc), version, exc.retry_after)
                     return
             stream = client.stream
+            lost: BaseException
             try:
                 r = await stream.frame(points, frame_id=frame)
                 break
             except StreamError as exc:
-                await _frame_error(writer, frame, exc.status, str(exc.detail), version, exc.retry_after)
-                if exc.status != 0 and exc.close_code is None:  # an error message: the stream goes on
+                if exc.close_code is None:  # the API's error message, or the stream out of step
+                    await _frame_error(writer, frame, exc.status, str(exc.detail), version, exc.retry_after)
+                    if exc.status != 0:  # an error message: the stream goes on
+                        return
+                    client.stream = None
+                    await _close_stream(stream)  # out of step (status 0) ends the stream
                     return
-                client.stream = None
-                await _close_stream(stream)  # a close (status 0) ends the stream
-                return
+                lost = exc  # the API closed the stream (close_code)
             except (OSError, TimeoutError, *_ws_errors()) as exc:
-                client.stream = None
-                await _close_stream(stream)
-                code = _clean_close(exc)
-                if attempt == 0 and code is not None:
-                    reason = getattr(getattr(exc, "rcvd", None), "reason", "") or ""
-                    log.warning(
-                        "frame %d: the API closed the stream (%d%s); a new session for it (the warm start is lost)",
-                        frame,
-                        code,
-                        f" {reason}" if reason else "",
-                    )
-                    continue
-                log.warning("frame %d: the API stream was lost (%s: %s)", frame, type(exc).__name__, exc)
-                detail = f"the API stream was lost ({type(exc).__name__}); the next frame opens a new session"
-                await _frame_error(writer, frame, 503, detail, version)
-                return
+                lost = exc
+            client.stream = None
+            await _close_stream(stream)
+            code = _clean_close(lost)
+            if attempt == 0 and code is not None:
+                reason = lost.reason if isinstance(lost, StreamError) else ""
+                log.warning(
+                    "frame %d: the API closed the stream (%d%s); a new session for it (the warm start is lost)",
+                    frame,
+                    code,
+                    f" {reason}" if reason else "",
+                )
+                continue
+            why = _lost(lost)
+            log.warning("frame %d: the API stream was lost (%s)", frame, why)
+            await _frame_error(
+                writer, frame, 503, f"the API stream was lost ({why}); the next frame opens a new session", version
+            )
+            return
         stream = client.stream
         assert r is not None and stream is not None and self.surface is not None
         surface = self.surface.positions(r)
@@ -499,12 +505,22 @@ def _http_error() -> type[BaseException]:
 
 
 def _clean_close(exc: BaseException) -> int | None:
-    """The close code of a stream the API closed on purpose (see _CLEAN_CLOSE), else None."""
-    from websockets.exceptions import ConnectionClosed
+    """The close code of a stream the API closed on purpose (see _CLEAN_CLOSE), else None: the
+    client raises a closed stream as its StreamError, with the server's ``close_code``."""
+    from clients.client import StreamError
 
-    if not isinstance(exc, ConnectionClosed) or exc.rcvd is None:
+    if not isinstance(exc, StreamError) or exc.close_code not in _CLEAN_CLOSE:
         return None
-    return exc.rcvd.code if exc.rcvd.code in _CLEAN_CLOSE else None
+    return exc.close_code
+
+
+def _lost(exc: BaseException) -> str:
+    """How a stream was lost, in a few words: the API's close code and reason, or the error."""
+    from clients.client import StreamError
+
+    if isinstance(exc, StreamError) and exc.close_code is not None:
+        return f"closed by the API, {exc.close_code}{f' {exc.reason}' if exc.reason else ''}"
+    return f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
 
 
 async def _close_stream(stream) -> None:
