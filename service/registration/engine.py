@@ -61,7 +61,8 @@ class SolveOptions:
     max_evaluations: int | None = None  # default: 3 x max_iter
     max_failures: int = 4  # forward failures at trial points before the frame gives up
     time_budget: float | None = None  # seconds: past it the frame returns its best iterate
-    # (status time_limit); a display wants a frame in time more than a last digit
+    # (status time_limit); a display wants a frame in time more than a last digit. A session
+    # passes solve_frame a deadline inside it that leaves room for the frame's outputs
     optimizer: Optimizer = SessionConfig.optimizer  # or "levenberg-marquardt" (levenberg.py): no
     # bounds, and a model with a Jacobian (the reduced network); for whole-surface cold starts
     damping: float = 0.1  # Levenberg-Marquardt's first damping, in units of the mean curvature
@@ -177,6 +178,7 @@ class Objective:
         self.op, self.distance, self.rest, self.alpha = op, distance, rest_positions, float(alpha)
         self.timing = timing or Timing()
         self.evaluations = 0
+        self.timed = 0  # evaluations made here (not a rest state recorded from beside), as timed
         self.best_value, self.best_g, self.best_J = math.inf, None, math.inf
         self.best_u: Array | None = None  # displacement of op.nodes at best_g
         self.best_rms = self.rest_rms = math.nan  # at the best iterate, and at g = 0
@@ -188,6 +190,7 @@ class Objective:
         """(Phi, dPhi/dg (k, 3), J). Raises _Stop when the forward model fails or a value is
         not finite."""
         self.evaluations += 1
+        self.timed += 1
         t0 = time.perf_counter()
         try:
             u, pullback = self.op(g)
@@ -221,6 +224,16 @@ class Objective:
             self.best_u = u
             self.best_rms = self.distance.last_rms
         return value, grad, J
+
+    def late(self, deadline: float | None) -> bool:
+        """Whether an evaluation begun now would end past `deadline` (None: never), judged by
+        the mean time of this frame's evaluations so far: the optimiser does not begin one that
+        would overrun the frame's budget."""
+        if deadline is None:
+            return False
+        t = self.timing
+        mean = (t.forward + t.distance + t.gradient) / self.timed if self.timed else 0.0
+        return time.perf_counter() + mean > deadline
 
     def record_rest(self, J: float, grad: Array, u: Array, rms: float, seconds: float) -> tuple[float, Array]:
         """Counts a rest-state evaluation made elsewhere (:func:`_rest_state`) as this one's own,
@@ -287,6 +300,7 @@ def solve_frame(
     fallbacks: tuple[Array, ...] = (),
     rest_distance: PointToSurface | None = None,
     prefetch: Callable[[Array], None] | None = None,
+    deadline: float | None = None,
 ) -> FrameSolution:
     """Register one frame.
 
@@ -300,6 +314,12 @@ def solve_frame(
     ``at_rest()`` (the network) evaluate a warm frame's rest state beside its start (spare.py).
     `prefetch(g)` is told every loaded point as soon as the forward model has answered there,
     before its distance: a session may start the frame's outputs for it on a spare core.
+    `deadline` (a time.perf_counter() value), where given, stops the optimiser in place of
+    `options.time_budget` counted from here: a session sets it so that the outputs it computes
+    after the solve fit in its budget too. The rest state and the starts are evaluated whatever
+    the deadline (the FEM's solves among them stop at it); the optimiser begins no evaluation
+    that would end past it (by the frame's mean evaluation so far) and stops with status
+    time_limit.
     """
     _refuse_bounds(options)  # the Jacobian, Levenberg-Marquardt's other need, at its first use
     t_start = time.perf_counter()
@@ -312,7 +332,8 @@ def solve_frame(
     evaluate = Objective(op, distance, rest_positions, options.alpha, timing)
     evaluate.best_g = np.asarray(g0, np.float64).copy()
     max_eval = options.max_evaluations or 3 * options.max_iter
-    deadline = None if options.time_budget is None else t_start + options.time_budget
+    if deadline is None and options.time_budget is not None:
+        deadline = t_start + options.time_budget
 
     # an operator with slow solves (the FEM) stops inside one at the deadline, not after it
     timed_op = deadline is not None and hasattr(op, "deadline")
@@ -485,7 +506,7 @@ def _lbfgsb(
             return cache["out"]
         if evaluate.evaluations >= max_eval:
             raise _Stop("max_iter", "evaluation budget spent")
-        if deadline is not None and time.perf_counter() > deadline:
+        if evaluate.late(deadline):
             raise _Stop("time_limit", _spent(options))
         g = P.to_g(z)
         try:
@@ -568,7 +589,7 @@ def _levenberg_marquardt(
     while np.abs(grad).max() > g_tol:
         if nit >= options.max_iter:
             return "max_iter", f"{nit} iterations", nit
-        if deadline is not None and time.perf_counter() > deadline:  # before the FEM's 3k solves
+        if evaluate.late(deadline):  # before the FEM's 3k solves
             return "time_limit", _spent(options), nit
         # the distance's curvature through a constant readout (the network's) needs no Jacobian:
         # a spare core forms it while this one forms the Jacobian
@@ -580,7 +601,7 @@ def _levenberg_marquardt(
         for _ in range(_MAX_REJECTIONS + 1):
             if evaluate.evaluations >= max_eval:
                 return "max_iter", "evaluation budget spent", nit
-            if deadline is not None and time.perf_counter() > deadline:
+            if evaluate.late(deadline):
                 return "time_limit", _spent(options), nit
             d = _step(model, mu, nit)
             if d is None:  # the held Jacobian no longer preconditions: form this g's own
@@ -648,7 +669,9 @@ def _not_finite(what: str = "the forward model's displacement") -> _Stop:
 
 
 def _spent(options: SolveOptions) -> str:
-    """The message of a frame stopped by its time budget."""
+    """The message of a frame stopped by its time budget (or a deadline its session set)."""
+    if options.time_budget is None:
+        return "deadline reached"
     return f"time budget of {1e3 * options.time_budget:g} ms spent"
 
 

@@ -21,9 +21,11 @@ is the last accepted one), and evaluates each warm frame's rest state there too 
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import functools
 import math
+import statistics
 import threading
 import time
 
@@ -151,6 +153,9 @@ class Session:
         # for each loaded evaluation start on a spare core while its distance is measured
         self._early_outputs = self._rest_distance is not None and self._options.optimizer == "levenberg-marquardt"
         self._early: tuple[Array, spare.Beside] | None = None  # (g, its field and forward error)
+        # seconds each of the last frames took after its solve (outputs, estimate, commit): the
+        # room a time budget keeps for them (:meth:`_reserve`)
+        self._after_solve: collections.deque[float] = collections.deque(maxlen=AFTER_SOLVE_FRAMES)
         self.frames = 0
         self.converged = 0
         self.failed = 0
@@ -249,6 +254,8 @@ class Session:
             if self.alpha_tracker is not None:
                 options = dataclasses.replace(options, alpha=self.alpha_tracker.alpha)
             prefetch = self._prefetch if self._early_outputs else None
+            reserve = self._reserve() if options.time_budget is not None else 0.0
+            deadline = None if options.time_budget is None else t0 + options.time_budget - reserve
             sol = solve_frame(
                 self.op,
                 self.distance,
@@ -259,8 +266,12 @@ class Session:
                 fallbacks,
                 self._rest_distance,
                 prefetch,
+                deadline=deadline,
             )
             t1 = time.perf_counter()
+            if sol.status == "time_limit" and reserve > 0.0:
+                kept = f"{1e3 * reserve:.3g} ms of it kept for the outputs and the estimate after the solve"
+                sol = dataclasses.replace(sol, message=f"{sol.message} ({kept})")
             # the outputs before the commit: a failed frame's commit forgets the operator's kept
             # equilibria, the best iterate's among them, and a solve from rest may not reach it
             outputs, rms, estimate, gamma = self._outputs(self.op, self.model, sol, options.alpha)
@@ -270,11 +281,14 @@ class Session:
             if sol.status not in FAILED:
                 self._learn_alpha(sol.g, len(points), gamma)
             timing = sol.timing.as_ms()
-            timing["outputs"] = 1e3 * (time.perf_counter() - t1)
+            after = time.perf_counter() - t1
+            timing["outputs"] = 1e3 * after
+            if self.frames:  # a session's first frame pays one-time costs (kernels' first use)
+                self._after_solve.append(after)
             method_used, iterations, evaluations = self.model.method, sol.iterations, sol.evaluations
             if self.config.method == "auto" and not estimate <= self.config.max_error:
                 t2 = time.perf_counter()
-                fem = self._correct(sol, options, fallbacks, t0)
+                fem = self._correct(sol, options, fallbacks, deadline)
                 fixed = None
                 if fem.status not in FAILED:
                     fixed = self._outputs(self._corrector_op, self.corrector, fem, options.alpha)
@@ -336,6 +350,14 @@ class Session:
             return self.g, (self.g + self._trend,)
         return self.g, (self._anchor,)
 
+    def _reserve(self) -> float:
+        """Seconds of a frame's time budget kept for what follows its solve (the outputs, the
+        error estimate, the commit): the median of what that took on the session's last
+        AFTER_SOLVE_FRAMES frames, its first frame left out (it pays one-time costs, the first
+        use of kernels and caches), 0 before there are any; so that the whole frame, not only
+        its optimiser, fits in the budget where it can."""
+        return statistics.median(self._after_solve) if self._after_solve else 0.0
+
     def _commit(self, sol, learn: bool) -> None:
         """Move the warm start to a frame's answer (a failed one leaves it as it was)."""
         if sol.status in FAILED:
@@ -366,9 +388,9 @@ class Session:
             if curvature is not None:
                 curvature.shift(after - before)
 
-    def _correct(self, sol, options: SolveOptions, fallbacks: tuple, t0: float):
+    def _correct(self, sol, options: SolveOptions, fallbacks: tuple, deadline: float | None):
         """The FEM's registration of the bound cloud, from the network's answer (or its start),
-        in what is left of the frame's time budget (the frame began at `t0`)."""
+        until the frame's `deadline` (the network's), 1 ms at least."""
         if self._corrector_op is None:
             self._corrector_op = self.corrector.restrict(self.support, self.distance.nodes)
         # the session's optimizer where the FEM runs it for this support: Levenberg-Marquardt
@@ -380,13 +402,19 @@ class Session:
             gtol=DEFAULT_GTOL[self.corrector.method],
             optimizer="levenberg-marquardt" if lm else "lbfgsb",
             precondition=False,
-            time_budget=None
-            if options.time_budget is None
-            else max(options.time_budget - (time.perf_counter() - t0), 1e-3),
         )
+        if deadline is not None:
+            deadline = max(deadline, time.perf_counter() + 1e-3)
         start = self.g if sol.status in FAILED else sol.g
         return solve_frame(
-            self._corrector_op, self.distance, self._rest, start, fem_options, self._corrector_curvature, fallbacks
+            self._corrector_op,
+            self.distance,
+            self._rest,
+            start,
+            fem_options,
+            self._corrector_curvature,
+            fallbacks,
+            deadline=deadline,
         )
 
     def _outputs(
@@ -520,6 +548,10 @@ def _check_faces(mesh: TetMesh, faces) -> Array:
         raise ValueError(f"matching node ids must lie in 0..{mesh.n_nodes - 1}")
     return f.astype(np.int64)
 
+
+#: the frames whose time after the solve sizes the next one's reserve (:meth:`Session._reserve`):
+#: their median rides out one slow frame (a collection, a busy core) without chasing it
+AFTER_SOLVE_FRAMES = 5
 
 #: the cosine above which two successive changes of the forces count as one steady motion
 STEADY = 0.5

@@ -177,6 +177,33 @@ def test_time_budget_cuts_a_frame_short(http, support, clouds):
     http.delete(f"/sessions/{sid}")
 
 
+def test_a_time_budget_keeps_room_for_the_outputs(http, support, clouds):
+    """The budget bounds the whole frame, not its optimiser alone: each frame keeps for what
+    follows its solve (the outputs, the estimate) the median of what that took on the session's
+    last frames but its first (their timing_ms outputs), and its optimiser stops that much
+    sooner, saying so (before, the outputs came after the budget, uncounted). Under a budget smaller than that,
+    the optimiser stops at its start, and every output asked for and the estimate are still
+    there."""
+    import math
+    import statistics
+
+    outputs = ["displacement", "surface_displacement", "forces", "stress"]
+    sid = open_session(http, support=support.tolist(), time_budget_ms=0.001, outputs=outputs)["session"]
+    after: list[float] = []  # the session's first frame is not one to go by (one-time costs)
+    for t, cloud in enumerate(clouds[:5]):
+        out = http.post(f"/sessions/{sid}/frames", json={"points": cloud.tolist()}).json()
+        assert out["status"] == "time_limit" and out["iterations"] == 0, out["message"]
+        assert all(np.isfinite(out[name]).all() for name in outputs) and math.isfinite(out["error_estimate"])
+        if after:
+            kept = statistics.median(after[-5:])
+            assert f"time budget of 0.001 ms spent ({kept:.3g} ms of it kept for the outputs" in out["message"]
+        else:
+            assert out["message"] == "time budget of 0.001 ms spent"
+        if t:
+            after.append(out["timing_ms"]["outputs"])
+    http.delete(f"/sessions/{sid}")
+
+
 def test_noise_chooses_alpha_frame_by_frame(http, support, clouds):
     """With the clouds' noise given, the config echoes it and the default alpha it starts from;
     each frame says the alpha it ran with, which rises on clouds noisier than the fit; with alpha
