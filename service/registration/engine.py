@@ -366,6 +366,7 @@ def solve_frame(
                 f"no force on the support moves the surface the points match: the rest state stands "
                 f"({evaluate.rest_rms:.3g} m rms from the cloud)"
             )
+        _check_alpha(options.alpha, v_rest, grad_rest, best.value)
         # the optimiser's trial points only: the starts' share the spare core with the rest state
         evaluate.prefetch = prefetch
         if options.optimizer == "levenberg-marquardt":
@@ -426,6 +427,26 @@ def _check_rest(v_rest: float, rest_positions: Array) -> None:
     size = float(np.linalg.norm(np.ptp(np.ascontiguousarray(rest_positions.T), axis=1))) or 1.0
     if v_rest <= 0.5 * (1e-9 * size) ** 2:
         raise _Done("the cloud lies on the rest surface: no force needed")
+
+
+def _check_alpha(alpha: float, v_rest: float, grad_rest: Array, v_best: float) -> None:
+    """Ends the frame (_Done) where alpha is so large that no force lowers the objective by what
+    the optimiser resolves: Phi(g) >= Phi(0) + grad.g + alpha/2 |g|^2 (J's curvature is no
+    less than 0 near g = 0, and alpha's swamps it), whose least value is |grad|^2 / (2 alpha)
+    below the rest state's; the regularised answer, |grad| / alpha in force, is the rest state.
+    L-BFGS-B would stall at it ("relative reduction"), saying nothing of alpha."""
+    flat = grad_rest.ravel()
+    gain = float(flat @ flat) / (2.0 * alpha)
+    if gain <= _FTOL * v_rest and v_best >= v_rest - gain:
+        raise _Done(
+            f"alpha {alpha:.3g} is so large that no force can lower the objective measurably (by "
+            f"{gain:.3g} m^2 at most, from {v_rest:.3g} m^2 at rest): the rest state stands"
+        )
+
+
+#: the relative decrease of the (scaled) objective below which L-BFGS-B stops ("relative
+#: reduction"): the finest change it resolves, a few units in the last place of a double
+_FTOL = 1e-15
 
 
 def _best_start(evaluate: Objective, candidates: tuple[Array, ...], options: SolveOptions) -> _Start | None:
@@ -548,7 +569,7 @@ def _lbfgsb(
     try:
         res = minimize(
             fun, z0, jac=True, method="L-BFGS-B", bounds=bounds, callback=converged,
-            options={"maxiter": options.max_iter, "gtol": 0.0, "ftol": 1e-15, "maxcor": 20, "maxls": 30},
+            options={"maxiter": options.max_iter, "gtol": 0.0, "ftol": _FTOL, "maxcor": 20, "maxls": 30},
         )  # fmt: skip
     except _Stop as stop:  # a limit or a failure between iterations: the accepted ones so far
         stop.iterations = len(path_g) - 1

@@ -66,7 +66,9 @@ class SessionConfig:
     )
     alpha: float | None = setting(
         None,
-        "regularisation weight on |g|^2 (default: 1e-7 at the model's E, x (E_model / E)^2 at another E)",
+        "regularisation weight on |g|^2 (default: 1e-7 at the model's E, x (E_model / E)^2 at another E); "
+        "one so large that no force can lower the objective measurably ends each frame at the rest "
+        "state, status converged, its message saying so",
         per_model=True,
         gt=0,
     )

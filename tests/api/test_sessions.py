@@ -204,6 +204,25 @@ def test_a_time_budget_keeps_room_for_the_outputs(http, support, clouds):
     http.delete(f"/sessions/{sid}")
 
 
+@pytest.mark.parametrize("method", ["network", "fem"])
+def test_an_alpha_too_large_for_any_force_says_so(http, support, clouds, method):
+    """alpha 1e300: no force can lower the objective by what the optimiser resolves (at most
+    |dJ/dg|^2 / (2 alpha), under 1e-15 of J at rest), so each frame ends at the rest state,
+    converged, its message naming alpha (it was 'stalled', in SciPy's words). A large alpha
+    short of that still moves the forces."""
+    sid = open_session(http, method=method, support=support.tolist(), alpha=1e300, outputs=["forces"])["session"]
+    for cloud in clouds[1:3]:
+        out = http.post(f"/sessions/{sid}/frames", json={"points": cloud.tolist()}).json()
+        assert out["status"] == "converged" and out["converged"] and out["iterations"] == 0, out["message"]
+        assert out["message"].startswith("alpha 1e+300 is so large that no force can lower the objective")
+        assert not np.any(out["forces"]) and out["distance_rms"] > 0
+    http.delete(f"/sessions/{sid}")
+    sid = open_session(http, method=method, support=support.tolist(), alpha=1e-3, outputs=["forces"])["session"]
+    out = http.post(f"/sessions/{sid}/frames", json={"points": clouds[2].tolist()}).json()
+    assert out["iterations"] > 0 and np.any(out["forces"]) and "alpha" not in out["message"], out
+    http.delete(f"/sessions/{sid}")
+
+
 def test_noise_chooses_alpha_frame_by_frame(http, support, clouds):
     """With the clouds' noise given, the config echoes it and the default alpha it starts from;
     each frame says the alpha it ran with, which rises on clouds noisier than the fit; with alpha
