@@ -137,6 +137,20 @@ class Bridge:
             await held.left.wait()
 
     @property
+    def send_timeout(self) -> float:
+        """Seconds an answer may wait for the client to take it (the API's send_timeout_s)."""
+        return float(self.limits.get("send_timeout_s") or 30.0)
+
+    async def _drain(self, writer) -> None:
+        """Until the client has taken what was written: one that takes nothing for send_timeout
+        is _Stalled (it would hold the only slot while it stays connected)."""
+        try:
+            async with asyncio.timeout(self.send_timeout):
+                await writer.drain()
+        except TimeoutError:
+            raise _Stalled(f"took no answer for {self.send_timeout:g} s") from None
+
+    @property
     def read_timeout(self) -> float:
         """Seconds the rest of a message may take once its first byte came (the API's body_timeout_s)."""
         return float(self.limits.get("body_timeout_s") or 30.0)
@@ -248,7 +262,7 @@ class Bridge:
                 too_large = self._too_large(points)
                 if too_large is not None:  # answered as the API would, and the session is kept
                     log.warning("frame %d: %s", frame, too_large)
-                    await _frame_error(writer, frame, 413, too_large, msg.version)
+                    await self._frame_error(writer, frame, 413, too_large, msg.version)
                 else:
                     await self._frame(api, client, frame, points, msg.version)
                 frame += 1
@@ -340,7 +354,7 @@ class Bridge:
                     client.stream = await self._open(api)
                 except _Refused as exc:
                     log.warning("%s", exc)
-                    await _frame_error(writer, frame, exc.code, str(exc), version, exc.retry_after)
+                    await self._frame_error(writer, frame, exc.code, str(exc), version, exc.retry_after)
                     return
             stream = client.stream
             lost: BaseException
@@ -349,7 +363,7 @@ class Bridge:
                 break
             except StreamError as exc:
                 if exc.close_code is None:  # the API's error message, or the stream out of step
-                    await _frame_error(writer, frame, exc.status, str(exc.detail), version, exc.retry_after)
+                    await self._frame_error(writer, frame, exc.status, str(exc.detail), version, exc.retry_after)
                     if exc.status != 0:  # an error message: the stream goes on
                         return
                     client.stream = None
@@ -372,7 +386,7 @@ class Bridge:
                 continue
             why = _lost(lost)
             log.warning("frame %d: the API stream was lost (%s)", frame, why)
-            await _frame_error(
+            await self._frame_error(
                 writer, frame, 503, f"the API stream was lost ({why}); the next frame opens a new session", version
             )
             return
@@ -397,12 +411,19 @@ class Bridge:
             )
         )
         writer.write(_status(status, version))
-        await writer.drain()
+        await self._drain(writer)
+
+    async def _frame_error(
+        self, writer, frame: int, code: int, detail: str, version: int, retry_after: float | None = None
+    ) -> None:
+        """A frame's answer when it has no result: its id and the error."""
+        writer.write(_status({"frame_id": frame, "error": _error_body(code, detail, retry_after)}, version))
+        await self._drain(writer)
 
     async def _error(self, writer, text: str, version: int) -> None:
         log.warning("malformed message: %s", text)
         writer.write(_status({"error": text}, version))
-        await writer.drain()
+        await self._drain(writer)
 
 
 def _status(obj: dict, version: int) -> bytes:
@@ -420,14 +441,6 @@ def _error_body(code: int, detail: str, retry_after: float | None = None) -> dic
     if retry_after is not None:
         body["retry_after"] = retry_after
     return body
-
-
-async def _frame_error(
-    writer, frame: int, code: int, detail: str, version: int, retry_after: float | None = None
-) -> None:
-    """A frame's answer when it has no result: its id and the error."""
-    writer.write(_status({"frame_id": frame, "error": _error_body(code, detail, retry_after)}, version))
-    await writer.drain()
 
 
 def _json_safe(obj):

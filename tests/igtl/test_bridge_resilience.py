@@ -5,8 +5,10 @@ is reported and the next client served; a stalled client does not hold the only 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import shutil
+import socket
 import time
 from pathlib import Path
 
@@ -161,6 +163,36 @@ def test_a_status_before_the_first_message_uses_header_version_1(api_server, run
         msg = read_message(sock)
         assert (msg.type, msg.device, msg.version) == ("STRING", "status", 1)
         assert json.loads(p.decode_string(msg.content))["error"]["code"] == 503
+
+
+def test_a_client_that_takes_no_answers_frees_the_only_slot(api_server, run_bridge):
+    """A client that keeps sending frames but never reads their answers: the bridge's writes
+    back up, and once one has waited the API's send_timeout_s the client is closed (its session
+    with it), as the API closes such a stream. It held the only slot for good before."""
+    api = api_server(send_timeout_s=1.0)
+    mesh = get_mesh(api.url, "bar")
+    frame = point_frame(surface_cloud(mesh, n=20))
+    bridge = run_bridge(api.url)
+    deaf = socket.socket()
+    deaf.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 2048)  # a small window: the answers back up
+    deaf.settimeout(0.5)
+    deaf.connect(("127.0.0.1", bridge.port))
+    try:
+        sid = None
+        deadline = time.monotonic() + 60
+        with contextlib.suppress(OSError):  # the bridge stops reading, then closes it
+            while time.monotonic() < deadline:
+                deaf.sendall(frame)
+                sid = sid or (bridge.bridge.sessions or [None])[0]
+        assert time.monotonic() < deadline, "the bridge still took frames after a minute"
+        sid = sid or bridge.wait_sessions(1)[0]
+        wait_closed(api.url, sid)
+        bridge.wait_free()
+        with bridge.connect() as sock:
+            sock.sendall(point_frame(surface_cloud(mesh)))
+            assert registered(read_answer(sock), len(mesh["surface_nodes"]))["session"] != sid
+    finally:
+        deaf.close()
 
 
 def test_a_stalled_client_frees_the_only_slot(api_server, run_bridge):
