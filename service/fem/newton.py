@@ -39,6 +39,11 @@ Array = np.ndarray
 CG_MAX_ITER = 10
 #: the largest relative accuracy asked of a Newton step (inexact Newton's forcing term)
 CG_FORCING = 1e-2
+#: the residual a solve counts as zero, in machine epsilons of the internal forces' terms
+#: (NewtonSolver.roundoff): a tiny load's relative tolerance can lie below what any iterate
+#: reaches. Newton stalled at 0.3-0.6 of the estimate with one (the bar, the phantom); 4 leaves
+#: a margin and decides only below strains of about 1e-5 (docs/performance.md)
+ROUNDOFF_ULPS = 4.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -92,6 +97,9 @@ class NewtonSolver:
         self.solver = make_solver(K0, self.options.backend, spare_core=True)
         self._diag = _diagonal_slots(K0)
         self._mean_diag = float(K0.diagonal().mean())
+        #: the residual norm no iterate gets below: f_int sums terms vol |P| |grad N|, with
+        #: stresses of the moduli's size near rest, about K0's diagonal times an element's size
+        self.roundoff = ROUNDOFF_ULPS * np.finfo(float).eps * assembler.spacing * float(np.linalg.norm(K0.diagonal()))
         self._tau = 1e-4 * self._mean_diag  # last shift that worked: where the next search starts
         self._factor_x: np.ndarray | None = None  # free dofs where the factor is the exact tangent
         self._factored = False  # whether the solver holds any factor (a preconditioner)
@@ -253,7 +261,8 @@ class NewtonSolver:
                     x_try = x_pred
             tol = opt.rtol if s_try == 1.0 else max(opt.rtol, opt.step_rtol)
             budget = min(opt.max_step_iter, opt.max_iter - iterations)
-            x_new, ok, its, hist, nshift, factored, why = self._newton(x_try, load, tol * ref, ref, budget, deadline)
+            atol = max(tol * ref, self.roundoff)
+            x_new, ok, its, hist, nshift, factored, why = self._newton(x_try, load, atol, ref, budget, deadline)
             iterations += its
             shifts += nshift
             residuals += hist

@@ -71,6 +71,12 @@ class QuadraticAssembler:
     def _pattern(self) -> tuple[Array, Array, Array, Array]:
         return csr_pattern(self.tets, self.nodes.free_dofs, self.nodes.n_nodes)
 
+    @cached_property
+    def spacing(self) -> float:
+        """The nodes' spacing (m): the cube root of the mean volume of `nodes`' tets (half an
+        element's size)."""
+        return float(np.cbrt(np.mean(np.abs(self.nodes.volumes))))
+
     @property
     def n_free(self) -> int:
         return int(self.nodes.free_dofs.size)

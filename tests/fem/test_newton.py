@@ -62,6 +62,34 @@ def test_small_loads_follow_linear_elasticity(bar):
     assert diffs[1] == pytest.approx(diffs[0] / 10.0, rel=0.2)  # first order in the load
 
 
+@pytest.mark.parametrize("nu", [0.3, 0.49, 0.499])
+def test_tiny_loads_converge_to_the_linear_answer(bar, nu):
+    """A load of 1e-9 to 1e-15 of the bar's (a cloud a hair off rest, or a huge alpha): the
+    residual's floor is the internal forces' roundoff, far above 1e-9 of such a load, so
+    Newton ran to max_iter or cut its steps to nothing. It must converge to K0^-1 g."""
+    asm = Assembler(bar, NeoHookean(4500.0, nu))
+    solver = NewtonSolver(asm)
+    K = asm.stiffness_at_rest().toarray()
+    for scale in (1e-9, 1e-12, 1e-15):
+        g = tip_load(bar, [0.0, 30.0 * scale, -100.0 * scale])
+        u_lin = asm.unpack(np.linalg.solve(K, asm.pack(g)))
+        res = solver.solve(g)
+        assert res.converged and res.iterations <= 3, (scale, res.status, res.iterations)
+        np.testing.assert_allclose(res.u, u_lin, rtol=1e-6, atol=1e-6 * np.abs(u_lin).max())
+
+
+@pytest.mark.parametrize("nu", [0.3, 0.49, 0.499])
+def test_the_roundoff_floor_leaves_ordinary_loads_to_the_tolerance(bar, nu):
+    """A load that moves the bar 1 % of its length (strains of about 1e-2): the tolerance
+    decides, not the floor, so such solves are as before."""
+    asm = Assembler(bar, NeoHookean(4500.0, nu))
+    solver = NewtonSolver(asm)
+    g = tip_load(bar, [0.0, 0.0, -1.0])
+    g *= 0.04 / np.abs(solver.solve(g).u).max()
+    assert np.abs(solver.solve(g).u).max() == pytest.approx(0.04, rel=0.05)
+    assert solver.roundoff < NewtonOptions().rtol * np.linalg.norm(asm.pack(g))  # 0.41 of it at nu 0.499
+
+
 def test_stiffer_material_and_larger_load_give_the_same_displacement(bar):
     g = tip_load(bar, [0.0, 30.0, -120.0])
     u1 = NewtonSolver(Assembler(bar, NeoHookean(4500.0, 0.49))).solve(g)
