@@ -141,12 +141,7 @@ def test_ctrl_c_during_the_data_prints_one_line_and_keeps_the_paths(tmp_path, ba
     kept = len(list(folder.glob("path_*.npz")))
     assert kept >= 1
     assert f"interrupted: {kept} load paths kept in {folder}; the same command resumes" in out, out[-3000:]
-    for _ in range(50):  # the workers went with it
-        left = subprocess.run(["pgrep", "-g", str(p.pid)], capture_output=True, text=True).stdout.split()
-        if not left:
-            break
-        time.sleep(0.2)
-    assert not left
+    assert _group_gone(p.pid)  # the workers went with it
 
 
 def test_ctrl_c_while_the_local_cluster_starts_stops_the_build_with_one_line(tmp_path, bar):
@@ -181,12 +176,7 @@ def test_ctrl_c_while_the_local_cluster_starts_stops_the_build_with_one_line(tmp
     (folder,) = (tmp_path / "data").iterdir()
     assert f"interrupted: 0 load paths kept in {folder}; the same command resumes" in text, text[-3000:]
     assert not (tmp_path / "store" / "bar").exists()
-    for _ in range(50):  # the workers went with it
-        left = subprocess.run(["pgrep", "-g", str(p.pid)], capture_output=True, text=True).stdout.split()
-        if not left:
-            break
-        time.sleep(0.2)
-    assert not left
+    assert _group_gone(p.pid)  # the workers went with it
 
 
 def test_a_much_worse_rebuild_keeps_the_installed_model_unless_replace_is_given(tmp_path, bar, capsys):
@@ -226,3 +216,13 @@ def test_a_much_worse_rebuild_keeps_the_installed_model_unless_replace_is_given(
     assert json.loads(manifest.read_text())["network"]["physics_skip"] is False
     assert main([*common, *good]) == 0  # a better build needs no flag
     assert validation()["mean_mm"] == pytest.approx(installed["mean_mm"], rel=1e-6)
+
+
+def _group_gone(pgid: int, seconds: float = 10.0) -> bool:
+    """Whether no process of the group is left within `seconds` (a build's Dask workers)."""
+    deadline = time.monotonic() + seconds
+    while subprocess.run(["pgrep", "-g", str(pgid)], capture_output=True, text=True).stdout.split():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.2)
+    return True
