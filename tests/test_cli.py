@@ -10,6 +10,7 @@ import socket
 import subprocess
 import sys
 from importlib import resources
+from pathlib import Path
 
 import pytest
 
@@ -133,3 +134,26 @@ def test_serve_over_an_unreadable_store_stops_at_once(tmp_path):
     r = _serve(store, *prefix)
     assert r.returncode == 1 and "Traceback" not in r.stderr, r.stderr
     assert r.stderr.strip().startswith(f"error: model store {store} cannot be read (Permission denied)"), r.stderr
+
+
+def test_serve_on_a_port_in_use_stops_before_loading_any_model(tmp_path):
+    """The port is taken before the models load and warm: a port in use was uvicorn's
+    traceback-free but late refusal (exit 3), after seconds of start-up; now one line, exit 1."""
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        argv = [
+            sys.executable,
+            "-m",
+            "service.cli",
+            "serve",
+            "--store",
+            str(Path(__file__).parents[1] / "model_store"),
+            "--port",
+            str(port),
+        ]
+        r = subprocess.run(argv, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 1, r.stderr
+    assert r.stderr.strip() == f"error: cannot listen on 127.0.0.1:{port} (Address already in use)", r.stderr
+    assert "startup" not in r.stdout + r.stderr  # no application start-up: no model was loaded

@@ -65,6 +65,11 @@ def _draining_server(config, app):
     class DrainingServer(uvicorn.Server):
         """uvicorn's server, which lets the app finish its frames before it closes connections."""
 
+        async def startup(self, sockets=None) -> None:
+            await super().startup(sockets)
+            if sockets and self.started:  # uvicorn says where it listens only for sockets it bound
+                self._log_started_message(sockets)
+
         async def shutdown(self, sockets=None) -> None:
             for server in self.servers:  # no new connections while the frames in flight finish
                 server.close()
@@ -117,6 +122,8 @@ def serve(
         raise SystemExit("error: --ssl-certfile and --ssl-keyfile go together")
     if ssl_certfile:  # here, before any worker starts: uvicorn's workers would die and respawn for ever
         check_certificate(ssl_certfile, ssl_keyfile)
+    # bound before the models load and warm (seconds): a port in use is one line at once
+    sock = listening_socket(host, port)
     common: dict[str, Any] = dict(
         host=host,
         port=port,
@@ -131,6 +138,7 @@ def serve(
             "(WebSocket streams are fine); no drain at shutdown. See docs/deployment.md",
             workers,
         )
+        sock.close()  # uvicorn's supervisor binds its own, for its workers to share
         uvicorn.run("service.api.app:create_app", factory=True, workers=workers, **common)
     else:
         from .app import create_app
@@ -138,7 +146,24 @@ def serve(
         app = create_app(settings)
         config = uvicorn.Config(app, **common)
         with contextlib.suppress(KeyboardInterrupt):  # Ctrl-C: drained and stopped, no traceback (uvicorn.run's way)
-            _draining_server(config, app).run()
+            _draining_server(config, app).run(sockets=[sock])
+
+
+def listening_socket(host: str, port: int):
+    """A TCP socket bound to (host, port), as uvicorn binds one; SystemExit in one line when
+    the address cannot be taken (a port in use, a host this machine does not have)."""
+    import socket
+
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        sock.bind((host, port))
+    except OSError as exc:
+        sock.close()
+        raise SystemExit(f"error: cannot listen on {host}:{port} ({exc.strerror or exc})") from None
+    sock.set_inheritable(True)
+    return sock
 
 
 def check_certificate(certfile: str, keyfile: str | None) -> None:
