@@ -574,9 +574,8 @@ def _lbfgsb(
     except _Stop as stop:  # a limit or a failure between iterations: the accepted ones so far
         stop.iterations = len(path_g) - 1
         raise
-    nit, message, status = int(res.nit), str(res.message), _status(res)
-    if "CALLBACK" in message.upper():  # our own gradient test stopped it, not SciPy's
-        message = "projected gradient below gtol"
+    nit, status = int(res.nit), _status(res)
+    message = _MESSAGES.get(status, "{nit} iterations").format(nit=nit, scipy=res.message)
     if curvature is not None and not bounded and status == "converged":
         curvature.update(path_g, path_grad)  # only converged frames teach the carried curvature
     if failures and status != "converged":
@@ -711,6 +710,15 @@ _COLD_SHRINK = 0.2
 
 
 _TINY = np.finfo(np.float64).tiny
+
+
+#: a stop's message in the API's words (SciPy's own in parentheses where it says more)
+_MESSAGES = {
+    "converged": "projected gradient below gtol",
+    "max_iter": "{nit} iterations",
+    "stalled": "the objective stopped decreasing at working precision before the gradient test (L-BFGS-B: {scipy})",
+    "line_search": "the line search found no lower point along the step (L-BFGS-B: {scipy})",
+}
 
 
 def _status(res) -> str:

@@ -432,3 +432,10 @@ def test_a_forward_model_that_answers_nan_gives_a_non_finite_frame(bar_store, se
             assert r.status == "non_finite" and not r.converged, (optimizer, r.status, r.message)
             assert "not finite" in r.message
         assert session.failed == 2 and not np.any(session.g)
+
+
+def test_an_iteration_cap_is_said_in_the_api_words(entry, sequence):
+    """L-BFGS-B stopped by max_iter said SciPy's 'STOP: TOTAL NO. OF ITERATIONS REACHED LIMIT'."""
+    tool, seq = sequence
+    r = Session(entry.network, SessionConfig(support=_support(entry, tool), max_iter=1)).frame(seq.clouds[5])
+    assert r.status == "max_iter" and r.message == "1 iterations"
