@@ -47,7 +47,8 @@ def build_session(
 ) -> Held:
     """The engine's Session for a validated config, wrapped for the registry (in the pool). A
     session without a time budget of its own runs under ``budget_ms`` (the server's cap, listed
-    in /health's limits); its echoed config keeps its own (null). One that did not set max_iter
+    in /health's limits), and its echoed config says so (API.md: the effective value of every
+    setting). One that did not set max_iter
     gets the default or the server's cap ``max_iter``, whichever is smaller."""
     # the engine: loaded by the app already
     from ..registration.session import Session, SessionConfig
