@@ -313,4 +313,6 @@ def test_a_timed_training_spends_its_seconds(bar_store):
     F, U, P = load_dataset(next(store.parent.glob(f"data/{data}")))
     config = TrainConfig(hidden=(16,), rank=8, epochs=100_000, patience=1, max_seconds=3.0)
     result = train(F, U, P, Assembler(entry.mesh, NeoHookean(4500.0, 0.45)), entry.region, config, progress=False)
-    assert result.metrics["train_seconds"] > 2.0 and result.metrics["epochs"] > 20
+    # patience 1 stops in a few epochs; the clock keeps it going (10, not more: a loaded machine's
+    # epochs are slow, and the test failed once under four other test runs at 20)
+    assert result.metrics["train_seconds"] > 2.0 and result.metrics["epochs"] > 10
