@@ -128,13 +128,15 @@ class Bridge:
 
     @property
     def busy(self) -> bool:
-        """Whether a client holds the slot: connected, and not leaving (see _Client.left)."""
-        return self._client is not None and not self._client.left.is_set()
+        """Whether a client holds the slot: connected, and not leaving (see _Client.gone)."""
+        return self._client is not None and not self._client.gone()
 
     async def _left(self) -> None:
-        """Until no client holds the slot."""
-        while (held := self._client) is not None and not held.left.is_set():
-            await held.left.wait()
+        """Until no client holds the slot (its socket looked at every 50 ms: a reader paused on
+        a full buffer does not see its peer's close)."""
+        while (held := self._client) is not None and not held.gone():
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(held.left.wait(), 0.05)
 
     @property
     def send_timeout(self) -> float:
@@ -468,6 +470,31 @@ class _Client:
         #: set once it sends nothing more: it closed its side of the connection or lost it (what
         #: it sent before is still read, registered and answered), or its frames are over
         self.left = reader.ended if isinstance(reader, _Reader) else asyncio.Event()
+        self._socket = writer.get_extra_info("socket")
+
+    def gone(self) -> bool:
+        """Whether it has left (``left``), its socket's TCP state included: past 128 KiB unread
+        the reader stops reading, and so never sees the close behind those bytes."""
+        if not self.left.is_set() and _peer_closed(self._socket):
+            self.left.set()
+        return self.left.is_set()
+
+
+#: Linux's TCP states in which the peer has closed its side or the connection is over
+#: (include/net/tcp_states.h: CLOSE, CLOSE_WAIT, LAST_ACK, CLOSING)
+_PEER_CLOSED = frozenset((7, 8, 9, 11))
+
+
+def _peer_closed(sock) -> bool:
+    """Whether the socket's peer has closed (or the socket is gone), whatever is still unread;
+    False where the system does not tell (no TCP_INFO)."""
+    if sock is None or not hasattr(socket, "TCP_INFO"):
+        return False
+    try:
+        state = sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_INFO, 1)[0]
+    except OSError:
+        return True
+    return state in _PEER_CLOSED
 
 
 class _Reader(asyncio.StreamReader):

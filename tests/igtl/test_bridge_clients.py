@@ -91,3 +91,30 @@ def test_a_client_that_dropped_with_a_frame_in_flight_is_served_when_it_reconnec
             wait_closed(api.url, old_sid)
             assert is_open(api.url, sid)
         wait_closed(api.url, sid)
+
+
+def test_a_reconnect_is_served_while_the_old_connection_holds_unread_frames(api_server, run_bridge, monkeypatch):
+    """A frame in flight for 3 s with two 1,000-point clouds (272 KB) sent behind it: the old
+    connection's reader stops reading past 128 KiB buffered, so the client's close was never seen
+    and its reconnect was refused after the 1 s grace (the review's repro). The socket's own
+    state tells the close."""
+    api = api_server()
+    mesh = get_mesh(api.url, "bar")
+    n = len(mesh["surface_nodes"])
+    small, big = point_frame(surface_cloud(mesh)), point_frame(surface_cloud(mesh, n=1000))
+    frame = bridge_module.Bridge._frame
+
+    async def slow_frame(self, *args, **kwargs):
+        await asyncio.sleep(3.0)  # a frame in flight as long as a cold Newton frame
+        return await frame(self, *args, **kwargs)
+
+    monkeypatch.setattr(bridge_module.Bridge, "_frame", slow_frame)
+    bridge = run_bridge(api.url)
+    with bridge.connect() as old:
+        old.sendall(small)
+        bridge.wait_sessions(1)
+        old.sendall(big + big)
+    with bridge.connect() as new:  # at once
+        new.sendall(small)
+        sid = registered(read_answer(new), n)["session"]
+    assert sid in bridge.bridge.sessions[1:]
