@@ -447,7 +447,10 @@ def _closed_by_server(exc: Exception, what: str = "stream") -> StreamError:
     rcvd = getattr(exc, "rcvd", None)
     code = getattr(rcvd, "code", None) or _ABNORMAL_CLOSURE
     reason = getattr(rcvd, "reason", "") or ""
-    detail = reason or f"the server closed the {what} ({rcvd if rcvd is not None else exc})"
+    if rcvd is None:  # no close frame: the connection dropped (the server gone, a network cut)
+        detail = f"the {what}'s connection was lost without a close frame ({exc})"
+    else:
+        detail = reason or f"the server closed the {what} ({rcvd})"
     return StreamError(0, detail, close_code=code, reason=reason)
 
 

@@ -558,6 +558,8 @@ def _lost(exc: BaseException) -> str:
     """How a stream was lost, in a few words: the API's close code and reason, or the error."""
     from clients.client import StreamError
 
+    if isinstance(exc, StreamError) and exc.close_code == 1006:  # no close frame came
+        return "the connection to the API dropped, 1006"
     if isinstance(exc, StreamError) and exc.close_code is not None:
         return f"closed by the API, {exc.close_code}{f' {exc.reason}' if exc.reason else ''}"
     return f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__

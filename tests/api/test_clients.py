@@ -314,3 +314,44 @@ def test_the_viewer_demo_of_a_model_the_store_refused_says_why(bar_store, tmp_pa
     )
     assert r.returncode == 1 and "the viewer: " not in r.stdout, r.stdout + r.stderr
     assert "error: model 'bar' could not be loaded: bar: weights.safetensors does not match" in r.stderr, r.stderr
+
+
+def test_a_stream_whose_server_died_says_its_connection_was_lost(bar_store, clouds):
+    """A server killed outright sends no close frame (1006): the StreamError says the connection
+    was lost, not that the server closed the stream."""
+    import subprocess
+    import sys
+    import time
+
+    import httpx
+
+    port = _free_port()
+    argv = [sys.executable, "-m", "service.cli", "serve", "--store", str(bar_store[0]), "--port", str(port)]
+    proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        url = f"http://127.0.0.1:{port}"
+        deadline = time.monotonic() + 120
+        while True:
+            try:
+                with Client(url) as api:
+                    api.health()
+                break
+            except (ApiError, OSError, httpx.TransportError):
+                assert time.monotonic() < deadline and proc.poll() is None, "the server did not start"
+                time.sleep(0.2)
+        with Client(url) as api, api.stream("bar") as stream:
+            stream.frame(clouds[0])
+            proc.kill()
+            proc.wait(30)
+            with pytest.raises(StreamError) as err:
+                stream.frame(clouds[1])
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert err.value.close_code == 1006 and "lost without a close frame" in err.value.detail, err.value
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
