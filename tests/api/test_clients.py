@@ -325,7 +325,9 @@ def test_a_stream_whose_server_died_says_its_connection_was_lost(bar_store, clou
 
     import httpx
 
-    port = _free_port()
+    from service.api.server import free_port
+
+    port = free_port()
     argv = [sys.executable, "-m", "service.cli", "serve", "--store", str(bar_store[0]), "--port", str(port)]
     proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
@@ -349,9 +351,3 @@ def test_a_stream_whose_server_died_says_its_connection_was_lost(bar_store, clou
         if proc.poll() is None:
             proc.kill()
     assert err.value.close_code == 1006 and "lost without a close frame" in err.value.detail, err.value
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
