@@ -445,7 +445,7 @@ def _closed_by_server(exc: Exception, what: str = "stream") -> StreamError:
     """The StreamError of a socket found closed (``exc``, websockets' ConnectionClosed): the
     server's close code and reason (1006 where no close frame came), status 0."""
     rcvd = getattr(exc, "rcvd", None)
-    code = getattr(rcvd, "code", None) or _ABNORMAL_CLOSURE
+    code = _closed_code(exc) or _ABNORMAL_CLOSURE
     reason = getattr(rcvd, "reason", "") or ""
     if rcvd is None:  # no close frame: the connection dropped (the server gone, a network cut)
         detail = f"the {what}'s connection was lost without a close frame ({exc})"
