@@ -23,6 +23,8 @@ import logging
 import math
 import os
 import socket
+import struct
+import sys
 import time
 from typing import TYPE_CHECKING
 
@@ -46,6 +48,8 @@ _KEEPALIVE = (60, 10, 6)
 #: before it is refused: a client that reconnects closes its old connection first, but the two
 #: may arrive together and the close be seen a moment after the new connection
 _RECONNECT_GRACE = 1.0
+#: seconds between looks at how much of an answer a client has taken while the bridge waits on it
+_PROGRESS_POLL = 0.1
 #: close codes of a stream the API ended on purpose (idle past session_ttl_s, going away,
 #: restarting): the frame was not taken, so it is sent again over a new session
 _CLEAN_CLOSE = (1000, 1001, 1012)
@@ -144,13 +148,25 @@ class Bridge:
         return float(self.limits.get("send_timeout_s") or 30.0)
 
     async def _drain(self, writer) -> None:
-        """Until the client has taken what was written: one that takes nothing for send_timeout
-        is _Stalled (it would hold the only slot while it stays connected)."""
+        """Until the client has taken what was written. The deadline is one of progress: a client
+        that takes nothing for send_timeout is _Stalled (it would hold the only slot while it
+        stays connected), one that keeps taking bytes, however slowly (a large surface over a
+        slow link), is waited for."""
+        loop = asyncio.get_running_loop()
+        drained = asyncio.ensure_future(writer.drain())
         try:
-            async with asyncio.timeout(self.send_timeout):
-                await writer.drain()
-        except TimeoutError:
-            raise _Stalled(f"took no answer for {self.send_timeout:g} s") from None
+            untaken, since = _untaken(writer), loop.time()
+            while not drained.done():
+                await asyncio.wait((drained,), timeout=_PROGRESS_POLL)
+                now = _untaken(writer)
+                if now < untaken:  # the client took bytes since the last look
+                    since = loop.time()
+                untaken = now
+                if not drained.done() and loop.time() - since >= self.send_timeout:
+                    raise _Stalled(f"took nothing of its answer for {self.send_timeout:g} s")
+            drained.result()  # a connection lost meanwhile raises here
+        finally:
+            drained.cancel()
 
     @property
     def read_timeout(self) -> float:
@@ -497,6 +513,21 @@ def _peer_closed(sock) -> bool:
     return state in _PEER_CLOSED
 
 
+def _untaken(writer) -> int:
+    """Bytes written to a client that it has not taken: the transport's buffer and, on Linux, the
+    socket's send queue (SIOCOUTQ: bytes the client's system has not acknowledged), which on a
+    slow link holds most of an answer while the transport's buffer stays still for seconds."""
+    untaken = writer.transport.get_write_buffer_size()
+    sock = writer.get_extra_info("socket")
+    if sock is not None and sys.platform.startswith("linux"):
+        import fcntl
+        import termios
+
+        with contextlib.suppress(OSError, ValueError):  # a socket closed meanwhile
+            untaken += struct.unpack("i", fcntl.ioctl(sock.fileno(), termios.TIOCOUTQ, bytes(4)))[0]
+    return untaken
+
+
 class _Reader(asyncio.StreamReader):
     """A StreamReader whose ``ended`` is set when its peer closes its side or the connection is
     lost, even while bytes it sent before are unread (at_eof() waits for those)."""
@@ -520,7 +551,8 @@ class BridgeError(RuntimeError):
 
 
 class _Stalled(Exception):
-    """A client began a message and did not finish it in time (or vanished)."""
+    """A client began a message and did not finish it in time, took nothing of its answer for
+    send_timeout, or vanished."""
 
 
 class _Refused(Exception):

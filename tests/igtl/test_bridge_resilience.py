@@ -214,3 +214,50 @@ def test_a_stalled_client_frees_the_only_slot(api_server, run_bridge):
             sock.sendall(frame)
             status = registered(read_answer(sock), len(mesh["surface_nodes"]))
             assert status["session"] != sid
+
+
+class _SlowLink:
+    """A client's socket on a slow link for its first ``seconds`` of reading: small reads at
+    about ``rate`` bytes a second; at full speed after."""
+
+    def __init__(self, sock: socket.socket, rate: float, seconds: float) -> None:
+        self.sock = sock
+        self.rate = rate
+        self.seconds = seconds
+        self.t0: float | None = None
+
+    def recv(self, n: int) -> bytes:
+        self.t0 = self.t0 or time.monotonic()
+        if time.monotonic() - self.t0 > self.seconds:
+            return self.sock.recv(n)
+        chunk = self.sock.recv(min(n, 512))
+        time.sleep(len(chunk) / self.rate)
+        return chunk
+
+
+def test_a_client_that_takes_its_answers_slowly_is_kept(api_server, run_bridge):
+    """A client on a slow link (a small window, small segments) sends frames ahead and takes
+    their answers steadily but slowly: the bridge's buffer holds over 64 kB past what the
+    socket's hold (about 80 kB here), so each of its waits for the client to take 48 kB lasts
+    over 2 s, twice the API's send_timeout_s. It is kept while it takes bytes, receives every
+    answer whole, and is served after. (The deadline bounded a whole wait before: closed.)"""
+    api = api_server(send_timeout_s=1.0)
+    mesh = get_mesh(api.url, "bar")
+    n = len(mesh["surface_nodes"])
+    frames = 80  # answers of about 4 kB: 300 kB in all
+    bridge = run_bridge(api.url)
+    sock = socket.socket()
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 2048)
+    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_MAXSEG, 536)  # keeps the bridge's send buffer small
+    sock.settimeout(30)
+    sock.connect(("127.0.0.1", bridge.port))
+    try:
+        sock.sendall(point_frame(surface_cloud(mesh, n=5)) * frames)  # 60 kB: the bridge reads them all
+        slow = _SlowLink(sock, rate=20e3, seconds=6.0)
+        for t in range(frames):
+            assert registered(read_answer(slow), n)["frame_id"] == t
+        sock.sendall(point_frame(surface_cloud(mesh)))  # still connected, in the same session
+        assert registered(read_answer(sock), n)["frame_id"] == frames
+        assert len(bridge.bridge.sessions) == 1
+    finally:
+        sock.close()
