@@ -24,6 +24,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
+from collections import deque
 
 import numpy as np
 import scipy.sparse as sp
@@ -44,6 +45,9 @@ CG_FORCING = 1e-2
 #: reaches. Newton stalled at 0.3-0.6 of the estimate with one (the bar, the phantom); 4 leaves
 #: a margin and decides only below strains of about 1e-5 (docs/performance.md)
 ROUNDOFF_ULPS = 4.0
+#: Newton iterations, the latest over this solver's solves, whose longest predicts the next's:
+#: a warm evaluation takes 1-3, so these span several, a factorising iteration among them
+TIMED_ITERATIONS = 16
 
 
 @dataclasses.dataclass(frozen=True)
@@ -106,6 +110,8 @@ class NewtonSolver:
         self._cg_skip = self._cg_backoff = 0  # Newton steps to factorise without trying CG first
         self.n_factor = 0  # factorisations made (only grows)
         self.n_cg = 0  # linear solves done by conjugate gradients on a held factor instead
+        #: seconds of the latest Newton iterations, from one deadline check to the next
+        self.iteration_seconds: deque[float] = deque(maxlen=TIMED_ITERATIONS)
 
     # -- one factorisation, shifted if indefinite ----------------------------------------------
 
@@ -199,9 +205,11 @@ class NewtonSolver:
     def solve(self, g: Array, u0: Array | None = None, deadline: float | None = None) -> NewtonResult:
         """Equilibrium under nodal forces g (forces on fixed nodes are ignored).
 
-        `deadline` (a time.perf_counter() value): past it the solve stops before its next
-        Newton iteration, unconverged with status time_limit, so a frame's time budget holds
-        inside a hard solve (seconds on the liver), not only between solves.
+        `deadline` (a time.perf_counter() value): the solve begins no Newton iteration that
+        would end past it, judged by the longest of its latest timed iterations
+        (:meth:`iteration_estimate`), and stops unconverged with status time_limit, so a
+        frame's time budget holds inside a hard solve (seconds on the liver), not only between
+        solves.
         Shape: g (n, 3), u0 (n, 3) or None (rest) -> result.u (n, 3).
         """
         t0 = time.perf_counter()
@@ -305,9 +313,12 @@ class NewtonSolver:
         factored = False
         u = asm.unpack(x)
         Pi = asm.energy(u) - float(load @ x)
+        t_it = None  # when the iteration under way began
         for it in range(budget + 1):
             r = asm.pack(asm.internal_force(u)) - load
             rn = float(np.linalg.norm(r))
+            if t_it is not None:  # an iteration ends with its successor's residual
+                self.iteration_seconds.append(time.perf_counter() - t_it)
             hist.append(rn / ref)
             if not np.isfinite(rn):
                 return x, False, it, hist, shifts, factored, "non_finite"
@@ -319,7 +330,8 @@ class NewtonSolver:
                 return x, True, it, hist, shifts, factored, "converged"
             if it == budget:
                 break
-            if deadline is not None and time.perf_counter() > deadline:
+            t_it = time.perf_counter()
+            if deadline is not None and t_it + self.iteration_estimate() > deadline:
                 return x, False, it, hist, shifts, factored, "time_limit"
             K = asm.tangent(u)
             # inexact Newton: the step to a relative accuracy eta, by conjugate gradients on
@@ -355,6 +367,11 @@ class NewtonSolver:
                 return x, False, it + 1, hist, shifts, factored, "line_search"
             x, u, Pi = x_new, u_new, Pi_new
         return x, False, budget, hist, shifts, factored, "max_iter"
+
+    def iteration_estimate(self) -> float:
+        """Seconds the next Newton iteration is expected to take: the longest of the latest
+        timed (a factorising one takes several times a conjugate-gradient one), 0 before any."""
+        return max(self.iteration_seconds, default=0.0)
 
     def _result(self, x, converged, status, iterations, steps, residuals, t0) -> NewtonResult:
         return NewtonResult(

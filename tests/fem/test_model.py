@@ -158,6 +158,18 @@ def test_an_operator_past_its_deadline_fails_with_time_limit_and_keeps_its_state
     assert not np.allclose(u1, u2)
 
 
+def test_an_operator_with_less_time_left_than_an_iteration_fails_before_it(model):
+    """A deadline nearer than the operator's longest timed Newton iteration: the solve raises
+    ForwardFailed('time_limit') without beginning one, rather than end one past the deadline."""
+    support, g = support_and_load(model.mesh)
+    op = model.restrict(support)
+    op(0.5 * g)
+    op.deadline = time.perf_counter() + 0.5 * op._newton.iteration_estimate()
+    with pytest.raises(ForwardFailed, match="time budget") as info:
+        op(g)
+    assert info.value.status == "time_limit" and op.last.iterations == 0
+
+
 def test_a_jacobian_past_its_deadline_stops_between_blocks_of_solves(model):
     """The Levenberg-Marquardt Jacobian (3 solves per support node, in blocks) gives up between
     blocks once the deadline has passed; the first block is always made."""

@@ -163,6 +163,25 @@ def test_a_solve_past_its_deadline_stops_before_its_next_iteration(bar):
     np.testing.assert_allclose(full.u, NewtonSolver(Assembler(bar, NeoHookean(4500.0, 0.49))).solve(g).u, atol=1e-10)
 
 
+def test_a_solve_begins_no_iteration_it_predicts_would_end_past_its_deadline(bar):
+    """A deadline that leaves less than the longest of the solver's timed iterations: the solve
+    stops before its first Newton iteration instead of passing the deadline by one; with ample
+    time the same solver converges. The start holds the factor at u1, so the only work before
+    the first iteration is its predictor (a back-substitution and a few force evaluations)."""
+    solver = NewtonSolver(Assembler(bar, NeoHookean(4500.0, 0.49)))
+    assert solver.iteration_estimate() == 0.0  # nothing timed yet: nothing predicted
+    u1 = solver.solve(tip_load(bar, [0.0, 0.0, -60.0])).u
+    g = tip_load(bar, [0.0, 0.0, -80.0])
+    for _ in range(2):
+        assert solver.factor_at(u1)
+        estimate = solver.iteration_estimate()
+        assert estimate == max(solver.iteration_seconds) > 0.0
+        cut = solver.solve(g, u1, deadline=time.perf_counter() + 0.5 * estimate)
+        assert cut.status == "time_limit" and cut.iterations == 0
+    full = solver.solve(g, u1, deadline=time.perf_counter() + 60.0)
+    assert full.converged and full.iterations > 0
+
+
 def test_non_finite_load_is_reported(bar):
     g = tip_load(bar, [0.0, 0.0, np.nan])
     res = NewtonSolver(Assembler(bar, NeoHookean(4500.0, 0.49))).solve(g)
