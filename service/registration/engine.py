@@ -435,8 +435,7 @@ def _check_alpha(alpha: float, v_rest: float, grad_rest: Array, v_best: float) -
     less than 0 near g = 0, and alpha's swamps it), whose least value is |grad|^2 / (2 alpha)
     below the rest state's; the regularised answer, |grad| / alpha in force, is the rest state.
     L-BFGS-B would stall at it ("relative reduction"), saying nothing of alpha."""
-    flat = grad_rest.ravel()
-    gain = float(flat @ flat) / (2.0 * alpha)
+    gain = _gain_bound(alpha, grad_rest)
     if gain <= _FTOL * v_rest and v_best >= v_rest - gain:
         raise _Done(
             f"alpha {alpha:.3g} is so large that no force can lower the objective measurably (by "
@@ -447,6 +446,28 @@ def _check_alpha(alpha: float, v_rest: float, grad_rest: Array, v_best: float) -
 #: the relative decrease of the (scaled) objective below which L-BFGS-B stops ("relative
 #: reduction"): the finest change it resolves, a few units in the last place of a double
 _FTOL = 1e-15
+
+
+def _gain_bound(alpha: float, grad: Array) -> float:
+    """The most any force lowers Phi below its value at a point of gradient `grad` (force
+    space): |grad|^2 / (2 alpha), the least of Phi's lower bound there (_check_alpha)."""
+    flat = grad.ravel()
+    return float(flat @ flat) / (2.0 * alpha)
+
+
+def _settled(alpha: float, grad: Array, value: float) -> str | None:
+    """The message of a frame whose optimiser stalled (no measurable decrease) at a point of
+    objective `value` and gradient `grad` from which no force can lower Phi by _FTOL of it,
+    the finest change the optimiser resolves: its optimum up to roundoff (alpha swamps the
+    gradient test's scale there); None where the stall left more to gain."""
+    gain = _gain_bound(alpha, grad)
+    if not gain <= _FTOL * abs(value):
+        return None
+    return (
+        f"the objective stopped decreasing at working precision where no force can lower it by "
+        f"more than {gain:.3g} m^2 (under {_FTOL:g} of its {value:.3g} m^2): its optimum for "
+        f"alpha {alpha:.3g} up to roundoff"
+    )
 
 
 def _best_start(evaluate: Objective, candidates: tuple[Array, ...], options: SolveOptions) -> _Start | None:
@@ -519,7 +540,7 @@ def _lbfgsb(
     z0 = P.to_z(begin.g.ravel())
     cache = {"z": z0, "out": (begin.value / P.value_scale, P.grad_z(begin.grad.ravel()))}
 
-    best = {"z": z0, "f": cache["out"][0]}
+    best = {"z": z0, "f": cache["out"][0], "grad": begin.grad.ravel()}
     failures = []
 
     def fun(z: Array) -> tuple[float, Array]:
@@ -543,7 +564,7 @@ def _lbfgsb(
             return best["f"] + w * float(dz @ dz) + w, 2.0 * w * dz
         f, gz = value / P.value_scale, P.grad_z(grad.ravel())
         if f < best["f"]:
-            best.update(z=z.copy(), f=f)
+            best.update(z=z.copy(), f=f, grad=grad.ravel())
         last.update(z=z, g=g, grad=grad.ravel())
         return f, gz
 
@@ -578,6 +599,10 @@ def _lbfgsb(
     message = _MESSAGES.get(status, "{nit} iterations").format(nit=nit, scipy=res.message)
     if curvature is not None and not bounded and status == "converged":
         curvature.update(path_g, path_grad)  # only converged frames teach the carried curvature
+    # after the curvature: steps at roundoff's scale teach it nothing
+    settled = _settled(options.alpha, best["grad"], best["f"] * P.value_scale) if status == "stalled" else None
+    if settled is not None:
+        status, message = "converged", settled
     if failures and status != "converged":
         status, message = "forward_failed", f"{len(failures)} trial points failed: {failures[-1]}"
     return status, message, nit
