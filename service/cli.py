@@ -155,7 +155,14 @@ def _demo(args: argparse.Namespace) -> int:
     try:
         if args.viewer:
             return viewer(model=args.model, store=args.store, port=args.port)
-        return run(model=args.model, frames=args.frames, method=args.method, encoding=args.encoding, store=args.store)
+        return run(
+            model=args.model,
+            frames=args.frames,
+            method=args.method,
+            encoding=args.encoding,
+            store=args.store,
+            port=args.port,
+        )
     except KeyboardInterrupt:  # Ctrl-C, at any stage: the server stopped, one line, not a traceback
         print("interrupted", file=sys.stderr)
         return 130
@@ -224,7 +231,7 @@ def parser() -> argparse.ArgumentParser:
     d.add_argument(
         "--viewer", action="store_true", help="serve and open the live viewer's demo instead (Ctrl-C to stop)"
     )
-    d.add_argument("--port", type=_port, default=None, help="with --viewer: the server's port (default: a free one)")
+    d.add_argument("--port", type=_port, default=None, help="the server's loopback port (default: a free one)")
     d.set_defaults(func=_demo)
 
     s = command("serve", "run the HTTP/WebSocket API over a model store")

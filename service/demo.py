@@ -1,6 +1,7 @@
 """``elastreg demo``: serve a model, stream a synthetic sequence through the API, score it.
 
-The server runs in this process (uvicorn on a free loopback port, in a background thread); the
+The server runs in this process (uvicorn on a loopback port, `--port` or a free one, in a
+background thread, so a browser or client can watch the run there); the
 demo is an ordinary client of it: it reads the model's mesh over HTTP, makes a sequence whose
 answer is known (a tool pulls a patch of the surface with a growing, turning force; the FEM gives
 the true shape of every frame; each frame's cloud samples the part a camera sees), and hands it
@@ -53,11 +54,12 @@ def run(
     n_points: int = 1000,
     noise: float = NOISE,
     seed: int = 0,
+    port: int | None = None,
     out=None,
     err=None,
 ) -> int:
-    """Run the demo; the exit code (0 when every frame came back). Progress and scores go to
-    `out` (stdout), errors to `err` (stderr)."""
+    """Run the demo, its server on loopback `port` (None: a free one); the exit code (0 when
+    every frame came back). Progress and scores go to `out` (stdout), errors to `err` (stderr)."""
     from .api.server import BackgroundServer  # uvicorn and FastAPI: only when a server runs
 
     out = out or sys.stdout
@@ -73,10 +75,12 @@ def run(
     build = f"elastreg train {model}" + (f" --store {store}" if store != default_store() else "")
     if not (store / model / "manifest.json").exists():
         return fail(f"error: no model {model!r} in the store at {store}.\nBuild it first with:  {build}")
+    if port is not None and not _port_free(port):
+        return fail(_PORT_IN_USE.format(port=port))
 
     say(f"starting the server over {store} ...", end=" ")
     t0 = time.perf_counter()
-    with BackgroundServer(Settings(store=store)) as server, Client(server.url, encoding=encoding) as api:
+    with BackgroundServer(Settings(store=store), port=port) as server, Client(server.url, encoding=encoding) as api:
         say(f"{server.url} ({time.perf_counter() - t0:.1f} s)")
         ids = [m["id"] for m in api.models()]
         if model not in ids:
@@ -123,6 +127,9 @@ def run(
         )
 
 
+_PORT_IN_USE = "error: port {port} is in use (--port picks another, or leave it out for a free one)"
+
+
 def _port_free(port: int) -> bool:
     """Whether a loopback port can be bound now (the server's start-up would say so only in its
     log, and a failed lifespan reads the same there)."""
@@ -155,7 +162,7 @@ def viewer(model: str = "phantom", store=None, port: int | None = None, *, out=N
         )
         return 1
     if port is not None and not _port_free(port):
-        print(f"error: port {port} is in use (--port picks another, or leave it out for a free one)", file=err)
+        print(_PORT_IN_USE.format(port=port), file=err)
         return 1
     try:
         server = BackgroundServer(Settings(store=store), port=port).start()

@@ -157,3 +157,29 @@ def test_serve_on_a_port_in_use_stops_before_loading_any_model(tmp_path):
     assert r.returncode == 1, r.stderr
     assert r.stderr.strip() == f"error: cannot listen on 127.0.0.1:{port} (Address already in use)", r.stderr
     assert "startup" not in r.stdout + r.stderr  # no application start-up: no model was loaded
+
+
+def _demo(*args: str) -> subprocess.CompletedProcess:
+    store = str(Path(__file__).parents[1] / "model_store")
+    argv = [sys.executable, "-m", "service.cli", "demo", "--store", store, "--frames", "2", *args]
+    return subprocess.run(argv, capture_output=True, text=True, timeout=300)
+
+
+def test_the_demo_serves_on_the_port_asked_for():
+    """`elastreg demo --port P` without --viewer: its server listens on P (a browser or client
+    can watch the run there); it took a free port whatever P was. A port in use is one line and
+    exit status 1 before anything starts, as with --viewer."""
+    from service.api.server import free_port
+
+    port = free_port()
+    r = _demo("--port", str(port))
+    assert r.returncode == 0, r.stderr
+    assert f" ... http://127.0.0.1:{port} (" in r.stdout, r.stdout
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        r = _demo("--port", str(port))
+    assert r.returncode == 1, r.stdout
+    assert r.stderr.strip() == f"error: port {port} is in use (--port picks another, or leave it out for a free one)"
+    assert "starting the server" not in r.stdout
