@@ -22,7 +22,7 @@ from .fem.assembly import Assembler
 from .fem.material import NeoHookean
 from .fem.newton import NewtonOptions
 from .scene import Scene, check_model_id
-from .store import StoreError, load_entry, write_entry
+from .store import StoreError, load_entry, remove_stale_builds, write_entry
 from .surrogate.data import LoadSpec, done_indices, generate, load_dataset
 from .surrogate.train import TrainConfig, train
 
@@ -188,6 +188,7 @@ def build(
     data_root = Path(data_root or default_data_root())
     check_writable(Path(store), "the model store")
     check_writable(data_root, "the data folder")
+    remove_stale_builds(Path(store))  # the folders of builds killed mid-write (MBs of weights each)
     mesh, loaded = scene.build_mesh()
     region = scene.region_nodes(mesh, loaded)
     material = NeoHookean.of(scene.material)

@@ -5,6 +5,8 @@
                                       the command that rebuilds it, and a SHA-256 per file
     <store>/<id>/mesh.npz             nodes, tets, fixed nodes, the load region
     <store>/<id>/weights.safetensors  the network's tensors (normalisation buffers included)
+    <store>/.<id>-XXXXXXXX.build/     a build writing its entry (locked by that process; stale
+                                      ones, whose writer is gone, are removed: remove_stale_builds)
 
 Loading checks the manifest's shape and every name in it before any other file is opened (the
 file names must be exactly the two above, regular files inside the entry's folder: a manifest
@@ -19,7 +21,9 @@ an unexpected exception only at DEBUG). Weights are read with safetensors: no pi
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import errno
 import hashlib
 import json
 import logging
@@ -38,6 +42,11 @@ import numpy as np
 import torch
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
+
+try:  # advisory locks: POSIX systems
+    import fcntl
+except ImportError:  # pragma: no cover - Windows: builds write unlocked, nothing is taken for stale
+    fcntl = None  # type: ignore[assignment]
 
 from . import __version__
 from .fem.material import NeoHookean
@@ -155,8 +164,89 @@ def _state_mismatch(wanted: dict[str, torch.Tensor], got: dict[str, torch.Tensor
 
 
 #: an entry moved aside while its replacement goes in: ..ID-XXXXXXXX (no build's temporary
-#: folder, .ID-XXXXXXXX, nor any entry starts so)
+#: folder, .ID-XXXXXXXX.build, nor any entry starts so)
 _ASIDE = ".."
+#: a build's temporary folder ends so: a hidden folder of the user's is never taken for one
+_BUILDING = ".build"
+_BUILD_FOLDER = re.compile(rf"\.{MODEL_ID.pattern.strip('^$')}-[a-z0-9_]{{8}}{re.escape(_BUILDING)}")
+
+
+def _lock(fd: int) -> bool | None:
+    """Take an exclusive advisory lock on an open folder without waiting: True, False where
+    another process holds it, None where this system or file system has no such locks."""
+    if fcntl is None:
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return False
+    except OSError:  # NFS refuses flock on a directory (EBADF); ENOLCK, EOPNOTSUPP
+        return None
+    return True
+
+
+def _names(path: Path, fd: int) -> bool:
+    """Whether `path` (not followed) is still the folder open as `fd`."""
+    try:
+        a, b = os.stat(path, follow_symlinks=False), os.fstat(fd)
+    except FileNotFoundError:
+        return False
+    return (a.st_dev, a.st_ino) == (b.st_dev, b.st_ino)
+
+
+def _build_folder(store: Path, entry_id: str) -> tuple[Path, int | None]:
+    """A new folder for a build of `entry_id` to write in, and a descriptor of it holding its
+    lock until closed (the kernel drops it when the process dies: a folder nobody locks has no
+    writer left). Where locks are missing the folder is named .ID-XXXXXXXX, which no cleaner
+    takes for a build's, and the descriptor is None."""
+    for _ in range(8):  # another name each time a cleaner took the new folder before its lock
+        path = Path(tempfile.mkdtemp(prefix=f".{entry_id}-", suffix=_BUILDING, dir=store))
+        try:
+            fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW)
+        except FileNotFoundError:
+            continue
+        locked = _lock(fd)
+        if locked and _names(path, fd):
+            return path, fd
+        os.close(fd)
+        if locked is None:
+            with contextlib.suppress(OSError):
+                path.rmdir()
+            return Path(tempfile.mkdtemp(prefix=f".{entry_id}-", dir=store)), None
+    raise OSError(errno.EAGAIN, f"no build folder for {entry_id} in {store} stayed ours long enough to lock it")
+
+
+def remove_stale_builds(store: Path) -> list[str]:
+    """Remove the folders of builds whose process is gone (killed, or the machine lost power
+    mid-write): a .ID-XXXXXXXX.build folder whose lock nobody holds. A live build's lock keeps
+    its folder; any other name (an aside entry, ..ID-*, a hidden folder of the user's) is never
+    touched. One logged line per folder; returns the names removed."""
+    removed: list[str] = []
+    try:
+        names = sorted(p.name for p in Path(store).iterdir() if _BUILD_FOLDER.fullmatch(p.name))
+    except OSError:
+        return removed
+    for name in names:
+        path = Path(store) / name
+        try:  # never through a link: O_NOFOLLOW
+            fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW)
+        except OSError:
+            continue
+        try:
+            if not _lock(fd) or not _names(path, fd):  # a live build's, or no locks here to tell
+                continue
+            try:
+                shutil.rmtree(path)
+            except FileNotFoundError:  # a build removing the entry it swapped out, at the same time
+                pass
+            except OSError as exc:
+                log.error("model store %s: cannot remove %s, a stale build's folder: %s", store, name, exc)
+                continue
+            log.warning("model store %s: removed %s, the folder of a build whose process is gone", store, name)
+            removed.append(name)
+        finally:
+            os.close(fd)
+    return removed
 
 
 def _exchange(a: Path, b: Path) -> bool:
@@ -204,13 +294,14 @@ def write_entry(
     rebuild: str,
     renumbered: bool = False,
 ) -> Path:
-    """Write an entry atomically: built in a temporary folder and loaded back from it (an entry
-    the store would refuse never replaces one it serves), then renamed into place."""
+    """Write an entry atomically: built in a temporary folder (.ID-XXXXXXXX.build, locked while
+    this process writes it) and loaded back from it (an entry the store would refuse never
+    replaces one it serves), then renamed into place."""
     check_model_id(entry_id)
     store = Path(store)
     store.mkdir(parents=True, exist_ok=True)
     final = store / entry_id
-    tmp = Path(tempfile.mkdtemp(prefix=f".{entry_id}-", dir=store))
+    tmp, lock = _build_folder(store, entry_id)
     try:
         np.savez(tmp / MESH, nodes=mesh.nodes, tets=mesh.tets, fixed=mesh.fixed, region=np.asarray(region, np.int64))
         state = {k: v.detach().cpu().contiguous() for k, v in net.state_dict().items()}
@@ -247,6 +338,9 @@ def write_entry(
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    finally:
+        if lock is not None:  # the folder is in place or gone: nothing left to guard
+            os.close(lock)
     return final
 
 
@@ -513,6 +607,7 @@ def open_store(store: Path) -> tuple[dict[str, Entry], dict[str, str]]:
         log.error("%s", exc)
         return entries, errors
     _restore_aside(store)
+    remove_stale_builds(store)
     for path in sorted(p for p in store.iterdir() if p.is_dir() and not p.name.startswith(".")):
         try:
             entry = load_entry(path)

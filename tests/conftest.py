@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import contextlib
 import os
+import subprocess
+import sys
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -136,3 +138,29 @@ def entry(bar_store):
     from service.store import load_entry
 
     return load_entry(bar_store[0] / "bar")
+
+
+#: a build's process writing its folder (the store's own start of write_entry), until killed
+_WRITER = """
+import sys
+from pathlib import Path
+from service.store import _build_folder
+path, fd = _build_folder(Path(sys.argv[1]), "bar")
+(path / "weights.safetensors").write_bytes(bytes(1 << 16))
+print(path.name, flush=True)
+sys.stdin.read()
+"""
+
+
+@contextlib.contextmanager
+def build_writer(store: Path) -> Iterator[tuple[subprocess.Popen, str]]:
+    """A real second process holding a build folder in `store` (yields the process and the
+    folder's name); killed at the end if still alive."""
+    p = subprocess.Popen([sys.executable, "-c", _WRITER, str(store)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                         text=True, cwd=Path(__file__).resolve().parents[1])  # fmt: skip
+    try:
+        yield p, p.stdout.readline().strip()
+    finally:
+        if p.poll() is None:
+            p.kill()
+        p.wait(timeout=30)

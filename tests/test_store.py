@@ -8,12 +8,14 @@ import json
 import logging
 import os
 import shutil
+import signal
 import time
 
 import numpy as np
 import pytest
 
-from service.store import StoreError, load_entry, open_store
+from service.store import StoreError, load_entry, open_store, remove_stale_builds
+from tests.conftest import build_writer
 
 
 def _edit(path, **changes):
@@ -356,3 +358,39 @@ def test_a_copy_under_another_folder_name_never_takes_the_models_place(bar_store
     assert set(errors) == {"aaa_backup", "a_link"}
     for name in errors:
         assert "says it is model 'bar'" in errors[name], errors[name]
+
+
+def test_a_killed_builds_folder_is_removed_and_a_live_ones_kept(tmp_path, caplog):
+    """A build killed mid-write (SIGKILL, a power cut) left its .ID-XXXXXXXX folder, weights and
+    all, in the store for ever. Folders whose writer is alive, or which are not a build's, stay."""
+    root = tmp_path / "store"
+    root.mkdir()
+    others = {  # a user's hidden folders, a build's folder from before the lock, an aside entry
+        ".backup-20240101": "d", ".notes": "f", ".bar-k7x2q9_a": "d", "..bar-k7x2q9_a": "d", ".git": "d",
+    }  # fmt: skip
+    for name, kind in others.items():
+        (root / name).mkdir() if kind == "d" else (root / name).write_text("mine")
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (outside / "keep").write_text("mine")
+    (root / ".bar-linkedto.build").symlink_to(outside)  # a build folder's name, but a link: never followed
+    with build_writer(root) as (live, live_name), build_writer(root) as (dead, dead_name):
+        assert (root / live_name).is_dir() and (root / dead_name).is_dir() and live_name != dead_name
+        os.kill(dead.pid, signal.SIGKILL)
+        dead.wait(timeout=30)
+        with caplog.at_level(logging.WARNING, logger="service.store"):
+            assert remove_stale_builds(root) == [dead_name]
+        assert not (root / dead_name).exists()
+        assert (root / live_name / "weights.safetensors").stat().st_size == 1 << 16  # its writer lives
+        said = [r.getMessage() for r in caplog.records if "removed" in r.getMessage()]
+        assert said == [f"model store {root}: removed {dead_name}, the folder of a build whose process is gone"]
+        assert sorted(p.name for p in root.iterdir()) == sorted([*others, ".bar-linkedto.build", live_name])
+        open_store(root)  # serve's startup scan (which also puts the aside entry back, by its own rule)
+        assert (root / live_name).is_dir()
+        os.kill(live.pid, signal.SIGKILL)
+        live.wait(timeout=30)
+        open_store(root)
+        assert not (root / live_name).exists()
+    others = {"bar" if name == "..bar-k7x2q9_a" else name for name in others}
+    assert sorted(p.name for p in root.iterdir()) == sorted([*others, ".bar-linkedto.build"])
+    assert (outside / "keep").read_text() == "mine"

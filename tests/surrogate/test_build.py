@@ -10,7 +10,7 @@ import pytest
 from service.fem.model import FEMModel
 from service.store import StoreError, load_entry, open_store
 
-from ..conftest import write_bar_scene
+from ..conftest import build_writer, write_bar_scene
 
 
 def test_training_produces_a_loadable_entry_that_learnt(bar_store):
@@ -200,6 +200,28 @@ def test_the_papers_layout_leaves_a_scenes_ensemble_out(bar_store, tmp_path):
     )
     entry = load_entry(tmp_path / "store" / "bar")
     assert entry.manifest["network"]["layout"] == "paper" and entry.manifest["network"]["members"] == 1
+
+
+def test_a_build_removes_the_folder_a_killed_build_left_and_keeps_a_live_ones(bar_store, tmp_path, caplog):
+    """A build killed with SIGKILL mid-write left its folder (weights and all) in the store for
+    ever; the next build into that store removes it, and never the folder of one still writing."""
+    import os
+    import signal
+
+    from service.build import build
+    from service.surrogate.train import TrainConfig
+
+    root, scene = _bar_scene_with_members(bar_store, 1)
+    store = tmp_path / "store"
+    store.mkdir()
+    with build_writer(store) as (live, live_name), build_writer(store) as (dead, dead_name):
+        os.kill(dead.pid, signal.SIGKILL)
+        dead.wait(timeout=30)
+        build(scene, store, workers=0, data_root=root / "data", config=TrainConfig(hidden=(16,), rank=4, epochs=2),
+              progress=False)  # fmt: skip
+        assert sorted(p.name for p in store.iterdir()) == sorted(["bar", live_name])
+        assert live.poll() is None
+    assert f"removed {dead_name}, the folder of a build whose process is gone" in caplog.text
 
 
 def test_a_timed_build_keeps_to_its_minutes_and_still_learns(tmp_path, bar):
