@@ -87,12 +87,30 @@ def nodal_errors(pred: Array, true: Array) -> Array:
     return np.sqrt((d**2).sum(-1))
 
 
+def ratio_standard_error(errors: Array, sizes: Array) -> float | None:
+    """The standard error of sum(errors) / sum(sizes), a ratio of two means over the same samples
+    (delta method: the spread of errors - ratio * sizes); None under two samples."""
+    n = len(errors)
+    if n < 2 or sizes.sum() <= 0:
+        return None
+    d = errors - errors.sum() / sizes.sum() * sizes
+    return float(np.sqrt((d**2).sum() * n / (n - 1)) / sizes.sum())
+
+
 def evaluate(
-    model: torch.nn.Module, F: Array, U: Array, device: str = "cpu", chunk: int = 512, norms: Array | None = None
+    model: torch.nn.Module,
+    F: Array,
+    U: Array,
+    device: str = "cpu",
+    chunk: int = 512,
+    norms: Array | None = None,
+    sizes: Array | None = None,
 ) -> dict:
     """Mean and 95th-percentile nodal error (mm), and mean and median relative error, over samples.
     `norms`: each sample's displacement norm, for the relative error, where U holds only part
-    of it (the physics layout's remainders)."""
+    of it (the physics layout's remainders). `sizes`: each sample's mean nodal displacement, for
+    the standard error of the mean error over the mean displacement (the figure a rebuild is
+    compared by: build.relative_error)."""
     errs, rel = [], []
     model.eval()
     with torch.no_grad():
@@ -105,7 +123,7 @@ def evaluate(
             size = np.linalg.norm(true, axis=1) if norms is None else norms[i : i + chunk]
             rel.append(np.linalg.norm(pred - true, axis=1) / np.maximum(size, 1e-12))
     e, rel_all = np.concatenate(errs), np.concatenate(rel)
-    return {
+    metrics = {
         "mean_mm": float(e.mean() * 1e3),
         "p95_mm": float(np.percentile(e, 95) * 1e3),
         "max_mm": float(e.max() * 1e3),
@@ -113,6 +131,9 @@ def evaluate(
         "relative_median": float(np.median(rel_all)),
         "samples": int(len(F)),
     }
+    if sizes is not None:
+        metrics["relative_error_se"] = ratio_standard_error(e.mean(1), sizes)
+    return metrics
 
 
 def build_model(
@@ -184,7 +205,8 @@ def train(
     tr = np.isin(path_ids, train_paths)
     va = np.isin(path_ids, val_paths) if val_paths.size else tr
     F = F.reshape(len(F), -1).astype(np.float32)
-    zero_mm = float(np.linalg.norm(U[va], axis=-1).mean() * 1e3)  # the u = 0 baseline
+    sizes = np.linalg.norm(U[va], axis=-1).mean(1)  # each sample's mean nodal displacement
+    zero_mm = float(sizes.mean() * 1e3)  # the u = 0 baseline
     norms = np.linalg.norm(U.reshape(len(U), -1), axis=1)[va]  # the relative error's yardstick
     linear_mm = None
     if config.layout == "reduced" and config.physics_skip:
@@ -262,7 +284,7 @@ def train(
     bar.close()
     model.load_state_dict(best_state)
     model.cpu().eval()
-    final = evaluate(model, F[va], U[va], norms=norms)
+    final = evaluate(model, F[va], U[va], norms=norms, sizes=sizes)
     final["zero_mean_mm"] = zero_mm
     if linear_mm is not None:  # the linear response alone (the physics layout's start)
         final["linear_mean_mm"], final["linear_relative_median"] = linear_mm, start["relative_median"]
