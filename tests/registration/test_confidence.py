@@ -139,18 +139,21 @@ def test_auto_corrects_with_the_sessions_levenberg_marquardt(entry, hard_sequenc
     the frames in fewer evaluations in all."""
     tool, seq = hard_sequence
     support = _support(entry, tool)
-    net = _errors(entry, Session(entry.network, SessionConfig(support=support)), seq)
-    threshold = float(np.median([r.error_estimate for r, _ in net]))
+    # a max_error every network frame exceeds (its estimates here are centimetres): which frames
+    # pass a measured threshold depends on the trained network, which differs between CPUs (MKL's
+    # float32 kernels), and one cloud point of 300 matched past an edge moved an estimate 0.037 ->
+    # 0.020 m: the median of L-BFGS-B's estimates left no Levenberg-Marquardt frame to correct
+    max_error = 1e-6
     runs = {}
     for optimizer in ("lbfgsb", "levenberg-marquardt"):
-        config = SessionConfig(method="auto", max_error=threshold, support=support, optimizer=optimizer)
+        config = SessionConfig(method="auto", max_error=max_error, support=support, optimizer=optimizer)
         session = Session(entry.network, config, corrector=entry.fem)
         runs[optimizer] = (session, _errors(entry, session, seq))
     (lb_session, lb), (lm_session, lm) = runs["lbfgsb"], runs["levenberg-marquardt"]
     assert lm_session._corrector_op.n_jacobians >= 1
     assert lb_session._corrector_op.n_jacobians == 0  # L-BFGS-B's corrections form none
     fixed = [(a, b) for (a, _), (b, _) in zip(lb, lm, strict=True) if a.method_used == b.method_used == "fem"]
-    assert fixed and all(a.converged and b.converged for a, b in fixed)
+    assert len(fixed) == len(seq.clouds) and all(a.converged and b.converged for a, b in fixed)
     for a, b in fixed:
         assert np.linalg.norm(b.net_force - a.net_force) <= 1e-2 * np.linalg.norm(a.net_force)
     assert sum(b.evaluations for _, b in fixed) < sum(a.evaluations for a, _ in fixed)
