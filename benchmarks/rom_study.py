@@ -130,7 +130,10 @@ def ecsw(G: np.ndarray, b: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarr
         score = unit.T @ res
         score[chosen] = -np.inf
         new = np.argsort(score)[-(chosen.size // 10 + 1) :]
-        chosen = np.concatenate([chosen, new[score[new] > 0]])
+        new = new[score[new] > 0]
+        if not new.size:  # no column lowers the residual: the fit is as close as it gets
+            break
+        chosen = np.concatenate([chosen, new])
         w, _ = nnls(G[:, chosen], b, maxiter=50 * chosen.size)
         chosen, w = chosen[w > 0], w[w > 0]
         res = b - G[:, chosen] @ w
