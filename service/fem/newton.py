@@ -332,6 +332,7 @@ class NewtonSolver:
                 break
             t_it = time.perf_counter()
             if deadline is not None and t_it + self.iteration_estimate() > deadline:
+                self._forget_slowest()
                 return x, False, it, hist, shifts, factored, "time_limit"
             K = asm.tangent(u)
             # inexact Newton: the step to a relative accuracy eta, by conjugate gradients on
@@ -367,6 +368,13 @@ class NewtonSolver:
                 return x, False, it + 1, hist, shifts, factored, "line_search"
             x, u, Pi = x_new, u_new, Pi_new
         return x, False, budget, hist, shifts, factored, "max_iter"
+
+    def _forget_slowest(self) -> None:
+        """Drop the time that just refused an iteration: a refusing solve times nothing, so one
+        stall (a GC pause, a page-in) would otherwise refuse every later solve whose budget is
+        under it. A true slowness comes back with the next iteration that runs."""
+        if self.iteration_seconds:
+            self.iteration_seconds.remove(max(self.iteration_seconds))
 
     def iteration_estimate(self) -> float:
         """Seconds the next Newton iteration is expected to take: the longest of the latest

@@ -182,6 +182,30 @@ def test_a_solve_begins_no_iteration_it_predicts_would_end_past_its_deadline(bar
     assert full.converged and full.iterations > 0
 
 
+def test_one_stalled_iteration_does_not_refuse_every_later_solve(bar):
+    """A single stall inside one iteration (a GC pause, the process descheduled: here 0.5 s of
+    sleep before the real tangent) is the longest time the solver holds; a later budget under it
+    is refused at most once, and the solves after it run again, re-timing their iterations."""
+    asm = Assembler(bar, NeoHookean(4500.0, 0.49))
+    solver = NewtonSolver(asm)
+    solver.solve(tip_load(bar, [0.0, 0.0, -20.0]))
+    tangent, stalled = asm.tangent, []
+
+    def once_slow(u):
+        if not stalled:
+            stalled.append(time.sleep(0.5))
+        return tangent(u)
+
+    object.__setattr__(asm, "tangent", once_slow)
+    solver.solve(tip_load(bar, [0.0, 0.0, -40.0]))
+    object.__setattr__(asm, "tangent", tangent)
+    assert stalled and solver.iteration_estimate() >= 0.5
+    statuses = [solver.solve(tip_load(bar, [0.0, 0.0, -41.0 - k]), deadline=time.perf_counter() + 0.2).status
+                for k in range(4)]  # fmt: skip
+    assert statuses.count("time_limit") <= 1 and statuses[-1] == "converged", statuses
+    assert solver.iteration_estimate() < 0.2
+
+
 def test_non_finite_load_is_reported(bar):
     g = tip_load(bar, [0.0, 0.0, np.nan])
     res = NewtonSolver(Assembler(bar, NeoHookean(4500.0, 0.49))).solve(g)
