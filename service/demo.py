@@ -136,6 +136,7 @@ def _port_free(port: int) -> bool:
     import socket
 
     with socket.socket() as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn binds: TIME_WAIT is free
         try:
             probe.bind(("127.0.0.1", port))
         except OSError:

@@ -165,6 +165,29 @@ def _demo(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run(argv, capture_output=True, text=True, timeout=300)
 
 
+def test_a_port_whose_last_connection_waits_out_time_wait_is_free():
+    """A server that closed its connection first leaves the port in TIME_WAIT for a minute;
+    uvicorn binds it anyway (SO_REUSEADDR), so the demo's check must not call it in use (a
+    second `elastreg demo --port P` straight after the first did)."""
+    from service.demo import _port_free
+
+    with socket.socket() as server:
+        server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn's listener
+        server.bind(("127.0.0.1", 0))
+        server.listen()
+        port = server.getsockname()[1]
+        client = socket.create_connection(("127.0.0.1", port))
+        conn, _ = server.accept()
+        conn.close()  # the server's side closes first: its port goes to TIME_WAIT
+        client.recv(1)
+        client.close()
+    assert _port_free(port)
+    with socket.socket() as busy:  # a port something listens on is still refused
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        assert not _port_free(busy.getsockname()[1])
+
+
 def test_the_demo_serves_on_the_port_asked_for():
     """`elastreg demo --port P` without --viewer: its server listens on P (a browser or client
     can watch the run there); it took a free port whatever P was. A port in use is one line and
