@@ -342,6 +342,20 @@ def _quiet_dask() -> None:
     except ImportError:
         return
     logging.getLogger("distributed").setLevel(logging.WARNING)
+    logging.getLogger("tornado.application").addFilter(_sync_cancel_race)
+
+
+def _sync_cancel_race(record: logging.LogRecord) -> bool:
+    """Drop distributed's own race on Ctrl-C: a KeyboardInterrupt that lands before its
+    utils.sync has made its future schedules a cancel that reads the unset name, and tornado
+    logs that NameError's traceback under our one-line "interrupted" (distributed 2026.8)."""
+    exc = record.exc_info[1] if record.exc_info else None
+    tb = exc.__traceback__ if isinstance(exc, NameError) else None
+    while tb is not None and tb.tb_next is not None:
+        tb = tb.tb_next
+    return not (
+        tb is not None and tb.tb_frame.f_code.co_name == "cancel" and "distributed" in tb.tb_frame.f_code.co_filename
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
