@@ -131,16 +131,14 @@ _PORT_IN_USE = "error: port {port} is in use (--port picks another, or leave it 
 
 
 def _port_free(port: int) -> bool:
-    """Whether a loopback port can be bound now (the server's start-up would say so only in its
-    log, and a failed lifespan reads the same there)."""
-    import socket
+    """Whether a loopback port can be bound now, as the server binds it (the server's start-up
+    would say so only in its log, and a failed lifespan reads the same there)."""
+    from .api.server import listening_socket
 
-    with socket.socket() as probe:
-        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn binds: TIME_WAIT is free
-        try:
-            probe.bind(("127.0.0.1", port))
-        except OSError:
-            return False
+    try:
+        listening_socket("127.0.0.1", port).close()
+    except SystemExit:  # its one-line refusal: the port is taken
+        return False
     return True
 
 
