@@ -43,10 +43,17 @@ TIMED_NEWTON_CAP = 2 * NewtonOptions.max_step_iter
 #: on the audit's 181-node liver, 10 validation paths) and short of what a build without the
 #: physics layout gave there (3.2x), or an untrained one (7.7x)
 REPLACE_WORSE_FACTOR = 2.0
-#: ... and where both validations record their standard error, only while that many times is
-#: still the least the ratio can be at this one-sided confidence: a tiny build's figure, from a
-#: few dozen held-out samples, moves past the factor between seeds alone (docs/usage.md)
+#: ... and where both validations record their standard error over REPLACE_MIN_PATHS load paths
+#: or more, only while that many times is still the least the ratio can be at this one-sided
+#: confidence: a small build's figure, from a few held-out paths, moves past the factor between
+#: seeds alone (docs/usage.md)
 REPLACE_CONFIDENCE = 0.99
+#: the held-out load paths each validation needs for that bound; with fewer the plain factor
+#: decides. The spread is estimated from one sum per path (paths - 1 degrees of freedom), and
+#: below 4 degrees the t quantile (3.75 there) leaps: 4.54, 6.96, 31.8. On the bar fixture an
+#: untrained build 26x worse than a 3-path entry had a bound of 1.5x; the least at 4 paths was
+#: 2.3x, at 5 3.6x. Refusing is the safe failure (the store kept, --replace installs)
+REPLACE_MIN_PATHS = 5
 
 
 def load_spec(scene: Scene, region: np.ndarray) -> LoadSpec:
@@ -135,19 +142,25 @@ def worse_by(new: dict, installed: dict | None) -> float | None:
 
 
 def _spread(validation: dict) -> tuple[float, int] | None:
-    """A validation's relative error's standard error as a share of it, and its degrees of
-    freedom (samples - 1); None in an entry built before it was recorded, or without one."""
-    se, n, r = validation.get("relative_error_se"), validation.get("samples"), relative_error(validation)
-    if not isinstance(se, (int, float)) or not isinstance(n, int) or n < 2 or not r or not 0 <= se < math.inf:
+    """A validation's relative error's standard error over its held-out load paths
+    (`relative_error_path_se`) as a share of it, and its degrees of freedom (paths - 1). None
+    from under REPLACE_MIN_PATHS paths, or without the figure: an entry built before it holds
+    only the per-sample `relative_error_se`, which takes the steps of a path for independent
+    samples and understates the spread (2.3x on simulated paths of 6 steps), so it is not read."""
+    se, paths, r = validation.get("relative_error_path_se"), validation.get("paths"), relative_error(validation)
+    if isinstance(paths, bool) or not isinstance(paths, int) or paths < REPLACE_MIN_PATHS or not r:
         return None
-    return float(se) / r, n - 1
+    if isinstance(se, bool) or not isinstance(se, (int, float)) or not 0 <= se < math.inf:
+        return None
+    share = float(se) / r
+    return (share, paths - 1) if math.isfinite(share) else None
 
 
 def worse_at_least(new: dict, installed: dict | None) -> float | None:
     """The least the new build's relative error over the installed entry's can be, at
     REPLACE_CONFIDENCE, given both validations' sampling error: the ratio's one-sided lower
     bound on the log scale (delta method; Student's t with Welch's degrees of freedom). None
-    where either validation lacks its standard error (the plain ratio is all there is)."""
+    where either validation lacks a usable standard error (_spread: the plain ratio decides)."""
     times = worse_by(new, installed)
     a, b = _spread(new), None if installed is None else _spread(installed)
     if times is None or a is None or b is None:
@@ -209,8 +222,10 @@ def build(
     TIMED_NEWTON_CAP), training in what is left.
 
     An entry already in the store under the id is replaced, unless this build's relative
-    validation error is more than REPLACE_WORSE_FACTOR times its own: then WorseThanInstalled
-    is raised and the store is left as it was; `replace` installs the build anyway.
+    validation error is more than REPLACE_WORSE_FACTOR times its own (and is still, at
+    REPLACE_CONFIDENCE, where both validations hold REPLACE_MIN_PATHS paths: worse_at_least):
+    then WorseThanInstalled is raised and the store is left as it was; `replace` installs the
+    build anyway.
     """
     t_start = time.perf_counter()
     check_model_id(name or scene.name)

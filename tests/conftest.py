@@ -93,18 +93,18 @@ fixed_box = [[-0.01, -1, -1], [0.01, 2, 2]]
 samples = {samples}
 max_force = 60.0
 patch_nodes = [3, 6]
-load_steps = 3
+load_steps = {load_steps}
 """
 
 
-def write_bar_scene(folder: Path, bar: TetMesh, name: str = "bar", samples: int = 60) -> Path:
+def write_bar_scene(folder: Path, bar: TetMesh, name: str = "bar", samples: int = 60, load_steps: int = 3) -> Path:
     """A scene TOML over the `bar` fixture's mesh: the smallest thing the trainer can build."""
     import meshio
 
     folder.mkdir(parents=True, exist_ok=True)
     meshio.write(folder / "bar.vtu", meshio.Mesh(bar.nodes, [("tetra", bar.tets)]))
     path = folder / f"{name}.toml"
-    path.write_text(BAR_SCENE.format(name=name, samples=samples))
+    path.write_text(BAR_SCENE.format(name=name, samples=samples, load_steps=load_steps))
     return path
 
 
@@ -164,3 +164,16 @@ def build_writer(store: Path) -> Iterator[tuple[subprocess.Popen, str]]:
         if p.poll() is None:
             p.kill()
         p.wait(timeout=30)
+
+
+def correlated_paths(
+    rng: np.random.Generator, paths: int, steps: int, ratio: float = 0.05, path_sd: float = 0.5, step_sd: float = 0.1
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """Validation samples as a build holds them: `paths` load paths of `steps` steps of one
+    growing load (sizes k * a_p), each path's errors one lognormal share of its sizes (the path's
+    own effect, sd `path_sd` on the log scale) times a little per step. Returns each sample's
+    error, size and path, and the true ratio E[error] / E[size] the validation estimates."""
+    sizes = np.arange(1, steps + 1)[None] * rng.lognormal(0.0, 0.5, (paths, 1))
+    share = np.exp(rng.normal(0.0, path_sd, (paths, 1)) + rng.normal(0.0, step_sd, (paths, steps)))
+    truth = ratio * float(np.exp((path_sd**2 + step_sd**2) / 2))  # the lognormal's mean
+    return (ratio * share * sizes).ravel(), sizes.ravel(), np.repeat(np.arange(paths), steps), truth
