@@ -168,7 +168,8 @@ def worse_at_least(new: dict, installed: dict | None) -> float | None:
     s = math.hypot(a[0], b[0])
     if s == 0:
         return times
-    dof = s**4 / (a[0] ** 4 / a[1] + b[0] ** 4 / b[1])
+    u, v = a[0] / s, b[0] / s  # Welch's dof on shares of s: s**4 is subnormal below 1e-77, 0 below 1e-81
+    dof = 1.0 / (u**4 / a[1] + v**4 / b[1])
     return times * math.exp(-float(student_t.ppf(REPLACE_CONFIDENCE, dof)) * s)
 
 

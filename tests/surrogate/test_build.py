@@ -370,6 +370,19 @@ def test_only_a_standard_error_over_enough_held_out_paths_bounds_the_ratio():
         assert worse_at_least({**new, **bad}, installed) is None, bad
 
 
+def test_a_standard_error_too_small_for_its_fourth_power_leaves_the_plain_ratio():
+    """Welch's degrees of freedom divided by the fourth powers of the standard errors, which are
+    subnormal below ~1e-77 and 0 below ~1e-81: ZeroDivisionError. A spread of nothing bounds the
+    ratio at itself."""
+    from service.build import worse_at_least
+
+    installed = _figures(0.01, 1e-90, 8)
+    assert worse_at_least(_figures(0.03, 3e-90, 6), installed) == pytest.approx(3.0)
+    assert worse_at_least(_figures(0.03, 0.0, 6), installed) == pytest.approx(3.0)
+    assert worse_at_least(_figures(0.03, 0.0, 6), _figures(0.01, 0.0, 8)) == pytest.approx(3.0)
+    assert worse_at_least(_figures(0.03, 1e-300, 6), _figures(0.01, 0.001, 8)) < 3.0  # the spread there decides
+
+
 def test_the_gate_calls_an_equal_rebuild_worse_no_more_often_than_its_confidence_says():
     """Two builds of one true relative error, each validated on REPLACE_MIN_PATHS correlated load
     paths: the gate's bound (both standard errors, Welch's dof) puts the new one above equal in
