@@ -117,7 +117,11 @@ class WorseThanInstalled(RuntimeError):
 
     def __init__(self, entry_id: str, new: dict, installed: dict, times: float, least: float | None = None):
         self.entry_id, self.new, self.installed, self.times, self.least = entry_id, new, installed, times, least
-        sure = "" if least is None else f"; at least {least:.1f}x at {100 * REPLACE_CONFIDENCE:g} % confidence"
+        sure = (
+            f"; no confidence bound: either validation lacks a standard error over {REPLACE_MIN_PATHS} load paths"
+            if least is None
+            else f"; at least {least:.1f}x at {100 * REPLACE_CONFIDENCE:g} % confidence"
+        )
         super().__init__(
             f"this build of {entry_id} validates {times:.1f}x worse than the installed one "
             f"(more than {REPLACE_WORSE_FACTOR:g}x{sure}): mean {_figure(new)}, against {_figure(installed)}"
