@@ -73,6 +73,7 @@ LIMITS = (
     "first_message_timeout_s",
     "body_timeout_s",
     "send_timeout_s",
+    "send_min_bytes_per_s",
     "max_iter",
     "max_time_budget_ms",
     "e_range",
@@ -154,7 +155,20 @@ class Settings(BaseSettings):
         30.0,
         gt=0,
         le=3600,
-        description="a stream or watcher whose client takes (or acknowledges) no message for this long is closed",
+        description=(
+            "a stream, watcher or bridge client that takes no byte of a message (or acknowledges no message) "
+            "for this long is closed; one that keeps taking bytes is kept, however long the message takes, "
+            "down to send_min_bytes_per_s"
+        ),
+    )
+    send_min_bytes_per_s: float = Field(
+        8192.0,
+        gt=0,
+        le=1 << 30,
+        description=(
+            "a send may last send_timeout_s plus its bytes at this rate: a client that takes a message more "
+            "slowly (a byte now and then to look alive) is closed"
+        ),
     )
     ws_ping_interval_s: float = Field(10.0, gt=0, le=3600, description="WebSocket keepalive pings")
     ws_ping_timeout_s: float = Field(

@@ -29,6 +29,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
             "service.scenes",
             "service.forward",
             "service.spare",
+            "service.sendwait",
         ),
     ),
     ("fem", ("service.fem",)),

@@ -30,6 +30,7 @@ from .routes import health, models, sessions, stream, viewer, watch
 from .schemas import REQUEST_MODELS
 from .sessions import SessionRegistry
 from .work import SolvePool
+from .wsend import KeepTransport
 
 log = logging.getLogger(__name__)
 
@@ -189,6 +190,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         allowed_origins=settings.allowed_origins,
         loopback_only=not settings.api_tokens and not settings.insecure,
     )
+    app.add_middleware(KeepTransport)  # added last, so outermost: it sees the server's own send
     errors.install(app)
     authorized = [Depends(deps.owner)]
     app.include_router(health.router)  # the one endpoint without a token

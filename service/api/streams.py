@@ -20,9 +20,10 @@ over it is answered 503); the token comes in the handshake or the first message
 (:func:`~.deps.authorize_websocket`), else the socket closes with 1008; a first message must
 come within ``first_message_timeout_s``. A frame that finds the solve pool saturated gets a 503
 error of its own and the stream goes on. Frames still queued when the client leaves are
-dropped, not solved; a reply the client does not take within ``send_timeout_s`` ends the
-stream. When the server shuts down, the frame being solved is answered, the queued ones get a
-503, and the socket closes with 1012 (service restart).
+dropped, not solved; a client that takes nothing of its replies for ``send_timeout_s``, or
+takes them more slowly than ``send_min_bytes_per_s``, ends the stream (:mod:`.wsend`). When
+the server shuts down, the frame being solved is answered, the queued ones get a 503, and the
+socket closes with 1012 (service restart).
 """
 
 from __future__ import annotations
@@ -35,11 +36,13 @@ import time
 from fastapi import WebSocket
 from starlette.websockets import WebSocketState
 
+from ..sendwait import Stalled
 from . import codec
 from .deps import authorize_websocket, websocket_slot
 from .errors import ApiError, as_api_error, unprocessable
 from .schemas import FrameIn, SessionCreate, check_points_limit
 from .work import Dropped, check_frame_support, not_found_model, open_session, opened, solve_frame
+from .wsend import send_message
 
 log = logging.getLogger(__name__)
 
@@ -81,16 +84,12 @@ class StreamRunner:
     # -- sending -----------------------------------------------------------------------------------
 
     async def _send(self, kind: str, body: bytes) -> bool:
-        """False when the client has gone, or took no reply within send_timeout_s."""
+        """False when the client has gone, or stopped taking replies (wsend.send_message)."""
         try:
-            async with asyncio.timeout(self.settings.send_timeout_s):
-                if kind == codec.MSGPACK:
-                    await self.ws.send_bytes(body)
-                else:
-                    await self.ws.send_text(body.decode())
+            await send_message(self.ws, body, kind == codec.MSGPACK, self.settings)
             return True
-        except TimeoutError:
-            log.info("a stream's client took no reply for %g s: closing it", self.settings.send_timeout_s)
+        except Stalled as exc:
+            log.info("a stream's client %s: closing it", exc)
             self.gone = True
             return False
         except Exception:  # the client went away mid-reply

@@ -23,13 +23,12 @@ import logging
 import math
 import os
 import socket
-import struct
-import sys
 import time
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..sendwait import Stalled, progressing
 from . import protocol as p
 
 if TYPE_CHECKING:
@@ -48,8 +47,6 @@ _KEEPALIVE = (60, 10, 6)
 #: before it is refused: a client that reconnects closes its old connection first, but the two
 #: may arrive together and the close be seen a moment after the new connection
 _RECONNECT_GRACE = 1.0
-#: seconds between looks at how much of an answer a client has taken while the bridge waits on it
-_PROGRESS_POLL = 0.1
 #: close codes of a stream the API ended on purpose (idle past session_ttl_s, going away,
 #: restarting): the frame was not taken, so it is sent again over a new session
 _CLEAN_CLOSE = (1000, 1001, 1012)
@@ -147,26 +144,23 @@ class Bridge:
         """Seconds an answer may wait for the client to take it (the API's send_timeout_s)."""
         return float(self.limits.get("send_timeout_s") or 30.0)
 
+    @property
+    def send_min_rate(self) -> float:
+        """Bytes a second below which a client taking an answer is as good as stalled (the API's
+        send_min_bytes_per_s; its default where an older API lists none)."""
+        from ..config import Settings
+
+        return float(self.limits.get("send_min_bytes_per_s") or Settings.model_fields["send_min_bytes_per_s"].default)
+
     async def _drain(self, writer) -> None:
-        """Until the client has taken what was written. The deadline is one of progress: a client
-        that takes nothing for send_timeout is _Stalled (it would hold the only slot while it
-        stays connected), one that keeps taking bytes, however slowly (a large surface over a
-        slow link), is waited for."""
-        loop = asyncio.get_running_loop()
-        drained = asyncio.ensure_future(writer.drain())
+        """Until the client has taken what was written. The deadline is one of progress
+        (service.sendwait): a client that takes nothing for send_timeout, or takes an answer more
+        slowly than send_min_rate, is _Stalled (it would hold the only slot while it stays
+        connected); one that keeps taking bytes (a large surface over a slow link) is waited for."""
         try:
-            untaken, since = _untaken(writer), loop.time()
-            while not drained.done():
-                await asyncio.wait((drained,), timeout=_PROGRESS_POLL)
-                now = _untaken(writer)
-                if now < untaken:  # the client took bytes since the last look
-                    since = loop.time()
-                untaken = now
-                if not drained.done() and loop.time() - since >= self.send_timeout:
-                    raise _Stalled(f"took nothing of its answer for {self.send_timeout:g} s")
-            drained.result()  # a connection lost meanwhile raises here
-        finally:
-            drained.cancel()
+            await progressing(writer.drain(), writer.transport, timeout=self.send_timeout, min_rate=self.send_min_rate)
+        except Stalled as exc:
+            raise _Stalled(f"its answer: {exc}") from None
 
     @property
     def read_timeout(self) -> float:
@@ -511,21 +505,6 @@ def _peer_closed(sock) -> bool:
     except OSError:
         return True
     return state in _PEER_CLOSED
-
-
-def _untaken(writer) -> int:
-    """Bytes written to a client that it has not taken: the transport's buffer and, on Linux, the
-    socket's send queue (SIOCOUTQ: bytes the client's system has not acknowledged), which on a
-    slow link holds most of an answer while the transport's buffer stays still for seconds."""
-    untaken = writer.transport.get_write_buffer_size()
-    sock = writer.get_extra_info("socket")
-    if sock is not None and sys.platform.startswith("linux"):
-        import fcntl
-        import termios
-
-        with contextlib.suppress(OSError, ValueError):  # a socket closed meanwhile
-            untaken += struct.unpack("i", fcntl.ioctl(sock.fileno(), termios.TIOCOUTQ, bytes(4)))[0]
-    return untaken
 
 
 class _Reader(asyncio.StreamReader):

@@ -7,8 +7,10 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import shutil
 import socket
+import threading
 import time
 from pathlib import Path
 
@@ -261,3 +263,41 @@ def test_a_client_that_takes_its_answers_slowly_is_kept(api_server, run_bridge):
         assert len(bridge.bridge.sessions) == 1
     finally:
         sock.close()
+
+
+def test_a_client_that_takes_a_trickle_of_its_answers_is_closed(api_server, run_bridge):
+    """A client that keeps taking bytes of its answers, but at 4 kB/s, under the API's
+    send_min_bytes_per_s (here 40 kB/s), is closed once a wait for it has lasted send_timeout_s
+    plus its bytes at that rate (a few seconds here), its session with it, and the slot is free:
+    taking a byte now and then does not hold the only slot for ever. (Kept before.)"""
+    api = api_server(send_timeout_s=1.0, send_min_bytes_per_s=40e3)
+    mesh = get_mesh(api.url, "bar")
+    frames = 80  # answers of about 4 kB: 300 kB in all
+    bridge = run_bridge(api.url)
+    sock = socket.socket()
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 2048)
+    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_MAXSEG, 536)
+    sock.settimeout(30)
+    sock.connect(("127.0.0.1", bridge.port))
+    answers = []
+
+    def trickle() -> None:
+        slow = _SlowLink(sock, rate=4e3, seconds=math.inf)
+        with contextlib.suppress(OSError, ValueError):  # reset, or closed by the test
+            while True:
+                answers.append(read_answer(slow))
+
+    reader = threading.Thread(target=trickle, daemon=True)
+    try:
+        sock.sendall(point_frame(surface_cloud(mesh, n=5)) * frames)
+        t0 = time.monotonic()
+        reader.start()
+        sid = bridge.wait_sessions(1)[0]
+        bridge.wait_free()
+        closed = time.monotonic() - t0
+        wait_closed(api.url, sid)
+        assert closed < 15, f"a trickling client held the slot {closed:.1f} s"
+        assert answers and len(answers) < frames  # it took answers all along, not all of them
+    finally:
+        sock.close()
+        reader.join(timeout=10)

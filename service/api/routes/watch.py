@@ -13,10 +13,10 @@ binary) once it has handled the frame with that ``seq``; ``{"ack": 0}`` says it 
 any frame. From its first ack on it is sent at most :data:`~..watch.WINDOW` frames beyond the
 newest it acknowledged, so one that handles frames slowly gets the newest next instead of the
 frames its socket buffers hold. One whose window stays full for ``send_timeout_s`` while a
-newer frame waits is closed (1008), as one that takes no message is. A message that cannot be
-read, or an ack of a ``seq`` never sent, is answered ``{"error": {"code": 422, "detail"}}``
-(413 over 64 KiB) and the watcher goes on, its window as it was; any other map (a token) is
-ignored.
+newer frame waits is closed (1008); one that takes nothing of its messages for that long, or
+takes them too slowly, is dropped (:mod:`..wsend`). A message that cannot be read, or an ack
+of a ``seq`` never sent, is answered ``{"error": {"code": 422, "detail"}}`` (413 over 64 KiB)
+and the watcher goes on, its window as it was; any other map (a token) is ignored.
 """
 
 from __future__ import annotations
@@ -29,12 +29,14 @@ from fastapi import APIRouter, WebSocket
 from starlette.types import Message
 from starlette.websockets import WebSocketState
 
+from ...sendwait import Stalled
 from .. import codec
 from ..deps import authorize_websocket, websocket_slot
 from ..errors import ApiError, as_api_error
 from ..sessions import Held, SessionNotFound, SessionRegistry
 from ..watch import Acks, Mailbox
 from ..work import config_of
+from ..wsend import send_message
 
 router = APIRouter(tags=["watch"])
 log = logging.getLogger(__name__)
@@ -66,20 +68,15 @@ class Watcher:
         self._unanswered: bytes | None = None  # the newest answer not sent yet
 
     async def _send(self, data: bytes) -> bool:
-        """False when the client has gone, or took no message within send_timeout_s: a watcher
-        that stops reading would otherwise hold its socket slot (and its session's publisher)
-        for ever, past the session's end, as a stream's client would."""
+        """False when the client has gone, or stopped taking messages (wsend.send_message): a
+        watcher that stops reading would otherwise hold its socket slot (and its session's
+        publisher) for ever, past the session's end, as a stream's client would."""
         try:
-            async with self._sending, asyncio.timeout(self.settings.send_timeout_s):
-                if self.kind == codec.MSGPACK:
-                    await self.ws.send_bytes(data)
-                else:
-                    await self.ws.send_text(data.decode())
+            async with self._sending:
+                await send_message(self.ws, data, self.kind == codec.MSGPACK, self.settings)
             return True
-        except TimeoutError:
-            log.info(
-                "a watcher of %s took no message for %g s: closing it", self.session_id, self.settings.send_timeout_s
-            )
+        except Stalled as exc:
+            log.info("a watcher of %s %s: closing it", self.session_id, exc)
             return False
         except Exception:  # the client went away mid-message
             return False

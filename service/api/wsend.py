@@ -1,0 +1,65 @@
+"""A WebSocket message sent under a deadline of progress (:mod:`service.sendwait`): a stream's
+or watcher's client that keeps taking a large message over a slow link is kept, one that takes
+nothing for ``send_timeout_s`` (or less than ``send_min_bytes_per_s``) is closed.
+
+Starlette gives a route no transport. uvicorn runs the app with a ``send`` that is a bound
+method of the connection's protocol object (websockets-sansio, websockets or wsproto), which
+holds ``.transport``; :class:`KeepTransport`, the outermost middleware, keeps it in the scope
+before anything wraps ``send``. uvicorn's send returns once the message is in the transport's
+buffer (after waiting for that buffer to fall below its low-water mark, or, with the legacy
+websockets protocol, to drain), so a send waits for the messages before it: that wait is what
+the deadline bounds.
+"""
+
+from __future__ import annotations
+
+import asyncio
+
+from fastapi import WebSocket
+from starlette.types import ASGIApp, Receive, Scope, Send
+
+from ..config import Settings
+from ..sendwait import Stalled, drop, progressing
+
+#: the scope key under which KeepTransport leaves a WebSocket's transport
+TRANSPORT = "elastreg.transport"
+
+
+class KeepTransport:
+    """Keeps a WebSocket connection's transport in its scope (TRANSPORT), where the server's
+    ``send`` is a method of an object that has one (uvicorn's protocols); otherwise none."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] == "websocket":
+            transport = getattr(getattr(send, "__self__", None), "transport", None)
+            if callable(getattr(transport, "get_write_buffer_size", None)):
+                scope[TRANSPORT] = transport
+        await self.app(scope, receive, send)
+
+
+async def send_message(ws: WebSocket, body: bytes, binary: bool, settings: Settings) -> None:
+    """Send ``body`` (as text unless ``binary``); :class:`Stalled` when the client takes none of
+    it, or of what was sent before, for ``send_timeout_s``, or takes it more slowly than
+    ``send_min_bytes_per_s``: its connection is then reset (:func:`~service.sendwait.drop`).
+    Without a transport (another server, Starlette's test client, a wrapper of ``send``
+    outside ours such as uvicorn's trace logging) the whole send must end within
+    ``send_timeout_s``, as before this module: the only measure there is."""
+    send = ws.send_bytes(body) if binary else ws.send_text(body.decode())
+    transport = ws.scope.get(TRANSPORT)
+    if transport is None:
+        try:
+            async with asyncio.timeout(settings.send_timeout_s):
+                await send
+        except TimeoutError:
+            raise Stalled(f"took no message for {settings.send_timeout_s:g} s") from None
+        return
+    try:
+        await progressing(
+            send, transport, timeout=settings.send_timeout_s, min_rate=settings.send_min_bytes_per_s, size=len(body)
+        )
+    except Stalled:
+        drop(transport)
+        raise
