@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import threading
 
 import pytest
 
@@ -42,17 +43,19 @@ def test_a_second_client_while_one_is_connected_is_refused(api_server, run_bridg
 
 
 def test_a_client_that_reconnects_at_once_is_served(api_server, run_bridge, monkeypatch):
-    """Closing a session here takes 2 s (as an API slow to answer the close would): a client
-    that closes and connects again at once is served meanwhile, over a new session, and the old
-    connection's late teardown closes the old session only; the new one goes on."""
+    """Closing a session here waits until the test lets it (as an API slow to answer the close
+    would): a client that closes and connects again at once is served meanwhile, over a new
+    session, and the old connection's late teardown closes the old session only; the new one
+    goes on."""
     api = api_server()
     mesh = get_mesh(api.url, "bar")
     n = len(mesh["surface_nodes"])
     frame = point_frame(surface_cloud(mesh))
     close_stream = bridge_module._close_stream
+    release = threading.Event()  # an event, not a sleep: a loaded machine may serve slowly
 
     async def slow_close(stream) -> None:
-        await asyncio.sleep(2.0)
+        await asyncio.to_thread(release.wait, 60)
         await close_stream(stream)
 
     monkeypatch.setattr(bridge_module, "_close_stream", slow_close)
@@ -64,6 +67,7 @@ def test_a_client_that_reconnects_at_once_is_served(api_server, run_bridge, monk
         new.sendall(frame)
         new_sid = registered(read_answer(new), n)["session"]
         assert new_sid != old_sid and is_open(api.url, old_sid)  # not waited for
+        release.set()
         wait_closed(api.url, old_sid)  # the old teardown is over
         assert is_open(api.url, new_sid)
         new.sendall(frame)
