@@ -342,7 +342,6 @@ def _quiet_dask() -> None:
     except ImportError:
         return
     logging.getLogger("distributed").setLevel(logging.WARNING)
-    logging.getLogger("tornado.application").addFilter(_sync_cancel_race)
 
 
 def _sync_cancel_race(record: logging.LogRecord) -> bool:
@@ -364,6 +363,8 @@ def main(argv: list[str] | None = None) -> int:
         level=logging.INFO if args.verbose else logging.WARNING,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
+    # whatever the command and -v: train and bench run Dask, and the filter drops that race alone
+    logging.getLogger("tornado.application").addFilter(_sync_cancel_race)
     if args.command == "train" and not args.verbose and (args.workers or args.scheduler):
         _quiet_dask()
     return int(args.func(args) or 0)

@@ -188,6 +188,48 @@ def test_distributeds_cancel_race_on_ctrl_c_is_not_logged_but_other_errors_are()
     assert _sync_cancel_race(record("def cancel():\n    raise ValueError('x')\n", "/x/distributed/utils.py"))
 
 
+# distributed's own race, as it happens: Ctrl-C while utils.sync's coroutine waits behind a busy
+# loop, so its cancel callback reads a future not yet made; then another error in a callback
+_RACE = r"""
+import asyncio, os, signal, sys, threading, time
+from distributed.utils import LoopRunner, sync
+from service.cli import main
+
+assert main(sys.argv[1:]) == 2  # refused (the store is a file) after the CLI set up its logging
+runner = LoopRunner(asynchronous=False)
+runner.start()
+runner.loop.add_callback(time.sleep, 1.0)  # the loop busy: sync's coroutine has not made its future
+threading.Timer(0.2, os.kill, (os.getpid(), signal.SIGINT)).start()
+try:
+    sync(runner.loop, asyncio.sleep, 0.5)
+    sys.exit("no Ctrl-C")
+except KeyboardInterrupt:
+    pass
+
+def other():
+    raise ValueError("another tornado error")
+
+runner.loop.add_callback(other)
+sync(runner.loop, asyncio.sleep, 1.0)  # queued behind the cancel and the other error: both ran
+runner.stop()
+"""
+
+
+@pytest.mark.parametrize("verbose", [[], ["-v"]], ids=["quiet", "verbose"])
+def test_a_build_with_dask_drops_distributeds_ctrl_c_race_with_or_without_v(tmp_path, bar, verbose):
+    """`elastreg -v train --workers N` still printed distributed's NameError traceback on
+    Ctrl-C: the filter was installed only where a build quietened Dask's logs (without -v)."""
+    pytest.importorskip("distributed")
+    scene = write_bar_scene(tmp_path / "scene", bar, samples=6)
+    (tmp_path / "store").write_text("a file, not a folder")
+    argv = [*verbose, "train", str(scene), "--store", str(tmp_path / "store"), "--data", str(tmp_path / "data"),
+            "--workers", "1"]  # fmt: skip
+    r = subprocess.run([sys.executable, "-c", _RACE, *argv], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "NameError" not in r.stderr, r.stderr[-3000:]
+    assert "ValueError: another tornado error" in r.stderr, r.stderr[-3000:]  # any other error still shows
+
+
 def test_a_port_whose_last_connection_waits_out_time_wait_is_free():
     """A server that closed its connection first leaves the port in TIME_WAIT for a minute;
     uvicorn binds it anyway (SO_REUSEADDR), so the demo's check must not call it in use (a
