@@ -220,20 +220,28 @@ def remove_stale_builds(store: Path) -> list[str]:
     """Remove the folders of builds whose process is gone (killed, or the machine lost power
     mid-write): a .ID-XXXXXXXX.build folder whose lock nobody holds. A live build's lock keeps
     its folder; any other name (an aside entry, ..ID-*, a hidden folder of the user's) is never
-    touched. One logged line per folder; returns the names removed."""
+    touched. One logged line per folder; returns the names removed. A store this process cannot
+    write (a read-only mount, another owner's) keeps them, untouched: one warning says how many
+    and how to clean them, and nothing fails."""
+    store = Path(store)
     removed: list[str] = []
     try:
-        names = sorted(p.name for p in Path(store).iterdir() if _BUILD_FOLDER.fullmatch(p.name))
+        names = sorted(p.name for p in store.iterdir() if _BUILD_FOLDER.fullmatch(p.name))
     except OSError:
         return removed
+    writable = os.access(store, os.W_OK)  # else rmtree would empty a folder it cannot then remove
+    left: list[str] = []
     for name in names:
-        path = Path(store) / name
+        path = store / name
         try:  # never through a link: O_NOFOLLOW
             fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW)
         except OSError:
             continue
         try:
             if not _lock(fd) or not _names(path, fd):  # a live build's, or no locks here to tell
+                continue
+            if not writable:
+                left.append(name)
                 continue
             try:
                 shutil.rmtree(path)
@@ -246,6 +254,14 @@ def remove_stale_builds(store: Path) -> list[str]:
             removed.append(name)
         finally:
             os.close(fd)
+    if left:
+        log.warning(
+            "model store %s is read-only here: %d stale build folder(s) left (%s); remove them as a user who can "
+            "write it, by hand once no build runs or by `elastreg serve` or a build into it",
+            store,
+            len(left),
+            ", ".join(left[:3]) + (", ..." if len(left) > 3 else ""),
+        )
     return removed
 
 

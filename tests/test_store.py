@@ -283,19 +283,25 @@ def test_an_unreadable_file_is_named_in_one_line(bar_store, tmp_path):
     (root / "no_manifest" / "manifest.json").chmod(0)
     (root / "no_weights" / "weights.safetensors").chmod(0)
     script = "import json, sys; from service.store import open_store; print(json.dumps(open_store(sys.argv[1])[1]))"
-    argv = [sys.executable, "-c", script, str(root)]
-    if os.geteuid() == 0:
-        setpriv = shutil.which("setpriv")
-        if setpriv is None:
-            pytest.skip("root reads any file, and setpriv (util-linux) is not here to drop that")
-        argv = [setpriv, "--bounding-set", "-dac_override,-dac_read_search", *argv]
-    run = subprocess.run(argv, capture_output=True, text=True, timeout=120)
+    run = subprocess.run(_without_root_override([sys.executable, "-c", script, str(root)]), capture_output=True,
+                         text=True, timeout=120)  # fmt: skip
     assert run.returncode == 0, run.stderr
     errors = json.loads(run.stdout)
     assert set(errors) == {"no_manifest", "no_weights"}
     assert "manifest.json cannot be read (Permission denied)" in errors["no_manifest"]
     assert "weights.safetensors cannot be read (Permission denied)" in errors["no_weights"]
     assert "Traceback" not in run.stderr, run.stderr
+
+
+def _without_root_override(argv: list[str]) -> list[str]:
+    """`argv` as a process that file modes bind: root reads and writes anything, so as root it
+    runs without the capabilities that let it (setpriv); skipped where setpriv is missing."""
+    if os.geteuid() != 0:
+        return argv
+    setpriv = shutil.which("setpriv")
+    if setpriv is None:
+        pytest.skip("root reads and writes any file, and setpriv (util-linux) is not here to drop that")
+    return [setpriv, "--bounding-set", "-dac_override,-dac_read_search", *argv]
 
 
 def _swap_mesh(path, **arrays) -> None:
@@ -394,3 +400,36 @@ def test_a_killed_builds_folder_is_removed_and_a_live_ones_kept(tmp_path, caplog
     others = {"bar" if name == "..bar-k7x2q9_a" else name for name in others}
     assert sorted(p.name for p in root.iterdir()) == sorted([*others, ".bar-linkedto.build"])
     assert (outside / "keep").read_text() == "mine"
+
+
+@pytest.mark.skipif(os.name != "posix", reason="file modes")
+def test_a_read_only_store_keeps_its_stale_builds_with_one_warning_and_serves(bar_store, tmp_path):
+    """A store served read-only logged an ERROR per stale build folder at every start, after
+    emptying each (rmtree removed its files, then not the folder): now they stay as they are,
+    one warning says how many and how to clean them, and the models are served."""
+    import subprocess
+    import sys
+
+    root = tmp_path / "store"
+    shutil.copytree(bar_store[0] / "bar", root / "bar")
+    stale = [".bar-0a1b2c3d.build", ".bar-k7x2q9_a.build"]  # no process holds their lock
+    for name in stale:
+        (root / name).mkdir()
+        (root / name / "weights.safetensors").write_bytes(bytes(1 << 10))
+    script = (
+        "import json, logging, sys; from service.store import open_store; "
+        "logging.basicConfig(format='%(levelname)s %(message)s'); print(json.dumps(list(open_store(sys.argv[1])[0])))"
+    )
+    root.chmod(0o555)
+    try:
+        run = subprocess.run(_without_root_override([sys.executable, "-c", script, str(root)]), capture_output=True,
+                             text=True, timeout=120)  # fmt: skip
+    finally:
+        root.chmod(0o755)
+    assert run.returncode == 0 and json.loads(run.stdout) == ["bar"], run.stderr
+    assert run.stderr.splitlines() == [
+        f"WARNING model store {root} is read-only here: 2 stale build folder(s) left ({', '.join(stale)}); remove "
+        "them as a user who can write it, by hand once no build runs or by `elastreg serve` or a build into it"
+    ]
+    for name in stale:
+        assert (root / name / "weights.safetensors").stat().st_size == 1 << 10  # untouched
