@@ -7,6 +7,8 @@
     <store>/<id>/weights.safetensors  the network's tensors (normalisation buffers included)
     <store>/.<id>-XXXXXXXX.build/     a build writing its entry (locked by that process; stale
                                       ones, whose writer is gone, are removed: remove_stale_builds)
+    <store>/.<id>-XXXXXXXX/           the same, unlocked (older versions; file systems without
+                                      locks): removed once a day old, holding an entry's files only
 
 Loading checks the manifest's shape and every name in it before any other file is opened (the
 file names must be exactly the two above, regular files inside the entry's folder: a manifest
@@ -169,6 +171,11 @@ _ASIDE = ".."
 #: a build's temporary folder ends so: a hidden folder of the user's is never taken for one
 _BUILDING = ".build"
 _BUILD_FOLDER = re.compile(rf"\.{MODEL_ID.pattern.strip('^$')}-[a-z0-9_]{{8}}{re.escape(_BUILDING)}")
+#: a build's folder with no lock: written before the lock came in (ea8e4fa), or where the file
+#: system has none (_build_folder)
+_UNLOCKED_BUILD_FOLDER = re.compile(rf"\.{MODEL_ID.pattern.strip('^$')}-[a-z0-9_]{{8}}")
+#: an unlocked build folder untouched this long has no writer: write_entry fills one in seconds
+UNLOCKED_BUILD_AGE_S = 24 * 3600.0
 
 
 def _lock(fd: int) -> bool | None:
@@ -197,8 +204,8 @@ def _names(path: Path, fd: int) -> bool:
 def _build_folder(store: Path, entry_id: str) -> tuple[Path, int | None]:
     """A new folder for a build of `entry_id` to write in, and a descriptor of it holding its
     lock until closed (the kernel drops it when the process dies: a folder nobody locks has no
-    writer left). Where locks are missing the folder is named .ID-XXXXXXXX, which no cleaner
-    takes for a build's, and the descriptor is None."""
+    writer left). Where locks are missing the folder is named .ID-XXXXXXXX, which a cleaner takes
+    only once it has not changed for a day, and the descriptor is None."""
     for _ in range(8):  # another name each time a cleaner took the new folder before its lock
         path = Path(tempfile.mkdtemp(prefix=f".{entry_id}-", suffix=_BUILDING, dir=store))
         try:
@@ -216,17 +223,42 @@ def _build_folder(store: Path, entry_id: str) -> tuple[Path, int | None]:
     raise OSError(errno.EAGAIN, f"no build folder for {entry_id} in {store} stayed ours long enough to lock it")
 
 
+def _stale(path: Path, fd: int) -> bool:
+    """Whether the build folder `path`, open as `fd`, has no writer left (see remove_stale_builds)."""
+    if _BUILD_FOLDER.fullmatch(path.name):  # its lock tells; no locks here: nothing can tell
+        return bool(_lock(fd)) and _names(path, fd)
+    if _lock(fd) is False or not _names(path, fd):
+        return False
+    try:
+        with os.scandir(fd) as listing:
+            inside = [(e.name, e.stat(follow_symlinks=False)) for e in listing]
+    except OSError:
+        return False
+    if any(name not in (MANIFEST, MESH, WEIGHTS) or not stat.S_ISREG(st.st_mode) for name, st in inside):
+        return False  # a folder of the user's that happens to have such a name
+    newest = max([os.fstat(fd).st_mtime, *(st.st_mtime for _, st in inside)])
+    return time.time() - newest > UNLOCKED_BUILD_AGE_S
+
+
 def remove_stale_builds(store: Path) -> list[str]:
     """Remove the folders of builds whose process is gone (killed, or the machine lost power
-    mid-write): a .ID-XXXXXXXX.build folder whose lock nobody holds. A live build's lock keeps
-    its folder; any other name (an aside entry, ..ID-*, a hidden folder of the user's) is never
-    touched. One logged line per folder; returns the names removed. A store this process cannot
-    write (a read-only mount, another owner's) keeps them, untouched: one warning says how many
-    and how to clean them, and nothing fails."""
+    mid-write): a .ID-XXXXXXXX.build folder whose lock nobody holds; a live build's lock keeps
+    its folder. A folder named .ID-XXXXXXXX has no lock to tell (versions before the lock wrote
+    it, and a build still does where the file system has no locks): it is removed only when it
+    holds nothing but an entry's regular files and nothing in it has changed for
+    UNLOCKED_BUILD_AGE_S (a day; a build fills its folder in seconds). Any other name (an aside
+    entry, ..ID-*, a hidden folder of the user's) is never touched. One logged line per folder;
+    returns the names removed. A store this process cannot write (a read-only mount, another
+    owner's) keeps them, untouched: one warning says how many and how to clean them, and
+    nothing fails."""
     store = Path(store)
     removed: list[str] = []
     try:
-        names = sorted(p.name for p in store.iterdir() if _BUILD_FOLDER.fullmatch(p.name))
+        names = sorted(
+            p.name
+            for p in store.iterdir()
+            if _BUILD_FOLDER.fullmatch(p.name) or _UNLOCKED_BUILD_FOLDER.fullmatch(p.name)
+        )
     except OSError:
         return removed
     writable = os.access(store, os.W_OK)  # else rmtree would empty a folder it cannot then remove
@@ -238,7 +270,7 @@ def remove_stale_builds(store: Path) -> list[str]:
         except OSError:
             continue
         try:
-            if not _lock(fd) or not _names(path, fd):  # a live build's, or no locks here to tell
+            if not _stale(path, fd):
                 continue
             if not writable:
                 left.append(name)

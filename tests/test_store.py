@@ -14,7 +14,7 @@ import time
 import numpy as np
 import pytest
 
-from service.store import StoreError, load_entry, open_store, remove_stale_builds
+from service.store import UNLOCKED_BUILD_AGE_S, StoreError, load_entry, open_store, remove_stale_builds
 from tests.conftest import build_writer
 
 
@@ -433,3 +433,44 @@ def test_a_read_only_store_keeps_its_stale_builds_with_one_warning_and_serves(ba
     ]
     for name in stale:
         assert (root / name / "weights.safetensors").stat().st_size == 1 << 10  # untouched
+
+
+def test_an_unlocked_build_folder_is_removed_once_a_day_old_and_holding_only_an_entrys_files(tmp_path, caplog):
+    """Build folders from before the lock (.ID-XXXXXXXX, no .build) were never removed, weights
+    and all. With no lock to ask, one goes only when nothing in it has changed for a day and it
+    holds nothing but an entry's files: a live build (no locks here) fills its folder in seconds."""
+    root = tmp_path / "store"
+    root.mkdir()
+    now = time.time()
+    old, recent = now - UNLOCKED_BUILD_AGE_S - 3600, now - UNLOCKED_BUILD_AGE_S + 3600
+    entry_files = ["manifest.json", "mesh.npz", "weights.safetensors"]
+
+    def folder(name: str, files: list[str], when: float, touched: float | None = None) -> None:
+        path = root / name
+        path.mkdir()
+        for f in files:
+            (path / f).mkdir() if f.endswith("/") else (path / f).write_bytes(bytes(1 << 10))
+        for inside in path.iterdir():
+            os.utime(inside, (when, when))
+        if touched is not None:  # one file written since
+            os.utime(path / files[-1], (touched, touched))
+        os.utime(path, (when, when))
+
+    folder(".bar-k7x2q9_a", entry_files, old)  # a build killed mid-write, before the lock
+    folder(".bar-0a1b2c3d", [], old)  # killed just after its folder was made
+    folder(".bar-5f6g7h8i", entry_files[:2], recent)  # 23 h: kept
+    folder(".liver-abcdefgh", entry_files, old, touched=now)  # a file written just now: kept
+    folder(".backup-20240101", ["notes.txt"], old)  # a user's folder by the same pattern
+    folder(".bar-zz9zz9zz", ["manifest.json", "bar/"], old)  # a user's copy of an entry inside
+    outside = tmp_path / "outside"
+    folder("../outside", entry_files, old)
+    (root / ".bar-linked99").symlink_to(outside)  # the name, but a link: never followed
+    with caplog.at_level(logging.WARNING, logger="service.store"):
+        assert remove_stale_builds(root) == [".bar-0a1b2c3d", ".bar-k7x2q9_a"]
+    assert sorted(p.name for p in root.iterdir()) == [
+        ".backup-20240101", ".bar-5f6g7h8i", ".bar-linked99", ".bar-zz9zz9zz", ".liver-abcdefgh"
+    ]  # fmt: skip
+    assert sorted(p.name for p in outside.iterdir()) == entry_files
+    said = [r.getMessage() for r in caplog.records]
+    assert said == [f"model store {root}: removed {name}, the folder of a build whose process is gone"
+                    for name in (".bar-0a1b2c3d", ".bar-k7x2q9_a")]  # fmt: skip
