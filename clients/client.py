@@ -209,6 +209,11 @@ def _ws_url(base_url: str, path: str = "/stream", query: str | None = None) -> s
     return str(url.copy_with(scheme=scheme, path=url.path.rstrip("/") + path, query=query and query.encode()))
 
 
+def viewer_url(base_url: str, session_id: str) -> str:
+    """The page that watches a session live (API.md, "Watching a session, and the viewer")."""
+    return f"{base_url.rstrip('/')}/viewer?session={quote(session_id, safe='')}"
+
+
 def _watch_url(base_url: str, session_id: str, encoding: str) -> str:
     path = f"/sessions/{quote(session_id, safe='')}/watch"
     return _ws_url(base_url, path, "encoding=msgpack" if encoding == "msgpack" else None)

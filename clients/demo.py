@@ -13,7 +13,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from .client import Client
+from .client import Stream
 
 
 def _pct(a, q) -> float:
@@ -26,20 +26,22 @@ def spearman(a: Sequence[float], b: Sequence[float]) -> float:
     return float(np.corrcoef(ra, rb)[0, 1]) if len(ra) > 1 else float("nan")
 
 
+#: what the demo's session returns: score_stream reads both
+OUTPUTS = ("displacement", "forces")
+
+
 def score_stream(
-    api: Client,
-    model: str,
+    stream: Stream,
     clouds: Sequence[np.ndarray],
     positions: Sequence[np.ndarray] | np.ndarray,
     net_forces: Sequence[np.ndarray] | np.ndarray,
     rest: np.ndarray,
     *,
-    method: str,
-    support: np.ndarray,
     say: Callable[..., None] = print,
-    settings: dict | None = None,
 ) -> int:
-    """Stream `clouds` through a session and score each frame against the truth; 0 when done.
+    """Stream `clouds` through an open `stream` (its session asked for OUTPUTS) and score each
+    frame against the truth; 0 when done. The caller opens the stream first, so that its session
+    can be watched from the first frame on.
 
     Shape: clouds[t] (m, 3); positions[t] (n, 3) the true node positions of frame t; net_forces[t]
     (3,) the true net force; rest (n, 3) the model's nodes.
@@ -49,28 +51,26 @@ def score_stream(
     errors, rest_errors, force_errors, latency, solve, estimates, by_fem = [], [], [], [], [], [], 0
     failed = 0
     t_stream = time.perf_counter()
-    outputs = ["displacement", "forces"]
-    with api.stream(model, method=method, support=support, outputs=outputs, **(settings or {})) as stream:
-        for t, cloud in enumerate(clouds):
-            t1 = time.perf_counter()
-            r = stream.frame(cloud, frame_id=t)
-            latency.append(1e3 * (time.perf_counter() - t1))
-            truth = positions[t]
-            err = 1e3 * np.linalg.norm(rest + r["displacement"] - truth, axis=1).mean()
-            at_rest = 1e3 * np.linalg.norm(rest - truth, axis=1).mean()
-            f_true = net_forces[t]
-            f_err = 100 * np.linalg.norm(r["net_force"] - f_true) / max(np.linalg.norm(f_true), 1e-12)
-            errors.append(err)
-            rest_errors.append(at_rest)
-            force_errors.append(f_err)
-            solve.append(r["timing_ms"]["total"])
-            failed += not r["converged"]
-            est = r.get("error_estimate")
-            estimates.append(np.inf if est is None else 1e3 * est)
-            by_fem += r.get("method_used") == "fem"
-            by = " (fem)" if r.get("method_used") == "fem" else ""
-            say(f"{t + 1:>5} {err:>9.3f} {estimates[-1]:>8.3f} {at_rest:>8.3f} {f_err:>8.1f} {latency[-1]:>11.1f} "
-                f"{solve[-1]:>9.1f} {r['iterations']:>6}  {r['status']}{by}")  # fmt: skip
+    for t, cloud in enumerate(clouds):
+        t1 = time.perf_counter()
+        r = stream.frame(cloud, frame_id=t)
+        latency.append(1e3 * (time.perf_counter() - t1))
+        truth = positions[t]
+        err = 1e3 * np.linalg.norm(rest + r["displacement"] - truth, axis=1).mean()
+        at_rest = 1e3 * np.linalg.norm(rest - truth, axis=1).mean()
+        f_true = net_forces[t]
+        f_err = 100 * np.linalg.norm(r["net_force"] - f_true) / max(np.linalg.norm(f_true), 1e-12)
+        errors.append(err)
+        rest_errors.append(at_rest)
+        force_errors.append(f_err)
+        solve.append(r["timing_ms"]["total"])
+        failed += not r["converged"]
+        est = r.get("error_estimate")
+        estimates.append(np.inf if est is None else 1e3 * est)
+        by_fem += r.get("method_used") == "fem"
+        by = " (fem)" if r.get("method_used") == "fem" else ""
+        say(f"{t + 1:>5} {err:>9.3f} {estimates[-1]:>8.3f} {at_rest:>8.3f} {f_err:>8.1f} {latency[-1]:>11.1f} "
+            f"{solve[-1]:>9.1f} {r['iterations']:>6}  {r['status']}{by}")  # fmt: skip
     seconds = time.perf_counter() - t_stream
     n = len(errors)
     say(f"\n{n} frames in {seconds:.2f} s ({n / seconds:.1f} frames/s); {n - failed} converged")

@@ -2,7 +2,8 @@
 
 The server runs in this process (uvicorn on a loopback port, `--port` or a free one, in a
 background thread, so a browser or client can watch the run there); the
-demo is an ordinary client of it: it reads the model's mesh over HTTP, makes a sequence whose
+demo is an ordinary client of it: it reads the model's mesh over HTTP, opens its session and
+prints its id and the viewer's URL that watches it, makes a sequence whose
 answer is known (a tool pulls a patch of the surface with a growing, turning force; the FEM gives
 the true shape of every frame; each frame's cloud samples the part a camera sees), and hands it
 to the client side (:func:`clients.demo.score_stream`), which streams the clouds over the
@@ -18,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from clients.client import Client
-from clients.demo import score_stream
+from clients.client import Client, viewer_url
+from clients.demo import OUTPUTS, score_stream
 
 from .config import Settings, default_store
 from .fem.material import NeoHookean
@@ -98,33 +99,25 @@ def run(
             f"model {model}: {mesh.n_nodes} nodes, {mesh.n_tets} tets; tool {tool.size} nodes, "
             f"support {support.size} nodes, peak force {peak:.3g} N; method {method}, {encoding}"
         )
-        say(f"making a synthetic sequence of {frames} frames (one FEM solve each) ...", end=" ")
-        t0 = time.perf_counter()
-        seq = make_sequence(
-            mesh, material, tool, n_frames=frames, peak_force=peak, n_points=n_points, noise=noise, seed=seed
-        )
-        say(f"{len(seq.clouds)} frames in {time.perf_counter() - t0:.1f} s")
-        if not seq.clouds:
-            return fail("error: the FEM could not follow the first frame of the sequence")
-
         settings = session_settings(noise)
-        say(f"the clouds' noise ({noise * 1e3:.3g} mm per axis) is declared; it chooses alpha, frame by frame")
         if method == "auto":  # correct frames past twice the build's validation error: the build's figure
             val = float(summary["training"].get("validation", {}).get("mean_mm", 0.5))
             settings["max_error"] = 2e-3 * val
-            say(f"auto: frames whose error estimate exceeds {2 * val:.3g} mm are registered again by the FEM")
-        return score_stream(
-            api,
-            model,
-            seq.clouds,
-            seq.positions,
-            seq.net_forces,
-            mesh.nodes,
-            method=method,
-            support=support,
-            say=say,
-            settings=settings,
-        )
+        # the session opens before the sequence is made: a browser has those seconds to start watching it
+        with api.stream(model, method=method, support=support, outputs=list(OUTPUTS), **settings) as stream:
+            say(f"session {stream.session}: watch it at {viewer_url(server.url, stream.session)}")
+            say(f"making a synthetic sequence of {frames} frames (one FEM solve each) ...", end=" ")
+            t0 = time.perf_counter()
+            seq = make_sequence(
+                mesh, material, tool, n_frames=frames, peak_force=peak, n_points=n_points, noise=noise, seed=seed
+            )
+            say(f"{len(seq.clouds)} frames in {time.perf_counter() - t0:.1f} s")
+            if not seq.clouds:
+                return fail("error: the FEM could not follow the first frame of the sequence")
+            say(f"the clouds' noise ({noise * 1e3:.3g} mm per axis) is declared; it chooses alpha, frame by frame")
+            if method == "auto":
+                say(f"auto: frames whose error estimate exceeds {2 * val:.3g} mm are registered again by the FEM")
+            return score_stream(stream, seq.clouds, seq.positions, seq.net_forces, mesh.nodes, say=say)
 
 
 _PORT_IN_USE = "error: port {port} is in use (--port picks another, or leave it out for a free one)"

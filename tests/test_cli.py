@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import socket
 import subprocess
@@ -255,7 +256,8 @@ def test_a_port_whose_last_connection_waits_out_time_wait_is_free():
 
 def test_the_demo_serves_on_the_port_asked_for():
     """`elastreg demo --port P` without --viewer: its server listens on P (a browser or client
-    can watch the run there); it took a free port whatever P was. A port in use is one line and
+    can watch the run there, at the viewer URL it prints with the session's id: it printed
+    neither); it took a free port whatever P was. A port in use is one line and
     exit status 1 before anything starts, as with --viewer."""
     from service.api.server import free_port
 
@@ -263,6 +265,10 @@ def test_the_demo_serves_on_the_port_asked_for():
     r = _demo("--port", str(port))
     assert r.returncode == 0, r.stderr
     assert f" ... http://127.0.0.1:{port} (" in r.stdout, r.stdout
+    # once, before the sequence is made: the session's id and the page on P that watches it
+    (sid,) = re.findall(rf"^session (\S+): watch it at http://127\.0\.0\.1:{port}/viewer\?session=\1$",
+                        r.stdout, re.MULTILINE)  # fmt: skip
+    assert r.stdout.index(f"session {sid}") < r.stdout.index("making a synthetic sequence"), r.stdout
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))
         taken.listen()

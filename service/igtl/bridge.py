@@ -253,8 +253,9 @@ class Bridge:
             )
         self.surface = surface
         self.sessions.append(stream.session)
-        sid = stream.session
-        self.announce(f"session {sid}: watch it at {self.api_url}/viewer?session={sid}")
+        from clients.client import viewer_url
+
+        self.announce(f"session {stream.session}: watch it at {viewer_url(self.api_url, stream.session)}")
         return stream
 
     async def _serve(self, client: _Client) -> None:

@@ -7,6 +7,7 @@ import asyncio
 import io
 import re
 import socket
+import threading
 
 import numpy as np
 import pytest
@@ -176,6 +177,49 @@ def test_demo_on_the_bar(bar_store):
     assert frames == 3 and converged == 3, text
     error, rest = map(float, re.search(r"registration error: median ([\d.]+) mm.*median ([\d.]+) mm", text).groups())
     assert error < 0.5 * rest, text
+
+
+class _WatchOnSessionLine(io.StringIO):
+    """The demo's output, as a user at a browser reads it: on the line that names the session,
+    watch it at the printed viewer URL's server (as the page does) and keep its frames."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.seqs: list[int] = []
+        self.watcher: threading.Thread | None = None
+
+    def write(self, text: str) -> int:
+        said = re.search(r"session (\S+): watch it at (http://\S+)/viewer\?session=(\S+)", text)
+        if said and self.watcher is None:
+            assert said[1] == said[3], text
+            client = Client(said[2])
+            watch = client.watch(said[1])  # before the demo goes on: frame 1 is not sent yet
+
+            def follow() -> None:
+                with client, watch:
+                    try:
+                        while True:
+                            self.seqs.append(watch.recv(timeout=120)["seq"])
+                    except StreamError:  # the session ended (1000), or the server with it (1012)
+                        pass
+
+            self.watcher = threading.Thread(target=follow, daemon=True)
+            self.watcher.start()
+        return super().write(text)
+
+
+def test_the_demo_names_its_session_and_a_browser_can_watch_it(bar_store):
+    """`elastreg demo` never printed its session id, so a viewer opened on its port could not
+    watch the run. The id and the viewer's URL come out before the sequence is made, while
+    the session is open; watched from that line, every frame of the run arrives."""
+    out = _WatchOnSessionLine()
+    assert demo(model="bar", frames=3, store=bar_store[0], n_points=300, out=out) == 0
+    text = out.getvalue()
+    assert out.watcher is not None, text
+    out.watcher.join(60)
+    assert out.seqs == [1, 2, 3], text
+    assert text.count("watch it at") == 1
+    assert text.index("watch it at") < text.index("making a synthetic sequence"), text
 
 
 def test_demo_without_the_model_names_the_command(bar_store):
