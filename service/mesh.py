@@ -213,6 +213,11 @@ class TetMesh:
         return _readonly(signed_volumes(self.nodes, self.tets))
 
     @cached_property
+    def spacing(self) -> float:
+        """The nodes' spacing (m): the cube root of the tets' mean volume."""
+        return float(np.cbrt(np.mean(np.abs(self.volumes))))
+
+    @cached_property
     def shape_gradients(self) -> Array:
         """Gradients of the four P1 shape functions in each tet, in the reference frame.
 

@@ -109,10 +109,10 @@ class Assembler:
     def n_free(self) -> int:
         return int(self.mesh.free_dofs.size)
 
-    @cached_property
+    @property
     def spacing(self) -> float:
-        """The nodes' spacing (m): the cube root of the tets' mean volume."""
-        return float(np.cbrt(np.mean(np.abs(self.mesh.volumes))))
+        """The nodes' spacing (m): the mesh's (TetMesh.spacing)."""
+        return self.mesh.spacing
 
     def F(self, u: Array) -> Array:
         return deformation_gradient(u, self.mesh.tets, self.mesh.shape_gradients)

@@ -71,11 +71,10 @@ class QuadraticAssembler:
     def _pattern(self) -> tuple[Array, Array, Array, Array]:
         return csr_pattern(self.tets, self.nodes.free_dofs, self.nodes.n_nodes)
 
-    @cached_property
+    @property
     def spacing(self) -> float:
-        """The nodes' spacing (m): the cube root of the mean volume of `nodes`' tets (half an
-        element's size)."""
-        return float(np.cbrt(np.mean(np.abs(self.nodes.volumes))))
+        """The nodes' spacing (m): that of `nodes`' tets (TetMesh.spacing), half an element's size."""
+        return self.nodes.spacing
 
     @property
     def n_free(self) -> int:
