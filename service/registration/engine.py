@@ -435,8 +435,8 @@ def _check_alpha(alpha: float, v_rest: float, grad_rest: Array, v_best: float) -
     less than 0 near g = 0, and alpha's swamps it), whose least value is |grad|^2 / (2 alpha)
     below the rest state's; the regularised answer, |grad| / alpha in force, is the rest state.
     L-BFGS-B would stall at it ("relative reduction"), saying nothing of alpha."""
-    gain = _gain_bound(alpha, grad_rest)
-    if gain <= _FTOL * v_rest and v_best >= v_rest - gain:
+    gain = _roundoff_gain(alpha, grad_rest, v_rest)
+    if gain is not None and v_best >= v_rest - gain:
         raise _Done(
             f"alpha {alpha:.3g} is so large that no force can lower the objective measurably (by "
             f"{gain:.3g} m^2 at most, from {v_rest:.3g} m^2 at rest): the rest state stands"
@@ -448,20 +448,23 @@ def _check_alpha(alpha: float, v_rest: float, grad_rest: Array, v_best: float) -
 _FTOL = 1e-15
 
 
-def _gain_bound(alpha: float, grad: Array) -> float:
-    """The most any force lowers Phi below its value at a point of gradient `grad` (force
-    space): |grad|^2 / (2 alpha), the least of Phi's lower bound there (_check_alpha)."""
+def _roundoff_gain(alpha: float, grad: Array, value: float) -> float | None:
+    """The most any force lowers Phi below `value`, its value at a point of gradient `grad`
+    (force space): |grad|^2 / (2 alpha), the least of Phi's lower bound there (_check_alpha),
+    where that is under _FTOL of `value`, the finest change the optimiser resolves (the point
+    is Phi's optimum up to roundoff); None where there is more to gain."""
     flat = grad.ravel()
-    return float(flat @ flat) / (2.0 * alpha)
+    gain = float(flat @ flat) / (2.0 * alpha)
+    return gain if gain <= _FTOL * abs(value) else None
 
 
 def _settled(alpha: float, grad: Array, value: float) -> str | None:
     """The message of a frame whose optimiser stalled (no measurable decrease) at a point of
-    objective `value` and gradient `grad` from which no force can lower Phi by _FTOL of it,
-    the finest change the optimiser resolves: its optimum up to roundoff (alpha swamps the
-    gradient test's scale there); None where the stall left more to gain."""
-    gain = _gain_bound(alpha, grad)
-    if not gain <= _FTOL * abs(value):
+    objective `value` and gradient `grad` from which no force can lower Phi measurably
+    (_roundoff_gain): its optimum up to roundoff (alpha swamps the gradient test's scale
+    there); None where the stall left more to gain."""
+    gain = _roundoff_gain(alpha, grad, value)
+    if gain is None:
         return None
     return (
         f"the objective stopped decreasing at working precision where no force can lower it by "
