@@ -196,6 +196,15 @@ def test_an_auto_correction_out_of_time_never_replaces_a_better_network_frame(sh
         assert true < 0.5 * rest, (r.method_used, r.status, true, rest)
 
 
+def _pulled_cloud(entry) -> tuple[tuple[int, ...], np.ndarray]:
+    """A 30-node support and one cloud of the entry pulled by an 8-node tool at half its
+    training's largest force (the FEM's answer)."""
+    tool, support = _patch(entry, 8), tuple(int(i) for i in _patch(entry, 30))
+    peak = 0.5 * float(entry.manifest["scene"]["training"]["max_force"])
+    seq = make_sequence(entry.mesh, entry.fem.material, tool, n_frames=1, peak_force=peak, n_points=600, seed=3)
+    return support, seq.clouds[0]
+
+
 def test_an_alpha_whose_optimum_is_below_roundoff_converges_on_the_phantom(shipped):
     """alpha 3e11-2.5e12 on the phantom: short of the rest-state test (the most any force gains
     is a few ulps of J at rest more than it resolves), so L-BFGS-B runs, and it stopped at
@@ -204,11 +213,7 @@ def test_an_alpha_whose_optimum_is_below_roundoff_converges_on_the_phantom(shipp
     converged, its forces those of alpha 1e11 scaled by 1e11 / alpha (linear in 1 / alpha here).
     Which alphas stall depends on the last bits; that some do, on this cloud, is checked."""
     entry = shipped["phantom"]
-    tool, support = _patch(entry, 8), tuple(int(i) for i in _patch(entry, 30))
-    peak = 0.5 * float(entry.manifest["scene"]["training"]["max_force"])
-    cloud = make_sequence(
-        entry.mesh, entry.fem.material, tool, n_frames=1, peak_force=peak, n_points=600, seed=3
-    ).clouds[0]
+    support, cloud = _pulled_cloud(entry)
     ref = Session(entry.network, SessionConfig(support=support, alpha=1e11, outputs=("forces",))).frame(cloud)
     assert ref.status == "converged"
     messages = []
@@ -219,3 +224,31 @@ def test_an_alpha_whose_optimum_is_below_roundoff_converges_on_the_phantom(shipp
         assert np.linalg.norm(g - want) < 0.05 * np.linalg.norm(want), alpha
         messages.append(r.message)
     assert any(m.startswith("the objective stopped decreasing at working precision where no force") for m in messages)
+
+
+def test_levenberg_marquardt_stopped_at_roundoff_converges_on_the_phantom(shipped):
+    """Levenberg-Marquardt's own stops for want of a decrease, on the phantom with a gtol (1e-15)
+    below what the objective resolves: at alpha 1e5 no damped step decreased it ('no decrease
+    in 7 damped steps'), at 1e12 the step vanished; both were reported stalled. From there no
+    force can lower the objective by 1e-15 of it (|grad|^2 / (2 alpha)), as for L-BFGS-B's stall
+    above: converged, saying why, its forces alpha 1e11's scaled by 1e11 / alpha. At the default
+    alpha the same gtol leaves far more to gain, and that stall stays one."""
+    entry = shipped["phantom"]
+    support, cloud = _pulled_cloud(entry)
+
+    def frame(alpha, gtol=None):
+        config = SessionConfig(
+            support=support, alpha=alpha, gtol=gtol, optimizer="levenberg-marquardt", outputs=("forces",)
+        )
+        return Session(entry.network, config).frame(cloud)
+
+    ref = frame(1e11)
+    assert ref.status == "converged" and ref.message == "projected gradient below gtol"
+    for alpha in (1e5, 1e12):
+        r = frame(alpha, gtol=1e-15)
+        assert r.status == "converged" and r.converged and r.iterations > 0, (alpha, r.message)
+        assert r.message.startswith("the objective stopped decreasing at working precision where no force"), r.message
+        g, want = r.outputs["forces"], ref.outputs["forces"] * (1e11 / alpha)
+        assert np.linalg.norm(g - want) < 0.05 * np.linalg.norm(want), alpha
+    r = frame(DEFAULT_ALPHA, gtol=1e-15)
+    assert r.status == "stalled" and not r.converged, r.message

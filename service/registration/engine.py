@@ -458,15 +458,15 @@ def _roundoff_gain(alpha: float, grad: Array, value: float) -> float | None:
     return gain if gain <= _FTOL * abs(value) else None
 
 
-def _settled(alpha: float, grad: Array, value: float) -> str | None:
-    """The message of a frame whose optimiser stalled (no measurable decrease) at a point of
-    objective `value` and gradient `grad` from which no force can lower Phi measurably
-    (_roundoff_gain): its optimum up to roundoff (alpha swamps the gradient test's scale
-    there); None where the stall left more to gain."""
+def _stall(alpha: float, grad: Array, value: float, message: str) -> tuple[str, str]:
+    """(status, message) of an optimiser stopped for want of a measurable decrease at a point of
+    objective `value` and gradient `grad`: converged where no force can lower Phi measurably
+    from there (_roundoff_gain), its optimum up to roundoff (alpha swamps the gradient test's
+    scale there), the message saying so; else stalled, with the optimiser's `message`."""
     gain = _roundoff_gain(alpha, grad, value)
     if gain is None:
-        return None
-    return (
+        return "stalled", message
+    return "converged", (
         f"the objective stopped decreasing at working precision where no force can lower it by "
         f"more than {gain:.3g} m^2 (under {_FTOL:g} of its {value:.3g} m^2): its optimum for "
         f"alpha {alpha:.3g} up to roundoff"
@@ -603,9 +603,8 @@ def _lbfgsb(
     if curvature is not None and not bounded and status == "converged":
         curvature.update(path_g, path_grad)  # only converged frames teach the carried curvature
     # after the curvature: steps at roundoff's scale teach it nothing
-    settled = _settled(options.alpha, best["grad"], best["f"] * P.value_scale) if status == "stalled" else None
-    if settled is not None:
-        status, message = "converged", settled
+    if status == "stalled":
+        status, message = _stall(options.alpha, best["grad"], best["f"] * P.value_scale, message)
     if failures and status != "converged":
         status, message = "forward_failed", f"{len(failures)} trial points failed: {failures[-1]}"
     return status, message, nit
@@ -657,7 +656,7 @@ def _levenberg_marquardt(
                 d = _step(model, mu, nit)
                 assert d is not None  # a Jacobian's own model always steps
             if not np.abs(d).max() > 1e-12 * max(float(np.abs(g).max()), _TINY):
-                return "stalled", "the damped step vanished before the gradient test", nit
+                return *_stall(options.alpha, grad, f, "the damped step vanished before the gradient test"), nit
             try:
                 fn, gn, _ = evaluate((g + d).reshape(k, 3))
             except _Stop as stop:
@@ -678,7 +677,8 @@ def _levenberg_marquardt(
                 break
             mu, nu = mu * nu, 2.0 * nu
         else:
-            return "stalled", f"no decrease in {_MAX_REJECTIONS + 1} damped steps: the objective's precision", nit
+            no_decrease = f"no decrease in {_MAX_REJECTIONS + 1} damped steps: the objective's precision"
+            return *_stall(options.alpha, grad, f, no_decrease), nit
     return "converged", "projected gradient below gtol", nit
 
 
