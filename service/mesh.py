@@ -339,6 +339,16 @@ class TetMesh:
         """Flat indices (3 * node + axis) of the unknowns. Shape: (3 * n_free,)."""
         return _readonly(np.flatnonzero(np.repeat(self.free_mask, 3)))
 
+    def pack(self, u: Array) -> Array:
+        """(n, 3) -> free dofs (3 n_free,)."""
+        return np.asarray(u).reshape(-1)[self.free_dofs]
+
+    def unpack(self, x: Array) -> Array:
+        """Free dofs (3 n_free,) -> (n, 3) with zeros on fixed nodes."""
+        u = np.zeros(3 * self.n_nodes)
+        u[self.free_dofs] = x
+        return u.reshape(-1, 3)
+
     def summary(self) -> dict:
         return {
             "n_nodes": self.n_nodes,

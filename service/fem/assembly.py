@@ -212,11 +212,9 @@ class Assembler:
     # -- free-dof packing ---------------------------------------------------------------------
 
     def pack(self, u: Array) -> Array:
-        """(n, 3) -> free dofs (3 n_free,)."""
-        return np.asarray(u).reshape(-1)[self.mesh.free_dofs]
+        """(n, 3) -> free dofs (3 n_free,): TetMesh.pack."""
+        return self.mesh.pack(u)
 
     def unpack(self, x: Array) -> Array:
-        """Free dofs (3 n_free,) -> (n, 3) with zeros on fixed nodes."""
-        u = np.zeros(3 * self.mesh.n_nodes)
-        u[self.mesh.free_dofs] = x
-        return u.reshape(-1, 3)
+        """Free dofs (3 n_free,) -> (n, 3) with zeros on fixed nodes: TetMesh.unpack."""
+        return self.mesh.unpack(x)

@@ -120,12 +120,10 @@ class QuadraticAssembler:
         return self.tangent(np.zeros((self.nodes.n_nodes, 3)))
 
     def pack(self, u: Array) -> Array:
-        return np.asarray(u).reshape(-1)[self.nodes.free_dofs]
+        return self.nodes.pack(u)
 
     def unpack(self, x: Array) -> Array:
-        u = np.zeros(3 * self.nodes.n_nodes)
-        u[self.nodes.free_dofs] = x
-        return u.reshape(-1, 3)
+        return self.nodes.unpack(x)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
