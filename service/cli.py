@@ -365,7 +365,10 @@ def main(argv: list[str] | None = None) -> int:
     )
     # whatever the command and -v: train and bench run Dask, and the filter drops that race alone
     logging.getLogger("tornado.application").addFilter(_sync_cancel_race)
-    if args.command == "train" and not args.verbose and (args.workers or args.scheduler):
+    builds_on_dask = (args.command == "train" and (args.workers or args.scheduler)) or (
+        args.command == "bench" and "minutes" in args.parts  # its timed builds run a LocalCluster
+    )
+    if builds_on_dask and not args.verbose:
         _quiet_dask()
     return int(args.func(args) or 0)
 

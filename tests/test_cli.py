@@ -4,6 +4,7 @@ status 2, before any server starts or store loads."""
 from __future__ import annotations
 
 import json
+import logging
 import os
 import re
 import shutil
@@ -229,6 +230,23 @@ def test_a_build_with_dask_drops_distributeds_ctrl_c_race_with_or_without_v(tmp_
     assert r.returncode == 0, r.stderr[-3000:]
     assert "NameError" not in r.stderr, r.stderr[-3000:]
     assert "ValueError: another tornado error" in r.stderr, r.stderr[-3000:]  # any other error still shows
+
+
+@pytest.mark.parametrize("verbose, level", [([], logging.WARNING), (["-v"], logging.INFO)], ids=["quiet", "verbose"])
+def test_the_benchs_timed_builds_quiet_dasks_logs_unless_verbose(tmp_path, verbose, level):
+    """`elastreg bench minutes` runs its timed builds on a LocalCluster, whose ~30 lines of start
+    and stop buried the bench's own output: without -v distributed logs warnings only, as a
+    build's do (the unknown part stops the bench once its logging is set)."""
+    pytest.importorskip("distributed")
+    log = logging.getLogger("distributed")
+    before = log.level
+    try:
+        log.setLevel(logging.INFO)  # as distributed's import leaves it
+        with pytest.raises(SystemExit, match="unknown parts"):
+            main([*verbose, "bench", "minutes", "nosuch", "--out", str(tmp_path / "out")])
+        assert log.level == level
+    finally:
+        log.setLevel(before)
 
 
 def test_a_port_whose_last_connection_waits_out_time_wait_is_free():
