@@ -383,6 +383,41 @@ def test_a_standard_error_too_small_for_its_fourth_power_leaves_the_plain_ratio(
     assert worse_at_least(_figures(0.03, 1e-300, 6), _figures(0.01, 0.001, 8)) < 3.0  # the spread there decides
 
 
+def test_no_bound_excuses_a_build_past_the_ceiling():
+    """A build exact on four of its five held-out paths and 400 % off on the fifth validates 40x
+    worse, but its spread is as large as its figure and its bound (0.95x) excused it: installed
+    with a warning (the review's repro). Past REPLACE_EXCUSE_CEILING it is refused, and the
+    refusal says why; a build 2.5x worse within its noise is still excused."""
+    from service.build import (
+        REPLACE_EXCUSE_CEILING,
+        REPLACE_MIN_PATHS,
+        WorseThanInstalled,
+        excused,
+        worse_at_least,
+        worse_by,
+    )
+    from service.surrogate.train import ratio_standard_error
+
+    sizes = np.tile([1.0, 2.0, 3.0], REPLACE_MIN_PATHS) * 1e-3
+    path = np.repeat(np.arange(REPLACE_MIN_PATHS), 3)
+    spread = 1 + 0.05 * np.random.default_rng(0).standard_normal(sizes.size)
+
+    def validation(errors: np.ndarray) -> dict:
+        r = errors.sum() / sizes.sum()
+        return _figures(r, ratio_standard_error(errors, sizes, path), REPLACE_MIN_PATHS)
+
+    installed = validation(0.02 * sizes * spread)
+    broken = validation(np.where(path == 0, 4.0 * sizes, 0.0))
+    times, least = worse_by(broken, installed), worse_at_least(broken, installed)
+    assert times > 10 * REPLACE_EXCUSE_CEILING and least is not None and least < 1.0
+    assert not excused(times, least)
+    said = str(WorseThanInstalled("bar", broken, installed, times, least))
+    assert f"past {REPLACE_EXCUSE_CEILING:g}x, which no sampling error excuses" in said
+    noisy = validation(0.05 * sizes * np.where(path == 0, 3.0, 0.5))  # 2.5x worse, most of it on one path
+    times, least = worse_by(noisy, installed), worse_at_least(noisy, installed)
+    assert 2.0 < times < REPLACE_EXCUSE_CEILING and excused(times, least)
+
+
 def test_the_gate_calls_an_equal_rebuild_worse_no_more_often_than_its_confidence_says():
     """Two builds of one true relative error, each validated on REPLACE_MIN_PATHS correlated load
     paths: the gate's bound (both standard errors, Welch's dof) puts the new one above equal in
