@@ -34,7 +34,6 @@ import logging
 import time
 
 from fastapi import WebSocket
-from starlette.websockets import WebSocketState
 
 from ..sendwait import Stalled
 from . import codec
@@ -42,7 +41,7 @@ from .deps import authorize_websocket, websocket_slot
 from .errors import ApiError, as_api_error, unprocessable
 from .schemas import FrameIn, SessionCreate, check_points_limit
 from .work import Dropped, check_frame_support, not_found_model, open_session, opened, solve_frame
-from .wsend import send_message
+from .wsend import close, send_message
 
 log = logging.getLogger(__name__)
 
@@ -54,12 +53,6 @@ _LENIENT_ID = 64 << 10  # an undecodable message is read again for its frame_id 
 _CLOSED = object()
 _IDLE = object()
 _DRAIN = object()
-
-
-def _reason(text: str) -> str:
-    """A close reason fits in 123 bytes of UTF-8."""
-    b = text.encode()[:120]
-    return b.decode(errors="ignore")
 
 
 class StreamRunner:
@@ -108,11 +101,7 @@ class StreamRunner:
         return await self._send(kind, codec.encode({"error": body}, kind))
 
     async def _close(self, code: int, reason: str) -> None:
-        if self.ws.client_state == WebSocketState.CONNECTED:
-            try:
-                await self.ws.close(code, _reason(reason))
-            except Exception:
-                pass
+        await close(self.ws, code, reason, self.settings)
 
     async def _receive(self, timeout: float | None):
         """(kind, data) of the next message, _CLOSED when the client has gone, _IDLE on timeout."""

@@ -14,12 +14,17 @@ the deadline bounds.
 from __future__ import annotations
 
 import asyncio
+import logging
+from collections.abc import Awaitable
 
 from fastapi import WebSocket
 from starlette.types import ASGIApp, Receive, Scope, Send
+from starlette.websockets import WebSocketState
 
 from ..config import Settings
 from ..sendwait import Stalled, drop, progressing
+
+log = logging.getLogger(__name__)
 
 #: the scope key under which KeepTransport leaves a WebSocket's transport
 TRANSPORT = "elastreg.transport"
@@ -45,20 +50,41 @@ async def send_message(ws: WebSocket, body: bytes, binary: bool, settings: Setti
     it, or of what was sent before, for ``send_timeout_s``, or takes it more slowly than
     ``send_min_bytes_per_s``: its connection is then reset (:func:`~service.sendwait.drop`).
     Without a transport (another server, Starlette's test client, a wrapper of ``send``
-    outside ours such as uvicorn's trace logging) the whole send must end within
-    ``send_timeout_s``, as before this module: the only measure there is."""
-    send = ws.send_bytes(body) if binary else ws.send_text(body.decode())
+    outside ours) the whole send must end within ``send_timeout_s``, as before this module:
+    the only measure there is."""
+    await _waited(ws, ws.send_bytes(body) if binary else ws.send_text(body.decode()), len(body), settings)
+
+
+async def close(ws: WebSocket, code: int, reason: str, settings: Settings) -> None:
+    """Close the socket (``reason`` cut to what a close frame holds), under the deadline of a
+    send: a close frame waits behind the bytes a client has not taken, so one that stopped
+    reading would hold the handler, its socket slot and its session for ever. Past the
+    deadline the connection is reset where its transport is known; elsewhere the handler
+    goes on and returns (the server closes the socket once its bytes drain)."""
+    if ws.client_state != WebSocketState.CONNECTED:
+        return
+    try:
+        await _waited(ws, ws.close(code, reason.encode()[:120].decode(errors="ignore")), 0, settings)
+    except Stalled as exc:
+        log.info("a WebSocket's client took no close frame (%s): left behind", exc)
+    except Exception:  # the client went away meanwhile
+        pass
+
+
+async def _waited(ws: WebSocket, aw: Awaitable[None], size: int, settings: Settings) -> None:
+    """``aw`` (a send of ``size`` bytes on ``ws``) under the deadline of progress; with no
+    transport in the scope, under ``send_timeout_s`` whole."""
     transport = ws.scope.get(TRANSPORT)
     if transport is None:
         try:
             async with asyncio.timeout(settings.send_timeout_s):
-                await send
+                await aw
         except TimeoutError:
             raise Stalled(f"took no message for {settings.send_timeout_s:g} s") from None
         return
     try:
         await progressing(
-            send, transport, timeout=settings.send_timeout_s, min_rate=settings.send_min_bytes_per_s, size=len(body)
+            aw, transport, timeout=settings.send_timeout_s, min_rate=settings.send_min_bytes_per_s, size=size
         )
     except Stalled:
         drop(transport)

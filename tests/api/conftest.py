@@ -45,7 +45,9 @@ class Live:
         return self.server.settings
 
 
-def start(store, **overrides) -> BackgroundServer:
+def start(store, *, wrap=None, **overrides) -> BackgroundServer:
+    """A started server; ``wrap`` (an ASGI middleware class) wraps the whole app, outside its
+    own middleware, as a deployment's or the server's may."""
     # blas_threads=0: the server shares this process with the rest of the test session; leave
     # its BLAS and torch threads alone. session_queue=8: test_concurrency posts 6 frames of one
     # session at once (the default, 2, would answer some of them 503)
@@ -57,7 +59,10 @@ def start(store, **overrides) -> BackgroundServer:
         "session_queue": 8,
     }
     settings = Settings(store=store, **{**defaults, **overrides})
-    return BackgroundServer(settings).start()
+    server = BackgroundServer(settings)
+    if wrap is not None:  # uvicorn loads its config's app at start-up
+        server.server.config.app = wrap(server.app)
+    return server.start()
 
 
 @pytest.fixture(scope="session")

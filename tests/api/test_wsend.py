@@ -188,6 +188,84 @@ def test_a_stream_client_that_takes_a_trickle_is_closed(bar_store, support, clou
         server.stop()
 
 
+class HiddenSend:
+    """An ASGI middleware outside the app that hands it a ``send`` of its own (a callable
+    object, as a proxy or another server's may be): the app finds no transport behind it."""
+
+    def __init__(self, app) -> None:
+        self.app = app
+
+    async def __call__(self, scope, receive, send) -> None:
+        await self.app(scope, receive, _Forward(send))
+
+
+class _Forward:
+    def __init__(self, send) -> None:
+        self.send = send
+
+    async def __call__(self, message) -> None:
+        await self.send(message)
+
+
+def open_frozen(server, path: str) -> SlowSocket:
+    """A WebSocket handshake for ``path`` over a socket that then never reads."""
+    sock = SlowSocket(rate=0)
+    sock.connect(("127.0.0.1", server.port))
+    sock.sendall(
+        f"GET {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n".encode()
+        + b"Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n"
+    )
+    assert b" 101 " in socket.socket.recv(sock, 200)  # accepted; never read from again
+    return sock
+
+
+def test_without_a_transport_a_frozen_stream_client_frees_its_slot(bar_store, support, clouds):
+    """Where the app finds no transport (a wrapper of ``send`` outside it), a stream's frozen
+    client is let go under the whole-send deadline, and so is the close that follows: the
+    close frame would wait for ever behind the bytes it does not take, holding the handler,
+    its socket slot and its session (held for good before)."""
+    server = start(bar_store[0], wrap=HiddenSend, instance_id="hidden", send_timeout_s=1.0)
+    try:
+        state = server.app.state
+        sock = open_frozen(server, "/stream")
+        frames = [{"model": "bar", "support": support.tolist(), "max_iter": 2}]
+        frames += [{"points": clouds[t % len(clouds)].tolist(), "frame_id": t} for t in range(40)]
+        for f in frames:
+            sock.sendall(_client_frame(json.dumps(f).encode()))
+        t0 = time.monotonic()
+        assert wait_for(lambda: state.sockets == 0, timeout=15), "the frozen client still holds its slot"
+        waited = time.monotonic() - t0
+        assert wait_for(lambda: len(state.registry) == 0)
+        assert 1.0 <= waited < 8.0, waited
+        sock.close()
+    finally:
+        server.stop()
+
+
+def test_without_a_transport_a_frozen_watcher_frees_its_slot_when_its_session_ends(bar_store, support, entry):
+    """Where the app finds no transport, a watcher that stopped reading with a frame backed up
+    in its buffers, whose session then ends, is let go once the close frame has waited
+    send_timeout_s: its slot is freed (held for good before, the close waiting)."""
+    server = start(bar_store[0], wrap=HiddenSend, instance_id="hiddenwatch", send_timeout_s=1.0)
+    try:
+        state = server.app.state
+        with httpx.Client(base_url=server.url, timeout=60) as http:
+            r = http.post("/sessions", json={"model": "bar", "support": support.tolist(), "max_iter": 2})
+            sid = r.json()["session"]
+            sock = open_frozen(server, f"/sessions/{sid}/watch")
+            assert wait_for(lambda: state.registry.get(sid, touch=False).watch.watchers == 1)
+            r = http.post(f"/sessions/{sid}/frames", content=big_frame(entry, 1), headers=MSGPACK)
+            assert r.status_code == 200
+            time.sleep(0.5)  # the frame (170 kB) goes out and backs up in front of the close
+            assert http.delete(f"/sessions/{sid}").status_code in (200, 204)
+            t0 = time.monotonic()
+            assert wait_for(lambda: state.sockets == 0, timeout=15), "the frozen watcher still holds its slot"
+            assert time.monotonic() - t0 < 5.0
+        sock.close()
+    finally:
+        server.stop()
+
+
 def _client_frame(payload: bytes) -> bytes:
     """A masked text frame (RFC 6455, as a client must send), the mask all zeros."""
     n = len(payload)

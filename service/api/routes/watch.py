@@ -27,7 +27,6 @@ import time
 
 from fastapi import APIRouter, WebSocket
 from starlette.types import Message
-from starlette.websockets import WebSocketState
 
 from ...sendwait import Stalled
 from .. import codec
@@ -36,7 +35,7 @@ from ..errors import ApiError, as_api_error
 from ..sessions import Held, SessionNotFound, SessionRegistry
 from ..watch import Acks, Mailbox
 from ..work import config_of
-from ..wsend import send_message
+from ..wsend import close, send_message
 
 router = APIRouter(tags=["watch"])
 log = logging.getLogger(__name__)
@@ -82,11 +81,7 @@ class Watcher:
             return False
 
     async def _close(self, code: int, reason: str) -> None:
-        if self.ws.client_state == WebSocketState.CONNECTED:
-            try:
-                await self.ws.close(code, reason.encode()[:120].decode(errors="ignore"))
-            except Exception:
-                pass
+        await close(self.ws, code, reason, self.settings)
 
     async def _refuse(self, status: int, detail: str) -> None:
         await self._send(codec.encode({"error": {"code": status, "detail": detail}}, self.kind))
