@@ -45,9 +45,9 @@ class Live:
         return self.server.settings
 
 
-def start(store, *, wrap=None, **overrides) -> BackgroundServer:
+def start(store, *, wrap=None, log_level: str = "warning", **overrides) -> BackgroundServer:
     """A started server; ``wrap`` (an ASGI middleware class) wraps the whole app, outside its
-    own middleware, as a deployment's or the server's may."""
+    own middleware, as a deployment's or the server's may; ``log_level`` is uvicorn's."""
     # blas_threads=0: the server shares this process with the rest of the test session; leave
     # its BLAS and torch threads alone. session_queue=8: test_concurrency posts 6 frames of one
     # session at once (the default, 2, would answer some of them 503)
@@ -59,7 +59,7 @@ def start(store, *, wrap=None, **overrides) -> BackgroundServer:
         "session_queue": 8,
     }
     settings = Settings(store=store, **{**defaults, **overrides})
-    server = BackgroundServer(settings)
+    server = BackgroundServer(settings, log_level=log_level)
     if wrap is not None:  # uvicorn loads its config's app at start-up
         server.server.config.app = wrap(server.app)
     return server.start()

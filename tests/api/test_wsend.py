@@ -11,6 +11,7 @@ megabytes, and a slow reader backs the server's own buffer up within a second.""
 from __future__ import annotations
 
 import json
+import logging
 import math
 import socket
 import threading
@@ -219,24 +220,60 @@ def open_frozen(server, path: str) -> SlowSocket:
     return sock
 
 
-def test_without_a_transport_a_frozen_stream_client_frees_its_slot(bar_store, support, clouds):
+def send_frozen(sock: SlowSocket, support, clouds) -> None:
+    """A stream's session config and 40 frames, whose replies back up."""
+    frames = [{"model": "bar", "support": support.tolist(), "max_iter": 2}]
+    frames += [{"points": clouds[t % len(clouds)].tolist(), "frame_id": t} for t in range(40)]
+    for f in frames:
+        sock.sendall(_client_frame(json.dumps(f).encode()))
+
+
+def test_without_a_transport_a_frozen_stream_client_frees_its_slot(bar_store, support, clouds, caplog):
     """Where the app finds no transport (a wrapper of ``send`` outside it), a stream's frozen
     client is let go under the whole-send deadline, and so is the close that follows: the
     close frame would wait for ever behind the bytes it does not take, holding the handler,
-    its socket slot and its session (held for good before)."""
+    its socket slot and its session (held for good before). That the deadline of progress is
+    off is logged, once."""
+    caplog.set_level(logging.WARNING, logger="service.api.wsend")
     server = start(bar_store[0], wrap=HiddenSend, instance_id="hidden", send_timeout_s=1.0)
     try:
         state = server.app.state
         sock = open_frozen(server, "/stream")
-        frames = [{"model": "bar", "support": support.tolist(), "max_iter": 2}]
-        frames += [{"points": clouds[t % len(clouds)].tolist(), "frame_id": t} for t in range(40)]
-        for f in frames:
-            sock.sendall(_client_frame(json.dumps(f).encode()))
+        send_frozen(sock, support, clouds)
         t0 = time.monotonic()
         assert wait_for(lambda: state.sockets == 0, timeout=15), "the frozen client still holds its slot"
         waited = time.monotonic() - t0
         assert wait_for(lambda: len(state.registry) == 0)
         assert 1.0 <= waited < 8.0, waited
+        sock.close()
+        open_frozen(server, "/stream").close()  # a second connection: not told again
+        assert wait_for(lambda: state.sockets == 0)
+        told = [r for r in caplog.records if "no transport to watch" in r.getMessage()]
+        assert len(told) == 1, told
+    finally:
+        server.stop()
+
+
+def test_under_uvicorns_trace_logging_a_frozen_stream_client_is_reset(bar_store, support, clouds, caplog):
+    """uvicorn at log level trace wraps the app's ``send`` in its message logger: the transport
+    is found behind it, so a frozen stream client is reset about send_timeout_s after its
+    buffers fill and its slot and session freed, as at any other level (before: no transport,
+    no reset: its connection stayed open behind the bytes it did not take)."""
+    caplog.set_level(logging.WARNING, logger="service.api.wsend")
+    server = start(bar_store[0], log_level="trace", instance_id="traced", send_timeout_s=1.0)
+    for name in ("uvicorn.error", "uvicorn.asgi"):  # trace's lines: a dump of every message
+        logging.getLogger(name).setLevel(logging.WARNING)
+    try:
+        state = server.app.state
+        sock = open_frozen(server, "/stream")
+        send_frozen(sock, support, clouds)
+        t0 = time.monotonic()
+        assert wait_for(lambda: state.sockets == 0, timeout=15), "the frozen client still holds its slot"
+        waited = time.monotonic() - t0
+        assert wait_for(lambda: len(state.registry) == 0)
+        assert wait_for(lambda: sock.state() == TCP_CLOSE), "its connection was not dropped"
+        assert 1.0 <= waited < 6.0, waited
+        assert not [r for r in caplog.records if "no transport to watch" in r.getMessage()]
         sock.close()
     finally:
         server.stop()
