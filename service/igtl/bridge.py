@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..sendwait import Stalled, progressing
+from ..sendwait import Stalled, drop, progressing
 from . import protocol as p
 
 if TYPE_CHECKING:
@@ -160,6 +160,7 @@ class Bridge:
         try:
             await progressing(writer.drain(), writer.transport, timeout=self.send_timeout, min_rate=self.send_min_rate)
         except Stalled as exc:
+            drop(writer.transport)  # a status or a FIN would wait behind what it does not take
             raise _Stalled(f"its answer: {exc}") from None
 
     @property
@@ -185,7 +186,7 @@ class Bridge:
         if self.busy:
             log.warning("refusing %s: a client is already connected", client.peer)
             await self._tell(client, _error_body(503, "this bridge serves one client at a time; one is connected"))
-            await _close(writer)
+            await _close(writer, self.send_timeout)
             return
         self._client = client
         _keepalive(writer.get_extra_info("socket"))
@@ -214,14 +215,17 @@ class Bridge:
             if error is not None:
                 await self._tell(client, error)
             await _close_stream(client.stream)
-            await _close(writer)
+            await _close(writer, self.send_timeout)
             log.info("client %s disconnected", client.peer)
 
     async def _tell(self, client: _Client, error) -> None:
-        """A last status (an ``error``) before the connection closes; nothing if it cannot go."""
+        """A last status (an ``error``) before the connection closes, under the send deadline;
+        nothing to a client dropped for not taking its answers, or if it cannot go."""
+        if client.writer.transport.is_closing():
+            return
         with contextlib.suppress(Exception):
             client.writer.write(_status({"error": error}, client.version))
-            await asyncio.wait_for(client.writer.drain(), 5)
+            await self._drain(client.writer)
 
     async def _open(self, api):
         """A stream for this client, and the model's mesh read again (the API may have restarted
@@ -593,14 +597,15 @@ def _keepalive(sock) -> None:
                 sock.setsockopt(socket.IPPROTO_TCP, getattr(socket, name), value)
 
 
-async def _close(writer) -> None:
-    """Close a client's connection; one that does not take its last bytes in time is aborted."""
+async def _close(writer, timeout: float) -> None:
+    """Close a client's connection; one that does not take its last bytes within ``timeout`` is
+    reset (sendwait.drop): closed plainly, the system would offer them to it for minutes."""
     try:
         writer.close()
-        await asyncio.wait_for(writer.wait_closed(), 5)
+        await asyncio.wait_for(writer.wait_closed(), timeout)
     except Exception:
         with contextlib.suppress(Exception):
-            writer.transport.abort()
+            drop(writer.transport)
 
 
 async def serve(bridge: Bridge, host: str, port: int, ready=None) -> None:

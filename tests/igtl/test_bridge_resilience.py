@@ -218,6 +218,45 @@ def test_a_stalled_client_frees_the_only_slot(api_server, run_bridge):
             assert status["session"] != sid
 
 
+#: Linux's TCP state of a socket whose connection is over (a reset came): include/net/tcp_states.h
+TCP_CLOSE = 7
+
+
+def test_a_client_that_stops_reading_is_reset_at_once(api_server, run_bridge):
+    """A client that sends frames ahead and never reads their answers: once the bridge's waits
+    for it have lasted the API's send_timeout_s its connection is reset at once (no last
+    status to a client known not to read, no close that waits behind its bytes), its session
+    closed and the slot free, within send_timeout_s and a margin. (Before: a status written
+    and waited for 5 s, a close waited 5 s more, then the socket closed plainly, with its
+    bytes still offered to the client, and no reset.)"""
+    api = api_server(send_timeout_s=1.0)
+    mesh = get_mesh(api.url, "bar")
+    frames = 80  # answers of about 4 kB: 300 kB in all, far past the buffers
+    bridge = run_bridge(api.url)
+    sock = socket.socket()
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 2048)
+    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_MAXSEG, 536)  # keeps the bridge's send buffer small
+    sock.settimeout(5)
+    sock.connect(("127.0.0.1", bridge.port))
+    try:
+        sock.sendall(point_frame(surface_cloud(mesh, n=5)) * frames)  # then never reads
+        t0 = time.monotonic()
+        sid = bridge.wait_sessions(1)[0]
+        deadline = t0 + 15
+        while sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_INFO, 1)[0] != TCP_CLOSE:
+            assert time.monotonic() < deadline, "the client that stopped reading was not reset"
+            time.sleep(0.02)
+        reset = time.monotonic() - t0
+        wait_closed(api.url, sid, timeout=3)
+        bridge.wait_free(timeout=1)
+        assert reset < 1.0 + 3.0, f"reset {reset:.1f} s after its frames"
+        with pytest.raises(ConnectionResetError):
+            while sock.recv(1 << 16):  # what it had received, then the reset, not an end of stream
+                pass
+    finally:
+        sock.close()
+
+
 class _SlowLink:
     """A client's socket on a slow link for its first ``seconds`` of reading: small reads at
     about ``rate`` bytes a second; at full speed after."""
