@@ -7,9 +7,11 @@ watcher that falls behind finds only the newest frame in its slot (the ones it m
 gaps in ``seq``). Encoding happens in the watcher's own task, off the event loop, once per frame
 and encoding however many watchers there are (:meth:`Published.encoded`).
 
-The slot drops frames only once the watcher's socket stops taking them, which on loopback is
-megabytes of buffered frames later. A watcher that acknowledges what it has handled (:class:`Acks`)
-is sent at most :data:`WINDOW` frames ahead of its acknowledgements, so it skips at once.
+The slot drops a frame when the next comes before the watcher's task has taken it: mostly once
+the watcher's socket stops taking them, which on loopback is megabytes of buffered frames later,
+but also while its task still sends the frame before (late, on a loaded machine). A watcher that
+acknowledges what it has handled (:class:`Acks`) is sent at most :data:`WINDOW` frames ahead of
+its acknowledgements, so it skips at once.
 """
 
 from __future__ import annotations
@@ -101,7 +103,7 @@ WINDOW = 2  # frames an acknowledging watcher may hold unacknowledged: one being
 
 class Acks:
     """One watcher's acknowledgements, on its event loop. Until its first ack a watcher is sent
-    every frame its socket takes (as before acks existed); after it, at most :data:`WINDOW`
+    frames without a window (as before acks existed); after it, at most :data:`WINDOW`
     frames beyond the newest it acknowledged. An ack is cumulative: ``ack(n)`` covers every frame
     sent with a ``seq`` up to ``n``; ``ack(0)`` (nothing handled yet) turns the window on before
     the first frame."""
