@@ -8,7 +8,8 @@
     <store>/.<id>-XXXXXXXX.build/     a build writing its entry (locked by that process; stale
                                       ones, whose writer is gone, are removed: remove_stale_builds)
     <store>/.<id>-XXXXXXXX/           the same, unlocked (older versions; file systems without
-                                      locks): removed once a day old, holding an entry's files only
+                                      locks): removed once a day old and shown to be a write cut
+                                      off (a complete entry under such a name is kept)
 
 Loading checks the manifest's shape and every name in it before any other file is opened (the
 file names must be exactly the two above, regular files inside the entry's folder: a manifest
@@ -72,10 +73,15 @@ class StoreError(RuntimeError):
 
 
 def sha256(path: Path) -> str:
-    h = hashlib.sha256()
     with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
+        return _digest(f)
+
+
+def _digest(f) -> str:
+    """The SHA-256 of an open binary file, read from where it stands to its end."""
+    h = hashlib.sha256()
+    for chunk in iter(lambda: f.read(1 << 20), b""):
+        h.update(chunk)
     return h.hexdigest()
 
 
@@ -170,10 +176,13 @@ def _state_mismatch(wanted: dict[str, torch.Tensor], got: dict[str, torch.Tensor
 _ASIDE = ".."
 #: a build's temporary folder ends so: a hidden folder of the user's is never taken for one
 _BUILDING = ".build"
-_BUILD_FOLDER = re.compile(rf"\.{MODEL_ID.pattern.strip('^$')}-[a-z0-9_]{{8}}{re.escape(_BUILDING)}")
+#: tempfile.mkdtemp's 8 random characters ([a-z0-9_]), which every version's build folder takes
+_RANDOM = "[a-z0-9_]{8}"
+_BUILD_FOLDER = re.compile(rf"\.{MODEL_ID.pattern.strip('^$')}-{_RANDOM}{re.escape(_BUILDING)}")
 #: a build's folder with no lock: written before the lock came in (ea8e4fa), or where the file
-#: system has none (_build_folder)
-_UNLOCKED_BUILD_FOLDER = re.compile(rf"\.{MODEL_ID.pattern.strip('^$')}-[a-z0-9_]{{8}}")
+#: system has none (_build_folder). A user's `.liver-original` or `.liver-20240501` has such a
+#: name too: only a write cut off (_cut_off) is ever removed
+_UNLOCKED_BUILD_FOLDER = re.compile(rf"\.{MODEL_ID.pattern.strip('^$')}-{_RANDOM}")
 #: an unlocked build folder untouched this long has no writer: write_entry fills one in seconds
 UNLOCKED_BUILD_AGE_S = 24 * 3600.0
 
@@ -231,26 +240,86 @@ def _stale(path: Path, fd: int) -> bool:
         return False
     try:
         with os.scandir(fd) as listing:
-            inside = [(e.name, e.stat(follow_symlinks=False)) for e in listing]
+            inside = {e.name: e.stat(follow_symlinks=False) for e in listing}
     except OSError:
         return False
-    if any(name not in (MANIFEST, MESH, WEIGHTS) or not stat.S_ISREG(st.st_mode) for name, st in inside):
+    if not inside:  # nothing to reclaim, and nothing shows it was a build's
+        return False
+    if any(name not in (MANIFEST, MESH, WEIGHTS) or not stat.S_ISREG(st.st_mode) for name, st in inside.items()):
         return False  # a folder of the user's that happens to have such a name
-    newest = max([os.fstat(fd).st_mtime, *(st.st_mtime for _, st in inside)])
-    return time.time() - newest > UNLOCKED_BUILD_AGE_S
+    newest = max([os.fstat(fd).st_mtime, *(st.st_mtime for st in inside.values())])
+    if time.time() - newest <= UNLOCKED_BUILD_AGE_S:
+        return False
+    cut_off = _cut_off(fd, set(inside))
+    if cut_off is False:
+        log.warning(
+            "model store %s: kept %s: named like an older version's build folder, but it holds a complete entry "
+            "(rename it if it is yours, remove it if not)",
+            path.parent,
+            path.name,
+        )
+    return bool(cut_off)
+
+
+def _cut_off(fd: int, names: set[str]) -> bool | None:
+    """Whether the entry's files `names`, in the folder open as `fd`, are a write that never
+    finished, as write_entry leaves one killed or cut by a power loss: True with no manifest (it
+    is written last), a manifest that is not JSON (cut short) or a file it lists missing or not
+    matching its checksum; False for a complete entry (a user's copy as well as a build's);
+    None where nothing can tell (an unreadable file, a manifest unlike any a build writes)."""
+    if MANIFEST not in names:
+        return True
+    try:
+        with _open_at(fd, MANIFEST) as f:
+            raw = f.read(_MAX_MANIFEST + 1)
+    except OSError:
+        return None
+    if len(raw) > _MAX_MANIFEST:
+        return None
+    try:
+        manifest = json.loads(raw)
+    except ValueError:  # not JSON, nor UTF-8
+        return True
+    files = manifest.get("files") if isinstance(manifest, dict) else None
+    if not isinstance(files, dict) or set(files) != {MESH, WEIGHTS}:
+        return None
+    for fname, digest in files.items():
+        if fname not in names:
+            return True
+        try:
+            with _open_at(fd, fname) as f:
+                if _digest(f) != digest:
+                    return True
+        except OSError:
+            return None
+    return False
+
+
+def _open_at(fd: int, name: str):
+    """The regular file `name` in the folder open as `fd`, open for reading: never through a
+    link, nor waiting on a FIFO put in its place."""
+    f = os.open(name, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK, dir_fd=fd)
+    if not stat.S_ISREG(os.fstat(f).st_mode):
+        os.close(f)
+        raise OSError(errno.EINVAL, f"{name} is not a regular file")
+    return open(f, "rb")
 
 
 def remove_stale_builds(store: Path) -> list[str]:
     """Remove the folders of builds whose process is gone (killed, or the machine lost power
     mid-write): a .ID-XXXXXXXX.build folder whose lock nobody holds; a live build's lock keeps
-    its folder. A folder named .ID-XXXXXXXX has no lock to tell (versions before the lock wrote
-    it, and a build still does where the file system has no locks): it is removed only when it
-    holds nothing but an entry's regular files and nothing in it has changed for
-    UNLOCKED_BUILD_AGE_S (a day; a build fills its folder in seconds). Any other name (an aside
-    entry, ..ID-*, a hidden folder of the user's) is never touched. One logged line per folder;
-    returns the names removed. A store this process cannot write (a read-only mount, another
-    owner's) keeps them, untouched: one warning says how many and how to clean them, and
-    nothing fails."""
+    its folder. A folder named .ID-XXXXXXXX (XXXXXXXX: tempfile's 8 characters of [a-z0-9_]) has
+    no lock to tell (versions before the lock wrote it, and a build still does where the file
+    system has no locks), and a user's backup may be named so (.liver-original, .liver-20240501):
+    it is removed only when it is a real folder (not a link) that holds nothing but an entry's
+    regular files, nothing in it has changed for UNLOCKED_BUILD_AGE_S (a day; a build fills its
+    folder in seconds), and those files are shown to be a write cut off: no manifest, a manifest
+    that is not JSON, or a file it lists missing or not matching its checksum. A complete entry
+    under such a name is kept, with one warning naming it at each scan; an empty folder, or one
+    holding anything else, is kept silently. Any other name (an aside entry, ..ID-*, a hidden
+    folder of the user's) is never touched. One logged line per folder removed; returns their
+    names. A store this process cannot write (a read-only mount, another owner's) keeps them,
+    untouched: one warning says how many and how to clean them, and nothing fails."""
     store = Path(store)
     removed: list[str] = []
     try:
@@ -282,7 +351,8 @@ def remove_stale_builds(store: Path) -> list[str]:
             except OSError as exc:
                 log.error("model store %s: cannot remove %s, a stale build's folder: %s", store, name, exc)
                 continue
-            log.warning("model store %s: removed %s, the folder of a build whose process is gone", store, name)
+            what = "a build whose process is gone" if _BUILD_FOLDER.fullmatch(name) else "a build's write cut off"
+            log.warning("model store %s: removed %s, the folder of %s", store, name, what)
             removed.append(name)
         finally:
             os.close(fd)

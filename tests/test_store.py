@@ -438,7 +438,8 @@ def test_a_read_only_store_keeps_its_stale_builds_with_one_warning_and_serves(ba
 def test_an_unlocked_build_folder_is_removed_once_a_day_old_and_holding_only_an_entrys_files(tmp_path, caplog):
     """Build folders from before the lock (.ID-XXXXXXXX, no .build) were never removed, weights
     and all. With no lock to ask, one goes only when nothing in it has changed for a day and it
-    holds nothing but an entry's files: a live build (no locks here) fills its folder in seconds."""
+    holds nothing but an entry's files, cut off (here a manifest that is not JSON): a live build
+    (no locks here) fills its folder in seconds. An empty one stays: nothing shows it a build's."""
     root = tmp_path / "store"
     root.mkdir()
     now = time.time()
@@ -457,7 +458,7 @@ def test_an_unlocked_build_folder_is_removed_once_a_day_old_and_holding_only_an_
         os.utime(path, (when, when))
 
     folder(".bar-k7x2q9_a", entry_files, old)  # a build killed mid-write, before the lock
-    folder(".bar-0a1b2c3d", [], old)  # killed just after its folder was made
+    folder(".bar-0a1b2c3d", [], old)  # empty: nothing to reclaim, nor to tell it from a user's
     folder(".bar-5f6g7h8i", entry_files[:2], recent)  # 23 h: kept
     folder(".liver-abcdefgh", entry_files, old, touched=now)  # a file written just now: kept
     folder(".backup-20240101", ["notes.txt"], old)  # a user's folder by the same pattern
@@ -466,11 +467,61 @@ def test_an_unlocked_build_folder_is_removed_once_a_day_old_and_holding_only_an_
     folder("../outside", entry_files, old)
     (root / ".bar-linked99").symlink_to(outside)  # the name, but a link: never followed
     with caplog.at_level(logging.WARNING, logger="service.store"):
-        assert remove_stale_builds(root) == [".bar-0a1b2c3d", ".bar-k7x2q9_a"]
+        assert remove_stale_builds(root) == [".bar-k7x2q9_a"]
     assert sorted(p.name for p in root.iterdir()) == [
-        ".backup-20240101", ".bar-5f6g7h8i", ".bar-linked99", ".bar-zz9zz9zz", ".liver-abcdefgh"
+        ".backup-20240101", ".bar-0a1b2c3d", ".bar-5f6g7h8i", ".bar-linked99", ".bar-zz9zz9zz", ".liver-abcdefgh"
     ]  # fmt: skip
     assert sorted(p.name for p in outside.iterdir()) == entry_files
     said = [r.getMessage() for r in caplog.records]
-    assert said == [f"model store {root}: removed {name}, the folder of a build whose process is gone"
-                    for name in (".bar-0a1b2c3d", ".bar-k7x2q9_a")]  # fmt: skip
+    assert said == [f"model store {root}: removed .bar-k7x2q9_a, the folder of a build's write cut off"]
+
+
+def _age(path, when: float) -> None:
+    """`path` and everything in it last changed at `when`."""
+    for inside in path.iterdir():
+        os.utime(inside, (when, when))
+    os.utime(path, (when, when))
+
+
+def _cut_short(path) -> None:
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+
+
+CUT_OFF = {  # a build killed (or its power cut) mid-write under an older version's folder name
+    ".bar-a1b2c3d4": lambda p: [(p / f).unlink() for f in ("weights.safetensors", "manifest.json")],  # mesh only
+    ".bar-m3n4o5p6": lambda p: (p / "weights.safetensors").unlink(),  # weights missing
+    ".bar-e5f6g7h8": lambda p: _cut_short(p / "manifest.json"),  # manifest truncated: not JSON
+    ".bar-i9j0k1l2": lambda p: _cut_short(p / "weights.safetensors"),  # weights lost: checksum mismatch
+}
+
+
+def test_a_users_backups_named_like_old_build_folders_are_kept_and_only_cut_off_writes_go(bar_store, tmp_path, caplog):
+    """Any day-old .ID-XXXXXXXX holding an entry's files was removed at every store open: a
+    user's `cp -a liver .liver-original` (tempfile's 8 characters are [a-z0-9_]: 'original',
+    '20240501', 'old_copy' are such names) went with it. Now only a write shown to be cut off
+    goes; a complete entry under such a name stays, with one warning naming it, and loads."""
+    root = tmp_path / "store"
+    shutil.copytree(bar_store[0] / "bar", root / "bar")
+    old = time.time() - UNLOCKED_BUILD_AGE_S - 3600
+    backups = [".liver-original", ".liver-previous", ".liver-20240501", ".liver-old_copy", ".bar-q7r8s9t0"]
+    for name in backups:
+        shutil.copytree(bar_store[0] / "bar", root / name)
+        _age(root / name, old)
+    (root / ".notes-abcdefgh").mkdir()  # a user's empty folder
+    _age(root / ".notes-abcdefgh", old)
+    for name, damage in CUT_OFF.items():
+        shutil.copytree(bar_store[0] / "bar", root / name)
+        damage(root / name)
+        _age(root / name, old)
+    with caplog.at_level(logging.WARNING, logger="service.store"):
+        entries, errors = open_store(root)
+    assert set(entries) == {"bar"} and errors == {}
+    assert sorted(p.name for p in root.iterdir()) == sorted(["bar", ".notes-abcdefgh", *backups])
+    for name in backups:  # untouched: each still loads as the entry it copies
+        assert load_entry(root / name, name="bar").manifest["files"] == entries["bar"].manifest["files"]
+    said = [r.getMessage() for r in caplog.records]
+    assert sorted(said) == sorted(
+        [f"model store {root}: removed {name}, the folder of a build's write cut off" for name in CUT_OFF]
+        + [f"model store {root}: kept {name}: named like an older version's build folder, but it holds a complete "
+           "entry (rename it if it is yours, remove it if not)" for name in backups]
+    )  # fmt: skip
