@@ -150,6 +150,8 @@ def _serve(args: argparse.Namespace) -> int:
 
 
 def _demo(args: argparse.Namespace) -> int:
+    from clients.client import ApiError, StreamError
+
     from .demo import run, viewer
 
     try:
@@ -166,6 +168,10 @@ def _demo(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:  # Ctrl-C, at any stage: the server stopped, one line, not a traceback
         print("interrupted", file=sys.stderr)
         return 130
+    except ApiError as exc:  # the server refused a request or closed the stream: one line, not a traceback
+        what = "stream" if isinstance(exc, StreamError) else "request"
+        print(f"error: the demo's {what} failed: {' '.join(str(exc).split())}", file=sys.stderr)
+        return 1
 
 
 def _igtl(args: argparse.Namespace) -> int:

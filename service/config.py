@@ -56,6 +56,9 @@ def _instance_id() -> str:
     return secrets.token_hex(3)
 
 
+#: the longest session_ttl_s a server takes: a week
+MAX_SESSION_TTL_S = 7 * 24 * 3600.0
+
 _TOKEN = r"^[A-Za-z0-9._~+/=-]{16,512}$"  # RFC 6750's token68 characters, at least 16 of them
 
 #: the settings that bound what one client can make the server hold or do: /health lists them
@@ -111,7 +114,7 @@ class Settings(BaseSettings):
     store: Path = Field(default_factory=default_store, description="the model store folder")
     max_points: int = Field(100_000, ge=1, le=10_000_000, description="points per frame (413 over it)")
     max_sessions: int = Field(64, ge=1, le=100_000, description="open sessions and streams (503 over it)")
-    session_ttl_s: float = Field(600.0, gt=0, le=7 * 24 * 3600, description="idle seconds before a session expires")
+    session_ttl_s: float = Field(600.0, gt=0, le=MAX_SESSION_TTL_S, description="idle seconds before a session expires")
     sweep_interval_s: float = Field(5.0, gt=0, le=3600, description="how often expired sessions are dropped")
     solver_threads: int = Field(2, ge=1, le=256, description="threads that run solves")
     blas_threads: int = Field(

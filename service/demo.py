@@ -22,7 +22,7 @@ import numpy as np
 from clients.client import Client, viewer_url
 from clients.demo import OUTPUTS, score_stream
 
-from .config import Settings, default_store
+from .config import MAX_SESSION_TTL_S, Settings, default_store
 from .fem.material import NeoHookean
 from .mesh import TetMesh
 from .synthetic import make_sequence, tool_patches
@@ -81,7 +81,10 @@ def run(
 
     say(f"starting the server over {store} ...", end=" ")
     t0 = time.perf_counter()
-    with BackgroundServer(Settings(store=store), port=port) as server, Client(server.url, encoding=encoding) as api:
+    # its own server: the session it opens before making the sequence (minutes on a big mesh)
+    # must not expire as idle meanwhile, whatever ELASTREG_SESSION_TTL_S says
+    own = Settings(store=store, session_ttl_s=MAX_SESSION_TTL_S)
+    with BackgroundServer(own, port=port) as server, Client(server.url, encoding=encoding) as api:
         say(f"{server.url} ({time.perf_counter() - t0:.1f} s)")
         ids = [m["id"] for m in api.models()]
         if model not in ids:

@@ -161,10 +161,11 @@ def test_serve_on_a_port_in_use_stops_before_loading_any_model(tmp_path):
     assert "startup" not in r.stdout + r.stderr  # no application start-up: no model was loaded
 
 
-def _demo(*args: str) -> subprocess.CompletedProcess:
+def _demo(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
+    """`elastreg demo` over the shipped store, 2 frames (`env`: ELASTREG_* settings added)."""
     store = str(Path(__file__).parents[1] / "model_store")
     argv = [sys.executable, "-m", "service.cli", "demo", "--store", store, "--frames", "2", *args]
-    return subprocess.run(argv, capture_output=True, text=True, timeout=300)
+    return subprocess.run(argv, capture_output=True, text=True, timeout=300, env={**os.environ, **(env or {})})
 
 
 def test_distributeds_cancel_race_on_ctrl_c_is_not_logged_but_other_errors_are():
@@ -295,3 +296,27 @@ def test_the_demo_serves_on_the_port_asked_for():
     assert r.returncode == 1, r.stdout
     assert r.stderr.strip() == f"error: port {port} is in use (--port picks another, or leave it out for a free one)"
     assert "starting the server" not in r.stdout
+
+
+def test_the_demos_session_outlives_a_ttl_shorter_than_its_sequence():
+    """The demo opens its session before it makes the sequence (one FEM solve a frame): with
+    ELASTREG_SESSION_TTL_S under that time its own server closed the stream as idle ("1000:
+    idle") and the first frame raised a traceback. The demo's server keeps its session."""
+    ttl = 0.05
+    r = _demo(env={"ELASTREG_SESSION_TTL_S": str(ttl)})
+    assert r.returncode == 0, r.stderr[-3000:]
+    (made,) = re.findall(r"\.\.\. 2 frames in ([0-9.]+) s$", r.stdout, re.MULTILINE)
+    assert float(made) > ttl, r.stdout  # the sequence did outlast the environment's TTL
+    assert "2 frames in" in r.stdout and "2 converged" in r.stdout, r.stdout
+
+
+def test_a_stream_error_ends_the_demo_in_one_line():
+    """A server limit the demo's frames break (ELASTREG_MAX_POINTS under its 1000-point clouds,
+    set for a real server in the same shell) raised the client's StreamError as a traceback:
+    now one line and exit status 1."""
+    r = _demo(env={"ELASTREG_MAX_POINTS": "500"})
+    assert r.returncode == 1, r.stdout
+    assert "Traceback" not in r.stderr, r.stderr[-3000:]
+    assert r.stderr.splitlines()[-1] == (  # after the server's own log lines (its start's warning)
+        "error: the demo's stream failed: 413: 1000 points is over this server's limit of 500 per frame"
+    ), r.stderr[-3000:]
