@@ -84,7 +84,8 @@ def run(
     # its own server: the session it opens before making the sequence (minutes on a big mesh)
     # must not expire as idle meanwhile, whatever ELASTREG_SESSION_TTL_S says
     own = Settings(store=store, session_ttl_s=MAX_SESSION_TTL_S)
-    with BackgroundServer(own, port=port) as server, Client(server.url, encoding=encoding) as api:
+    token = own.api_tokens[0] if own.api_tokens else None  # a server with tokens (ELASTREG_API_TOKENS) needs one
+    with BackgroundServer(own, port=port) as server, Client(server.url, encoding=encoding, token=token) as api:
         say(f"{server.url} ({time.perf_counter() - t0:.1f} s)")
         ids = [m["id"] for m in api.models()]
         if model not in ids:

@@ -310,6 +310,24 @@ def test_the_demos_session_outlives_a_ttl_shorter_than_its_sequence():
     assert "2 frames in" in r.stdout and "2 converged" in r.stdout, r.stdout
 
 
+def test_the_demo_runs_against_its_own_server_with_tokens():
+    """With ELASTREG_API_TOKENS set, the demo's own server required a token its client never
+    sent: the first request was a 401. Its client now sends one of the server's tokens."""
+    r = _demo(env={"ELASTREG_API_TOKENS": "demo-token-aaaaaaaaaaaa,demo-token-bbbbbbbbbbbb"})
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "401" not in r.stderr and "frame" in r.stdout, r.stdout
+
+
+def test_settings_the_demos_server_refuses_end_it_in_one_line():
+    """ELASTREG_* settings that contradict each other raised pydantic's traceback out of the
+    demo: now one line naming the setting, and exit status 1."""
+    r = _demo(env={"ELASTREG_MAX_MESSAGE_BYTES": "20000"})
+    assert r.returncode == 1, r.stdout
+    assert "Traceback" not in r.stderr, r.stderr[-3000:]
+    (line,) = r.stderr.strip().splitlines()
+    assert line.startswith("error: the demo's server settings: ") and "max_message_bytes" in line, line
+
+
 def test_a_stream_error_ends_the_demo_in_one_line():
     """A server limit the demo's frames break (ELASTREG_MAX_POINTS under its 1000-point clouds,
     set for a real server in the same shell) raised the client's StreamError as a traceback:
