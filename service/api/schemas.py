@@ -63,7 +63,9 @@ def _array(v: Any, what: str) -> np.ndarray:
     else:
         raise ValueError(f"{what} must be an array (nested lists, or a packed array in MessagePack)")
     if a.dtype.kind not in "iuf":
-        raise ValueError(f"{what} must be integers" if a.dtype.kind == "b" else f"{what} must hold numbers only")
+        raise ValueError(
+            f"{what} must hold numbers, not booleans" if a.dtype.kind == "b" else f"{what} must hold numbers only"
+        )
     if not a.flags.writeable:  # a packed array views the message's bytes: the engine gets its own
         a = a.copy()
     return a

@@ -63,11 +63,13 @@ def build_session(
         given["time_budget_ms"] = budget_ms
     if max_iter is not None and (create.max_iter is None or "max_iter" not in create.model_fields_set):
         given["max_iter"] = min(SessionConfig.max_iter, max_iter)  # null is unsent: the default, capped
+    model = entry.network if create.method == "auto" else entry.model(create.method)
+    check_nodes(model, create)
     try:
         if create.method == "auto":
-            session = Session(entry.network, SessionConfig(**given), corrector=entry.fem)
+            session = Session(model, SessionConfig(**given), corrector=entry.fem)
         else:
-            session = Session(entry.model(create.method), SessionConfig(**given))
+            session = Session(model, SessionConfig(**given))
     except ValueError as exc:
         raise unprocessable(str(exc)) from None
     c = session.config
@@ -79,6 +81,23 @@ def build_session(
         skip_stale=create.skip_stale,
     )
     return Held(id=reservation.id, kind=reservation.kind, model=entry.id, session=session, config=config)
+
+
+def check_nodes(model, create: SessionCreate) -> None:
+    """A 422 whose ``loc`` names the field, for a support or matching the model cannot take: the
+    engine's own ValueError does not say which field it found wrong (a frame's errors name it)."""
+    from ..registration.session import check_faces
+
+    try:
+        if create.support is not None:
+            check_model_support(model, create.support)
+    except ValueError as exc:
+        raise unprocessable(str(exc), "support") from None
+    try:
+        if create.matching is not None:
+            check_faces(model.mesh, create.matching)
+    except ValueError as exc:
+        raise unprocessable(str(exc), "matching") from None
 
 
 def config_of(held: Held) -> dict:
@@ -210,14 +229,18 @@ def flag_non_finite(payload: dict) -> None:
         payload["message"] = f"non-finite values in {', '.join(bad)} (solver: {payload.get('message') or ''})"
 
 
-def check_frame_support(held: Held, support) -> None:
-    """The cheap checks a frame's support must pass (ids, fixed nodes, a network's load region),
-    for a support a skipped frame carried: ValueError saying why."""
-    session = held.session
-    nodes = check_support(session.mesh, np.asarray(support))
-    region_columns = getattr(session.model, "region_columns", None)
+def check_model_support(model, support) -> None:
+    """The cheap checks a support must pass (ids, fixed nodes, a network's load region):
+    ValueError saying why."""
+    nodes = check_support(model.mesh, np.asarray(support))
+    region_columns = getattr(model, "region_columns", None)
     if region_columns is not None:
         region_columns(nodes)
+
+
+def check_frame_support(held: Held, support) -> None:
+    """:func:`check_model_support` for a support a skipped frame carried."""
+    check_model_support(held.session.model, support)
 
 
 def solve_frame(

@@ -113,7 +113,7 @@ class Session:
             raise ValueError(f"unknown outputs {sorted(unknown)}; choose from {list(OUTPUT_NAMES)}")
         self.model = model
         self.mesh = model.mesh
-        faces = self.mesh.surface_faces if config.matching is None else _check_faces(self.mesh, config.matching)
+        faces = self.mesh.surface_faces if config.matching is None else check_faces(self.mesh, config.matching)
         self.distance = PointToSurface(faces, loss=config.loss, loss_param=config.loss_param)
         support = (
             default_support(model) if config.support is None else check_support(self.mesh, np.asarray(config.support))
@@ -538,7 +538,7 @@ def _field(op: ForwardOperator, model: ForwardModel, g: Array, support: Array) -
     return u_all, estimator_for(model).forward_error(u_all, g, support)
 
 
-def _check_faces(mesh: TetMesh, faces) -> Array:
+def check_faces(mesh: TetMesh, faces) -> Array:
     f = np.asarray(faces)
     if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
         raise ValueError("matching must be a non-empty list of node-id triples")

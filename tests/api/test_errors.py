@@ -135,6 +135,37 @@ def test_session_config_errors(http, config, status, words):
     assert http.get("/health").json()["sessions"]["open"] == before  # nothing left behind
 
 
+@pytest.mark.parametrize(
+    "field, value, words",
+    [
+        ("support", [0, 70], "fixed"),
+        ("support", [70, 99], "0..80"),
+        ("support", [70, 70], "repeats"),
+        ("support", "interior", "region"),
+        ("matching", [[1, 2, 500]], "0..80"),
+    ],
+)
+def test_session_node_errors_name_their_field_as_a_frame_does(http, entry, support, field, value, words):
+    if value == "interior":  # a free node the network cannot load
+        value = np.setdiff1d(np.flatnonzero(entry.mesh.free_mask), entry.region)[:1].tolist()
+    r = http.post("/sessions", json={"model": "bar", field: value})
+    assert r.status_code == 422, r.text
+    [error] = r.json()["detail"]
+    assert error["loc"] == ["body", field] and words in error["msg"], error
+    if field == "support":  # the same mistake in a frame: the same loc
+        sid = http.post("/sessions", json={"model": "bar"}).json()["session"]
+        frame = http.post(f"/sessions/{sid}/frames", json={"points": [[0.0, 0.0, 0.0]], "support": value})
+        assert frame.json()["detail"][0]["loc"] == error["loc"], frame.text
+        http.delete(f"/sessions/{sid}")
+
+
+def test_boolean_coordinates_are_refused_as_booleans(http):
+    sid = http.post("/sessions", json={"model": "bar"}).json()["session"]
+    r = http.post(f"/sessions/{sid}/frames", json={"points": [[True, False, True]]})
+    assert r.status_code == 422 and "points must hold numbers, not booleans" in r.json()["detail"][0]["msg"], r.text
+    http.delete(f"/sessions/{sid}")
+
+
 def test_errors_in_msgpack_when_asked(http):
     from .conftest import unpack
 
