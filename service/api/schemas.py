@@ -355,6 +355,7 @@ class SimulateOut(_Reply):
     status: str
     iterations: int
     residual: float | None = None
+    error_estimate: float | None = None  # m, the network's: null where infinite (the FEM has residual)
     timing_ms: dict[str, float]
 
 

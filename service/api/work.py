@@ -330,7 +330,7 @@ def simulate(entry, body: SimulateIn, kind: str, timing: dict, t_received: float
         if body.method == "network":
             model = entry.network if body.E is None else entry.network.with_stiffness(body.E)
             u = model.predict(values[None], nodes)[0]
-            result = {"converged": True, "status": "converged", "iterations": 0, "residual": None}
+            result = judge_network(entry.network, u, values * model.stiffness_factor, nodes)
         else:
             model = entry.fem if body.E is None else entry.fem.with_stiffness(body.E)
             res = model.solve(values, nodes, deadline=t0 + budget_ms / 1e3)
@@ -349,6 +349,24 @@ def simulate(entry, body: SimulateIn, kind: str, timing: dict, t_received: float
     timing["server"] = _ms(t_received)
     payload = {"displacement": u, "net_force": values.sum(axis=0), "method": body.method, **result}
     return codec.encode_timed(payload, kind, timing)
+
+
+def judge_network(network, u, scaled, nodes) -> dict:
+    """A network's answer judged as a frame's is (docs/usage.md): its error estimate, from the
+    Neo-Hookean residual (confidence.py), and not converged where that is infinite (the field
+    is not finite or inverts elements: ``non_finite``) or where the load is larger than any the
+    network was trained on (``beyond_training``). `scaled`: the forces at the network's own E
+    (E0 / E of the body's), where the estimate is the same and its factorisation already made."""
+    from ..registration.confidence import estimator_for
+
+    estimate = estimator_for(network).forward_error(u, scaled, nodes) if np.isfinite(u).all() else math.inf
+    result = {"converged": True, "status": "converged", "iterations": 0, "residual": None, "error_estimate": estimate}
+    load = float(np.linalg.norm(scaled, axis=1).sum())  # as training measured a sample's: nodal magnitudes
+    if not math.isfinite(estimate):
+        result.update(converged=False, status="non_finite", error_estimate=None)
+    elif network.max_force is not None and load > network.max_force:
+        result.update(converged=False, status="beyond_training")
+    return result
 
 
 def mesh_payload(entry) -> dict:

@@ -37,12 +37,14 @@ def _deformation(u, tets, grads, t, F):
 
 
 def _inv_transpose(F, G):
-    """G = F^-T; returns det F."""
+    """G = F^-T (non-finite where F is singular); returns det F."""
     c00 = F[1, 1] * F[2, 2] - F[1, 2] * F[2, 1]
     c01 = F[1, 2] * F[2, 0] - F[1, 0] * F[2, 2]
     c02 = F[1, 0] * F[2, 1] - F[1, 1] * F[2, 0]
     det = F[0, 0] * c00 + F[0, 1] * c01 + F[0, 2] * c02
-    inv = 1.0 / det
+    # a singular F (a field 1e29 m large cancels to det 0) gives non-finite values, as NumPy's
+    # division does, not numba's ZeroDivisionError: callers read them as an inverted element
+    inv = 1.0 / det if det != 0.0 else math.inf
     G[0, 0] = c00 * inv
     G[0, 1] = c01 * inv
     G[0, 2] = c02 * inv

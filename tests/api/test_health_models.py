@@ -7,6 +7,7 @@ import pytest
 
 from service import __version__
 from service.api.schemas import Health, MeshOut, ModelSummary, SimulateOut
+from service.registration.confidence import estimator_for
 
 from .conftest import MAX_POINTS, MSGPACK, mp, packed, unpack
 
@@ -71,12 +72,37 @@ def test_simulate_network_matches_in_process(http, entry, support):
     np.testing.assert_allclose(np.asarray(body.displacement), want, rtol=1e-12, atol=1e-15)
     np.testing.assert_allclose(body.net_force, g.sum(0))
     assert body.converged and {"solve", "decode", "encode"} <= set(body.timing_ms)
+    assert body.error_estimate == pytest.approx(estimator_for(entry.network).forward_error(want, g, support))
     r = http.post(
         "/models/bar/simulate",
         headers=MSGPACK,
         content=mp({"forces": {"nodes": packed(support, "<i8"), "values": packed(g, "<f8")}}),
     )
     np.testing.assert_allclose(unpack(r.content)["displacement"], want, rtol=1e-12, atol=1e-15)
+
+
+def _network(http, support, total, **extra):
+    g = np.tile([0.0, 0.0, total / support.size], (support.size, 1))
+    r = http.post("/models/bar/simulate", json={"forces": {"nodes": support.tolist(), "values": g.tolist()}, **extra})
+    assert r.status_code == 200, r.text
+    return r.json()
+
+
+def test_simulate_network_is_not_converged_far_outside_what_it_learnt(http, entry, support):
+    """A 1e30 N load: the network's field is 1e29 m and folds elements, its residual infinite."""
+    body = _network(http, support, 1e30)
+    assert not body["converged"] and body["status"] == "non_finite" and body["error_estimate"] is None
+    # past the largest load it was trained on: an answer with its estimate, not converged
+    max_force = entry.network.max_force
+    past = _network(http, support, 1.5 * max_force)
+    assert not past["converged"] and past["status"] == "beyond_training" and past["error_estimate"] > 0
+    # the same load on an organ twice as stiff is 0.75 max_force to the network: within its range
+    stiff = _network(http, support, 1.5 * max_force, E=2 * entry.network.E0)
+    assert stiff["converged"] and stiff["status"] == "converged"
+    u = np.asarray(stiff["displacement"])
+    g = np.tile([0.0, 0.0, 1.5 * max_force / support.size], (support.size, 1))
+    at_E = entry.network.with_stiffness(2 * entry.network.E0)  # the estimate at the body's own E
+    assert stiff["error_estimate"] == pytest.approx(estimator_for(at_E).forward_error(u, g, support), rel=1e-3)
 
 
 def test_simulate_fem_and_stiffness(http, entry, support):

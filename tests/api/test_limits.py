@@ -283,7 +283,9 @@ def test_the_ends_of_the_ranges_are_served_and_the_time_cap_applies_unasked(tigh
         r = c.post("/models/bar/simulate", json={"forces": g, "E": 1e-300})
         assert r.status_code == 422 and "outside" in json.dumps(r.json()["detail"])
         r = c.post("/models/bar/simulate", json={"forces": g, "E": 4.5})
-        assert r.status_code == 200 and r.json()["converged"] is True
+        # served, not converged: 3 N on an organ 1000x softer is 3000 N to the network (trained to
+        # 60 N), and its field folds elements (an infinite residual: docs/usage.md)
+        assert r.status_code == 200 and not r.json()["converged"] and r.json()["status"] == "non_finite"
         assert np.isfinite(np.asarray(r.json()["displacement"], float)).all()
 
 

@@ -102,6 +102,19 @@ def test_compiled_kernels_equal_the_numpy_reference(bar):
     assert np.isinf(fast.energy(crushed)) and np.isinf(ref.energy(crushed))
 
 
+def test_a_singular_element_gives_non_finite_forces_in_both_paths(bar):
+    """A field that collapses the free nodes onto the origin (det F = 0: a network's answer to a
+    1e30 N load cancels to it) is non-finite forces, as NumPy's are: not numba's ZeroDivisionError."""
+    pytest.importorskip("numba")
+    mat = NeoHookean(4500.0, 0.49)
+    collapsed = np.zeros_like(bar.nodes)
+    collapsed[bar.free_mask] = -bar.nodes[bar.free_mask]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for compiled in (True, False):
+            asm = Assembler(bar, mat, compiled=compiled)
+            assert not np.isfinite(asm.internal_force(collapsed)).all(), compiled
+
+
 @pytest.mark.parametrize("compiled", [True, False])
 def test_the_energy_resolves_a_small_loads_change(bar, compiled):
     """Near rest the energy's change along a tiny step is the internal force's work on it, to
