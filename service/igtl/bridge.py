@@ -303,17 +303,17 @@ class Bridge:
         except p.ProtocolError as exc:
             size = int.from_bytes(raw[42:50], "big")
             if size > p.MAX_BODY:  # cannot find the next message: the connection is lost
-                await self._error(writer, str(exc), client.version)
+                await self._error(writer, exc, client.version)
                 raise ConnectionError(str(exc)) from None
             await reader.readexactly(size)
-            await self._error(writer, str(exc), client.version)
+            await self._error(writer, exc, client.version)
             return None
         client.version = min(version, 2)
         body = await reader.readexactly(size)
         try:
             return p.parse_body(version, mtype, device, ts, body, crc)
         except p.ProtocolError as exc:
-            await self._error(writer, str(exc), version)
+            await self._error(writer, exc, version)
             return None
 
     async def _cloud(self, msg: p.Message, writer) -> np.ndarray | None:
@@ -335,7 +335,7 @@ class Bridge:
             else:
                 decoded = decode(msg.content)
         except p.ProtocolError as exc:
-            writer.write(_status({"error": str(exc)}, msg.version))
+            await self._error(writer, exc, msg.version)
             return None
         points = decoded.points if isinstance(decoded, p.PolyData) else decoded
         # OpenIGTLink carries float32, and the API reads packed float32 ("<f4"): sent as it came
@@ -437,9 +437,10 @@ class Bridge:
         writer.write(_status({"frame_id": frame, "error": _error_body(code, detail, retry_after)}, version))
         await self._drain(writer)
 
-    async def _error(self, writer, text: str, version: int) -> None:
-        log.warning("malformed message: %s", text)
-        writer.write(_status({"error": text}, version))
+    async def _error(self, writer, exc: p.ProtocolError, version: int) -> None:
+        """A malformed message's answer: its error in the shape a refused frame's has."""
+        log.warning("malformed message: %s", exc)
+        writer.write(_status({"error": _error_body(exc.code, str(exc))}, version))
         await self._drain(writer)
 
 

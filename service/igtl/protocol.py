@@ -25,7 +25,13 @@ ASCII, UTF8 = 3, 106  # IANA character sets used by STRING
 
 
 class ProtocolError(ValueError):
-    """A message that does not follow the protocol (answered with an error, never fatal)."""
+    """A message that does not follow the protocol (answered with an error, never fatal). Its
+    ``code`` is the HTTP API's for the same fault: 400 a message that cannot be parsed, 422 one
+    parsed but invalid, 413 one over the limit."""
+
+    def __init__(self, detail: str, code: int = 400) -> None:
+        super().__init__(detail)
+        self.code = code
 
 
 # -- CRC-64 ------------------------------------------------------------------------------------
@@ -84,7 +90,7 @@ def parse_header(raw: bytes) -> tuple[int, str, str, float, int, int]:
     if version not in (1, 2):  # OpenIGTLink's headers: 1 (protocols 1 and 2), 2 (protocol 3)
         raise ProtocolError(f"header version {version} (this bridge reads 1 and 2)")
     if size > MAX_BODY:
-        raise ProtocolError(f"a body of {size} bytes is over this bridge's limit of {MAX_BODY}")
+        raise ProtocolError(f"a body of {size} bytes is over this bridge's limit of {MAX_BODY}", 413)
     return version, _name(mtype), _name(device), sec + frac / 2**32, size, crc
 
 
@@ -194,7 +200,7 @@ def _cells(raw: bytes, count: int, n_points: int, what: str) -> list[np.ndarray]
     if at != a.size:
         raise ProtocolError(f"POLYDATA: {what} section holds more than its {count} cells")
     if cells and (max(int(c.max(initial=0)) for c in cells) >= n_points):
-        raise ProtocolError(f"POLYDATA: a {what} cell refers to a point beyond the {n_points} points")
+        raise ProtocolError(f"POLYDATA: a {what} cell refers to a point beyond the {n_points} points", 422)
     return cells
 
 
@@ -242,7 +248,7 @@ def decode_polydata(content: bytes) -> PolyData:
         raw = content[at : at + size]
         uniform = _uniform_cells(raw, count)
         if uniform is not None and uniform.size and int(uniform.max()) >= npts:
-            raise ProtocolError(f"POLYDATA: a {what} cell refers to a point beyond the {npts} points")
+            raise ProtocolError(f"POLYDATA: a {what} cell refers to a point beyond the {npts} points", 422)
         sections.append(list(uniform) if uniform is not None else _cells(raw, count, npts, what))
         at += size
     attributes = _attributes(content, at, natt)

@@ -77,7 +77,8 @@ def test_bridge_surface_equals_the_http_api(live, http, bridge, entry, support, 
         sock.sendall(bytes(bad))
         err = read_message(sock)
         assert (err.type, err.device) == ("STRING", "status")
-        assert "CRC" in json.loads(p.decode_string(err.content))["error"]
+        error = json.loads(p.decode_string(err.content))["error"]
+        assert error["code"] == 400 and "CRC" in error["detail"], error
         for t, pts in enumerate(sent):
             if t % 2:
                 msg = pyigtl.PointMessage(positions=pts, device_name="cloud")

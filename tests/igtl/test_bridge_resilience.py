@@ -197,6 +197,30 @@ def test_a_client_that_takes_no_answers_frees_the_only_slot(api_server, run_brid
         deaf.close()
 
 
+def test_malformed_messages_get_the_error_shape_a_refused_frame_gets(api_server, run_bridge):
+    """{"error": {"code", "detail"}} for every error: 400 a message that cannot be parsed (a
+    corrupt body, a POINT of part of a point), 422 one parsed but invalid (a cell naming a point
+    the message does not hold), as the HTTP API answers; the connection goes on."""
+    api = api_server()
+    mesh = get_mesh(api.url, "bar")
+    cloud = surface_cloud(mesh)
+    corrupt = bytearray(point_frame(cloud))
+    corrupt[-1] ^= 0xFF
+    beyond = p.pack("POLYDATA", "cloud", p.encode_polydata(cloud, np.array([[0, 1, len(cloud)]])))
+    bridge = run_bridge(api.url)
+    with bridge.connect() as sock:
+        for message, code, words in [
+            (bytes(corrupt), 400, "CRC"),
+            (p.pack("POINT", "cloud", b"\0" * (p.POINT_ITEM + 1)), 400, "whole number"),
+            (beyond, 422, "beyond"),
+        ]:
+            sock.sendall(message)
+            error = read_answer(sock)[1]["error"]
+            assert error["code"] == code and words in error["detail"], error
+        sock.sendall(point_frame(cloud))
+        registered(read_answer(sock), len(mesh["surface_nodes"]))
+
+
 def test_a_stalled_client_frees_the_only_slot(api_server, run_bridge):
     """A client that stops in the middle of a message is closed after the API's body_timeout_s
     (its session with it); the next client is served, not refused as a second one."""

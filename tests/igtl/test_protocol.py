@@ -98,10 +98,12 @@ def test_malformed_messages_are_refused(surface):
         p.decode_polydata(content[:-20])
     bad = bytearray(content)
     bad[40 + 12 * len(points) + 4 : 40 + 12 * len(points) + 8] = struct.pack(">I", 999)
-    with pytest.raises(p.ProtocolError, match="beyond"):
+    with pytest.raises(p.ProtocolError, match="beyond") as beyond:
         p.decode_polydata(bytes(bad))
-    with pytest.raises(p.ProtocolError):
+    assert beyond.value.code == 422  # parsed, but invalid: the HTTP API's 422
+    with pytest.raises(p.ProtocolError) as unparsed:
         p.decode_point(b"\0" * 100)
+    assert unparsed.value.code == 400  # cannot be parsed: the HTTP API's 400
     with pytest.raises(p.ProtocolError):
         p.decode_string(struct.pack(">HH", 3, 50) + b"short")
 
