@@ -228,6 +228,19 @@ def send_frozen(sock: SlowSocket, support, clouds) -> None:
         sock.sendall(_client_frame(json.dumps(f).encode()))
 
 
+def frozen_stream_let_go(server, support, clouds) -> tuple[SlowSocket, float]:
+    """A stream client that sends its frames and never reads: its socket, once the server has
+    freed its slot and its session, and the seconds that took."""
+    state = server.app.state
+    sock = open_frozen(server, "/stream")
+    send_frozen(sock, support, clouds)
+    t0 = time.monotonic()
+    assert wait_for(lambda: state.sockets == 0, timeout=15), "the frozen client still holds its slot"
+    waited = time.monotonic() - t0
+    assert wait_for(lambda: len(state.registry) == 0)
+    return sock, waited
+
+
 def test_without_a_transport_a_frozen_stream_client_frees_its_slot(bar_store, support, clouds, caplog):
     """Where the app finds no transport (a wrapper of ``send`` outside it), a stream's frozen
     client is let go under the whole-send deadline, and so is the close that follows: the
@@ -238,12 +251,7 @@ def test_without_a_transport_a_frozen_stream_client_frees_its_slot(bar_store, su
     server = start(bar_store[0], wrap=HiddenSend, instance_id="hidden", send_timeout_s=1.0)
     try:
         state = server.app.state
-        sock = open_frozen(server, "/stream")
-        send_frozen(sock, support, clouds)
-        t0 = time.monotonic()
-        assert wait_for(lambda: state.sockets == 0, timeout=15), "the frozen client still holds its slot"
-        waited = time.monotonic() - t0
-        assert wait_for(lambda: len(state.registry) == 0)
+        sock, waited = frozen_stream_let_go(server, support, clouds)
         assert 1.0 <= waited < 8.0, waited
         sock.close()
         open_frozen(server, "/stream").close()  # a second connection: not told again
@@ -264,13 +272,7 @@ def test_under_uvicorns_trace_logging_a_frozen_stream_client_is_reset(bar_store,
     for name in ("uvicorn.error", "uvicorn.asgi"):  # trace's lines: a dump of every message
         logging.getLogger(name).setLevel(logging.WARNING)
     try:
-        state = server.app.state
-        sock = open_frozen(server, "/stream")
-        send_frozen(sock, support, clouds)
-        t0 = time.monotonic()
-        assert wait_for(lambda: state.sockets == 0, timeout=15), "the frozen client still holds its slot"
-        waited = time.monotonic() - t0
-        assert wait_for(lambda: len(state.registry) == 0)
+        sock, waited = frozen_stream_let_go(server, support, clouds)
         assert wait_for(lambda: sock.state() == TCP_CLOSE), "its connection was not dropped"
         assert 1.0 <= waited < 6.0, waited
         assert not [r for r in caplog.records if "no transport to watch" in r.getMessage()]

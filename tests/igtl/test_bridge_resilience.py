@@ -257,11 +257,7 @@ def test_a_client_that_stops_reading_is_reset_at_once(api_server, run_bridge):
     mesh = get_mesh(api.url, "bar")
     frames = 80  # answers of about 4 kB: 300 kB in all, far past the buffers
     bridge = run_bridge(api.url)
-    sock = socket.socket()
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 2048)
-    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_MAXSEG, 536)  # keeps the bridge's send buffer small
-    sock.settimeout(5)
-    sock.connect(("127.0.0.1", bridge.port))
+    sock = _narrow_client(bridge.port, timeout=5)
     try:
         sock.sendall(point_frame(surface_cloud(mesh, n=5)) * frames)  # then never reads
         t0 = time.monotonic()
@@ -311,11 +307,7 @@ def test_a_client_that_takes_its_answers_slowly_is_kept(api_server, run_bridge):
     n = len(mesh["surface_nodes"])
     frames = 80  # answers of about 4 kB: 300 kB in all
     bridge = run_bridge(api.url)
-    sock = socket.socket()
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 2048)
-    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_MAXSEG, 536)  # keeps the bridge's send buffer small
-    sock.settimeout(30)
-    sock.connect(("127.0.0.1", bridge.port))
+    sock = _narrow_client(bridge.port, timeout=30)
     try:
         sock.sendall(point_frame(surface_cloud(mesh, n=5)) * frames)  # 60 kB: the bridge reads them all
         slow = _SlowLink(sock, rate=20e3, seconds=6.0)
@@ -337,11 +329,7 @@ def test_a_client_that_takes_a_trickle_of_its_answers_is_closed(api_server, run_
     mesh = get_mesh(api.url, "bar")
     frames = 80  # answers of about 4 kB: 300 kB in all
     bridge = run_bridge(api.url)
-    sock = socket.socket()
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 2048)
-    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_MAXSEG, 536)
-    sock.settimeout(30)
-    sock.connect(("127.0.0.1", bridge.port))
+    sock = _narrow_client(bridge.port, timeout=30)
     answers = []
 
     def trickle() -> None:
@@ -364,3 +352,14 @@ def test_a_client_that_takes_a_trickle_of_its_answers_is_closed(api_server, run_
     finally:
         sock.close()
         reader.join(timeout=10)
+
+
+def _narrow_client(port: int, timeout: float) -> socket.socket:
+    """A client on a small window (2 kB receive buffer, 536-byte segments, set before it
+    connects): what it does not take backs up into the bridge's buffers at once."""
+    sock = socket.socket()
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 2048)
+    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_MAXSEG, 536)  # keeps the bridge's send buffer small
+    sock.settimeout(timeout)
+    sock.connect(("127.0.0.1", port))
+    return sock
