@@ -201,7 +201,7 @@ class Bridge:
             error = _error_body(exc.code, str(exc), exc.retry_after)
         except _Stalled as exc:  # the slot is freed: a stalled or vanished client holds it no longer
             log.warning("client %s: %s; closing it", client.peer, exc)
-            error = str(exc)
+            error = _error_body(408, str(exc))  # the HTTP API's code for a body that comes too slowly
         except Exception as exc:  # a bug: this client is told and closed, the next is served
             log.exception("client %s: internal error", client.peer)
             error = _error_body(500, f"internal error in the bridge ({type(exc).__name__}); it has been logged")

@@ -231,8 +231,9 @@ def test_a_stalled_client_frees_the_only_slot(api_server, run_bridge):
     with bridge.connect() as stalled:
         stalled.sendall(frame[:30])  # half a header, then nothing
         sid = bridge.wait_sessions(1)[0]
-        msg = read_message(stalled)  # told, then closed
-        assert "no complete message" in json.loads(p.decode_string(msg.content))["error"]
+        msg = read_message(stalled)  # told, in the one shape of the bridge's errors, then closed
+        error = json.loads(p.decode_string(msg.content))["error"]
+        assert error["code"] == 408 and "no complete message" in error["detail"], error
         with pytest.raises(ConnectionError):
             read_message(stalled)
         wait_closed(api.url, sid)  # closed with its client
