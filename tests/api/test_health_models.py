@@ -105,6 +105,21 @@ def test_simulate_network_is_not_converged_far_outside_what_it_learnt(http, entr
     assert stiff["error_estimate"] == pytest.approx(estimator_for(at_E).forward_error(u, g, support), rel=1e-3)
 
 
+def test_a_load_at_the_trained_maximum_is_within_training_whatever_its_rounding(entry, support):
+    """The sum of nodal magnitudes rounds: 1 N on 20 phantom nodes summed to 1 + 2e-16, and a
+    float32 body (MessagePack's packed arrays) to 1 + 1.5e-8, and was beyond_training. A load
+    past max_force by more than rounding still is."""
+    from service.api.work import LOAD_ROUNDING, judge_network
+
+    net, k = entry.network, support.size
+    for share in (1 + 1e-9, 1 + LOAD_ROUNDING / 2):
+        g = np.tile([0.0, 0.0, share * net.max_force / k], (k, 1))
+        u = net.predict(g[None], support)[0]
+        assert judge_network(net, u, g, support)["status"] == "converged", share
+    g = np.tile([0.0, 0.0, 1.001 * net.max_force / k], (k, 1))
+    assert judge_network(net, net.predict(g[None], support)[0], g, support)["status"] == "beyond_training"
+
+
 def test_simulate_fem_and_stiffness(http, entry, support):
     g = np.tile([0.0, 0.0, 10.0 / support.size], (support.size, 1))
     r = http.post(
