@@ -281,8 +281,8 @@ def _cut_off(fd: int, names: set[str]) -> bool | None:
     except ValueError:  # not JSON, nor UTF-8
         return True
     files = manifest.get("files") if isinstance(manifest, dict) else None
-    if not isinstance(files, dict) or set(files) != {MESH, WEIGHTS}:
-        return None
+    if not isinstance(files, dict) or set(files) != {MESH, WEIGHTS} or not all(map(_is_digest, files.values())):
+        return None  # unlike any manifest a build writes: not a write cut off
     for fname, digest in files.items():
         if fname not in names:
             return True
@@ -293,6 +293,11 @@ def _cut_off(fd: int, names: set[str]) -> bool | None:
         except OSError:
             return None
     return False
+
+
+def _is_digest(value: object) -> bool:
+    """Whether a manifest's checksum is one a build writes: a SHA-256 hex digest."""
+    return isinstance(value, str) and re.fullmatch(r"[0-9a-f]{64}", value) is not None
 
 
 def _open_at(fd: int, name: str):
@@ -513,7 +518,7 @@ def _check_manifest(manifest, name: str) -> None:
             f"{name}: the manifest must list {MESH} and {WEIGHTS} under files, and nothing else "
             f"(it lists {listed!r:.200})"
         )
-    if not all(isinstance(d, str) and re.fullmatch(r"[0-9a-f]{64}", d) for d in files.values()):
+    if not all(_is_digest(d) for d in files.values()):
         raise StoreError(f"{name}: each file's checksum must be a SHA-256 hex digest")
     entry_id = manifest.get("id")
     if not isinstance(entry_id, str) or not MODEL_ID.fullmatch(entry_id):

@@ -495,6 +495,24 @@ CUT_OFF = {  # a build killed (or its power cut) mid-write under an older versio
 }
 
 
+def test_a_day_old_copy_whose_checksums_no_build_writes_is_kept(bar_store, tmp_path):
+    """A copy under an old build-folder name whose manifest's checksums were edited (null, or
+    upper-case hex) is unlike any manifest a build writes, so nothing shows it a cut-off write:
+    kept. It counted as a checksum mismatch and was removed."""
+    root = tmp_path / "store"
+    shutil.copytree(bar_store[0] / "bar", root / "bar")
+    old = time.time() - UNLOCKED_BUILD_AGE_S - 3600
+    edits = {".bar-hand_mad": lambda d: None, ".bar-upper_hx": str.upper}
+    for name, edit in edits.items():
+        shutil.copytree(bar_store[0] / "bar", root / name)
+        manifest = json.loads((root / name / "manifest.json").read_text())
+        manifest["files"] = {f: edit(d) for f, d in manifest["files"].items()}
+        (root / name / "manifest.json").write_text(json.dumps(manifest))
+        _age(root / name, old)
+    open_store(root)
+    assert sorted(p.name for p in root.iterdir()) == sorted(["bar", *edits])
+
+
 def test_a_users_backups_named_like_old_build_folders_are_kept_and_only_cut_off_writes_go(bar_store, tmp_path, caplog):
     """Any day-old .ID-XXXXXXXX holding an entry's files was removed at every store open: a
     user's `cp -a liver .liver-original` (tempfile's 8 characters are [a-z0-9_]: 'original',
