@@ -77,7 +77,10 @@ def _inner(send: Any) -> Any:
     code, cells = getattr(send, "__code__", None), getattr(send, "__closure__", None)
     if code is None or not cells or "send" not in code.co_freevars:
         return None
-    return cells[code.co_freevars.index("send")].cell_contents
+    try:
+        return cells[code.co_freevars.index("send")].cell_contents
+    except ValueError:  # a cell not yet filled: no send to follow
+        return None
 
 
 async def send_message(ws: WebSocket, body: bytes, binary: bool, settings: Settings) -> None:

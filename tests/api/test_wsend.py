@@ -316,3 +316,28 @@ def _client_frame(payload: bytes) -> bytes:
     else:
         head += bytes([0x80 | 127]) + n.to_bytes(8, "big")
     return head + b"\0\0\0\0" + payload
+
+
+def test_a_wrapper_whose_send_cell_is_empty_is_no_transport():
+    """KeepTransport follows a wrapper's closure variable `send` to the protocol's; a wrapper
+    whose cell of that name is not yet filled raised ValueError out of the middleware, failing
+    every WebSocket before the app ran. It is no transport: the app runs, with the fallback."""
+    import asyncio
+
+    from service.api.wsend import TRANSPORT, KeepTransport
+
+    def wrapped():
+        async def wrapper(message):
+            return await send(message)
+
+        if False:  # makes `send` a cell of this scope, never filled
+            send = None
+        return wrapper
+
+    seen = []
+
+    async def app(scope, receive, send):
+        seen.append(scope)
+
+    asyncio.run(KeepTransport(app)({"type": "websocket"}, None, wrapped()))
+    assert len(seen) == 1 and TRANSPORT not in seen[0]
