@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from pydantic import ValidationError
 
 from clients.client import Client, viewer_url
 from clients.demo import OUTPUTS, score_stream
@@ -83,7 +84,10 @@ def run(
     t0 = time.perf_counter()
     # its own server: the session it opens before making the sequence (minutes on a big mesh)
     # must not expire as idle meanwhile, whatever ELASTREG_SESSION_TTL_S says
-    own = Settings(store=store, session_ttl_s=MAX_SESSION_TTL_S)
+    try:
+        own = Settings(store=store, session_ttl_s=MAX_SESSION_TTL_S)
+    except ValidationError as exc:  # ELASTREG_* settings its server refuses
+        return fail(_refused_settings(exc))
     token = own.api_tokens[0] if own.api_tokens else None  # a server with tokens (ELASTREG_API_TOKENS) needs one
     with BackgroundServer(own, port=port) as server, Client(server.url, encoding=encoding, token=token) as api:
         say(f"{server.url} ({time.perf_counter() - t0:.1f} s)")
@@ -124,6 +128,12 @@ def run(
             return score_stream(stream, seq.clouds, seq.positions, seq.net_forces, mesh.nodes, say=say)
 
 
+def _refused_settings(exc: ValidationError) -> str:
+    """One line for ELASTREG_* settings the demo's own server refuses: each setting and why."""
+    why = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'settings'}: {e['msg']}" for e in exc.errors())
+    return f"error: the demo's server settings: {why}"
+
+
 _PORT_IN_USE = "error: port {port} is in use (--port picks another, or leave it out for a free one)"
 
 
@@ -161,7 +171,12 @@ def viewer(model: str = "phantom", store=None, port: int | None = None, *, out=N
         print(_PORT_IN_USE.format(port=port), file=err)
         return 1
     try:
-        server = BackgroundServer(Settings(store=store), port=port).start()
+        own = Settings(store=store)
+    except ValidationError as exc:  # ELASTREG_* settings its server refuses
+        print(_refused_settings(exc), file=err)
+        return 1
+    try:
+        server = BackgroundServer(own, port=port).start()
     except RuntimeError as exc:
         print(f"error: the viewer's server could not start: {exc}", file=err)
         return 1
@@ -171,13 +186,17 @@ def viewer(model: str = "phantom", store=None, port: int | None = None, *, out=N
             print(f"error: model {model!r} could not be loaded: {why}", file=err)
             return 1
         url = f"{server.url}/viewer?model={model}&demo=1"
+        # a server with tokens: the page needs one, in the fragment (never sent to a server); the
+        # browser opened here gets the first, the printed line only says where it goes
+        fragment = f"#token={own.api_tokens[0]}" if own.api_tokens else ""
         print(
-            f"the viewer: {url}\n(watch any session with {server.url}/viewer?session=ID; Ctrl-C to stop)",
+            f"the viewer: {url}{'#token=TOKEN' if fragment else ''}\n"
+            f"(watch any session with {server.url}/viewer?session=ID; Ctrl-C to stop)",
             file=out,
             flush=True,
         )
         try:
-            webbrowser.open(url)
+            webbrowser.open(url + fragment)
         except Exception:  # no browser here: the URL above is enough
             pass
         while True:  # until Ctrl-C: its KeyboardInterrupt goes up, after the server stopped

@@ -395,3 +395,47 @@ def test_a_stream_whose_server_died_says_its_connection_was_lost(bar_store, clou
         if proc.poll() is None:
             proc.kill()
     assert err.value.close_code == 1006 and "lost without a close frame" in err.value.detail, err.value
+
+
+def test_the_viewer_demo_with_tokens_gives_its_browser_one_and_prints_none(bar_store, tmp_path):
+    """With ELASTREG_API_TOKENS set, `elastreg demo --viewer` opened a page whose own requests
+    its server refused (no token). The browser it opens now gets the first token in the URL's
+    fragment (never sent to a server); the printed line says where a token goes, not which."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    opened = tmp_path / "opened"
+    browser = tmp_path / "browser.sh"
+    browser.write_text(f'#!/bin/sh\nprintf %s "$1" > {opened}\n')
+    browser.chmod(0o755)
+    token = "viewer-token-aaaaaaaaaaaa"
+    argv = [sys.executable, "-m", "service.cli", "demo", "--viewer", "--store", str(bar_store[0]), "--model", "bar"]
+    env = {**os.environ, "BROWSER": str(browser), "ELASTREG_API_TOKENS": f"{token},viewer-token-bbbbbbbbbbbb"}
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        deadline = time.monotonic() + 120
+        while not opened.exists() or not opened.read_text():
+            assert proc.poll() is None and time.monotonic() < deadline, proc.stderr and proc.stderr.read()
+            time.sleep(0.1)
+        assert opened.read_text().endswith(f"/viewer?model=bar&demo=1#token={token}")
+    finally:
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=60)
+    assert "/viewer?model=bar&demo=1#token=TOKEN" in out and token not in out + err, out + err
+
+
+def test_the_viewer_demo_with_settings_its_server_refuses_says_so_in_one_line(bar_store):
+    """ELASTREG_* settings that contradict each other raised pydantic's traceback: one line."""
+    import os
+    import subprocess
+    import sys
+
+    argv = [sys.executable, "-m", "service.cli", "demo", "--viewer", "--store", str(bar_store[0]), "--model", "bar"]
+    env = {**os.environ, "BROWSER": "true", "ELASTREG_MAX_MESSAGE_BYTES": "20000"}
+    r = subprocess.run(argv, capture_output=True, text=True, timeout=120, env=env)
+    assert r.returncode == 1 and "Traceback" not in r.stderr, r.stderr
+    (line,) = r.stderr.strip().splitlines()
+    assert line.startswith("error: the demo's server settings: ") and "max_message_bytes" in line, line
