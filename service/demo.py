@@ -75,19 +75,14 @@ def run(
 
     store = Path(store) if store else default_store()
     build = f"elastreg train {model}" + (f" --store {store}" if store != default_store() else "")
-    if not (store / model / "manifest.json").exists():
-        return fail(f"error: no model {model!r} in the store at {store}.\nBuild it first with:  {build}")
-    if port is not None and not _port_free(port):
-        return fail(_PORT_IN_USE.format(port=port))
+    # its own server: the session it opens before making the sequence (minutes on a big mesh)
+    # must not expire as idle meanwhile, whatever ELASTREG_SESSION_TTL_S says
+    own = _own_settings(model, store, port, build, session_ttl_s=MAX_SESSION_TTL_S)
+    if isinstance(own, str):
+        return fail(own)
 
     say(f"starting the server over {store} ...", end=" ")
     t0 = time.perf_counter()
-    # its own server: the session it opens before making the sequence (minutes on a big mesh)
-    # must not expire as idle meanwhile, whatever ELASTREG_SESSION_TTL_S says
-    try:
-        own = Settings(store=store, session_ttl_s=MAX_SESSION_TTL_S)
-    except ValidationError as exc:  # ELASTREG_* settings its server refuses
-        return fail(_refused_settings(exc))
     token = own.api_tokens[0] if own.api_tokens else None  # a server with tokens (ELASTREG_API_TOKENS) needs one
     with BackgroundServer(own, port=port) as server, Client(server.url, encoding=encoding, token=token) as api:
         say(f"{server.url} ({time.perf_counter() - t0:.1f} s)")
@@ -128,10 +123,19 @@ def run(
             return score_stream(stream, seq.clouds, seq.positions, seq.net_forces, mesh.nodes, say=say)
 
 
-def _refused_settings(exc: ValidationError) -> str:
-    """One line for ELASTREG_* settings the demo's own server refuses: each setting and why."""
-    why = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'settings'}: {e['msg']}" for e in exc.errors())
-    return f"error: the demo's server settings: {why}"
+def _own_settings(model: str, store: Path, port: int | None, build: str, **overrides) -> Settings | str:
+    """The settings of a demo's own server over `store`, on loopback `port`; or, before anything
+    starts, why it cannot run: no `model` in the store (`build` makes it), the port taken, or
+    ELASTREG_* settings its server refuses (each setting and why, one line)."""
+    if not (store / model / "manifest.json").exists():
+        return f"error: no model {model!r} in the store at {store}.\nBuild it first with:  {build}"
+    if port is not None and not _port_free(port):
+        return _PORT_IN_USE.format(port=port)
+    try:
+        return Settings(store=store, **overrides)
+    except ValidationError as exc:
+        why = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'settings'}: {e['msg']}" for e in exc.errors())
+        return f"error: the demo's server settings: {why}"
 
 
 _PORT_IN_USE = "error: port {port} is in use (--port picks another, or leave it out for a free one)"
@@ -161,19 +165,9 @@ def viewer(model: str = "phantom", store=None, port: int | None = None, *, out=N
     out = out or sys.stdout
     err = err or sys.stderr
     store = Path(store) if store else default_store()
-    if not (store / model / "manifest.json").exists():
-        print(
-            f"error: no model {model!r} in the store at {store}.\nBuild it first with:  elastreg train {model}",
-            file=err,
-        )
-        return 1
-    if port is not None and not _port_free(port):
-        print(_PORT_IN_USE.format(port=port), file=err)
-        return 1
-    try:
-        own = Settings(store=store)
-    except ValidationError as exc:  # ELASTREG_* settings its server refuses
-        print(_refused_settings(exc), file=err)
+    own = _own_settings(model, store, port, f"elastreg train {model}")
+    if isinstance(own, str):
+        print(own, file=err)
         return 1
     try:
         server = BackgroundServer(own, port=port).start()
