@@ -1,6 +1,7 @@
-"""Clients of the elastreg API: :mod:`.client` (sync and async, HTTP and WebSocket), the client
-side of ``elastreg demo`` (:mod:`.demo`) and a local load test (:mod:`.loadtest`). Nothing here
-imports the service: a client needs only this package."""
+"""Clients of the elastreg API: :mod:`.client` (sync and async, HTTP and WebSocket; its
+WebSocket handles in :mod:`.sockets`, over :mod:`.errors`, :mod:`.encoding` and :mod:`.bodies`),
+the client side of ``elastreg demo`` (:mod:`.demo`) and a local load test (:mod:`.loadtest`).
+Nothing here imports the service: a client needs only this package."""
 
 from .client import (
     ApiError,

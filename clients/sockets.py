@@ -1,0 +1,376 @@
+"""The client's WebSocket handles, sync and async: a stream (``/stream``: frames in, results out)
+and a watch (``/sessions/{id}/watch``: a session's frames as it solves them), and how a socket's
+messages, refusals and closes become results or :class:`StreamError`. websockets is imported at
+a socket's first use."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+from typing import Any, Self
+
+from .bodies import frame_body
+from .encoding import decode, encode
+from .errors import StreamError, retry_after, stream_error
+
+_OUT_OF_STEP = "a reply timed out, so this stream's replies no longer match its frames: open a new stream"
+
+# RFC 6455 7.1.5: the close code of a connection that ended without a close frame received
+_ABNORMAL_CLOSURE = 1006
+
+# -- messages ------------------------------------------------------------------------------------
+
+
+def _message(body: dict, encoding: str) -> bytes | str:
+    """A message to send: binary for MessagePack, text for JSON."""
+    data = encode(body, encoding)
+    return data if encoding == "msgpack" else data.decode()
+
+
+def _decoded(message):
+    """A message received, in whichever encoding it came (binary is MessagePack)."""
+    return decode(message, "msgpack" if isinstance(message, (bytes, bytearray)) else "json")
+
+
+def _is_error(obj) -> bool:
+    """Whether a decoded message is a stream's or a watch's error, ``{"error": {...}}``."""
+    return isinstance(obj, dict) and set(obj) == {"error"}
+
+
+def _reply(message, wait_close=None) -> dict:
+    """A message as a dict, or its error raised as StreamError; the server closes a socket whose
+    first message it refused, and ``wait_close()`` returns that close code."""
+    obj = _decoded(message)
+    if _is_error(obj):
+        raise stream_error(obj["error"], close_code=wait_close() if wait_close is not None else None)
+    return obj
+
+
+# -- refusals and closes -------------------------------------------------------------------------
+
+
+def handshake_refused(exc) -> StreamError:
+    """The StreamError of a handshake the server answered with an HTTP status instead of a
+    socket (the socket limit's 503, with its Retry-After)."""
+    r = exc.response
+    try:
+        detail = json.loads(r.body)["detail"]
+    except Exception:
+        detail = r.body.decode(errors="replace") if r.body else r.reason_phrase
+    return StreamError(r.status_code, detail, retry_after=retry_after(r.headers.get("Retry-After")))
+
+
+def _close_code(ws) -> int | None:
+    """The close code of a socket the server is closing (after refusing its first message),
+    waiting 2 s at most; None if it stays open."""
+    from websockets.exceptions import ConnectionClosed
+
+    try:
+        ws.recv(timeout=2.0)
+    except ConnectionClosed as exc:
+        return _closed_code(exc)
+    except Exception:
+        pass
+    return None
+
+
+async def _aclose_code(ws) -> int | None:
+    """:func:`_close_code` for an asyncio socket."""
+    import asyncio
+
+    from websockets.exceptions import ConnectionClosed
+
+    try:
+        await asyncio.wait_for(ws.recv(), 2.0)
+    except ConnectionClosed as exc:
+        return _closed_code(exc)
+    except Exception:
+        pass
+    return None
+
+
+def _closed_code(exc: Exception) -> int | None:
+    rcvd = getattr(exc, "rcvd", None)
+    return getattr(rcvd, "code", None)
+
+
+def _closed_by_server(exc: Exception, what: str = "stream") -> StreamError:
+    """The StreamError of a socket found closed (``exc``, websockets' ConnectionClosed): the
+    server's close code and reason (1006 where no close frame came), status 0."""
+    rcvd = getattr(exc, "rcvd", None)
+    code = _closed_code(exc) or _ABNORMAL_CLOSURE
+    reason = getattr(rcvd, "reason", "") or ""
+    if rcvd is None:  # no close frame: the connection dropped (the server gone, a network cut)
+        detail = f"the {what}'s connection was lost without a close frame ({exc})"
+    else:
+        detail = reason or f"the server closed the {what} ({rcvd})"
+    return StreamError(0, detail, close_code=code, reason=reason)
+
+
+@contextlib.contextmanager
+def _closes_as_stream_error(what: str = "stream"):
+    """Raise a socket found closed as :class:`StreamError` (websockets' exception its cause)."""
+    from websockets.exceptions import ConnectionClosed
+
+    try:
+        yield
+    except ConnectionClosed as exc:
+        raise _closed_by_server(exc, what) from exc
+
+
+# -- handles -------------------------------------------------------------------------------------
+
+
+class _Socket:
+    """A handle that owns its WebSocket (``ws``): its messages' encoding, how long a reply may
+    take, and the session it is on once open."""
+
+    def __init__(self, ws: Any, encoding: str, timeout: float | None) -> None:
+        self.ws = ws
+        self.encoding = encoding
+        self.timeout = timeout
+        self.session: str | None = None
+        self.config: dict | None = None
+
+
+class _SyncSocket(_Socket):
+    """A sync handle: closed with its socket, or by leaving its block."""
+
+    def close(self) -> None:
+        self.ws.close()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class _AsyncSocket(_Socket):
+    """:class:`_SyncSocket` for an asyncio WebSocket."""
+
+    async def close(self) -> None:
+        await self.ws.close()
+
+    async def __aenter__(self) -> Self:
+        return self
+
+    async def __aexit__(self, *exc) -> None:
+        await self.close()
+
+
+class Stream(_SyncSocket):
+    """A WebSocket stream (sync): ``send`` frames (they may be pipelined), ``recv`` results in
+    order, or ``frame`` for both. A stream error raises :class:`StreamError` (a 503's with
+    ``retry_after``, the seconds to wait); the stream goes on. A stream the server closed (idle
+    past its ``session_ttl_s``, shutting down, a message over its size limit) raises
+    :class:`StreamError` too, with ``close_code`` and ``reason`` set: open a new stream."""
+
+    def __init__(self, ws, encoding: str, config: dict, timeout: float | None = None) -> None:
+        super().__init__(ws, encoding, timeout)
+        from websockets.exceptions import ConnectionClosed
+
+        self._out_of_step = False
+        try:
+            ws.send(_message(config, encoding))
+            opened = _reply(ws.recv(timeout=timeout), lambda: _close_code(ws))
+            self.session, self.config = opened["session"], opened["config"]
+        except ConnectionClosed as exc:
+            try:  # the server may have refused the handshake's token before the config was sent
+                _reply(ws.recv(timeout=0.5))
+            except StreamError as refused:
+                refused.close_code = _closed_code(exc)
+                raise refused from None
+            except Exception:
+                pass
+            raise _closed_by_server(exc) from exc
+        except BaseException:
+            ws.close()
+            raise
+
+    def send(self, points, *, support=None, frame_id=None) -> None:
+        with _closes_as_stream_error():
+            self.ws.send(_message(frame_body(points, support, frame_id), self.encoding))
+
+    def recv(self, timeout: float | None = None) -> dict:
+        with _closes_as_stream_error():
+            message = self.ws.recv(timeout=timeout if timeout is not None else self.timeout)
+        return _reply(message)
+
+    def frame(self, points, *, support=None, frame_id=None) -> dict:
+        """Send one frame and return its result. After a reply that timed out, the stream is out
+        of step (that reply may still come, and would be taken for the next frame's): a
+        StreamError says so, and a new stream is needed."""
+        if self._out_of_step:
+            raise StreamError(0, _OUT_OF_STEP)
+        self.send(points, support=support, frame_id=frame_id)
+        try:
+            return self.recv()
+        except TimeoutError:
+            self._out_of_step = True
+            raise
+
+
+class AsyncStream(_AsyncSocket):
+    """A WebSocket stream (asyncio); see :class:`Stream`."""
+
+    def __init__(self, ws, encoding: str, timeout: float | None = None) -> None:
+        super().__init__(ws, encoding, timeout)
+        self._out_of_step = False
+
+    async def _open(self, config: dict) -> None:
+        import asyncio
+
+        from websockets.exceptions import ConnectionClosed
+
+        try:
+            await self.ws.send(_message(config, self.encoding))
+            first = await asyncio.wait_for(self.ws.recv(), self.timeout)
+            code = await _aclose_code(self.ws) if _is_error(_decoded(first)) else None
+            opened = _reply(first, lambda: code)
+            self.session, self.config = opened["session"], opened["config"]
+        except ConnectionClosed as exc:
+            try:  # the server may have refused the handshake's token before the config was sent
+                _reply(await asyncio.wait_for(self.ws.recv(), 0.5))
+            except StreamError as refused:
+                refused.close_code = _closed_code(exc)
+                raise refused from None
+            except Exception:
+                pass
+            raise _closed_by_server(exc) from exc
+        except BaseException:
+            await self.ws.close()
+            raise
+
+    async def send(self, points, *, support=None, frame_id=None) -> None:
+        with _closes_as_stream_error():
+            await self.ws.send(_message(frame_body(points, support, frame_id), self.encoding))
+
+    async def recv(self, timeout: float | None = None) -> dict:
+        import asyncio
+
+        wait = timeout if timeout is not None else self.timeout
+        with _closes_as_stream_error():
+            message = await asyncio.wait_for(self.ws.recv(), wait)
+        return _reply(message)
+
+    async def frame(self, points, *, support=None, frame_id=None) -> dict:
+        """As :meth:`Stream.frame`: after a reply that timed out, a StreamError (out of step)."""
+        if self._out_of_step:
+            raise StreamError(0, _OUT_OF_STEP)
+        await self.send(points, support=support, frame_id=frame_id)
+        try:
+            return await self.recv()
+        except TimeoutError:
+            self._out_of_step = True
+            raise
+
+
+def _watching(hello: dict) -> tuple[str, str, dict]:
+    """The session, model and config a watch's first message names."""
+    return hello["watching"], hello["model"], hello["config"]
+
+
+class Watch(_SyncSocket):
+    """A session's frames as it solves them (sync): ``{"seq", "time", "points", "result"}``.
+
+    Iterate (or call ``recv``) for the next frame, waiting while the session is idle; iteration
+    ends when the session does. ``timeout`` bounds the wait for the first message only. Each
+    frame is acknowledged when the next is asked for (the caller has handled it), so the server
+    sends only a frame or two ahead: a caller slower than the session gets the newest frame next
+    and the ones it missed are the gaps in ``seq``. A closed watch raises :class:`StreamError`
+    with its ``close_code`` (1000 when the session ended)."""
+
+    def __init__(self, ws, encoding: str, timeout: float | None = None) -> None:
+        super().__init__(ws, encoding, timeout)
+        self.model: str | None = None
+        self._handled: int | None = None  # the seq returned last, acknowledged at the next recv
+        from websockets.exceptions import ConnectionClosed
+
+        try:  # the server refuses an unknown session, or another token's, and closes the socket
+            self.session, self.model, self.config = _watching(_reply(ws.recv(timeout=timeout), lambda: _close_code(ws)))
+            ws.send(_message({"ack": 0}, encoding))  # acknowledging from the first frame on
+        except ConnectionClosed as exc:
+            ws.close()
+            raise _closed_by_server(exc, "watch") from exc
+        except BaseException:
+            ws.close()
+            raise
+
+    def recv(self, timeout: float | None = None) -> dict:
+        """The next frame, after acknowledging the one returned before; with no ``timeout`` it
+        waits as long as the session is idle."""
+        from websockets.exceptions import ConnectionClosed
+
+        try:
+            if self._handled is not None:
+                self.ws.send(_message({"ack": self._handled}, self.encoding))
+                self._handled = None
+            frame = _reply(self.ws.recv(timeout=timeout))
+        except ConnectionClosed as exc:
+            raise _closed_by_server(exc, "watch") from exc
+        self._handled = frame["seq"]
+        return frame
+
+    def __iter__(self):
+        while True:
+            try:
+                yield self.recv()
+            except StreamError as exc:
+                if exc.close_code == 1000:
+                    return
+                raise
+
+
+class AsyncWatch(_AsyncSocket):
+    """A session's frames as it solves them (asyncio); see :class:`Watch`. Its ``timeout`` is for
+    the first message only: a session may be idle for long."""
+
+    def __init__(self, ws, encoding: str, timeout: float | None = None) -> None:
+        super().__init__(ws, encoding, timeout)
+        self.model: str | None = None
+        self._handled: int | None = None
+
+    async def _open(self) -> None:
+        import asyncio
+
+        from websockets.exceptions import ConnectionClosed
+
+        try:
+            hello = await asyncio.wait_for(self.ws.recv(), self.timeout)
+            code = await _aclose_code(self.ws) if _is_error(_decoded(hello)) else None
+            self.session, self.model, self.config = _watching(_reply(hello, lambda: code))
+            await self.ws.send(_message({"ack": 0}, self.encoding))
+        except ConnectionClosed as exc:
+            await self.ws.close()
+            raise _closed_by_server(exc, "watch") from exc
+        except BaseException:
+            await self.ws.close()
+            raise
+
+    async def recv(self, timeout: float | None = None) -> dict:
+        """As :meth:`Watch.recv`."""
+        import asyncio
+
+        from websockets.exceptions import ConnectionClosed
+
+        try:
+            if self._handled is not None:
+                await self.ws.send(_message({"ack": self._handled}, self.encoding))
+                self._handled = None
+            frame = _reply(await asyncio.wait_for(self.ws.recv(), timeout))
+        except ConnectionClosed as exc:
+            raise _closed_by_server(exc, "watch") from exc
+        self._handled = frame["seq"]
+        return frame
+
+    def __aiter__(self):
+        return self
+
+    async def __anext__(self) -> dict:
+        try:
+            return await self.recv()
+        except StreamError as exc:
+            if exc.close_code == 1000:
+                raise StopAsyncIteration from None
+            raise
