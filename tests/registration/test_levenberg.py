@@ -7,13 +7,14 @@ import dataclasses
 import numpy as np
 import pytest
 
-import service.registration.engine as engine
+import service.registration.drive_levenberg as driver
 import service.registration.levenberg as lev
 from service.forward import ForwardFailed
 from service.registration.distance import PointToSurface
 from service.registration.engine import SolveOptions, solve_frame
 from service.registration.levenberg import GaussNewtonModel, KrylovGaussNewton, weighted_matrix, weighted_rows
 from service.registration.session import Session, SessionConfig
+from service.registration.stops import Stop
 
 from .test_engine import frame_from_load, tip_pull, tip_support
 
@@ -146,8 +147,8 @@ def test_a_krylov_step_past_the_deadline_is_the_frames_time_limit(fem_loaded):
     deadline, products.deadline = products.deadline, 0.0  # long past
     try:
         model = KrylovGaussNewton(products, dist.last_match, dist.faces, grad, alpha=1e-6)
-        with pytest.raises(engine._Stop) as stop:
-            engine._step(model, model.scale, 3)
+        with pytest.raises(Stop) as stop:
+            driver._step(model, model.scale, 3)
         assert stop.value.status == "time_limit" and stop.value.iterations == 3
     finally:
         products.deadline = deadline
@@ -246,7 +247,7 @@ def test_the_damping_never_falls_below_its_floor(entry, monkeypatch):
     g_true, run, seen = damping_trace(entry, monkeypatch)
     run(np.zeros_like(g_true), SolveOptions(alpha=1e-6, gtol=1e-12, max_iter=40, optimizer="levenberg-marquardt"))
     mu = np.array([m for m, _ in seen])
-    floor = engine._MIN_DAMPING * seen[0][1]
+    floor = driver._MIN_DAMPING * seen[0][1]
     assert len(seen) >= 10 and mu.min() >= floor * (1 - 1e-12)
     assert np.isclose(mu, floor, rtol=1e-9, atol=0.0).any()  # it got there
 
@@ -262,7 +263,7 @@ def test_from_rest_trusted_steps_cut_the_damping_faster(entry, monkeypatch):
         assert s.iterations >= 3
         mu = np.array([m for m, _ in seen])
         ratios[start] = mu[1:] / mu[:-1]
-    assert np.isclose(ratios["cold"], engine._COLD_SHRINK, rtol=1e-12).sum() >= 2
+    assert np.isclose(ratios["cold"], driver._COLD_SHRINK, rtol=1e-12).sum() >= 2
     assert ratios["warm"].min() >= 1.0 / 3.0 * (1 - 1e-12)
 
 
