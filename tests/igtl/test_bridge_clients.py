@@ -51,14 +51,14 @@ def test_a_client_that_reconnects_at_once_is_served(api_server, run_bridge, monk
     mesh = get_mesh(api.url, "bar")
     n = len(mesh["surface_nodes"])
     frame = point_frame(surface_cloud(mesh))
-    close_stream = bridge_module._close_stream
+    close_stream = bridge_module.close_stream
     release = threading.Event()  # an event, not a sleep: a loaded machine may serve slowly
 
     async def slow_close(stream) -> None:
         await asyncio.to_thread(release.wait, 60)
         await close_stream(stream)
 
-    monkeypatch.setattr(bridge_module, "_close_stream", slow_close)
+    monkeypatch.setattr(bridge_module, "close_stream", slow_close)
     bridge = run_bridge(api.url)
     with bridge.connect() as old:
         old.sendall(frame)
