@@ -1,15 +1,17 @@
 """The paper's liver experiment on our code: its recorded Neo-Hookean sequence and sequences of
 our own made the same way (a local force on a few nodes, a partial cloud, a support larger than
 the true load), each registered by the network and by the Newton-based method, beside the rest
-shape."""
+shape; and its figure, each frame's TRE and time."""
 
 from __future__ import annotations
 
 import dataclasses
 import logging
+from pathlib import Path
 
 import numpy as np
 
+from ..optional import need
 from ..registration.session import SessionConfig
 from .anysite import NETWORK_LM as WHOLE_SURFACE_LM
 from .cases import (
@@ -96,3 +98,38 @@ def liver_part(entry, *, frames: int | None = None, own_frames: int = 20, fem: b
             summaries.append(summarise(recs, passes=each))
             log.info("%s / %s: %s", case.name, recs[0].method, summaries[-1])
     return {"records": records, "summaries": summaries}
+
+
+def plot_frames(records, path: Path) -> None:
+    """Each case's TRE and time per frame, a line per method (the report's liver_frames.png)."""
+    matplotlib = need("matplotlib", "the benchmark's figures")
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cases = list(dict.fromkeys(r.case for r in records))
+    fig, axes = plt.subplots(2, len(cases), figsize=(4.2 * len(cases), 6), squeeze=False)
+    for j, case in enumerate(cases):
+        for method, colour in (
+            ("none (rest shape)", "grey"),
+            ("network", "tab:blue"),
+            (LM_LABEL, "tab:green"),
+            (WHOLE_LM_LABEL, "tab:olive"),
+            ("fem", "tab:red"),
+            (FEM_LM_LABEL, "tab:purple"),
+        ):
+            rs = [r for r in records if r.case == case and r.method == method]
+            if not rs:
+                continue
+            axes[0, j].plot([r.frame for r in rs], [r.tre_mm for r in rs], color=colour, label=method)
+            if method != "none (rest shape)":
+                axes[1, j].plot([r.frame for r in rs], [r.ms for r in rs], color=colour, label=method)
+        axes[0, j].set_title(case, fontsize=9)
+        axes[0, j].set_yscale("log")
+        axes[0, j].set_ylabel("mean TRE (mm)")
+        axes[1, j].set_yscale("log")
+        axes[1, j].set_ylabel("ms per frame")
+        axes[1, j].set_xlabel("frame")
+    axes[0, 0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -138,14 +138,14 @@ def test_passes_that_take_other_steps_are_refused():
 def test_merged_parts_say_which_machine_made_them(tmp_path):
     """A part kept from an earlier run keeps that run's CPU in its stamp (read from the run's
     machine where its stamp predates CPUs)."""
-    from service.bench.report import _merge_previous
+    from service.bench.results import merge_previous
 
     prior = {"started": "then", "machine": {"commit": "abc", "cpu": "AMD EPYC"},
              "parts": {"fem": {"backends": []}, "pareto": []},
              "made_by": {"fem": {"started": "then", "commit": "abc"}}}  # fmt: skip
     (tmp_path / "results.json").write_text(json.dumps(prior))
     now = {"started": "now", "machine": {"commit": "def", "cpu": "Intel Xeon"}, "parts": {"beam": {}}}
-    merged = _merge_previous(now, tmp_path)
+    merged = merge_previous(now, tmp_path)
     assert merged["made_by"]["beam"] == {"started": "now", "commit": "def", "cpu": "Intel Xeon"}
     assert merged["made_by"]["fem"] == {"started": "then", "commit": "abc", "cpu": "AMD EPYC"}
     assert merged["made_by"]["pareto"]["cpu"] == "AMD EPYC"  # no stamp at all: the run's own

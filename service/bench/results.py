@@ -1,0 +1,81 @@
+"""What a benchmark run keeps on disk besides report.md: results.json (merged with the parts of
+an earlier run that this one did not redo) and each part's rows as CSV."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+
+#: the parts a report holds, in the order `elastreg bench` runs them
+PARTS = ("fem", "liver", "beam", "pareto", "stability", "anysite", "minutes")
+
+
+def jsonable(x):
+    """What json cannot write by itself: dataclasses, NumPy scalars and arrays, paths."""
+    if dataclasses.is_dataclass(x):
+        return dataclasses.asdict(x)
+    if isinstance(x, (np.integer, np.floating, np.bool_)):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, Path):
+        return str(x)
+    raise TypeError(type(x).__name__)
+
+
+def write_csv(path: Path, rows: list[dict]) -> None:
+    """Rows (dicts or dataclasses) as CSV, list and dict cells as JSON; nothing for no rows."""
+    if not rows:
+        return
+    rows = [dataclasses.asdict(r) if dataclasses.is_dataclass(r) else r for r in rows]
+    keys = list(dict.fromkeys(k for r in rows for k in r))
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=keys)
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: json.dumps(v, default=jsonable) if isinstance(v, (list, dict)) else v for k, v in r.items()})
+
+
+def write_results(results: dict, out: Path) -> None:
+    """results.json: every part's rows and records, what the report is drawn from."""
+    (out / "results.json").write_text(json.dumps(results, indent=1, default=jsonable))
+
+
+def merge_previous(results: dict, out: Path) -> dict:
+    """Keep the parts of the report already in `out` that this run did not redo, so that
+    ``elastreg bench beam`` refreshes one part without rerunning the hour-long rest. Each part
+    remembers the run that made it."""
+    from .cases import FrameRecord
+
+    stamp = {"started": results["started"], "commit": results["machine"]["commit"], "cpu": results["machine"]["cpu"]}
+    results["made_by"] = {part: stamp for part in results["parts"]}
+    path = out / "results.json"
+    if not path.exists():
+        return results
+    try:
+        prior = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return results
+    machine = prior.get("machine", {})
+    old_stamp = {"started": prior.get("started"), "commit": machine.get("commit"), "cpu": machine.get("cpu")}
+    for part, value in prior.get("parts", {}).items():
+        if part in results["parts"] or part not in PARTS:
+            continue
+        if isinstance(value, dict) and "records" in value:  # per-frame records: back to objects
+            value["records"] = [FrameRecord(**r) for r in value["records"]]
+        results["parts"][part] = value
+        # a stamp from before stamps named the CPU: taken to be the prior run's machine
+        results["made_by"][part] = {"cpu": machine.get("cpu"), **prior.get("made_by", {}).get(part, old_stamp)}
+    return results
+
+
+def prior_part(out: Path, part: str) -> dict | None:
+    """A part of the report already in `out`, or None."""
+    try:
+        return json.loads((out / "results.json").read_text()).get("parts", {}).get(part)
+    except (OSError, ValueError):
+        return None
