@@ -104,7 +104,7 @@ class SessionRegistry:
         self._held: dict[str, Held] = {}
         self._pending = 0
         self._draining = 0  # closed sessions whose frame is still being solved
-        self._gone: collections.OrderedDict[str, str] = collections.OrderedDict()
+        self._gone: collections.OrderedDict[str, tuple[object, str]] = collections.OrderedDict()  # id: owner, why
         self._lock = threading.Lock()
 
     # -- opening -----------------------------------------------------------------------------------
@@ -142,7 +142,7 @@ class SessionRegistry:
         """The held session (under the lock); `instead` tells a caller of the wrong kind what to do."""
         held = self._held.get(session_id)
         if held is None or (owner is not ANY and held.owner != owner):
-            raise SessionNotFound(self._not_found(session_id))
+            raise SessionNotFound(self._not_found(session_id, owner))
         if kind is not None and held.kind != kind:
             raise WrongKind(f"session {session_id!r} belongs to a WebSocket stream: {instead}")
         return held
@@ -177,7 +177,7 @@ class SessionRegistry:
             held.closed = True
             if held.busy:
                 self._draining += 1
-            self._forget(session_id, why)
+            self._forget(session_id, held.owner, why)
             return held
 
     def expire(self, now: float | None = None) -> list[str]:
@@ -190,8 +190,9 @@ class SessionRegistry:
                 if h.kind == "http" and h.busy == 0 and now - h.touched > self.ttl_s
             ]
             for sid in gone:
-                self._held.pop(sid).closed = True
-                self._forget(sid, f"expired after {self.ttl_s:g} s without a request")
+                held = self._held.pop(sid)
+                held.closed = True
+                self._forget(sid, held.owner, f"expired after {self.ttl_s:g} s without a request")
         return gone
 
     def expires_in(self, held: Held) -> float | None:
@@ -218,16 +219,18 @@ class SessionRegistry:
 
     # -- 404s that explain themselves ----------------------------------------------------------------
 
-    def _forget(self, session_id: str, why: str) -> None:
-        self._gone[session_id] = why
+    def _forget(self, session_id: str, owner, why: str) -> None:
+        self._gone[session_id] = (owner, why)
         while len(self._gone) > _FORGET:
             self._gone.popitem(last=False)
 
-    def _not_found(self, session_id: str) -> str:
+    def _not_found(self, session_id: str, owner=ANY) -> str:
+        """Why there is no such session; what became of it only for its own token (another's
+        gets the answer for an id that never existed: deployment.md)."""
         here = f"this server process is instance {self.instance_id!r}"
-        why = self._gone.get(session_id)
-        if why is not None:
-            return f"session {session_id!r} {why} ({here})"
+        gone = self._gone.get(session_id)
+        if gone is not None and (owner is ANY or gone[0] == owner):
+            return f"session {session_id!r} {gone[1]} ({here})"
         owner = session_id.split("-", 1)[0] if "-" in session_id else None
         if owner and owner != self.instance_id:
             return (

@@ -485,3 +485,22 @@ def test_serve_refuses_a_missing_or_mismatched_certificate_before_it_starts(bar_
             capture_output=True, text=True, timeout=120,
         )  # fmt: skip
         assert r.returncode != 0 and words in r.stderr and str(certfile) in r.stderr, r.stderr[-500:]
+
+
+def test_another_token_cannot_tell_a_closed_session_from_one_that_never_was(guarded, support):
+    """deployment.md: another token gets the same 404 as for a session that never existed; what
+    became of a closed session is its own token's to know, over HTTP and on the watch."""
+    sid = _guarded_session(guarded, support, TOKEN_A)
+    assert httpx.delete(f"{guarded.url}/sessions/{sid}", headers=auth(TOKEN_A)).status_code == 204
+    never = sid[:-4] + ("aaaa" if not sid.endswith("aaaa") else "bbbb")
+
+    def told(token: str, session: str) -> tuple[str, str]:
+        r = httpx.get(f"{guarded.url}/sessions/{session}", headers=auth(token))
+        assert r.status_code == 404
+        with connect(_watch_url(guarded, session), additional_headers=auth(token)) as ws:
+            watch = recv(ws)["error"]
+        assert watch["code"] == 404
+        return r.json()["detail"].replace(session, "ID"), watch["detail"].replace(session, "ID")
+
+    assert told(TOKEN_B, sid) == told(TOKEN_B, never)
+    assert all("closed" in d for d in told(TOKEN_A, sid))  # its own token is told what happened
