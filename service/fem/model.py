@@ -48,7 +48,9 @@ class FEMModel:
         return Assembler(self.mesh, self.material)
 
     def with_stiffness(self, E: float) -> FEMModel:
-        return dataclasses.replace(self, material=self.material.with_stiffness(E))
+        # the same problem in forces scaled by E / E_now: the largest tool force too (the estimate's prior)
+        scaled = None if self.max_force is None else self.max_force * (E / self.material.E)
+        return dataclasses.replace(self, material=self.material.with_stiffness(E), max_force=scaled)
 
     def newton(self) -> NewtonSolver:
         """A fresh solver (owns a factorisation: one per thread)."""

@@ -126,7 +126,11 @@ class Session:
             if config.loss != "squared":
                 raise ValueError(f"noise chooses alpha for the squared loss only, not {config.loss!r}")
             self.alpha_tracker = AlphaTracker(alpha, config.noise)  # starts at the default
-        self.config = dataclasses.replace(config, E=float(model.material.E), gtol=gtol, alpha=alpha)
+        # the effective values echoed (API.md): the trimmed loss's default fraction too
+        loss_param = {"huber": self.distance.delta, "trimmed": self.distance.trim}.get(config.loss)
+        self.config = dataclasses.replace(
+            config, E=float(model.material.E), gtol=gtol, alpha=alpha, loss_param=loss_param
+        )
         self._noise = config.noise
         # the estimate's inverse-problem term: with declared noise or the model's force prior
         self._max_force: float | None = getattr(model, "max_force", None)

@@ -62,7 +62,9 @@ class NetworkModel:
         return rest_compliance(self.mesh, self.material.with_stiffness(self.E0))
 
     def with_stiffness(self, E: float) -> NetworkModel:
-        return dataclasses.replace(self, material=self.material.with_stiffness(E))
+        # the same problem in forces scaled by E / E_now: the largest tool force too (the estimate's prior)
+        scaled = None if self.max_force is None else self.max_force * (E / self.material.E)
+        return dataclasses.replace(self, material=self.material.with_stiffness(E), max_force=scaled)
 
     @property
     def stiffness_factor(self) -> float:

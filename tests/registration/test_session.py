@@ -469,3 +469,32 @@ def test_a_first_frame_that_does_not_converge_leaves_the_session_fresh(entry, se
     # not to the last digit: the matching's kept candidates are the glitch's (0.3 % here)
     assert after.converged
     assert np.linalg.norm(after.net_force - want.net_force) <= 0.01 * np.linalg.norm(want.net_force)
+
+
+@pytest.mark.parametrize(
+    "loss, given, effective", [("trimmed", None, 0.1), ("trimmed", 0.2, 0.2), ("huber", 1e-3, 1e-3)]
+)
+def test_the_config_echoes_the_loss_parameter_in_effect(entry, loss, given, effective):
+    """API.md: a session's effective settings are returned when it opens; the trimmed loss
+    without loss_param runs at its default fraction, and says so."""
+    s = Session(entry.network, SessionConfig(loss=loss, loss_param=given))
+    assert s.config.loss_param == effective
+
+
+@pytest.mark.parametrize("method", ["network", "fem"])
+def test_the_estimate_is_the_same_problem_at_another_stiffness(entry, sequence, method):
+    """docs/usage.md: E is the same problem in scaled forces (u(g; E) = u(g E0 / E; E0)), alpha
+    following; so is the error estimate: its force prior, the organ's largest tool force, scales
+    with E (a softer organ's tool pushes less for the same displacement)."""
+    tool, seq = sequence
+    model = entry.network if method == "network" else entry.fem
+    assert model.max_force
+    E0 = float(model.material.E)
+    support = _support(entry, tool)
+    estimates = []
+    for E in (E0, E0 / 10):
+        s = Session(model, SessionConfig(method=method, support=support, E=E))
+        r = s.frame(seq.clouds[12])
+        assert r.converged
+        estimates.append(r.error_estimate)
+    assert estimates[1] == pytest.approx(estimates[0], rel=0.05)
