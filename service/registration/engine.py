@@ -45,6 +45,11 @@ from .options import SolveOptions, check_optimizer, refuse_bounds
 from .precondition import Curvature
 from .stops import Done, Stop, roundoff_gain
 
+#: a cloud this near its rest surface (rms, a share of the organ's size: 10 nm on a 10 cm organ)
+#: is at rest; below it L-BFGS-B only chases rounding (a <f4 cloud stalled after 132 evaluations)
+REST_RMS = 1e-7
+_F32_EPS = float(np.finfo(np.float32).eps)
+
 #: what callers import from here (session.py, the tests): the frame's own names and the re-exported ones
 __all__ = ["FrameSolution", "Objective", "SolveOptions", "Timing", "check_optimizer", "solve_frame"]
 
@@ -124,7 +129,7 @@ def solve_frame(
         zero = np.zeros((k, 3))
         if beside is None:
             v_rest, grad_rest, _ = evaluate(zero)
-            _check_rest(v_rest, rest_positions)
+            _check_rest(evaluate.rest_rms, rest_positions)
             best = _best_start(evaluate, (g0, *fallbacks), options)
         else:
             try:
@@ -132,7 +137,7 @@ def solve_frame(
             finally:  # never leave the job running on the session's rest distance
                 rest = beside.result()
             v_rest, grad_rest = evaluate.record_rest(*rest)
-            _check_rest(v_rest, rest_positions)
+            _check_rest(evaluate.rest_rms, rest_positions)
         # the start: the lowest of the warm start, the fallbacks and the rest state (ties to
         # rest), so a start that a bad frame left far off costs one evaluation, not the frame
         if best is None or v_rest <= best.value:
@@ -181,11 +186,14 @@ def solve_frame(
     )
 
 
-def _check_rest(v_rest: float, rest_positions: Array) -> None:
-    """Ends the frame (Done) where the cloud lies on the rest surface."""
+def _check_rest(rest_rms: float, rest_positions: Array) -> None:
+    """Ends the frame (Done) where the cloud lies on the rest surface, by distance (a huber
+    loss's tiny threshold makes its value tiny far off): within REST_RMS of the organ's size,
+    or of a float32 cloud's rounding (API.md takes <f4 points) where the mesh sits off the origin."""
     # coordinates first: NumPy reduces a (p, 3) array along its long axis 9x slower
-    size = float(np.linalg.norm(np.ptp(np.ascontiguousarray(rest_positions.T), axis=1))) or 1.0
-    if v_rest <= 0.5 * (1e-9 * size) ** 2:
+    rest = np.ascontiguousarray(rest_positions.T)
+    size = float(np.linalg.norm(np.ptp(rest, axis=1))) or 1.0
+    if rest_rms <= REST_RMS * size + _F32_EPS * float(np.abs(rest).max()):
         raise Done("the cloud lies on the rest surface: no force needed")
 
 
