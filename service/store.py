@@ -20,6 +20,8 @@ read or whose own format refuses it, is a :class:`StoreError` naming the entry, 
 what is wrong. :func:`open_store` isolates entries: whatever goes wrong with one (a StoreError,
 or any other exception) skips it with one logged line while the others load (the traceback of
 an unexpected exception only at DEBUG). Weights are read with safetensors: no pickle anywhere.
+An entry goes in with the modes the writer's umask gives a new folder and file: another user
+serves what one builds.
 """
 
 from __future__ import annotations
@@ -419,7 +421,8 @@ def write_entry(
 ) -> Path:
     """Write an entry atomically: built in a temporary folder (.ID-XXXXXXXX.build, locked while
     this process writes it) and loaded back from it (an entry the store would refuse never
-    replaces one it serves), then renamed into place."""
+    replaces one it serves), then renamed into place, its folder and files readable as far as
+    the process's umask lets them be (as any folder and file it creates)."""
     check_model_id(entry_id)
     store = Path(store)
     store.mkdir(parents=True, exist_ok=True)
@@ -443,6 +446,7 @@ def write_entry(
             "files": {name: sha256(tmp / name) for name in (MESH, WEIGHTS)},
         }
         (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1, default=_jsonable))
+        _share(tmp)  # before the rename: no moment where the served entry is private to its builder
         load_entry(tmp, name=entry_id)
         if not final.exists():
             os.replace(tmp, final)
@@ -465,6 +469,28 @@ def write_entry(
         if lock is not None:  # the folder is in place or gone: nothing left to guard
             os.close(lock)
     return final
+
+
+def _umask() -> int:
+    """The process's umask, read without changing it where Linux tells (os.umask sets it: a
+    thread creating a file meanwhile gets the value set, so the stricter 0o077 is set)."""
+    with contextlib.suppress(OSError, ValueError):
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    mask = os.umask(0o077)
+    os.umask(mask)
+    return mask
+
+
+def _share(folder: Path) -> None:
+    """Give a build's folder and files the modes a plain mkdir and open would under the umask:
+    mkdtemp makes it 0700 and safetensors writes 0600, and a store built by one user is served
+    by another (a service account, the Docker image's USER, a read-only mount)."""
+    mask = _umask()
+    os.chmod(folder, 0o777 & ~mask)
+    for name in (MANIFEST, MESH, WEIGHTS):
+        os.chmod(folder / name, 0o666 & ~mask)
 
 
 def _jsonable(x):

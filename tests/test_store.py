@@ -9,7 +9,9 @@ import logging
 import os
 import shutil
 import signal
+import stat
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -187,6 +189,61 @@ def test_a_replaced_entry_never_leaves_its_folder(bar_store, tmp_path, monkeypat
     assert root / "bar" not in moved  # never renamed away, even for a moment
     assert [p.name for p in root.iterdir()] == ["bar"]
     assert load_entry(root / "bar").manifest["created"]
+
+
+@pytest.mark.skipif(os.name != "posix", reason="file modes")
+@pytest.mark.parametrize(
+    ("umask", "folder", "files"), [(0o022, 0o755, 0o644), (0o077, 0o700, 0o600)], ids=["022", "077"]
+)
+def test_an_entry_goes_in_with_the_modes_the_umask_gives(bar_store, tmp_path, monkeypatch, umask, folder, files):
+    """A build's folder came from mkdtemp (0700) and its weights from safetensors (0600): a store
+    built by one user was refused, Permission denied, by the server running as another. Now the
+    entry has a plain mkdir's and open's modes under the umask, already when it is renamed in."""
+    import service.store as store_module
+
+    root = tmp_path / "store"
+    root.mkdir()
+    entry = load_entry(bar_store[0] / "bar")
+    names = ("manifest.json", "mesh.npz", "weights.safetensors")
+    wanted = {".": folder, **dict.fromkeys(names, files)}
+
+    def modes(path) -> dict:
+        return {name: stat.S_IMODE(os.stat(path / name).st_mode) for name in (".", *names)}
+
+    seen = []
+    real = os.replace
+    monkeypatch.setattr(store_module.os, "replace", lambda a, b: (seen.append(modes(Path(a))), real(a, b))[1])
+    old = os.umask(umask)
+    try:
+        _rewrite(entry, root)
+    finally:
+        os.umask(old)
+    assert seen == [wanted]  # as it went in, not set after the rename
+    assert modes(root / "bar") == wanted
+
+
+@pytest.mark.skipif(os.name != "posix" or os.geteuid() != 0, reason="root gives the entry to another user")
+def test_an_entry_one_user_built_is_served_to_another(bar_store, tmp_path):
+    """The reviewer's case: built under umask 022, owned by another user (uid 65534), opened by a
+    process that file modes bind (root without its override, as in _without_root_override)."""
+    import subprocess
+    import sys
+
+    root = tmp_path / "store"
+    old = os.umask(0o022)
+    try:
+        _rewrite(load_entry(bar_store[0] / "bar"), root)
+    finally:
+        os.umask(old)
+    for path in (root / "bar", *(root / "bar").iterdir()):
+        os.chown(path, 65534, 65534)
+    script = (
+        "import json, sys; from service.store import open_store; "
+        "entries, errors = open_store(sys.argv[1]); print(json.dumps([list(entries), errors]))"
+    )
+    run = subprocess.run(_without_root_override([sys.executable, "-c", script, str(root)]), capture_output=True,
+                         text=True, timeout=120)  # fmt: skip
+    assert run.returncode == 0 and json.loads(run.stdout) == [["bar"], {}], run.stdout + run.stderr
 
 
 def test_an_entry_a_killed_build_left_aside_is_served_again(bar_store, tmp_path, caplog):
