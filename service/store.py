@@ -13,7 +13,8 @@
 
 Loading checks the manifest's shape and every name in it before any other file is opened (the
 file names must be exactly the two above, regular files inside the entry's folder: a manifest
-naming ``../../../dev/zero`` is refused without reading it), re-hashes every file against the
+naming ``../../../dev/zero`` is refused without reading it; what it records twice, the material
+and load distribution it serves beside its scene's, must agree), re-hashes every file against the
 manifest and the mesh arrays against the recorded mesh hash, builds the network from the
 manifest and loads the weights strictly; any mismatch, and any file the system will not let us
 read or whose own format refuses it, is a :class:`StoreError` naming the entry, the file and
@@ -549,9 +550,11 @@ def _check_manifest(manifest, name: str) -> None:
     entry_id = manifest.get("id")
     if not isinstance(entry_id, str) or not MODEL_ID.fullmatch(entry_id):
         raise StoreError(f"{name}: the manifest's id must match {MODEL_ID.pattern}, got {entry_id!r:.80}")
-    for key in ("mesh", "material", "network"):
+    for key in ("mesh", "material", "network", "scene"):
         if not isinstance(manifest.get(key), dict):
             raise StoreError(f"{name}: the manifest has no {key!r} object")
+    if not isinstance(manifest["scene"].get("material"), dict):
+        raise StoreError(f"{name}: the manifest's scene has no 'material' object")
     material = manifest["material"]
     if not all(
         isinstance(material.get(k), (int, float)) and not isinstance(material.get(k), bool) for k in ("E", "nu")
@@ -563,10 +566,46 @@ def _check_manifest(manifest, name: str) -> None:
         NeoHookean.of(material)
     except ValueError as exc:
         raise StoreError(f"{name}: the manifest's material: {exc}") from None
+    _check_twice(manifest, name)
     renumbered = manifest["mesh"].get("renumbered", False)
     if not isinstance(renumbered, bool):
         raise StoreError(f"{name}: the manifest's mesh.renumbered must be true or false, got {renumbered!r:.40}")
     _check_network(manifest["network"], name)
+
+
+#: what a manifest records twice: a value the entry serves (or its data were drawn with) and
+#: where the scene it was built from set it
+_TWICE = (
+    *((("material", k), ("scene", "material", k)) for k in ("law", "E", "nu")),
+    (("training", "load_distribution", "steps"), ("scene", "training", "load_steps")),
+    *(
+        (("training", "load_distribution", k), ("scene", "training", k))
+        for k in ("max_force", "seed", "multi_patch", "normal_fraction", "pull_fraction", "twist_fraction")
+    ),
+)
+_ABSENT = object()
+
+
+def _at(tree, path: tuple[str, ...]):
+    for key in path:
+        if not isinstance(tree, dict) or key not in tree:
+            return _ABSENT
+        tree = tree[key]
+    return tree
+
+
+def _check_twice(manifest: dict, name: str) -> None:
+    """Each value the manifest records twice is the same both times: a material.E edited from
+    4500 to 45000 was served at ten times the stiffness the network learnt, beside a scene that
+    said 4500. A copy an older entry lacks is not compared."""
+    for field, source in _TWICE:
+        value, given = _at(manifest, field), _at(manifest, source)
+        if value is _ABSENT or given is _ABSENT or value == given:  # 60 and 60.0 are one number
+            continue
+        raise StoreError(
+            f"{name}: the manifest's {'.'.join(field)} {value!r:.40} is not the {given!r:.40} of the scene it was "
+            f"built from ({'.'.join(source)}): changed after the build"
+        )
 
 
 def _whole(value, minimum: int = 1) -> bool:

@@ -65,7 +65,29 @@ BAD = {
     "another_law": (lambda p: _edit(p, material={"law": "mooney-rivlin", "E": 1e4, "nu": 0.3}), "law 'mooney-rivlin'"),
     "renumbered_string": (lambda p: _mesh(p, renumbered="no"), "mesh.renumbered must be true or false"),
     "other_widths": (lambda p: _network(p, hidden=[32, 32]), "the weights do not fit the manifest"),
+    # what the manifest records twice: an edited material.E was served at 10x what the network learnt
+    "E_changed": (
+        lambda p: _edit(p, material={"law": "neo-hookean", "E": 45000.0, "nu": 0.45}),
+        "material.E 45000.0 is not the 4500.0 of the scene it was built from (scene.material.E)",
+    ),
+    "nu_changed": (
+        lambda p: _edit(p, material={"law": "neo-hookean", "E": 4500.0, "nu": 0.3}),
+        "material.nu 0.3 is not the 0.45",
+    ),
+    "max_force_changed": (
+        lambda p: _training(p, max_force=600.0),
+        "training.load_distribution.max_force 600.0 is not the 60.0 of the scene it was built from",
+    ),
+    "steps_changed": (lambda p: _training(p, steps=1), "(scene.training.load_steps)"),
+    "no_scene": (lambda p: _edit(p, scene=None), "no 'scene' object"),
+    "scene_without_material": (lambda p: _edit(p, scene={"name": "bar"}), "scene has no 'material' object"),
 }
+
+
+def _training(path, **changes):
+    m = json.loads((path / "manifest.json").read_text())
+    m["training"]["load_distribution"].update(changes)
+    (path / "manifest.json").write_text(json.dumps(m))
 
 
 def _network(path, **changes):
