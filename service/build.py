@@ -341,7 +341,7 @@ def build(
             training=training,
             network=network,
             rebuild=command,
-            renumbered=loaded.kept is not None,
+            renumbered=loaded.renumbered,
         )  # fmt: skip
     except KeyboardInterrupt:
         raise Interrupted(data_dir) from None

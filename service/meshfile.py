@@ -87,6 +87,12 @@ class LoadedMesh:
     quality: MeshQuality
     file_ids: Array | None = None  # a surface's: each file vertex's mesh id (-1: in no face)
 
+    @property
+    def renumbered(self) -> bool:
+        """Whether the mesh's nodes are not the file's one for one: unused ones dropped, or a
+        surface tetrahedralised (nodes added inside); the model summary says so (API.md)."""
+        return self.kept is not None or self.tetrahedralised
+
     def source_to_mesh(self) -> Array:
         """Map from the file's node ids to mesh ids (-1 for dropped nodes). Shape: (n_source,)."""
         if self.file_ids is not None:

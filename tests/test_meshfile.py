@@ -40,7 +40,7 @@ def test_meshio_formats_round_trip(tmp_path, box, name, fmt):
     m = load_mesh(path)
     np.testing.assert_allclose(m.nodes, nodes, atol=1e-12)
     np.testing.assert_array_equal(m.tets, tets)
-    assert m.kept is None and m.source == path
+    assert m.kept is None and m.source == path and not m.renumbered
 
 
 def test_boundary_cells_ignored_and_unused_nodes_mapped(tmp_path, box):
@@ -54,7 +54,7 @@ def test_boundary_cells_ignored_and_unused_nodes_mapped(tmp_path, box):
     meshio.write(path, meshio.Mesh(extra, cells), file_format="gmsh22", binary=False)
     m = load_mesh(path)
     assert m.n_source_nodes == len(extra) and len(m.nodes) == len(nodes)
-    assert 5 not in m.kept.tolist()
+    assert 5 not in m.kept.tolist() and m.renumbered
     np.testing.assert_allclose(m.nodes, nodes)
     assert m.source_to_mesh()[5] == -1 and m.source_to_mesh()[6] == 5
 
@@ -113,7 +113,7 @@ def test_closed_surface_is_tetrahedralised(tmp_path):
     path = tmp_path / "ball.stl"
     sphere.export(path)
     m = load_mesh(path)
-    assert m.tetrahedralised and m.kept is None
+    assert m.tetrahedralised and m.kept is None and m.renumbered  # nodes added inside
     mesh = m.to_mesh()
     assert (mesh.volumes > 0).all()
     assert mesh.volumes.sum() == pytest.approx(sphere.volume, rel=1e-6)

@@ -264,6 +264,45 @@ def test_a_timed_build_keeps_to_its_minutes_and_still_learns(tmp_path, bar):
     assert entry.manifest["training"]["data_key"] == f"{scene.name}-{data_key(*key, TIMED_NEWTON_CAP)}"
 
 
+#: a closed surface's scene: the trainer tetrahedralises it (tetgen adds nodes inside)
+BALL_SCENE = """
+name = "ball"
+[mesh]
+path = "ball.stl"
+[material]
+E = 4500.0
+nu = 0.45
+[boundary]
+fixed_box = [[-1, -1, -1], [1, 1, -0.04]]
+[training]
+samples = 30
+max_force = 0.5
+patch_nodes = [3, 6]
+load_steps = 3
+"""
+
+
+def test_a_model_built_from_a_surface_says_its_node_set_changed(bar_store, tmp_path):
+    """API.md: where the trainer changed the node set (a surface it tetrahedralised), the model
+    summary says so. A tetrahedralised surface's entry said mesh_renumbered false: only nodes
+    dropped from a file counted, not nodes added to one."""
+    import trimesh
+
+    from service.build import build
+    from service.scene import load_scene
+    from service.surrogate.train import TrainConfig
+
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=0.05)
+    sphere.export(tmp_path / "ball.stl")
+    (tmp_path / "ball.toml").write_text(BALL_SCENE)
+    config = TrainConfig(hidden=(8,), rank=4, features=4, epochs=2)
+    build(load_scene(tmp_path / "ball.toml"), tmp_path / "store", workers=0, data_root=tmp_path / "data",
+          config=config, progress=False)  # fmt: skip
+    summary = load_entry(tmp_path / "store" / "ball").summary()
+    assert summary["n_nodes"] > len(sphere.vertices) and summary["mesh_renumbered"] is True
+    assert load_entry(bar_store[0] / "bar").summary()["mesh_renumbered"] is False  # a tet mesh's own nodes
+
+
 def test_a_build_too_short_for_two_paths_is_refused(tmp_path, bar):
     from service.build import build
     from service.scene import load_scene
