@@ -35,12 +35,6 @@ log = logging.getLogger(__name__)
 _FIELDS = tuple(n for n in NAMES if n not in ("support", "matching", "outputs"))
 
 
-#: a network simulate's load may pass the scene's max_force by this share and still be within
-#: training: the sum of nodal magnitudes rounds (1 N on 20 phantom nodes sums to 1 + 2e-16; a
-#: float32 body to 1 + 1.5e-8)
-LOAD_ROUNDING = 1e-6
-
-
 def _ms(t0: float) -> float:
     return 1e3 * (time.perf_counter() - t0)
 
@@ -363,14 +357,13 @@ def judge_network(network, u, scaled, nodes) -> dict:
     is not finite or inverts elements: ``non_finite``) or where the load is larger than any the
     network was trained on (``beyond_training``). `scaled`: the forces at the network's own E
     (E0 / E of the body's), where the estimate is the same and its factorisation already made."""
-    from ..registration.confidence import estimator_for
+    from ..registration.confidence import beyond_training, estimator_for
 
     estimate = estimator_for(network).forward_error(u, scaled, nodes) if np.isfinite(u).all() else math.inf
     result = {"converged": True, "status": "converged", "iterations": 0, "residual": None, "error_estimate": estimate}
-    load = float(np.linalg.norm(scaled, axis=1).sum())  # as training measured a sample's: nodal magnitudes
     if not math.isfinite(estimate):
         result.update(converged=False, status="non_finite", error_estimate=None)
-    elif network.max_force is not None and load > network.max_force * (1 + LOAD_ROUNDING):
+    elif beyond_training(scaled, network.max_force):
         result.update(converged=False, status="beyond_training")
     return result
 

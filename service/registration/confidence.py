@@ -137,6 +137,17 @@ def prior_windows(points: Array, tool_patch: int | None) -> list[Array]:
     return [np.sort(np.argsort(np.linalg.norm(points - points[c], axis=1))[:window]) for c in centres]
 
 
+#: a load may pass the scene's max_force by this share and still be within training: the sum of
+#: nodal magnitudes rounds (1 N on 20 phantom nodes sums to 1 + 2e-16; a float32 body to 1 + 1.5e-8)
+LOAD_ROUNDING = 1e-6
+
+
+def beyond_training(forces: Array, max_force: float | None) -> bool:
+    """Whether nodal forces (k, 3) load the model past its largest tool force, measured as the
+    trainer measures a sample's load (the sum of nodal magnitudes); False without one."""
+    return max_force is not None and float(np.linalg.norm(forces, axis=1).sum()) > max_force * (1 + LOAD_ROUNDING)
+
+
 def force_prior(jac, windows: list[Array], k: int, max_force: float) -> Array:
     """L (r, 3 w) with L L^T the prior the module's third term takes on the basis coefficients
     a tool's force gives, three columns per window (:func:`prior_windows`): one total force,

@@ -36,7 +36,7 @@ from ..fem.assembly import Assembler
 from ..fem.material import NeoHookean
 from ..forward import ForwardFailed, ForwardModel, ForwardOperator, check_support
 from ..mesh import TetMesh
-from .confidence import error_estimate, estimator_for, force_prior, inverse_spread, prior_windows
+from .confidence import LOAD_ROUNDING, error_estimate, estimator_for, force_prior, inverse_spread, prior_windows
 from .distance import PointToSurface
 from .engine import FrameSolution, SolveOptions, check_optimizer, solve_frame
 from .noise_prior import AlphaTracker
@@ -183,9 +183,10 @@ class Session:
         self.g = g
         self._windows = prior_windows(self.mesh.nodes[support], getattr(self.model, "tool_patch", None))
         self._trend: Array | None = None  # the forces' change between the last two converged frames
-        self._converged = False  # whether g is the last frame's converged answer
+        self._converged = False  # whether the last frame's answer converged
         self._trend_before: Array | None = None  # the trend one frame earlier
         self._before: tuple[Array, bool] = (g, False)  # the frame before's forces, and whether they did
+        self._anchor = g  # the last converged frame's forces: a fallback start after a bad frame
         self.curvature = Curvature(3 * support.size) if self.config.carry_curvature else None
         # the corrector's frames teach their own: the FEM's curvature is not the network's
         self._corrector_curvature = Curvature(3 * support.size) if self.config.carry_curvature else None
@@ -339,7 +340,7 @@ class Session:
         converged (a tool moves steadily between frames: the optimizer starts nearer), alone
         where that change agrees with the one before (steady motion), else beside the last forces
         (on noisy clouds the change is noise: the engine starts from whichever fits the new
-        cloud better); else the last converged frame's forces."""
+        cloud better); else the last forces, with the last converged frame's as a fallback."""
         if not self.config.warm_start:
             return np.zeros_like(self.g), ()
         # the Newton method keeps its start: at its gtol the prediction saved it no iterations
@@ -351,7 +352,7 @@ class Session:
             # the prediction evaluated last: where it wins, the optimiser's first Jacobian and
             # match are that evaluation's, not made again
             return self.g, (self.g + self._trend,)
-        return self.g, ()
+        return self.g, (self._anchor,)
 
     def _reserve(self) -> float:
         """Seconds of a frame's time budget kept for what follows its solve (the outputs, the
@@ -362,25 +363,35 @@ class Session:
         return statistics.median(self._after_solve) if self._after_solve else 0.0
 
     def _commit(self, sol, learn: bool) -> None:
-        """Move the warm start to a frame's converged answer. One that did not converge leaves it
-        where the last converged frame put it (API.md: a non-converged solve does not poison the
-        warm start): a glitched cloud's unfinished forces, past what the network learned, led
-        the next good frame's L-BFGS-B to a converged answer 6.6x worse than a fresh session's."""
-        if not sol.converged:
-            # the operator's kept equilibria and the carried curvature are that frame's too
+        """Move the warm start to a frame's answer. A failed one leaves it as it was, and so does
+        one that did not converge with a resultant past the model's largest tool force (API.md: a
+        non-converged solve does not poison the warm start): a glitched cloud's unfinished
+        forces led the next good frame to a converged answer 6.6x worse than a fresh session's.
+        Other unfinished answers are progress (a time budget's frames continue each other)."""
+        if sol.status in FAILED or (not sol.converged and self._past_tool_force(sol.g)):
             self.op.reset()
             if self.curvature is not None:
                 self.curvature.reset()
-            self.failed += int(learn and sol.status in FAILED)
-            self._trend, self._converged = None, False  # no trend across the gap
+            self.failed += int(learn)
+            self._trend, self._converged = None, False
             return
         if learn:  # a frame's first answer; the FEM's correction (learn False) replaces it
             self._before = (self.g, self._converged)
             self._trend_before = self._trend
         prior, prior_converged = self._before
-        self._trend = sol.g - prior if prior_converged else None
-        self._converged = True
+        self._trend = sol.g - prior if (sol.converged and prior_converged) else None
+        self._converged = sol.converged
         self.g = sol.g
+        if sol.converged:
+            self._anchor = sol.g
+
+    def _past_tool_force(self, g: Array) -> bool:
+        """Whether forces g's resultant passes the model's largest tool force (at the session's E).
+        Not the simulate's sum of nodal magnitudes: a whole region's regularised answer spreads
+        small forces over hundreds of nodes, whose magnitudes sum past it where the tool's does not."""
+        return self._max_force is not None and float(np.linalg.norm(g.sum(axis=0))) > self._max_force * (
+            1 + LOAD_ROUNDING
+        )
 
     def _learn_alpha(self, g: Array, n_points: int, gamma: float | None) -> None:
         """Move a noisy stream's alpha after a frame's first answer g, with the force directions

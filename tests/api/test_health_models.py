@@ -109,7 +109,8 @@ def test_a_load_at_the_trained_maximum_is_within_training_whatever_its_rounding(
     """The sum of nodal magnitudes rounds: 1 N on 20 phantom nodes summed to 1 + 2e-16, and a
     float32 body (MessagePack's packed arrays) to 1 + 1.5e-8, and was beyond_training. A load
     past max_force by more than rounding still is."""
-    from service.api.work import LOAD_ROUNDING, judge_network
+    from service.api.work import judge_network
+    from service.registration.confidence import LOAD_ROUNDING
 
     net, k = entry.network, support.size
     for share in (1 + 1e-9, 1 + LOAD_ROUNDING / 2):
