@@ -261,9 +261,11 @@ def generate(
     """
     data_dir = Path(data_dir)
     data_dir.mkdir(parents=True, exist_ok=True)
-    todo = [i for i in range(n_paths) if i not in done_indices(data_dir)]
-    bar = _progress(n_paths, n_paths - len(todo), progress)
-    if not todo:
+    on_disk = frozenset(i for i in done_indices(data_dir) if i < n_paths)  # listed once, not once per path
+    # lazy: a timed build's samples are a ceiling (millions of paths), its clock what ends it
+    todo = (i for i in range(n_paths) if i not in on_disk)
+    bar = _progress(n_paths, len(on_disk), progress)
+    if len(on_disk) == n_paths:
         bar.close()
         return
     if workers == 0 and scheduler is None:

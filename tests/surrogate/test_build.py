@@ -303,6 +303,26 @@ def test_a_model_built_from_a_surface_says_its_node_set_changed(bar_store, tmp_p
     assert load_entry(bar_store[0] / "bar").summary()["mesh_renumbered"] is False  # a tet mesh's own nodes
 
 
+def test_a_huge_sample_count_under_a_small_budget_ends_near_its_budget(tmp_path, bar):
+    """A timed build's samples are a ceiling that its clock cuts: 1,000,000 load paths asked for
+    under 6 s must not spend minutes on the paths before the clock can stop them (listing the
+    data folder once per path took 207 s under a 12 s budget at 6 million)."""
+    import time
+
+    from service.build import build
+    from service.scene import load_scene
+    from service.surrogate.train import TrainConfig
+
+    scene = load_scene(write_bar_scene(tmp_path / "scene", bar))
+    minutes = 0.1
+    t0 = time.perf_counter()
+    report = build(scene, tmp_path / "store", samples=3_000_000, workers=0, data_root=tmp_path / "data",
+                   config=TrainConfig(hidden=(16,), rank=4, features=4), progress=False, minutes=minutes)  # fmt: skip
+    wall = time.perf_counter() - t0
+    assert 2 <= report.paths < 1_000_000
+    assert wall < 60 * minutes + 6  # slack: a loaded machine, the entry's writing
+
+
 def test_a_build_too_short_for_two_paths_is_refused(tmp_path, bar):
     from service.build import build
     from service.scene import load_scene
