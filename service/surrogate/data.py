@@ -253,8 +253,10 @@ def generate(
     single-threaded processes (one per core: the factorisation is the hot spot and threads
     would only fight over it). With workers=0 it runs in this process (tests, debugging).
     `max_newton` caps each step's Newton iterations (solve_path); a data folder should hold
-    paths of one cap (build.data_key). `until` (a time.perf_counter() value): with workers, the
-    generation stops there even while paths are being solved (those still running are dropped).
+    paths of one cap (build.data_key). `until` (a time.perf_counter() value): the generation
+    stops there, with workers even while paths are being solved (those still running are
+    dropped), in this process before the next path; local workers start only where the time to
+    it pays for them (local_workers_pay), else the paths are solved in this process.
     Connecting to `scheduler`, and waiting for its first worker, each take at most Dask's connect
     timeout (distributed.comm.timeouts.connect), never past `deadline` (a time.perf_counter() value:
     the build's end); the wait for a worker never past `until` either.
@@ -268,8 +270,13 @@ def generate(
     if len(on_disk) == n_paths:
         bar.close()
         return
+    if scheduler is None and workers and until is not None and not local_workers_pay(until - time.perf_counter()):
+        log.info("%.1f s of data is too short for local workers to pay off: solved here", until - time.perf_counter())
+        workers = 0
     if workers == 0 and scheduler is None:
         for i in todo:
+            if until is not None and time.perf_counter() > until:  # a path is not cut: none starts past it
+                break
             result = solve_path(mesh, material, spec, i, max_newton=max_newton)
             write_path(data_dir, result)
             bar.update(1)
@@ -388,6 +395,22 @@ def _wait_for_workers(client, address: str, seconds: float, bar) -> None:
             f"start some with `dask worker {address}`"
         ) from exc
     bar.set_postfix_str("")
+
+
+#: seconds local Dask workers cost a timed generation: their start until the first path comes
+#: back (the process spawns, the imports, the solver's compiled kernels loading; a bare
+#: LocalCluster starts in 2 s of it) and their close (cancelled paths: the nanny waits 4 s). Measured
+#: 12-16 s + 4 s for 2 workers on the bar on a shared 2-core machine, where this process solves
+#: the same paths in 15 ms each after 1.6 s of warm-up
+LOCAL_CLUSTER_COST_S = 20.0
+#: ... and they start only where the data share is this many times that: w workers beat this
+#: process once (time - cost) * w > time, twice the cost for the default 2, less for more
+LOCAL_CLUSTER_PAYOFF = 2.0
+
+
+def local_workers_pay(seconds: float) -> bool:
+    """Whether `seconds` of data generation are worth starting local workers for."""
+    return seconds > LOCAL_CLUSTER_PAYOFF * LOCAL_CLUSTER_COST_S
 
 
 #: paths a generation keeps in flight per worker thread (one solving, the next ones queued)

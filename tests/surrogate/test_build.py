@@ -323,6 +323,27 @@ def test_a_huge_sample_count_under_a_small_budget_ends_near_its_budget(tmp_path,
     assert wall < 60 * minutes + 6  # slack: a loaded machine, the entry's writing
 
 
+@pytest.mark.parametrize("minutes", [0.05, 0.1])
+def test_a_budget_too_short_for_local_workers_is_spent_in_this_process(tmp_path, bar, minutes):
+    """2 local workers took 12-16 s to send their first path back here: budgets of 3 s and 6 s
+    ran 10-14 s and ended with no path, where this process builds a model in 1-2 s."""
+    import time
+
+    from service.build import build
+    from service.scene import load_scene
+    from service.surrogate.data import local_workers_pay
+    from service.surrogate.train import TrainConfig
+
+    assert not local_workers_pay(60 * minutes)
+    scene = load_scene(write_bar_scene(tmp_path / "scene", bar))
+    t0 = time.perf_counter()
+    report = build(scene, tmp_path / "store", workers=2, data_root=tmp_path / "data", minutes=minutes,
+                   config=TrainConfig(hidden=(32,), rank=8, features=8), progress=False)  # fmt: skip
+    wall = time.perf_counter() - t0
+    assert report.paths >= 2
+    assert wall < 60 * minutes + 3  # slack: a loaded machine, a second of training at the least
+
+
 def test_a_build_too_short_for_two_paths_is_refused(tmp_path, bar):
     from service.build import build
     from service.scene import load_scene
