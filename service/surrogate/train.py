@@ -194,6 +194,21 @@ def targets(model: torch.nn.Module, U: Array) -> Array:
     return U
 
 
+def _bar(tqdm, config: TrainConfig, spent: float, progress: bool):
+    """The training's progress bar: epochs, or under a clock (a timed build, whose epoch count is
+    only a ceiling) the seconds of its share, `spent` of them already (the model's making)."""
+    if config.max_seconds is None:
+        return tqdm(total=config.epochs, desc="training", unit="epoch", disable=not progress)
+    return tqdm(
+        total=config.max_seconds,
+        initial=min(spent, config.max_seconds),
+        desc="training",
+        unit="s",
+        bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} s [{elapsed}<{remaining}{postfix}]",
+        disable=not progress,
+    )
+
+
 def train(
     F: Array,
     U: Array,
@@ -253,10 +268,10 @@ def train(
     # a build never ships a network worse on held-out paths than where it started
     start = evaluate(model, F[va], U[va], device, norms=norms)
     best, best_state, history, stale = start["mean_mm"], copy.deepcopy(model.state_dict()), [], 0
-    bar = tqdm(range(config.epochs), desc="training", unit="epoch", disable=not progress)
+    bar = _bar(tqdm, config, time.perf_counter() - t_start, progress)
     t0 = time.perf_counter()
     loop_budget = None if config.max_seconds is None else config.max_seconds - (t0 - t_start)
-    for epoch in bar:
+    for epoch in range(config.epochs):
         model.train()
         order = torch.randperm(len(Xtr), generator=gen).to(device)
         total = 0.0
@@ -276,8 +291,15 @@ def train(
             fits = int(loop_budget / max(elapsed, 1e-9))
             sched.T_max = max(1, min(config.epochs, fits))
         history.append({"epoch": epoch, "loss": total / len(Xtr), **metrics, "seconds": time.perf_counter() - t0})
+        if config.max_seconds is None:
+            bar.update(1)
+        else:  # the seconds of its share spent, the epoch beside them
+            bar.update(min(time.perf_counter() - t_start, bar.total) - bar.n)
         bar.set_postfix(
-            loss=f"{total / len(Xtr):.2e}", val_mm=f"{metrics['mean_mm']:.3f}", p95=f"{metrics['p95_mm']:.2f}"
+            **({} if config.max_seconds is None else {"epoch": epoch + 1}),
+            loss=f"{total / len(Xtr):.2e}",
+            val_mm=f"{metrics['mean_mm']:.3f}",
+            p95=f"{metrics['p95_mm']:.2f}",
         )
         if metrics["mean_mm"] < best:
             best, best_state, stale = metrics["mean_mm"], copy.deepcopy(model.state_dict()), 0

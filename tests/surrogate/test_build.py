@@ -1,6 +1,7 @@
 """The trainer end to end on a tiny scene, and the model store's checks."""
 
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -401,23 +402,47 @@ def test_a_model_id_the_store_would_refuse_is_refused_before_any_work(name, tmp_
     assert not (tmp_path / "store").exists()
 
 
-def test_a_timed_training_spends_its_seconds(bar_store):
-    """Early stopping would end this in a few epochs (patience 1); a time cap trains to its clock
-    and keeps the best epoch."""
+def _bar_training_data(bar_store) -> tuple:
+    """What train() takes, from the bar store's data: F, U, path ids, the assembler, the region."""
     from service.fem.assembly import Assembler
     from service.fem.material import NeoHookean
     from service.surrogate.data import load_dataset
-    from service.surrogate.train import TrainConfig, train
 
-    store, report = bar_store
+    store, _ = bar_store
     entry = load_entry(store / "bar")
     data = Path(entry.manifest["training"]["data_key"])
     F, U, P = load_dataset(next(store.parent.glob(f"data/{data}")))
+    return F, U, P, Assembler(entry.mesh, NeoHookean(4500.0, 0.45)), entry.region
+
+
+def test_a_timed_training_spends_its_seconds(bar_store):
+    """Early stopping would end this in a few epochs (patience 1); a time cap trains to its clock
+    and keeps the best epoch."""
+    from service.surrogate.train import TrainConfig, train
+
     config = TrainConfig(hidden=(16,), rank=8, epochs=100_000, patience=1, max_seconds=3.0)
-    result = train(F, U, P, Assembler(entry.mesh, NeoHookean(4500.0, 0.45)), entry.region, config, progress=False)
+    result = train(*_bar_training_data(bar_store), config, progress=False)
     # patience 1 stops in a few epochs; the clock keeps it going (10, not more: a loaded machine's
     # epochs are slow, and the test failed once under four other test runs at 20)
     assert result.metrics["train_seconds"] > 2.0 and result.metrics["epochs"] > 10
+
+
+def test_a_timed_trainings_bar_counts_its_seconds_not_a_ceiling_of_epochs(bar_store, capsys):
+    """A timed build trains to its clock with 100,000 epochs as a mere ceiling: its bar counted
+    to that ceiling (0 % and an ETA of hours at the end); it shows the share's seconds, and the
+    epoch beside them. An untimed training's bar still counts its epochs."""
+    from service.surrogate.train import TrainConfig, train
+
+    data = _bar_training_data(bar_store)
+    train(*data, TrainConfig(hidden=(16,), rank=8, epochs=100_000, max_seconds=2.0), progress=True)
+    timed = capsys.readouterr().err.replace("\r", "\n").splitlines()
+    lines = [line for line in timed if line.startswith("training:")]
+    assert lines and "100000" not in "".join(lines)
+    assert all(re.search(r"\| \d+/2 s \[", line) for line in lines), lines[-1]
+    assert re.search(r"epoch=(\d+)", lines[-1]) and int(re.search(r"epoch=(\d+)", lines[-1])[1]) > 1, lines[-1]
+    train(*data, TrainConfig(hidden=(16,), rank=8, epochs=3), progress=True)
+    untimed = capsys.readouterr().err.replace("\r", "\n")
+    assert re.search(r"training: 100%.*\| 3/3 \[", untimed), untimed[-300:]
 
 
 def _figures(relative: float, se: float | None, paths: int | None, **more) -> dict:
