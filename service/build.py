@@ -32,6 +32,9 @@ log = logging.getLogger(__name__)
 #: a timed build's share of its minutes for FEM data; the rest trains. Error falls with both
 #: samples and epochs, and neither has been measured against the other yet: an even-handed split
 DATA_SHARE = 0.6
+#: the largest --minutes a build takes: a year, far past any build and far from 60 * minutes
+#: overflowing a float (past 3e306 the deadline was inf and the build a traceback)
+MAX_MINUTES = 365 * 24 * 60
 #: seconds a timed build keeps back for the final evaluation and writing the entry
 WRITE_RESERVE_S = 5.0
 #: Newton iterations a timed build gives one step of a training path before it drops the rest of
@@ -249,8 +252,8 @@ def build(
     """
     t_start = time.perf_counter()
     check_model_id(name or scene.name)
-    if minutes is not None and minutes <= 0:
-        raise ValueError(f"minutes must be positive, got {minutes}")
+    if minutes is not None and not 0 < minutes <= MAX_MINUTES:  # NaN too
+        raise ValueError(f"minutes must be positive and at most {MAX_MINUTES} (a year), got {minutes}")
     deadline = None if minutes is None else t_start + 60.0 * minutes
     data_root = Path(data_root or default_data_root())
     check_writable(Path(store), "the model store")

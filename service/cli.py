@@ -36,14 +36,28 @@ _at_least_zero = whole_number(0)
 _port = whole_number(1, 65535)
 
 
-def _positive(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not (value > 0 and math.isfinite(value)):
-        raise argparse.ArgumentTypeError(f"must be a positive finite number, got {text!r}")
-    return value
+def positive_number(maximum: float | None = None, unit: str = ""):
+    """An argparse type for positive finite numbers, at most `maximum` (`unit` names what it is)."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not (value > 0 and math.isfinite(value)):
+            raise argparse.ArgumentTypeError(f"must be a positive finite number, got {text!r}")
+        if maximum is not None and value > maximum:
+            raise argparse.ArgumentTypeError(f"must be at most {maximum:g}{unit}, got {text!r}")
+        return value
+
+    return parse
+
+
+def _minutes(text: str) -> float:
+    """--minutes: a build's budget, up to build.MAX_MINUTES (1e308 overflowed 60 * minutes)."""
+    from .build import MAX_MINUTES
+
+    return positive_number(MAX_MINUTES, " (a year)")(text)
 
 
 def _model_id(text: str) -> str:
@@ -267,9 +281,9 @@ def parser() -> argparse.ArgumentParser:
     t.add_argument("--samples", type=_at_least_one, default=None, help="samples to generate (default: the scene's)")
     t.add_argument(
         "--minutes",
-        type=_positive,
+        type=_minutes,
         default=None,
-        help="bound the whole build's wall time: FEM data for 60 %% of it, training in the rest",
+        help="bound the whole build's wall time (at most a year): FEM data for 60 %% of it, training in the rest",
     )
     t.add_argument(
         "--workers",

@@ -40,6 +40,17 @@ def test_impossible_values_are_refused_at_parse_time(argv, words, capsys):
     assert exit_.value.code == 2 and words in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("minutes", ["1e308", "1e307", "525601"])
+def test_a_build_budget_past_a_year_is_refused_at_parse_time(minutes, capsys):
+    """60 * 1e308 minutes overflowed to an infinite deadline: a traceback after the scene loaded."""
+    with pytest.raises(SystemExit) as exit_:
+        parser().parse_args(["train", "beam", "--minutes", minutes])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and f"--minutes: must be at most 525600 (a year), got '{minutes}'" in err, err
+    assert "Traceback" not in err and err.strip().splitlines()[-1].startswith("elastreg train: error: argument")
+    assert parser().parse_args(["train", "beam", "--minutes", "525600"]).minutes == 525600
+
+
 def test_good_values_parse():
     args = parser().parse_args(["serve", "--port", "8080", "--workers", "2"])
     assert (args.port, args.workers) == (8080, 2)

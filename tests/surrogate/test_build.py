@@ -1,6 +1,7 @@
 """The trainer end to end on a tiny scene, and the model store's checks."""
 
 import json
+import math
 import re
 import shutil
 from pathlib import Path
@@ -352,8 +353,9 @@ def test_a_build_too_short_for_two_paths_is_refused(tmp_path, bar):
     scene = load_scene(write_bar_scene(tmp_path / "scene", bar))
     with pytest.raises(ValueError, match="needs 2"):
         build(scene, tmp_path / "store", workers=0, data_root=tmp_path / "data", progress=False, minutes=1e-4)
-    with pytest.raises(ValueError, match="positive"):
-        build(scene, tmp_path / "store", workers=0, data_root=tmp_path / "data", progress=False, minutes=0)
+    for minutes in (0, math.nan, 1e308):  # 60 * 1e308 overflowed to an infinite deadline
+        with pytest.raises(ValueError, match="positive and at most 525600"):
+            build(scene, tmp_path / "store", workers=0, data_root=tmp_path / "data", progress=False, minutes=minutes)
 
 
 def test_the_command_line_refuses_a_budget_that_is_not_positive():
