@@ -60,6 +60,13 @@ def _minutes(text: str) -> float:
     return positive_number(MAX_MINUTES, " (a year)")(text)
 
 
+def _seed(text: str) -> int:
+    """A training seed, in the range TrainConfig takes (imported here: torch comes with it)."""
+    from .surrogate.train import SEED_MAX
+
+    return whole_number(0, SEED_MAX)(text)
+
+
 def _model_id(text: str) -> str:
     """An argparse type for a model id: the scene's own rule for its name (scene.MODEL_ID)."""
     from .scene import check_model_id
@@ -322,7 +329,7 @@ def parser() -> argparse.ArgumentParser:
         "--features", type=_at_least_one, default=256, help="linear-response POD modes the physics layout reads"
     )
     t.add_argument("--epochs", type=_at_least_one, default=200)
-    t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--seed", type=_seed, default=0)
     t.set_defaults(func=_train)
 
     g = command(

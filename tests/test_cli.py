@@ -349,3 +349,28 @@ def test_a_stream_error_ends_the_demo_in_one_line():
     assert r.stderr.splitlines()[-1] == (  # after the server's own log lines (its start's warning)
         "error: the demo's stream failed: 413: 1000 points is over this server's limit of 500 per frame"
     ), r.stderr[-3000:]
+
+
+SEED_MAX = 2**64 - 1  # torch's manual_seed takes no larger one
+
+
+@pytest.mark.parametrize("seed", ["-1", str(SEED_MAX + 1), "99999999999999999999", "1.5", "abc"])
+def test_a_seed_the_trainer_cannot_take_is_refused_at_parse_time(seed, capsys):
+    """`--seed -1` and `--seed 99999999999999999999` were taken and failed after all the FEM
+    data, with numpy's or torch's words ("expected non-negative integer") naming no flag."""
+    with pytest.raises(SystemExit) as exit_:
+        parser().parse_args(["train", "beam", "--seed", seed])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and f"--seed: must be a whole number in 0..{SEED_MAX}, got {seed!r}" in err, err
+
+
+def test_the_largest_seed_builds(tmp_path, bar):
+    """The top of the range is one the whole build takes: the split, the POD bases and torch."""
+    scene = write_bar_scene(tmp_path / "scene", bar, samples=6)
+    rc = main(["train", str(scene), "--store", str(tmp_path / "store"), "--data", str(tmp_path / "data"),
+               "--workers", "0", "--hidden", "16", "--rank", "4", "--features", "8", "--epochs", "2",
+               "--seed", str(SEED_MAX)])  # fmt: skip
+    assert rc == 0
+    assert (
+        json.loads((tmp_path / "store" / "bar" / "manifest.json").read_text())["training"]["config"]["seed"] == SEED_MAX
+    )

@@ -21,6 +21,9 @@ log = logging.getLogger(__name__)
 
 Array = np.ndarray
 
+#: the largest seed: torch's manual_seed takes 0..2**64 - 1 (numpy's default_rng no negative one)
+SEED_MAX = 2**64 - 1
+
 
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
@@ -56,6 +59,8 @@ class TrainConfig:
         for key in ("rank", "features", "epochs"):
             if getattr(self, key) < 1:
                 raise ValueError(f"{key} must be a whole number >= 1, got {getattr(self, key)}")
+        if not 0 <= self.seed <= SEED_MAX:  # else torch refused it after all the data
+            raise ValueError(f"seed must be a whole number in 0..{SEED_MAX}, got {self.seed}")
         if not self.hidden or min(self.hidden) < 1:
             raise ValueError(f"hidden layer widths must be whole numbers >= 1, got {list(self.hidden)}")
         if self.layout != "reduced" and (self.members or 1) > 1:

@@ -174,6 +174,8 @@ def test_a_bad_ensemble_size_is_refused_before_any_work(capsys):
         ({"rank": -4}, "rank must be a whole number >= 1"),
         ({"epochs": 0}, "epochs must be a whole number >= 1"),
         ({"hidden": (512, 0)}, "hidden layer widths must be whole numbers >= 1"),
+        ({"seed": -1}, "seed must be a whole number in 0..18446744073709551615"),
+        ({"seed": 2**64}, "seed must be a whole number in 0..18446744073709551615"),
     ],
 )
 def test_train_config_refuses_what_no_build_can_take(kwargs, message):
