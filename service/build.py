@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 from scipy.stats import t as student_t
 
+from .argtypes import MAX_MINUTES  # the command lines take no more
 from .fem.assembly import Assembler
 from .fem.material import NeoHookean
 from .fem.newton import NewtonOptions
@@ -32,9 +33,6 @@ log = logging.getLogger(__name__)
 #: a timed build's share of its minutes for FEM data; the rest trains. Error falls with both
 #: samples and epochs, and neither has been measured against the other yet: an even-handed split
 DATA_SHARE = 0.6
-#: the largest --minutes a build takes: a year, far past any build and far from 60 * minutes
-#: overflowing a float (past 3e306 the deadline was inf and the build a traceback)
-MAX_MINUTES = 365 * 24 * 60
 #: seconds a timed build keeps back for the final evaluation and writing the entry
 WRITE_RESERVE_S = 5.0
 #: Newton iterations a timed build gives one step of a training path before it drops the rest of

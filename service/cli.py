@@ -7,57 +7,16 @@ from __future__ import annotations
 import argparse
 import functools
 import logging
-import math
 import os
 import shlex
 import sys
 from pathlib import Path
 
-
-def whole_number(minimum: int, maximum: int | None = None):
-    """An argparse type for whole numbers in minimum..maximum: refused at parse time, not after
-    an hour of data generation (or, for a port, not wrapped round: 70000 listened on 4464)."""
-    wanted = f">= {minimum}" if maximum is None else f"in {minimum}..{maximum}"
-
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            value = minimum - 1
-        if value < minimum or (maximum is not None and value > maximum):
-            raise argparse.ArgumentTypeError(f"must be a whole number {wanted}, got {text!r}")
-        return value
-
-    return parse
-
+from .argtypes import build_minutes, whole_number
 
 _at_least_one = whole_number(1)
 _at_least_zero = whole_number(0)
 _port = whole_number(1, 65535)
-
-
-def positive_number(maximum: float | None = None, unit: str = ""):
-    """An argparse type for positive finite numbers, at most `maximum` (`unit` names what it is)."""
-
-    def parse(text: str) -> float:
-        try:
-            value = float(text)
-        except ValueError:
-            value = math.nan
-        if not (value > 0 and math.isfinite(value)):
-            raise argparse.ArgumentTypeError(f"must be a positive finite number, got {text!r}")
-        if maximum is not None and value > maximum:
-            raise argparse.ArgumentTypeError(f"must be at most {maximum:g}{unit}, got {text!r}")
-        return value
-
-    return parse
-
-
-def _minutes(text: str) -> float:
-    """--minutes: a build's budget, up to build.MAX_MINUTES (1e308 overflowed 60 * minutes)."""
-    from .build import MAX_MINUTES
-
-    return positive_number(MAX_MINUTES, " (a year)")(text)
 
 
 def _seed(text: str) -> int:
@@ -288,7 +247,7 @@ def parser() -> argparse.ArgumentParser:
     t.add_argument("--samples", type=_at_least_one, default=None, help="samples to generate (default: the scene's)")
     t.add_argument(
         "--minutes",
-        type=_minutes,
+        type=build_minutes,
         default=None,
         help="bound the whole build's wall time (at most a year): FEM data for 60 %% of it, training in the rest",
     )

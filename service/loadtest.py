@@ -20,7 +20,7 @@ from websockets.exceptions import WebSocketException
 from clients.client import ApiError, AsyncClient, StreamError
 from clients.loadtest import MAX_SECONDS, MAX_STREAMS, LoadReport, check_target, run_load
 
-from .cli import whole_number
+from .argtypes import whole_number
 from .demo import PEAK_FRACTION, patches
 from .mesh import TetMesh
 from .registration.settings import METHODS

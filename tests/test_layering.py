@@ -20,6 +20,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
         "base",
         (
             "service",  # the package itself: __version__
+            "service.argtypes",
             "service.jit",
             "service.config",
             "service.mesh",

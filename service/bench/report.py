@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..argtypes import build_minutes, whole_number
 from .markdown import write_report
 from .results import PARTS, merge_previous, prior_part
 from .truth import TRUTHS
@@ -43,7 +44,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--anysite-model", default="phantom", help="a whole-surface model for the anysite part (default: phantom)"
     )
-    p.add_argument("--sites", type=int, default=6, help="anysite: tool sites (sequences)")
+    p.add_argument("--sites", type=whole_number(1), default=6, help="anysite: tool sites (sequences)")
     p.add_argument(
         "--truth",
         choices=TRUTHS,
@@ -60,7 +61,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("the minutes part (the build-minutes curve)")
     g.add_argument(
         "--build-minutes",
-        type=float,
+        type=build_minutes,
         nargs="*",
         default=[5.0, 10.0, 30.0, 60.0],
         metavar="M",
@@ -72,11 +73,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=["benchmarks/scenes/liver_sofa.toml", "benchmarks/scenes/liver_deepphysx.toml"],
         help="scene files to build (default: the SOFA and DeepPhysX livers)",
     )
-    g.add_argument("--test-paths", type=int, default=40, help="held-out test paths per scene (5 samples each)")
+    g.add_argument(
+        "--test-paths", type=whole_number(1), default=40, help="held-out test paths per scene (5 samples each)"
+    )
     g.add_argument(
         "--test-data", default=None, help="where the test sets are kept (default: ~/.cache/elastreg/test-data)"
     )
-    g.add_argument("--workers", type=int, default=2, help="FEM worker processes of each build")
+    g.add_argument(
+        "--workers", type=whole_number(0), default=2, help="FEM worker processes of each build (0: in this process)"
+    )
     g.add_argument("--keep-store", default=None, help="keep each scene's last build in this store (default: discard)")
     p.add_argument(
         "--smoke", metavar="MODEL", default=None, help="every part on a tiny model of --store (seconds; for the tests)"

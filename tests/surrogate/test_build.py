@@ -377,7 +377,10 @@ def test_the_command_line_refuses_a_budget_that_is_not_positive():
     ("flags", "message"),
     [
         (["--minutes", "inf"], "--minutes: must be a positive finite number"),
-        (["--minutes", "abc"], "--minutes: must be a positive finite number, got 'abc'"),  # not "invalid _positive"
+        (
+            ["--minutes", "abc"],
+            "--minutes: must be a positive finite number, got 'abc'",
+        ),  # not "invalid positive value"
         (["--samples", "0"], "--samples: must be a whole number >= 1"),
         (["--workers", "-1"], "--workers: must be a whole number >= 0"),
         (["--features", "0"], "--features: must be a whole number >= 1"),

@@ -1,0 +1,53 @@
+"""argparse types for the command lines (``elastreg`` and its bench, the load test): an
+impossible value is refused at parse time, one line naming the flag, exit status 2."""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+
+def whole_number(minimum: int, maximum: int | None = None):
+    """An argparse type for whole numbers in minimum..maximum: refused at parse time, not after
+    an hour of data generation (or, for a port, not wrapped round: 70000 listened on 4464)."""
+    wanted = f">= {minimum}" if maximum is None else f"in {minimum}..{maximum}"
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = minimum - 1
+        if value < minimum or (maximum is not None and value > maximum):
+            raise argparse.ArgumentTypeError(f"must be a whole number {wanted}, got {text!r}")
+        return value
+
+    return parse
+
+
+def positive_number(maximum: float | None = None, unit: str = ""):
+    """An argparse type for positive finite numbers, at most `maximum` (`unit` names what it is)."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not (value > 0 and math.isfinite(value)):
+            raise argparse.ArgumentTypeError(f"must be a positive finite number, got {text!r}")
+        if maximum is not None and value > maximum:
+            raise argparse.ArgumentTypeError(f"must be at most {maximum:g}{unit}, got {text!r}")
+        return value
+
+    return parse
+
+
+#: a positive finite number (a time budget: nan, inf, 0 are none)
+positive = positive_number()
+
+
+#: the longest build budget, in minutes: a year, far past any build and far from 60 * minutes
+#: overflowing a float (past 3e306 the deadline was inf and the build a traceback)
+MAX_MINUTES = 365 * 24 * 60
+
+#: a build's --minutes (train) or --build-minutes (bench)
+build_minutes = positive_number(MAX_MINUTES, " (a year)")
