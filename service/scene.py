@@ -23,7 +23,9 @@ Keys beyond SCENES.md (all optional):
   (node ids where registration may put forces), ``matching_file`` (a .npy (f, 3) array of the
   boundary triangles point clouds lie on).
 
-Paths (``path`` and every ``*_file`` key) are relative to the TOML file. Node ids in a scene are
+An id file (``*_file`` but ``matching_file``) is a .npy array or text with one id a line ('#'
+comments): two or more ids a line, or none, are refused. A UTF-8 BOM before a scene or an id
+file is skipped. Paths (``path`` and every ``*_file`` key) are relative to the TOML file. Node ids in a scene are
 the file's ids; when loading drops unused nodes they are mapped onto the mesh's numbering.
 """
 
@@ -32,6 +34,7 @@ from __future__ import annotations
 import logging
 import re
 import tomllib
+import warnings
 from importlib import resources
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -459,17 +462,23 @@ class Scene(_Table):
         return mapped
 
     def _read_ids(self, path: Path, key: str) -> Array:
-        """Node ids from a .npy int array, or a text file with one id a line ('#' comments)."""
+        """Node ids from a .npy int array, or a text file with one id a line ('#' comments; a
+        UTF-8 BOM, which Windows editors write, skipped)."""
         try:
-            ids = (
-                np.load(path, allow_pickle=False)
-                if path.suffix == ".npy"
-                else np.loadtxt(path, dtype=np.int64, ndmin=1, comments="#")
-            )
+            if path.suffix == ".npy":
+                ids = np.load(path, allow_pickle=False)
+            else:
+                with warnings.catch_warnings():  # numpy's two-line "no data" warning: refused below
+                    warnings.filterwarnings("ignore", "loadtxt: input contained no data", UserWarning)
+                    ids = np.loadtxt(path, dtype=np.int64, ndmin=2, comments="#", encoding="utf-8-sig")
         except (OSError, ValueError) as exc:
             raise self._error(key, f"cannot read node ids from {path}: {exc}") from exc
         if not np.issubdtype(ids.dtype, np.integer):
             raise self._error(key, f"{path} must hold integer node ids, got {ids.dtype}")
+        if ids.ndim > 1 and ids.size != len(ids):  # a table's columns would be read as ids, flattened
+            raise self._error(key, f"{path} holds rows of {ids.size // len(ids)} ids: node ids go one id a line")
+        if ids.size == 0:
+            raise self._error(key, f"{path} holds no node id")
         return ids.ravel().astype(np.int64)
 
 
@@ -527,8 +536,8 @@ def _describe(err: dict) -> str:
 
 def parse_scene(text: str, origin: str = "<scene>", base: Path | None = None) -> Scene:
     """A scene from TOML text; relative paths against `base`; errors prefixed with `origin`."""
-    try:
-        data = tomllib.loads(text)
+    try:  # a UTF-8 BOM (Windows editors write one) is no TOML statement: skipped
+        data = tomllib.loads(text.removeprefix("\ufeff"))
     except tomllib.TOMLDecodeError as exc:
         raise SceneError(f"{origin}: not valid TOML: {exc}") from exc
     try:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import textwrap
+import warnings
 from pathlib import Path
 
 import meshio
@@ -109,6 +110,51 @@ def test_fixed_nodes_file_text_and_npy(folder):
     np.save(folder / "fixed.npy", np.array([3, 4, 6, 7]))
     scene = load_scene(write(folder, boundary='fixed_nodes_file = "fixed.npy"\nfree_nodes = [7]'))
     assert scene.build_mesh()[0].fixed.tolist() == [3, 4, 6]
+
+
+@pytest.mark.parametrize("content", ["", "# clamp: none yet\n"])
+@pytest.mark.parametrize("section, key", [("boundary", "fixed_nodes_file"), ("training", "region_file")])
+def test_an_id_file_with_no_id_is_one_error_naming_it(folder, section, key, content):
+    """numpy's two-line `UserWarning: loadtxt: input contained no data` came before the error."""
+    (folder / "ids.txt").write_text(content)
+    kw = (
+        {"boundary": 'fixed_nodes_file = "ids.txt"'}
+        if section == "boundary"
+        else {"training": 'region_file = "ids.txt"'}
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # any warning fails the test
+        msg = error_of(folder, **kw)
+    assert msg == f"{folder / 'scene.toml'}: [{section}] {key}: {folder / 'ids.txt'} holds no node id", msg
+
+
+def test_an_id_file_of_two_columns_is_refused_not_flattened(folder):
+    """SCENES.md: one id a line. Pairs (an edge list, ids beside coordinates) were read as ids."""
+    (folder / "fixed.txt").write_text("0 1\n3 4\n")
+    msg = error_of(folder, boundary='fixed_nodes_file = "fixed.txt"')
+    assert msg.endswith(
+        f"[boundary] fixed_nodes_file: {folder / 'fixed.txt'} holds rows of 2 ids: node ids go one id a line"
+    )
+    (folder / "region.txt").write_text("12 13 14\n")  # one line of three ids is no list of them either
+    assert "holds rows of 3 ids" in error_of(folder, training='region_file = "region.txt"')
+    np.save(folder / "fixed.npy", np.array([[0, 1], [3, 4]]))
+    assert "fixed.npy holds rows of 2 ids" in error_of(folder, boundary='fixed_nodes_file = "fixed.npy"')
+    np.save(folder / "fixed.npy", np.array([[0], [1], [3]]))  # a column of ids is one id a row
+    assert load_scene(write(folder, boundary='fixed_nodes_file = "fixed.npy"')).build_mesh()[0].fixed.tolist() == [
+        0,
+        1,
+        3,
+    ]
+
+
+def test_a_scene_and_an_id_file_saved_with_a_bom_load(folder):
+    """Windows editors save UTF-8 with a byte-order mark: the scene was "not valid TOML:
+    Invalid statement (at line 1, column 1)" and an id file's first id unreadable."""
+    (folder / "fixed.txt").write_text("\ufeff0\n1\n3\n", encoding="utf-8")
+    path = write(folder, boundary='fixed_nodes_file = "fixed.txt"')
+    path.write_bytes(b"\xef\xbb\xbf" + path.read_bytes())
+    scene = load_scene(path)
+    assert scene.name == "block-1" and scene.build_mesh()[0].fixed.tolist() == [0, 1, 3]
 
 
 def test_a_body_held_at_a_point_or_along_a_line_is_refused(folder):
