@@ -14,6 +14,7 @@ from service.cli import main, parser
         (["minutes", "--build-minutes", "0"], "--build-minutes: must be a positive finite number, got '0'"),
         (["minutes", "--build-minutes", "5", "nan"], "--build-minutes: must be a positive finite number, got 'nan'"),
         (["minutes", "--build-minutes", "inf"], "--build-minutes: must be a positive finite number, got 'inf'"),
+        (["minutes", "--build-minutes", "1e308"], "--build-minutes: must be at most 525600 (a year), got '1e308'"),
         # a FileNotFoundError traceback, after writing an empty test set into the cache
         (["minutes", "--test-paths", "0"], "--test-paths: must be a whole number >= 1, got '0'"),
         (["minutes", "--workers", "-1"], "--workers: must be a whole number >= 0, got '-1'"),  # 33 s, then a traceback
