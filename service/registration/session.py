@@ -281,8 +281,7 @@ class Session:
             outputs, rms, estimate, gamma = self._outputs(self.op, self.model, sol, options.alpha)
             if not np.isfinite(estimate) and sol.status not in FAILED:  # failed before it moves the warm start
                 sol = _non_finite(sol)
-            self._commit(sol, learn=True)
-            if sol.status not in FAILED:
+            if self._commit(sol, learn=True):  # a noisy stream's alpha learns from what a frame starts from
                 self._learn_alpha(sol.g, len(points), gamma)
             timing = sol.timing.as_ms()
             after = time.perf_counter() - t1
@@ -362,19 +361,20 @@ class Session:
         its optimiser, fits in the budget where it can."""
         return statistics.median(self._after_solve) if self._after_solve else 0.0
 
-    def _commit(self, sol, learn: bool) -> None:
+    def _commit(self, sol, learn: bool) -> bool:
         """Move the warm start to a frame's answer. A failed one leaves it as it was, and so does
         one that did not converge with a resultant past the model's largest tool force (API.md: a
         non-converged solve does not poison the warm start): a glitched cloud's unfinished
         forces led the next good frame to a converged answer 6.6x worse than a fresh session's.
-        Other unfinished answers are progress (a time budget's frames continue each other)."""
+        Other unfinished answers are progress (a time budget's frames continue each other).
+        Whether it moved."""
         if sol.status in FAILED or (not sol.converged and self._past_tool_force(sol.g)):
             self.op.reset()
             if self.curvature is not None:
                 self.curvature.reset()
-            self.failed += int(learn)
+            self.failed += int(learn and sol.status in FAILED)
             self._trend, self._converged = None, False
-            return
+            return False
         if learn:  # a frame's first answer; the FEM's correction (learn False) replaces it
             self._before = (self.g, self._converged)
             self._trend_before = self._trend
@@ -384,6 +384,7 @@ class Session:
         self.g = sol.g
         if sol.converged:
             self._anchor = sol.g
+        return True
 
     def _past_tool_force(self, g: Array) -> bool:
         """Whether forces g's resultant passes the model's largest tool force (at the session's E).
