@@ -362,13 +362,13 @@ class Session:
         return statistics.median(self._after_solve) if self._after_solve else 0.0
 
     def _commit(self, sol, learn: bool) -> bool:
-        """Move the warm start to a frame's answer. A failed one leaves it as it was, and so does
-        one that did not converge with a resultant past the model's largest tool force (API.md: a
-        non-converged solve does not poison the warm start): a glitched cloud's unfinished
-        forces led the next good frame to a converged answer 6.6x worse than a fresh session's.
+        """Move the warm start to a frame's answer. A failed one leaves it as it was, and so does a
+        network's first answer that did not converge past what it learned (API.md: a non-converged
+        solve does not poison the warm start): a glitched cloud's unfinished forces led the next
+        good frame to a converged answer 6.6x worse than a fresh session's.
         Other unfinished answers are progress (a time budget's frames continue each other).
         Whether it moved."""
-        if sol.status in FAILED or (not sol.converged and self._past_tool_force(sol.g)):
+        if sol.status in FAILED or (learn and not sol.converged and self._glitch(sol.g)):
             self.op.reset()
             if self.curvature is not None:
                 self.curvature.reset()
@@ -386,12 +386,16 @@ class Session:
             self._anchor = sol.g
         return True
 
-    def _past_tool_force(self, g: Array) -> bool:
-        """Whether forces g's resultant passes the model's largest tool force (at the session's E).
-        Not the simulate's sum of nodal magnitudes: a whole region's regularised answer spreads
-        small forces over hundreds of nodes, whose magnitudes sum past it where the tool's does not."""
-        return self._max_force is not None and float(np.linalg.norm(g.sum(axis=0))) > self._max_force * (
-            1 + LOAD_ROUNDING
+    def _glitch(self, g: Array) -> bool:
+        """Whether a network's unfinished forces g lie past what it learned: a resultant past the
+        model's largest tool force (at the session's E). Not the simulate's sum of nodal
+        magnitudes: a whole region's regularised answer spreads small forces over hundreds of
+        nodes, whose magnitudes sum past it where the tool's do not. The Newton method holds at
+        any load: its unfinished frames are progress however hard the tool pulls."""
+        return (
+            self.model.method == "network"
+            and self._max_force is not None
+            and float(np.linalg.norm(g.sum(axis=0))) > self._max_force * (1 + LOAD_ROUNDING)
         )
 
     def _learn_alpha(self, g: Array, n_points: int, gamma: float | None) -> None:
