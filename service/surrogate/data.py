@@ -270,7 +270,12 @@ def generate(
     if len(on_disk) == n_paths:
         bar.close()
         return
-    if scheduler is None and workers and until is not None and not local_workers_pay(until - time.perf_counter()):
+    if (
+        scheduler is None
+        and workers
+        and until is not None
+        and not local_workers_pay(until - time.perf_counter(), workers)
+    ):
         log.info("%.1f s of data is too short for local workers to pay off: solved here", until - time.perf_counter())
         workers = 0
     if workers == 0 and scheduler is None:
@@ -403,14 +408,13 @@ def _wait_for_workers(client, address: str, seconds: float, bar) -> None:
 #: 12-16 s + 4 s for 2 workers on the bar on a shared 2-core machine, where this process solves
 #: the same paths in 15 ms each after 1.6 s of warm-up
 LOCAL_CLUSTER_COST_S = 20.0
-#: ... and they start only where the data share is this many times that: w workers beat this
-#: process once (time - cost) * w > time, twice the cost for the default 2, less for more
-LOCAL_CLUSTER_PAYOFF = 2.0
 
 
-def local_workers_pay(seconds: float) -> bool:
-    """Whether `seconds` of data generation are worth starting local workers for."""
-    return seconds > LOCAL_CLUSTER_PAYOFF * LOCAL_CLUSTER_COST_S
+def local_workers_pay(seconds: float, workers: int) -> bool:
+    """Whether `seconds` of data generation are worth starting `workers` local workers for: they
+    beat this process once (seconds - cost) * workers > seconds, past twice the cost for the
+    default 2, less for more; one worker never does."""
+    return workers > 1 and seconds > LOCAL_CLUSTER_COST_S * workers / (workers - 1)
 
 
 #: paths a generation keeps in flight per worker thread (one solving, the next ones queued)

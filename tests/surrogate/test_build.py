@@ -338,7 +338,7 @@ def test_a_budget_too_short_for_local_workers_is_spent_in_this_process(tmp_path,
     from service.surrogate.data import local_workers_pay
     from service.surrogate.train import TrainConfig
 
-    assert not local_workers_pay(60 * minutes)
+    assert not local_workers_pay(60 * minutes, 2)
     scene = load_scene(write_bar_scene(tmp_path / "scene", bar))
     t0 = time.perf_counter()
     report = build(scene, tmp_path / "store", workers=2, data_root=tmp_path / "data", minutes=minutes,
@@ -547,3 +547,14 @@ def test_the_gate_calls_an_equal_rebuild_worse_no_more_often_than_its_confidence
     trials = 1500
     above = sum(worse_at_least(validation(), validation()) > 1.0 for _ in range(trials))
     assert above / trials <= 0.025, above / trials
+
+
+def test_more_local_workers_pay_off_sooner():
+    """w workers beat the build's own process once (seconds - cost) w > seconds: 8 of them pay
+    off in a 35 s data share where 2 do not (review3/workers_payoff.py: 8 were refused there),
+    and one never does."""
+    from service.surrogate.data import LOCAL_CLUSTER_COST_S, local_workers_pay
+
+    assert local_workers_pay(35.0, 8) and not local_workers_pay(35.0, 2)
+    assert local_workers_pay(2.01 * LOCAL_CLUSTER_COST_S, 2) and not local_workers_pay(1.99 * LOCAL_CLUSTER_COST_S, 2)
+    assert not local_workers_pay(1e6, 1)
