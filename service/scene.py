@@ -475,7 +475,9 @@ class Scene(_Table):
             raise self._error(key, f"cannot read node ids from {path}: {exc}") from exc
         if not np.issubdtype(ids.dtype, np.integer):
             raise self._error(key, f"{path} must hold integer node ids, got {ids.dtype}")
-        if ids.ndim > 1 and ids.size != len(ids):  # a table's columns would be read as ids, flattened
+        # a table's columns would be read as ids, flattened; an array's one row of ids is a list
+        # of them, a text file's is not (one id a line)
+        if ids.ndim > 1 and ids.size != (max(ids.shape) if path.suffix == ".npy" else len(ids)):
             raise self._error(key, f"{path} holds rows of {ids.size // len(ids)} ids: node ids go one id a line")
         if ids.size == 0:
             raise self._error(key, f"{path} holds no node id")

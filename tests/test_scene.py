@@ -139,6 +139,12 @@ def test_an_id_file_of_two_columns_is_refused_not_flattened(folder):
     assert "holds rows of 3 ids" in error_of(folder, training='region_file = "region.txt"')
     np.save(folder / "fixed.npy", np.array([[0, 1], [3, 4]]))
     assert "fixed.npy holds rows of 2 ids" in error_of(folder, boundary='fixed_nodes_file = "fixed.npy"')
+    np.save(folder / "fixed.npy", np.array([[0, 1, 3]]))  # an array's one row of ids is a list of them
+    assert load_scene(write(folder, boundary='fixed_nodes_file = "fixed.npy"')).build_mesh()[0].fixed.tolist() == [
+        0,
+        1,
+        3,
+    ]
     np.save(folder / "fixed.npy", np.array([[0], [1], [3]]))  # a column of ids is one id a row
     assert load_scene(write(folder, boundary='fixed_nodes_file = "fixed.npy"')).build_mesh()[0].fixed.tolist() == [
         0,
