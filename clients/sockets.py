@@ -107,6 +107,22 @@ def _closed_by_server(exc: Exception, what: str = "stream") -> StreamError:
     return StreamError(0, detail, close_code=code, reason=reason)
 
 
+def _refusal(exc: Exception, late) -> StreamError | None:
+    """The server's refusal of a stream found closed while opening (``exc``): its last message
+    (``late``, None where none came) where that was an error, with the close's code (the
+    handshake's token refused before the config was sent); None where it was not."""
+    if late is None:
+        return None
+    try:
+        _reply(late)
+    except StreamError as refused:
+        refused.close_code = _closed_code(exc)
+        return refused
+    except Exception:  # not a message this client reads: the close speaks for itself
+        return None
+    return None
+
+
 @contextlib.contextmanager
 def _closes_as_stream_error(what: str = "stream"):
     """Raise a socket found closed as :class:`StreamError` (websockets' exception its cause)."""
@@ -176,13 +192,12 @@ class Stream(_SyncSocket):
             opened = _reply(ws.recv(timeout=timeout), lambda: _close_code(ws))
             self.session, self.config = opened["session"], opened["config"]
         except ConnectionClosed as exc:
-            try:  # the server may have refused the handshake's token before the config was sent
-                _reply(ws.recv(timeout=0.5))
-            except StreamError as refused:
-                refused.close_code = _closed_code(exc)
+            late = None
+            with contextlib.suppress(Exception):  # the server's last words, if any came
+                late = ws.recv(timeout=0.5)
+            refused = _refusal(exc, late)
+            if refused is not None:
                 raise refused from None
-            except Exception:
-                pass
             raise _closed_by_server(exc) from exc
         except BaseException:
             ws.close()
@@ -230,13 +245,12 @@ class AsyncStream(_AsyncSocket):
             opened = _reply(first, lambda: code)
             self.session, self.config = opened["session"], opened["config"]
         except ConnectionClosed as exc:
-            try:  # the server may have refused the handshake's token before the config was sent
-                _reply(await asyncio.wait_for(self.ws.recv(), 0.5))
-            except StreamError as refused:
-                refused.close_code = _closed_code(exc)
+            late = None
+            with contextlib.suppress(Exception):  # the server's last words, if any came
+                late = await asyncio.wait_for(self.ws.recv(), 0.5)
+            refused = _refusal(exc, late)
+            if refused is not None:
                 raise refused from None
-            except Exception:
-                pass
             raise _closed_by_server(exc) from exc
         except BaseException:
             await self.ws.close()
