@@ -142,10 +142,15 @@ def prior_windows(points: Array, tool_patch: int | None) -> list[Array]:
 LOAD_ROUNDING = 1e-6
 
 
+def past_max_force(load: float, max_force: float | None) -> bool:
+    """Whether a load (N) passes the model's largest tool force, rounding allowed; False without one."""
+    return max_force is not None and load > max_force * (1 + LOAD_ROUNDING)
+
+
 def beyond_training(forces: Array, max_force: float | None) -> bool:
     """Whether nodal forces (k, 3) load the model past its largest tool force, measured as the
     trainer measures a sample's load (the sum of nodal magnitudes); False without one."""
-    return max_force is not None and float(np.linalg.norm(forces, axis=1).sum()) > max_force * (1 + LOAD_ROUNDING)
+    return past_max_force(float(np.linalg.norm(forces, axis=1).sum()), max_force)
 
 
 def force_prior(jac, windows: list[Array], k: int, max_force: float) -> Array:

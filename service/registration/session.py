@@ -36,7 +36,7 @@ from ..fem.assembly import Assembler
 from ..fem.material import NeoHookean
 from ..forward import ForwardFailed, ForwardModel, ForwardOperator, check_support
 from ..mesh import TetMesh
-from .confidence import LOAD_ROUNDING, error_estimate, estimator_for, force_prior, inverse_spread, prior_windows
+from .confidence import error_estimate, estimator_for, force_prior, inverse_spread, past_max_force, prior_windows
 from .distance import PointToSurface
 from .engine import FrameSolution, SolveOptions, check_optimizer, solve_frame
 from .noise_prior import AlphaTracker
@@ -392,11 +392,7 @@ class Session:
         magnitudes: a whole region's regularised answer spreads small forces over hundreds of
         nodes, whose magnitudes sum past it where the tool's do not. The Newton method holds at
         any load: its unfinished frames are progress however hard the tool pulls."""
-        return (
-            self.model.method == "network"
-            and self._max_force is not None
-            and float(np.linalg.norm(g.sum(axis=0))) > self._max_force * (1 + LOAD_ROUNDING)
-        )
+        return self.model.method == "network" and past_max_force(float(np.linalg.norm(g.sum(axis=0))), self._max_force)
 
     def _learn_alpha(self, g: Array, n_points: int, gamma: float | None) -> None:
         """Move a noisy stream's alpha after a frame's first answer g, with the force directions
