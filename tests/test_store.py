@@ -171,7 +171,7 @@ def test_an_entry_the_store_would_refuse_never_replaces_the_served_one(bar_store
 def test_a_failed_swap_puts_the_served_entry_back(bar_store, tmp_path, monkeypatch):
     """Between the two renames a failure (a full disk, a concurrent writer) must not leave the
     store without the entry it served."""
-    import service.store as store_module
+    import service.store.write as write_module
 
     root = tmp_path / "store"
     shutil.copytree(bar_store[0] / "bar", root / "bar")
@@ -186,8 +186,10 @@ def test_a_failed_swap_puts_the_served_entry_back(bar_store, tmp_path, monkeypat
             raise OSError(39, "Directory not empty")
         return real(src, dst)
 
-    monkeypatch.setattr(store_module, "_exchange", lambda a, b: False)  # a system without renameat2
-    monkeypatch.setattr(store_module.os, "replace", second_fails)
+    monkeypatch.setattr(
+        write_module, "_exchange", lambda a, b: False
+    )  # a system without renameat2 (patched where write_entry looks it up)
+    monkeypatch.setattr(write_module.os, "replace", second_fails)
     with pytest.raises(OSError, match="not empty"):
         _rewrite(entry, root)
     monkeypatch.undo()
@@ -199,14 +201,14 @@ def test_a_failed_swap_puts_the_served_entry_back(bar_store, tmp_path, monkeypat
 def test_a_replaced_entry_never_leaves_its_folder(bar_store, tmp_path, monkeypatch):
     """The new entry and the served one change places in one step: a process killed at any
     moment leaves the store serving one of them, never neither."""
-    import service.store as store_module
+    import service.store.write as write_module
 
     root = tmp_path / "store"
     shutil.copytree(bar_store[0] / "bar", root / "bar")
     entry = load_entry(root / "bar")
     moved = []
     real = os.replace
-    monkeypatch.setattr(store_module.os, "replace", lambda a, b: (moved.append(a), real(a, b))[1])
+    monkeypatch.setattr(write_module.os, "replace", lambda a, b: (moved.append(a), real(a, b))[1])
     _rewrite(entry, root)
     assert root / "bar" not in moved  # never renamed away, even for a moment
     assert [p.name for p in root.iterdir()] == ["bar"]
@@ -221,7 +223,7 @@ def test_an_entry_goes_in_with_the_modes_the_umask_gives(bar_store, tmp_path, mo
     """A build's folder came from mkdtemp (0700) and its weights from safetensors (0600): a store
     built by one user was refused, Permission denied, by the server running as another. Now the
     entry has a plain mkdir's and open's modes under the umask, already when it is renamed in."""
-    import service.store as store_module
+    import service.store.write as write_module
 
     root = tmp_path / "store"
     root.mkdir()
@@ -234,7 +236,7 @@ def test_an_entry_goes_in_with_the_modes_the_umask_gives(bar_store, tmp_path, mo
 
     seen = []
     real = os.replace
-    monkeypatch.setattr(store_module.os, "replace", lambda a, b: (seen.append(modes(Path(a))), real(a, b))[1])
+    monkeypatch.setattr(write_module.os, "replace", lambda a, b: (seen.append(modes(Path(a))), real(a, b))[1])
     old = os.umask(umask)
     try:
         _rewrite(entry, root)

@@ -1,0 +1,88 @@
+"""The network an entry's manifest describes, built from its tensors, and checked to fit the
+entry's mesh and load region."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ..mesh import TetMesh
+from ..surrogate.network import PaperSurrogate, ReducedSurrogate
+from .files import MESH, WEIGHTS, StoreError
+
+
+def network_from_manifest(spec: dict, state: dict[str, torch.Tensor]) -> torch.nn.Module:
+    """Rebuild the module the manifest describes (shapes come from the saved tensors). A
+    ValueError in one line when the tensors do not fit it (``spec`` checked by _check_network)."""
+    layout = spec.get("layout")
+    if layout == "reduced":
+        basis = state.get("basis")
+        if basis is None or basis.ndim != 2:
+            raise ValueError("no 'basis' matrix among its tensors" if basis is None else "its 'basis' is not a matrix")
+        net: torch.nn.Module = ReducedSurrogate(
+            int(spec["n_in"]), basis, [int(h) for h in spec["hidden"]], members=int(spec.get("members", 1)),
+            feature_basis=state.get("feature_basis"),  # the physics layout's (older entries: none)
+        )  # fmt: skip
+    elif layout == "paper":
+        net = PaperSurrogate(int(spec["n_in"]), int(spec["n_out"]), depth=len(spec["hidden"]) + 1)
+    else:
+        raise StoreError(f"unknown network layout {layout!r}")
+    mismatch = _state_mismatch(net.state_dict(), state)
+    if mismatch:
+        raise ValueError(mismatch)
+    net.load_state_dict(state, strict=True)
+    return net.eval()
+
+
+def _state_mismatch(wanted: dict[str, torch.Tensor], got: dict[str, torch.Tensor]) -> str | None:
+    """What differs between the tensors a network needs and those a file holds, in one line
+    (torch's own message takes a line per tensor); None when they fit."""
+
+    def some(names) -> str:
+        names = sorted(names)
+        return ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
+
+    parts = []
+    missing, extra = wanted.keys() - got.keys(), got.keys() - wanted.keys()
+    if missing:
+        parts.append(f"{len(missing)} missing ({some(missing)})")
+    if extra:
+        parts.append(f"{len(extra)} not in the network ({some(extra)})")
+    shaped = sorted(k for k in wanted.keys() & got.keys() if wanted[k].shape != got[k].shape)
+    if shaped:
+        k = shaped[0]
+        parts.append(
+            f"{len(shaped)} of another shape ({k}: {list(got[k].shape)} in the file, {list(wanted[k].shape)} "
+            f"in the network{' ...' if len(shaped) > 1 else ''})"
+        )
+    return "tensors " + "; ".join(parts) if parts else None
+
+
+def _check_fit(net: torch.nn.Module, mesh: TetMesh, region: np.ndarray, name: str) -> None:
+    """The network answers for this mesh's nodes and reads this region's forces: a mesh.npz
+    from another entry (under checksums made to match) loaded, and its first frame was a 500."""
+    n3 = 3 * mesh.n_nodes
+    shapes = {k: tuple(v.shape) for k, v in net.state_dict().items()}
+    by_region = f"3 per node of the {region.size}-node region"
+    if "basis" in shapes:  # the reduced layout: u = basis (3n, r) times the coefficients
+        rows = {"basis": shapes["basis"][0]}
+        n_in = shapes["skip.weight"][1]
+        if "feature_basis" in shapes:  # the physics layout reads K0^-1 g in its features
+            rows["feature_basis"] = shapes["feature_basis"][0]
+            inputs, wanted = shapes["feature_basis"][1], "its feature_basis's columns"
+        else:
+            inputs, wanted = 3 * region.size, by_region
+    else:  # the paper's: forces on the region in, displacements (3n) out
+        layers = sorted((int(k.split(".")[1]), v) for k, v in shapes.items() if k.endswith(".weight") and len(v) == 2)
+        rows = {"output": layers[-1][1][0]}
+        n_in, inputs, wanted = layers[0][1][1], 3 * region.size, by_region
+    for what, n in rows.items():
+        if n != n3:
+            raise StoreError(
+                f"{name}: {MESH} does not fit {WEIGHTS}: the network's {what} has {n} rows (a {n // 3}-node "
+                f"mesh's), the mesh has {mesh.n_nodes} nodes"
+            )
+    if n_in != inputs:
+        raise StoreError(
+            f"{name}: {MESH} does not fit {WEIGHTS}: the network reads {n_in} inputs, {wanted} would be {inputs}"
+        )

@@ -1,0 +1,137 @@
+"""Writing an entry: built and checked in a build folder, then swapped into place in one step,
+with the modes the writer's umask gives."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from safetensors.torch import save_file
+
+from .. import __version__
+from ..fem.material import NeoHookean
+from ..mesh import TetMesh
+from ..scene import check_model_id
+from .builds import _ASIDE, _build_folder
+from .files import FORMAT_VERSION, MANIFEST, MESH, WEIGHTS, sha256
+from .load import load_entry
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap two folders in one atomic step (Linux's renameat2 with RENAME_EXCHANGE); False where
+    the system cannot, and nothing moved."""
+    import ctypes
+    import ctypes.util
+
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or None, use_errno=True)
+        renameat2 = libc.renameat2
+    except (OSError, AttributeError):  # not Linux, or a C library older than glibc 2.28
+        return False
+    at_fdcwd, rename_exchange = -100, 2
+    return renameat2(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), rename_exchange) == 0
+
+
+def write_entry(
+    store: Path,
+    entry_id: str,
+    mesh: TetMesh,
+    region: np.ndarray,
+    net: torch.nn.Module,
+    *,
+    material: NeoHookean,
+    scene: dict,
+    training: dict,
+    network: dict,
+    rebuild: str,
+    renumbered: bool = False,
+) -> Path:
+    """Write an entry atomically: built in a temporary folder (.ID-XXXXXXXX.build, locked while
+    this process writes it) and loaded back from it (an entry the store would refuse never
+    replaces one it serves), then renamed into place, its folder and files readable as far as
+    the process's umask lets them be (as any folder and file it creates)."""
+    check_model_id(entry_id)
+    store = Path(store)
+    store.mkdir(parents=True, exist_ok=True)
+    final = store / entry_id
+    tmp, lock = _build_folder(store, entry_id)
+    try:
+        np.savez(tmp / MESH, nodes=mesh.nodes, tets=mesh.tets, fixed=mesh.fixed, region=np.asarray(region, np.int64))
+        state = {k: v.detach().cpu().contiguous() for k, v in net.state_dict().items()}
+        save_file(state, str(tmp / WEIGHTS), metadata={"elastreg": __version__})
+        manifest = {
+            "format_version": FORMAT_VERSION,
+            "id": entry_id,
+            "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            "code_version": __version__,
+            "scene": scene,
+            "material": {"law": material.law, "E": material.E, "nu": material.nu},
+            "mesh": {**mesh.summary(), "hash": mesh.hash, "renumbered": renumbered},
+            "network": {**network, "parameters": int(sum(p.numel() for p in net.parameters()))},
+            "training": training,
+            "rebuild": rebuild,
+            "files": {name: sha256(tmp / name) for name in (MESH, WEIGHTS)},
+        }
+        (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1, default=_jsonable))
+        _share(tmp)  # before the rename: no moment where the served entry is private to its builder
+        load_entry(tmp, name=entry_id)
+        if not final.exists():
+            os.replace(tmp, final)
+        elif _exchange(tmp, final):  # one atomic step: no moment, crash or not, without the entry
+            shutil.rmtree(tmp, ignore_errors=True)  # it holds the entry it replaced
+        else:  # two renames; a crash between them leaves the old entry aside, and open_store restores it
+            old = Path(tempfile.mkdtemp(prefix=f"{_ASIDE}{entry_id}-", dir=store))
+            os.replace(final, old)
+            try:
+                os.replace(tmp, final)
+            except BaseException:
+                if not final.exists():  # put the served entry back: never a store without it
+                    os.replace(old, final)
+                raise
+            shutil.rmtree(old, ignore_errors=True)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    finally:
+        if lock is not None:  # the folder is in place or gone: nothing left to guard
+            os.close(lock)
+    return final
+
+
+def _umask() -> int:
+    """The process's umask, read without changing it where Linux tells (os.umask sets it: a
+    thread creating a file meanwhile gets the value set, so the stricter 0o077 is set)."""
+    with contextlib.suppress(OSError, ValueError):
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    mask = os.umask(0o077)
+    os.umask(mask)
+    return mask
+
+
+def _share(folder: Path) -> None:
+    """Give a build's folder and files the modes a plain mkdir and open would under the umask:
+    mkdtemp makes it 0700 and safetensors writes 0600, and a store built by one user is served
+    by another (a service account, the Docker image's USER, a read-only mount)."""
+    mask = _umask()
+    os.chmod(folder, 0o777 & ~mask)
+    for name in (MANIFEST, MESH, WEIGHTS):
+        os.chmod(folder / name, 0o666 & ~mask)
+
+
+def _jsonable(x):
+    if isinstance(x, (np.integer, np.floating)):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, Path):
+        return str(x)
+    raise TypeError(f"not JSON serialisable: {type(x).__name__}")
