@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-import service.surrogate.model as model_module
+import service.surrogate.physics as physics
 from service.bench.anysite import CALIBRATION_SEED, NETWORK, spread_sites, tool_size
 from service.bench.cases import Case, run_case, summarise
 from service.bench.machine import describe
@@ -55,7 +55,7 @@ def main() -> int:
     for _ in range(2):  # two passes: the second's times are the warm ones
         rows = []
         for rank in args.ranks:
-            model_module.LINEAR_RANK = rank
+            physics.LINEAR_RANK = rank
             for case in cases:
                 s = summarise(run_case(entry.network, case, NETWORK))
                 rows.append(

@@ -1,6 +1,6 @@
 """What a network session pays when its support changes to a large one, by both routes to the
 physics layout's linear block: the dense response and its SVD, and the randomised range finder
-(service/surrogate/model.py). Per route: the median restrict time over repeats, and the rank-r
+(service/surrogate/physics.py). Per route: the median restrict time over repeats, and the rank-r
 block's 2-norm error over the first dropped singular value (1 is the SVD's optimum).
 
     python benchmarks/support_change.py --model model_store/phantom --repeats 3 \\
@@ -17,15 +17,16 @@ from pathlib import Path
 
 import numpy as np
 
-import service.surrogate.model as network_model
+import service.surrogate.physics as physics
 from service.bench.machine import describe
 from service.config import limit_threads
 from service.store import load_entry
+from service.surrogate.model import NetworkOperator
 
 
-def block(op: network_model.NetworkOperator) -> np.ndarray:
+def block(op: NetworkOperator) -> np.ndarray:
     """The operator's linear block as forces -> displacement: its basis columns times its rows."""
-    r = network_model.LINEAR_RANK
+    r = physics.LINEAR_RANK
     return op._basis_all[:, -r:] @ op._skip[-r:].astype(np.float64)
 
 
@@ -42,8 +43,8 @@ def main() -> None:
     sv = np.linalg.svd(exact, compute_uv=False)
     routes: dict[str, dict] = {}
     out = {"machine": describe(), "model": str(args.model), "support_nodes": int(support.size), "routes": routes}
-    for route, oversample in (("svd", 10**6), ("range finder", network_model.OVERSAMPLE)):
-        saved, network_model.OVERSAMPLE = network_model.OVERSAMPLE, oversample  # 10**6: the dense route
+    for route, oversample in (("svd", 10**6), ("range finder", physics.OVERSAMPLE)):
+        saved, physics.OVERSAMPLE = physics.OVERSAMPLE, oversample  # 10**6: the dense route
         try:
             times = []
             for _ in range(args.repeats):
@@ -51,8 +52,8 @@ def main() -> None:
                 op = model.restrict(support)
                 times.append(time.perf_counter() - t)
         finally:
-            network_model.OVERSAMPLE = saved
-        error = np.linalg.norm(exact - block(op), 2) / sv[network_model.LINEAR_RANK]
+            physics.OVERSAMPLE = saved
+        error = np.linalg.norm(exact - block(op), 2) / sv[physics.LINEAR_RANK]
         routes[route] = {"restrict_s": statistics.median(times), "each_s": times, "error_over_optimum": error}
     text = json.dumps(out, indent=1)
     print(text)

@@ -3,7 +3,7 @@
 Registration is nonlinear least squares: Phi(g) = sum_j w_j d_j(u_g)^2 / 2 + alpha/2 |g|^2
 (w_j = 1/m for the squared loss). For the reduced surrogate, u = U c(g) with U the basis
 readout (3p, r) and C = dc/dg (r, K) cheap to form in product form at any g
-(:class:`~service.surrogate.model.CoefficientJacobian`), so the Gauss-Newton Hessian at g is
+(:class:`~service.surrogate.jacobian.CoefficientJacobian`), so the Gauss-Newton Hessian at g is
 
     H = C^T A C + alpha I,   A = N^T diag(w) N  (r, r),   N_j = d(d_j)/dc = sum_v b_jv n_j^T U_v,
 

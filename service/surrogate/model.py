@@ -10,6 +10,10 @@ Restricting an operator to a session slices the network once: the first layer ke
 columns of the support's force dofs, and the readout only the rows of the nodes the objective
 reads. Stiffness enters through the exact scaling u(g; E) = u(g E0 / E; E0) of the Neo-Hookean
 energy at fixed nu, folded into the first layer.
+
+The network's layers come as NumPy arrays from layers.py, the physics layout's linear block
+from physics.py, and the reduced network's Jacobian algebra (CoefficientJacobian) from
+jacobian.py.
 """
 
 from __future__ import annotations
@@ -21,13 +25,15 @@ from collections.abc import Callable
 
 import numpy as np
 import torch
-from scipy.linalg.blas import sgemm, strmm
 
 from ..fem.material import NeoHookean
-from ..fem.rest import OVERSAMPLE, POWER, RestCompliance, leading_directions, rest_compliance
+from ..fem.rest import RestCompliance, rest_compliance
 from ..forward import check_support
 from ..mesh import TetMesh
-from .network import Ensemble, PaperSurrogate, ReducedSurrogate
+from .jacobian import AnchoredGram, CoefficientJacobian, GramFactors, above_first
+from .layers import network_layers
+from .network import PaperSurrogate, ReducedSurrogate
+from .physics import physics_input
 
 Array = np.ndarray
 
@@ -104,145 +110,6 @@ class NetworkModel:
         return u.reshape(len(forces), -1, 3).astype(np.float64)
 
 
-#: the physics layout's linear block joins a session's basis exactly up to this many support
-#: dofs; a larger support's block keeps its leading singular directions (the compliance's
-#: spectrum decays fast), so the operator's basis is r + this at most. On the liver's 105-node
-#: supports 64 registered as the exact block did at half its readout (calibration sites,
-#: reports/layout-study/linear_rank.json)
-LINEAR_RANK = 64
-
-
-def _physics_input(model: NetworkModel, support: Array, x_scale: float) -> tuple[Array, Array, Array]:
-    """For a physics-layout operator on `support` (k nodes): the map from the support's forces
-    to the network's input (q, 3k), and the linear response as basis columns (3n, s) with the
-    rows (s, 3k) that turn forces into their coefficients: identity for s = 3k, else the leading
-    LINEAR_RANK singular directions. The linear response is at the session's E (scaled from E0).
-    A support whose 3k solves outnumber the range finder's (a support change to a whole
-    region) takes :func:`_leading_response`, not a dense response and its SVD."""
-    C, sf = model.compliance(), model.stiffness_factor
-    F = model.net.feature_basis.double().numpy()
-    l = LINEAR_RANK + OVERSAMPLE
-    if 3 * support.size > F.shape[1] + (2 * POWER + 2) * l:
-        dofs = (3 * support[:, None] + np.arange(3)).ravel()
-        inmap = C.solve(F)[dofs].T * x_scale  # F^T K0^-1 P: K0 is symmetric, so q solves, not 3k
-        L, rows = _leading_response(C, dofs, sf)
-        return inmap.astype(np.float32), L, rows
-    L = C.response(support) * sf  # (3n, 3k), metres per newton
-    inmap = (F.T @ L) * (x_scale / sf)
-    if L.shape[1] <= LINEAR_RANK:
-        rows = np.eye(L.shape[1])
-    else:
-        W, sv, Vt = np.linalg.svd(L, full_matrices=False)
-        L, rows = W[:, :LINEAR_RANK] * sv[:LINEAR_RANK], Vt[:LINEAR_RANK]
-    return inmap.astype(np.float32), L, rows
-
-
-def _leading_response(C, dofs: Array, scale: float) -> tuple[Array, Array]:
-    """The leading LINEAR_RANK singular directions of L = scale K0^-1 P (P: unit forces on
-    `dofs`) by rest.leading_directions: (2 POWER + 2)(LINEAR_RANK + OVERSAMPLE) solves, where
-    the dense route takes one per dof and an SVD (on the phantom's 592-node region 2.8 s of SVD
-    and 1.4 s of solves). Shape: (3n, r) columns, (r, 3k) rows."""
-    n3 = 3 * C.mesh.n_nodes
-
-    def forward(X: Array) -> Array:  # L X
-        rhs = np.zeros((n3, X.shape[1]))
-        rhs[dofs] = X
-        return C.solve(rhs) * scale
-
-    def back(Y: Array) -> Array:  # L^T Y, K0 symmetric
-        return C.solve(Y)[dofs] * scale
-
-    return leading_directions(forward, back, dofs.size, LINEAR_RANK, OVERSAMPLE, POWER)
-
-
-def _mlp_layers(mlp: torch.nn.Sequential) -> list[tuple[Array, Array, Array | None]]:
-    """(W, b, PReLU slopes or None) per layer of one MLP, as float32 arrays."""
-    mods = list(mlp)
-    out = []
-    for i, m in enumerate(mods):
-        if isinstance(m, torch.nn.Linear):
-            nxt = mods[i + 1] if i + 1 < len(mods) else None
-            a = None
-            if isinstance(nxt, torch.nn.PReLU):
-                a = nxt.weight.detach().numpy().astype(np.float32)
-                a = np.broadcast_to(a, (m.out_features,)).copy()
-            out.append((m.weight.detach().numpy().astype(np.float32), m.bias.detach().numpy().astype(np.float32), a))
-    return out
-
-
-def _layers(net: torch.nn.Module) -> list:
-    """(W, b, PReLU slopes or None) per layer of the network's MLP. An ensemble's members
-    become one MLP whose hidden units are all the members' side by side: the first layer
-    stacked, the layers between block-diagonal (kept as blocks), the last side by side and
-    divided by their number (their mean)."""
-    if not isinstance(net.net, Ensemble):
-        return _mlp_layers(net.net)
-    each = [_mlp_layers(m) for m in net.net.members]
-    k, depth = len(each), len(each[0])
-    out = []
-    for i, parts in enumerate(zip(*each, strict=True)):
-        Ws, bs, slopes = zip(*parts, strict=True)
-        if i == depth - 1:  # the last: the members' mean
-            W, b = np.hstack(Ws) / np.float32(k), np.sum(bs, axis=0) / np.float32(k)
-        else:
-            W = np.vstack(Ws) if i == 0 else BlockDiagonal(np.stack(Ws))
-            b = np.concatenate(bs)
-        a = None if slopes[0] is None else np.concatenate(slopes)
-        out.append((W, b, a))
-    return out
-
-
-class BlockDiagonal:
-    """A block-diagonal matrix kept as its blocks (q, m, n): an ensemble's layers between the
-    first and the last. Products cost the blocks' q m n, not the dense (q m)(q n) (3 members
-    of 512: 0.12 ms against 0.37 ms a product). NumPy defers ``A @ self`` to it."""
-
-    __array_ufunc__ = None  # ndarray @ BlockDiagonal -> BlockDiagonal.__rmatmul__
-
-    def __init__(self, blocks: Array, transposed: BlockDiagonal | None = None) -> None:
-        # a transpose reads its original's memory (a view: BLAS takes each block transposed)
-        self.blocks = blocks if transposed is not None else np.ascontiguousarray(blocks)
-        q, m, n = blocks.shape
-        self.shape = (q * m, q * n)
-        self.dtype = blocks.dtype
-        self._T = transposed
-
-    @property
-    def T(self) -> BlockDiagonal:
-        """Made once, a view of the same blocks: the pullback's products then read the
-        weights the forward pass just read, not a second copy."""
-        if self._T is None:
-            self._T = BlockDiagonal(self.blocks.transpose(0, 2, 1), transposed=self)
-        return self._T
-
-    def astype(self, dtype, copy: bool = True) -> BlockDiagonal:
-        if not copy and self.dtype == dtype:
-            return self
-        return BlockDiagonal(self.blocks.astype(dtype))
-
-    def __matmul__(self, x: Array) -> Array:
-        """self @ x for x (q n,) or (q n, c)."""
-        q, _, n = self.blocks.shape
-        y = np.matmul(self.blocks, x.reshape(q, n, -1))  # (q, m, c)
-        return y.reshape(-1) if x.ndim == 1 else y.reshape(-1, x.shape[1])
-
-    def __rmatmul__(self, A: Array) -> Array:
-        """A @ self for A (c, q m)."""
-        q, m, n = self.blocks.shape
-        y = np.matmul(A.reshape(-1, q, m).transpose(1, 0, 2), self.blocks)  # (q, c, n)
-        return np.ascontiguousarray(y.transpose(1, 0, 2)).reshape(A.shape[0], q * n)
-
-    def __getitem__(self, rows: Array) -> Array:
-        """Dense rows (len(rows), q n): zeros outside each row's block."""
-        q, m, n = self.blocks.shape
-        rows = np.asarray(rows)
-        out = np.zeros((rows.size, q * n), self.dtype)
-        blk, r = np.divmod(rows, m)
-        cols = blk[:, None] * n + np.arange(n)
-        out[np.arange(rows.size)[:, None], cols] = self.blocks[blk, r]
-        return out
-
-
 class NetworkOperator:
     """g on the support -> u on the nodes, and its pullback, as sliced float32 NumPy arrays.
 
@@ -256,7 +123,7 @@ class NetworkOperator:
         self.nodes = np.arange(mesh.n_nodes) if nodes is None else np.asarray(nodes, np.int64)
         cols = model.region_columns(self.support)
         net = model.net
-        layers = _layers(net)
+        layers = network_layers(net)
         if isinstance(net, ReducedSurrogate):
             x_scale = model.stiffness_factor / float(net.force_scale)
             cs = net.coef_scale.numpy().astype(np.float32)
@@ -264,7 +131,10 @@ class NetworkOperator:
             layers[-1] = (W_last * cs[:, None], b_last * cs, None)
             basis = net.basis.numpy().astype(np.float32)
             if model.physics:
-                inmap, lin_cols, lin_rows = _physics_input(model, self.support, x_scale)
+                F = net.feature_basis.double().numpy()
+                inmap, lin_cols, lin_rows = physics_input(
+                    model.compliance(), F, model.stiffness_factor, self.support, x_scale
+                )
                 layers[0] = (layers[0][0] @ inmap, *layers[0][1:])
                 skip = (net.skip.weight.detach().numpy() @ inmap) * cs[:, None]
                 # the linear response joins the basis: its coefficients are its inputs' images
@@ -305,9 +175,9 @@ class NetworkOperator:
         layers[0] = (self._input[: self._n_first], b0, a0)
         self._layers = layers
         self._jac: tuple[Array, Array] | None = None
-        self._factors: _GramFactors | None = None  # for jacobian(), made at its first call
+        self._factors: GramFactors | None = None  # for jacobian(), made at its first call
         self._rest_jacobian: CoefficientJacobian | None = None  # jacobian(0), kept
-        self._anchored: _AnchoredGram | None = None  # jacobian()'s R and C C^T, kept and corrected
+        self._anchored: AnchoredGram | None = None  # jacobian()'s R and C C^T, kept and corrected
         self._tape_at: tuple[Array, list, Array, Array] | None = None  # the last evaluation's
         # input, tape, last hidden layer and P x
         self._last_x: Array | None = None  # the input of the last evaluation (the object)
@@ -436,9 +306,7 @@ class NetworkOperator:
         if self._jac is None:
             W1 = self._layers[0][0]
             _, tape, _ = self._hidden(np.zeros(W1.shape[1], np.float32))
-            C = (
-                _above_first(self._layers[-1][0], tape, np.float64) @ W1.astype(np.float64) + self._skip
-            )  # dc/dg (r, 3k)
+            C = above_first(self._layers[-1][0], tape, np.float64) @ W1.astype(np.float64) + self._skip  # dc/dg (r, 3k)
             Q, Rt = np.linalg.qr(C.T)  # C = Rt^T Q^T
             U = self._readout.astype(np.float64) @ Rt.T
             self._jac = (U.astype(np.float32), np.ascontiguousarray(Q, np.float32))
@@ -457,9 +325,9 @@ class NetworkOperator:
         else:
             _, tape, _ = self._hidden_at(x)
             if self._factors is None:
-                self._factors = _GramFactors(self._layers[0][0], self._skip)
+                self._factors = GramFactors(self._layers[0][0], self._skip)
             if self._anchored is None:
-                self._anchored = _AnchoredGram(self._layers[-1][0], tape, self._factors)
+                self._anchored = AnchoredGram(self._layers[-1][0], tape, self._factors)
             R, G = self._anchored.at(tape)
             jac = CoefficientJacobian(self._readout, R, G, self._input)
             if at_rest:
@@ -490,198 +358,3 @@ class NetworkOperator:
             W_all, b_all = self._last_all
             u = W_all @ h + b_all
         return u.astype(np.float64).reshape(-1, 3)
-
-
-def _above_first(W_last: Array, tape: list, dtype=np.float32) -> Array:
-    """dc/dz (r, h), z the first layer's pre-activation: reverse mode through the layers above
-    it at the tape's slopes, r rows. dc/dg is this times the first layer, plus the skip path."""
-    R = W_last.astype(dtype, copy=False)
-    for W, slope in reversed(tape[1:]):
-        R = (R * slope.astype(dtype, copy=False)) @ W.astype(dtype, copy=False)
-    return R * tape[0][1].astype(dtype, copy=False)
-
-
-class _GramFactors:
-    """The first layer's part of C C^T, once per operator.
-
-    C = R W1 + S (R: the layers above the first, at the current slopes; W1 (h, K) the first
-    layer; S (r, K) the skip path). With W1^T = V T (QR, T upper triangular (h, h)):
-    C C^T = Y Y^T + E, Y = R T^T + Z^T, Z = V^T S^T (h, r), E = S (I - V V^T) S^T, so an
-    iteration costs an (r, h) by (h, h) triangular product and an (r, h) Gram, not products
-    over the K inputs (the beam: 939 of them against h = 128; 63 us). :class:`_AnchoredGram`
-    keeps Y at recent slopes and corrects it by the units that flipped.
-    """
-
-    def __init__(self, W1: Array, skip: Array) -> None:
-        V, T = np.linalg.qr(W1.T.astype(np.float64))  # (K, q), (q, h), q = min(K, h)
-        S = skip.astype(np.float64)
-        Z = V.T @ S.T  # (q, r)
-        self.T = np.asfortranarray(T, np.float32)  # for BLAS trmm: half a dense product's work
-        self.Tt = np.ascontiguousarray(T.T, np.float32)
-        self.Zt = np.ascontiguousarray(Z.T, np.float32)
-        self.E = S @ S.T - Z.T @ Z  # (r, r), float64
-
-    def Y(self, R: Array) -> Array:
-        """R T^T + Z^T (r, q)."""
-        if self.T.shape[0] == self.T.shape[1]:
-            Y = strmm(1.0, self.T, R, side=1, lower=0, trans_a=1)  # R T^T
-        else:  # fewer inputs than units (K < h): T is K x h, no triangle to exploit
-            Y = R @ self.Tt
-        Y += self.Zt
-        return Y
-
-
-@dataclasses.dataclass(frozen=True)
-class _Anchor:
-    """What :class:`_AnchoredGram` corrects from: the slopes it was made at (s2 None for one
-    hidden layer), P, Y and Y Y^T there, and how many corrections it has taken since a full
-    refresh."""
-
-    s1: Array
-    s2: Array | None
-    P: Array
-    Y: Array
-    YY: Array
-    corrections: int
-
-
-class _AnchoredGram:
-    """R = dc/dz (z the first layer's pre-activation) and C C^T at the slopes last seen,
-    corrected by the PReLU units whose slope changed since, for networks of one or two hidden
-    layers (deeper ones: in full at every call).
-
-    With P the layers above the first hidden layer's activation (W_last for one hidden layer,
-    (W_last D2) W2 for two, D the slopes), R = P D1 and Y = R T^T + Z^T (_GramFactors), so
-    C C^T = Y Y^T + E. A step that flips k units changes P by W_last[:, F2] dD2 W2[F2] and R
-    by that times D1 plus P[:, F1] dD1: Y changes by a rank-k product L N and Y Y^T by
-    Y N^T L^T + L N Y^T + L (N N^T) L^T, about k h (h + 3 r) products against the full
-    r h (h + h2 + r). Warm-started frames on the paper's liver flip one or two of its 512 top
-    units per step (median; 49 at most): the Jacobian and its Gram there cost 3.5 ms a step in
-    full. Refreshed in full when the correction would cost a quarter of that or more, and
-    after _REFRESH corrections (float32 drift).
-    """
-
-    _REFRESH = 16
-    _SHARE = 0.6
-
-    def __init__(self, W_last: Array, tape: list, factors: _GramFactors) -> None:
-        self.W_last, self._f = W_last, factors
-        self._deep = len(tape) > 2
-        self.W_top = tape[1][0] if len(tape) == 2 else None  # the second hidden layer's weights
-        r, h, q = W_last.shape[0], tape[0][0].shape[0], factors.Tt.shape[1]
-        h2 = 0 if self.W_top is None else self.W_top.shape[0]
-        blocks = self.W_top.blocks.shape[0] if isinstance(self.W_top, BlockDiagonal) else 1
-        self._full_cost = r * h2 * (h // blocks) + r * h * q + r * q * r  # P, Y and Y Y^T
-        self._unit_cost = h * q + r * h + 2 * r * q + r * r  # a row of N; P, Y and Y Y^T updated
-        self._anchor: _Anchor | None = None
-
-    def at(self, tape: list) -> tuple[Array, Array]:
-        """(R (r, h) Fortran-ordered float32, C C^T (r, r) float64 read-only) at the tape's slopes."""
-        if self._deep:
-            R = np.asfortranarray(_above_first(self.W_last, tape))
-            Y = self._f.Y(R)
-            return R, self._gram((Y @ Y.T).astype(np.float64))
-        s1 = tape[0][1]
-        s2 = tape[1][1] if self.W_top is not None else None
-        a = self._anchor
-        if a is not None and a.corrections < self._REFRESH:
-            F1 = np.flatnonzero(s1 != a.s1)
-            F2 = np.flatnonzero(s2 != a.s2) if s2 is not None else F1[:0]
-            k = F1.size + F2.size
-            if k * self._unit_cost < self._SHARE * self._full_cost:
-                P, Y, YY = self._correct(a, s1, F1, s2, F2) if k else (a.P, a.Y, a.YY)
-                self._anchor = _Anchor(s1, s2, P, Y, YY, a.corrections + (k > 0))
-                return self._result(P, s1, YY)
-        P = np.asfortranarray(self.W_last if self.W_top is None else (self.W_last * s2) @ self.W_top)
-        Y = self._f.Y(P * s1)  # P Fortran-ordered, so is the product: BLAS trmm takes it as is
-        YY = (Y @ Y.T).astype(np.float64)
-        self._anchor = _Anchor(s1, s2, P, Y, YY, 0)
-        return self._result(P, s1, YY)
-
-    def _correct(self, a: _Anchor, s1: Array, F1: Array, s2: Array | None, F2: Array):
-        """P, Y and Y Y^T after the units F1 (first layer) and F2 (second) changed slopes from
-        the anchor's to s1 and s2."""
-        Tt = self._f.Tt  # T^T (h, q)
-        P, Y, YY = a.P, a.Y, a.YY
-        parts_L, parts_N = [], []
-        if F2.size:
-            L2 = self.W_last[:, F2] * (s2 - a.s2)[F2]  # (r, f2)
-            M2 = self.W_top[F2]  # (f2, h)
-            parts_L.append(L2)
-            parts_N.append((M2 * s1) @ Tt)
-        if F1.size:
-            parts_L.append(P[:, F1] * (s1 - a.s1)[F1])
-            parts_N.append(Tt[F1])
-        L = np.hstack(parts_L) if len(parts_L) > 1 else parts_L[0]  # (r, k)
-        N = np.vstack(parts_N) if len(parts_N) > 1 else parts_N[0]  # (k, q)
-        if F2.size:
-            # BLAS in place, in P's (Fortran) order: NumPy's product of a few columns by a few
-            # rows and its sum across orders cost 1 ms at the liver's 192 x 1536
-            P = sgemm(1.0, L2, M2, beta=1.0, c=P.copy(order="F"), overwrite_c=True)
-        A = (Y @ N.T).astype(np.float64)  # Y N^T with the Y before the change
-        B = L.astype(np.float64)
-        BA = B @ A.T
-        YY = YY + BA + BA.T + B @ (N.astype(np.float64) @ N.T.astype(np.float64)) @ B.T
-        return P, Y + L @ N, YY
-
-    def _result(self, P, s1, YY) -> tuple[Array, Array]:
-        return P * s1, self._gram(YY)
-
-    def _gram(self, YY: Array) -> Array:
-        G = YY + self._f.E
-        G.flags.writeable = False
-        return G
-
-
-class CoefficientJacobian:
-    """dc/dg = C (r, K) of the reduced network at one input, in product form: C = R W1 + S with
-    R = dc/dz (r, h) the layers above the first (see :class:`_AnchoredGram`). ``U`` (3p, r)
-    is the readout of the operator's nodes (du/dc, constant), so du/dg = U C."""
-
-    def __init__(
-        self, readout: Array, R: Array, gram: Array, stacked: Array, pulled: tuple[Array, Array] | None = None
-    ) -> None:
-        self.R = R  # (r, h)
-        self.U = readout
-        self._P = stacked  # [W1; S] (h + r, K): C = [R, I] P
-        self._gram = gram
-        self._pulled = pulled  # (U^T u_bar, P g) of the operator's last evaluation, at this g
-
-    def with_gradient(self, coef_bar: Array, projected: Array) -> CoefficientJacobian:
-        """This Jacobian, also knowing the last evaluation's pullback at its point: the
-        coefficients' adjoint U^T u_bar (r,) and the stacked input product P g (h + r,)."""
-        return CoefficientJacobian(self.U, self.R, self._gram, self._P, (coef_bar, projected))
-
-    def gradient_image(self, alpha: float) -> Array | None:
-        """C grad for the gradient the last evaluation gave at this point, grad = C^T U^T u_bar
-        + alpha g, as C C^T (U^T u_bar) + alpha (R W1 g + S g): small products with the Gram
-        and P g, not a product over the K inputs (the beam: 939). None when unknown. (r,)"""
-        if self._pulled is None:
-            return None
-        coef_bar, px = self._pulled
-        h = self.R.shape[1]
-        Cg = (self.R @ px[:h]).astype(np.float64)
-        if px.size > h:
-            Cg += px[h:]
-        return self._gram @ coef_bar.astype(np.float64) + alpha * Cg
-
-    def gram(self) -> Array:
-        """C C^T (r, r), float64, read-only."""
-        return self._gram
-
-    def gram_product(self, A: Array) -> Array:
-        """C C^T A (r, r) for a symmetric A, in Fortran order as LAPACK takes it: (A C C^T)^T,
-        both symmetric."""
-        return (A @ self._gram).T
-
-    def matvec(self, v: Array) -> Array:
-        """C v. Shape: (K,) -> (r,), float64."""
-        h = self.R.shape[1]
-        p = self._P @ np.asarray(v, np.float32)
-        return (self.R @ p[:h] + p[h:]).astype(np.float64)
-
-    def rmatvec(self, w: Array) -> Array:
-        """C^T w. Shape: (r,) -> (K,), float64."""
-        h = self.R.shape[1]
-        y = np.asarray(w, np.float32)
-        return (self._P[:h].T @ (self.R.T @ y) + self._P[h:].T @ y).astype(np.float64)

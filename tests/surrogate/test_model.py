@@ -4,11 +4,12 @@ import numpy as np
 import pytest
 import torch
 
-import service.surrogate.model as model_module
+import service.surrogate.physics as physics_module
 from service.fem.assembly import Assembler
 from service.fem.material import NeoHookean
 from service.surrogate.basis import fixed_signs, linear_response, pod_basis
-from service.surrogate.model import BlockDiagonal, NetworkModel
+from service.surrogate.layers import BlockDiagonal
+from service.surrogate.model import NetworkModel
 from service.surrogate.network import Ensemble, PaperSurrogate, ReducedSurrogate
 
 MAT = NeoHookean(4500.0, 0.45)
@@ -18,7 +19,7 @@ MAT = NeoHookean(4500.0, 0.45)
 def exact_linear_block(monkeypatch):
     """The operator against torch: the physics layout's linear block exact at these supports
     (the truncation has its own test)."""
-    monkeypatch.setattr(model_module, "LINEAR_RANK", 10**6)
+    monkeypatch.setattr(physics_module, "LINEAR_RANK", 10**6)
 
 
 def randomised(net: torch.nn.Module, seed: int = 0) -> torch.nn.Module:
@@ -482,6 +483,12 @@ def test_zero_at_rest_moves_each_member_by_a_constant_to_zero(bar, members):
     torch.testing.assert_close(net.member_coefficients(x), before - at_rest)
 
 
+def inmap(model: NetworkModel, support: np.ndarray) -> np.ndarray:
+    """The physics layout's map from the support's forces to the network's input (x_scale 1)."""
+    F = model.net.feature_basis.double().numpy()
+    return physics_module.physics_input(model.compliance(), F, model.stiffness_factor, support, 1.0)[0]
+
+
 @pytest.mark.parametrize("route", ["svd", "range finder"])
 def test_a_large_support_keeps_the_leading_linear_directions(bar, monkeypatch, route):
     """Past LINEAR_RANK support dofs the physics layout's linear block is its leading singular
@@ -500,13 +507,13 @@ def test_a_large_support_keeps_the_leading_linear_directions(bar, monkeypatch, r
     model = NetworkModel(bar, MAT, region, randomised(net, seed=2), E0=MAT.E)
     support, g = region[:30], rng.normal(size=(30, 3))
     exact = model.restrict(support).displacement(g)
-    monkeypatch.setattr(model_module, "LINEAR_RANK", 12)
+    monkeypatch.setattr(physics_module, "LINEAR_RANK", 12)
     svd_route = model.restrict(support).displacement(g)  # 90 dofs: fewer than the range finder's solves
-    svd_inmap = model_module._physics_input(model, support, 1.0)[0]
+    svd_inmap = inmap(model, support)
     if route == "range finder":  # 8 features + 4 (12 + 4) solves < 90
-        monkeypatch.setattr(model_module, "OVERSAMPLE", 4)
-        monkeypatch.setattr(model_module, "POWER", 1)
-    np.testing.assert_allclose(model_module._physics_input(model, support, 1.0)[0], svd_inmap, rtol=1e-5)
+        monkeypatch.setattr(physics_module, "OVERSAMPLE", 4)
+        monkeypatch.setattr(physics_module, "POWER", 1)
+    np.testing.assert_allclose(inmap(model, support), svd_inmap, rtol=1e-5)
     op = model.restrict(support)
     assert op._readout.shape[1] == 6 + 12
     assert (route == "svd") == np.array_equal(op.displacement(g), svd_route)
