@@ -1,0 +1,187 @@
+"""A scene's node sets: id files read, the file's ids mapped onto the mesh's numbering, and the
+fixed nodes, load region, support and matching triangles its tables name.
+
+Node ids in a scene are the file's ids; when loading drops unused nodes they are mapped onto the
+mesh's numbering (`loaded`, the record of loading; without one the ids are the mesh's). Errors
+name the scene's `origin` and the key (:func:`~service.scene_errors.scene_error`).
+"""
+
+from __future__ import annotations
+
+import logging
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .mesh import TetMesh
+from .meshfile import LoadedMesh
+from .scene_errors import scene_error
+from .scene_tables import BoundarySpec, RegistrationSpec, TrainingSpec
+
+log = logging.getLogger("service.scene")  # a scene's warnings under one name, whichever module finds them
+
+Array = np.ndarray
+
+
+def read_ids(path: Path, key: str, origin: str) -> Array:
+    """Node ids from a .npy int array, or a text file with one id a line ('#' comments; a
+    UTF-8 BOM, which Windows editors write, skipped)."""
+    try:
+        if path.suffix == ".npy":
+            ids = np.load(path, allow_pickle=False)
+        else:
+            with warnings.catch_warnings():  # numpy's two-line "no data" warning: refused below
+                warnings.filterwarnings("ignore", "loadtxt: input contained no data", UserWarning)
+                ids = np.loadtxt(path, dtype=np.int64, ndmin=2, comments="#", encoding="utf-8-sig")
+    except (OSError, ValueError) as exc:
+        raise scene_error(origin, key, f"cannot read node ids from {path}: {exc}") from exc
+    if not np.issubdtype(ids.dtype, np.integer):
+        raise scene_error(origin, key, f"{path} must hold integer node ids, got {ids.dtype}")
+    # a table's columns would be read as ids, flattened; an array's one row of ids is a list
+    # of them, a text file's is not (one id a line)
+    if ids.ndim > 1 and ids.size != (max(ids.shape) if path.suffix == ".npy" else len(ids)):
+        raise scene_error(origin, key, f"{path} holds rows of {ids.size // len(ids)} ids: node ids go one id a line")
+    if ids.size == 0:
+        raise scene_error(origin, key, f"{path} holds no node id")
+    return ids.ravel().astype(np.int64)
+
+
+def map_ids(ids: Any, key: str, loaded: LoadedMesh | None, origin: str) -> Array:
+    """File node ids -> mesh ids, refusing ids out of range or of dropped nodes."""
+    ids = np.asarray(ids, np.int64).ravel()
+    if loaded is None:  # no record of loading: the ids are taken as mesh ids
+        return ids
+    n = loaded.n_source_nodes
+    out = ids[(ids < 0) | (ids >= n)]
+    if out.size:
+        raise scene_error(origin, key, f"node ids must lie in 0..{n - 1}, got {out.tolist()[:10]}")
+    mapped = loaded.source_to_mesh()[ids]
+    if (mapped < 0).any():
+        raise scene_error(origin, key, f"nodes {ids[mapped < 0].tolist()[:10]} belong to no tet (dropped on loading)")
+    return mapped
+
+
+def fixed_nodes(b: BoundarySpec, loaded: LoadedMesh, default_fixed: Array | None, origin: str) -> tuple[Array, str]:
+    """[boundary]'s fixed nodes in the mesh's numbering (sorted), and the key that chose them.
+
+    Refuses a selection that leaves the static problem singular: no node fixed, or all of them
+    at one point or along one line (the body can still turn about them).
+    """
+    key = "[boundary]"
+    if b.fixed_nodes is not None:
+        key = "[boundary] fixed_nodes"
+        fixed = map_ids(b.fixed_nodes, key, loaded, origin)
+    elif b.fixed_nodes_file is not None:
+        key = "[boundary] fixed_nodes_file"
+        fixed = map_ids(read_ids(b.fixed_nodes_file, key, origin), key, loaded, origin)
+    elif b.fixed_box is not None:
+        key = "[boundary] fixed_box"
+        lo, hi = np.asarray(b.fixed_box, np.float64)
+        fixed = np.flatnonzero(((loaded.nodes >= lo) & (loaded.nodes <= hi)).all(axis=1))
+        if fixed.size == 0:
+            box = np.stack([loaded.nodes.min(0), loaded.nodes.max(0)]).round(6).tolist()
+            raise scene_error(origin, "[boundary] fixed_box", f"selects no node (the mesh spans {box})")
+    else:  # a generator's own clamp (a path scene is refused at validation without one)
+        fixed = default_fixed
+    if b.free_nodes:
+        free = map_ids(b.free_nodes, "[boundary] free_nodes", loaded, origin)
+        stray = np.setdiff1d(free, fixed)
+        if stray.size:
+            log.warning("%s: free_nodes %s were not fixed anyway", origin, stray.tolist()[:10])
+        fixed = np.setdiff1d(fixed, free)
+    fixed = np.unique(fixed)
+    if fixed.size == 0:
+        raise scene_error(
+            origin,
+            "[boundary]",
+            "no node is fixed, so the static problem is singular (rigid motions are free): fix at least one node",
+        )
+    at = loaded.nodes[fixed] - loaded.nodes[fixed].mean(axis=0)
+    spread = np.linalg.matrix_rank(at, tol=1e-6 * float(np.ptp(loaded.nodes, axis=0).max())) if fixed.size > 1 else 0
+    if spread < 2:  # held at a point or along a line: it can still turn about it
+        raise scene_error(
+            origin,
+            "[boundary]",
+            f"the {fixed.size} fixed node(s) lie {'at one point' if spread == 0 else 'on one line'}, so the body "
+            "can still turn about them and the static problem is singular: fix three or more nodes not in a line",
+        )
+    return fixed, key
+
+
+def region_nodes(t: TrainingSpec, mesh: TetMesh, loaded: LoadedMesh | None, origin: str) -> Array:
+    """[training]'s load region: free surface nodes where training loads may be centred (every
+    one by default). Listed ids must be free surface nodes; box and sphere keep the free surface
+    nodes inside. Shape: (r,) sorted mesh ids."""
+    free_surface = mesh.free_surface_nodes
+    if t.region is not None or t.region_file is not None:
+        key = "[training] region" if t.region is not None else "[training] region_file"
+        raw = t.region if t.region is not None else read_ids(t.region_file, key, origin)
+        ids = np.unique(map_ids(raw, key, loaded, origin))
+        bad = np.setdiff1d(ids, free_surface)
+        if bad.size:
+            raise scene_error(
+                origin,
+                key,
+                f"{bad.size} nodes are not free surface nodes (interior or fixed): "
+                f"{bad.tolist()[:10]}{' ...' if bad.size > 10 else ''}",
+            )
+        if ids.size == 0:
+            raise scene_error(origin, key, "lists no node: the load region holds no free surface node")
+        return _check_patch(t, ids, origin)
+    if t.region_box is not None:
+        key = "[training] region_box"
+        lo, hi = np.asarray(t.region_box, np.float64)
+        x = mesh.nodes[free_surface]
+        ids = free_surface[((x >= lo) & (x <= hi)).all(axis=1)]
+    elif t.region_sphere is not None:
+        key = "[training] region_sphere"
+        centre = np.asarray(t.region_sphere.centre, np.float64)
+        dist = np.linalg.norm(mesh.nodes[free_surface] - centre, axis=1)
+        ids = free_surface[dist <= t.region_sphere.radius]
+    else:
+        key, ids = "[training]", free_surface
+    if ids.size == 0:
+        raise scene_error(origin, key, "the load region holds no free surface node")
+    return _check_patch(t, np.asarray(ids, np.int64), origin)
+
+
+def _check_patch(t: TrainingSpec, region: Array, origin: str) -> Array:
+    """Refuses a region smaller than the smallest load patch: every sampled load would cover
+    fewer nodes than the scene says, and the served model's estimate would take the scene's
+    patch as its tool's size (store.tool_patch)."""
+    low = int(t.patch_nodes[0])
+    if region.size < low:
+        raise scene_error(
+            origin,
+            "[training] patch_nodes",
+            f"a load spreads over at least {low} nodes, but the load region holds {region.size} free "
+            f"surface nodes: lower patch_nodes or widen the region",
+        )
+    return region
+
+
+def support_nodes(r: RegistrationSpec | None, loaded: LoadedMesh | None, origin: str) -> Array | None:
+    """[registration] support nodes in mesh ids, or None when the scene names none. Shape: (k,)."""
+    if r is None or (r.support is None and r.support_file is None):
+        return None
+    key = "[registration] support" if r.support is not None else "[registration] support_file"
+    raw = r.support if r.support is not None else read_ids(r.support_file, key, origin)
+    return np.unique(map_ids(raw, key, loaded, origin))
+
+
+def matching_faces(r: RegistrationSpec | None, loaded: LoadedMesh | None, origin: str) -> Array | None:
+    """[registration] matching triangles in mesh ids, or None when the scene names none.
+    Shape: (f, 3)."""
+    if r is None or r.matching_file is None:
+        return None
+    key = "[registration] matching_file"
+    try:
+        faces = np.load(r.matching_file, allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise scene_error(origin, key, f"cannot read {r.matching_file}: {exc}") from exc
+    if faces.ndim != 2 or faces.shape[1] != 3 or not np.issubdtype(faces.dtype, np.integer):
+        raise scene_error(origin, key, f"must hold an (f, 3) integer array, got {faces.dtype} {faces.shape}")
+    ids = map_ids(faces.ravel(), key, loaded, origin)
+    return ids.reshape(-1, 3)
