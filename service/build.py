@@ -23,8 +23,8 @@ from .argtypes import MAX_MINUTES  # the command lines take no more
 from .fem.assembly import Assembler
 from .fem.material import NeoHookean
 from .fem.newton import NewtonOptions
-from .model_id import check_model_id
 from .scene import Scene
+from .scene.model_id import check_model_id
 from .store import StoreError, load_entry, remove_stale_builds, write_entry
 from .surrogate.data import LoadSpec, done_indices, generate, load_dataset
 from .surrogate.train import TrainConfig, train

@@ -28,7 +28,7 @@ def _seed(text: str) -> int:
 
 def _model_id(text: str) -> str:
     """An argparse type for a model id: the scene's own rule for its name (scene.MODEL_ID)."""
-    from .model_id import check_model_id
+    from .scene.model_id import check_model_id
 
     try:
         return check_model_id(text)

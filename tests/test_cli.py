@@ -79,7 +79,7 @@ NAMES = {  # a model id the scene and --name both take, or both refuse
 def test_the_scene_name_and_the_name_flag_keep_one_rule(name, capsys):
     """A scene's `name` and `elastreg train --name` both give the model id in the store and in
     the API's URLs: they differed about '.', so a name one took the other refused."""
-    text = resources.files("service.scenes").joinpath("beam.toml").read_text()
+    text = resources.files("service.scene.shipped").joinpath("beam.toml").read_text()
     text = text.replace('name = "beam"', f"name = {json.dumps(name)}")
     try:
         parse_scene(text, "scene.toml")

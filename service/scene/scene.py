@@ -29,8 +29,8 @@ file is skipped. Paths (``path`` and every ``*_file`` key) are relative to the T
 the file's ids; when loading drops unused nodes they are mapped onto the mesh's numbering.
 
 Here: :class:`Scene`, the mesh it names, and reading a scene. Its tables are in
-:mod:`service.scene_tables`, its node sets resolved in :mod:`service.scene_ids`, its errors in
-:mod:`service.scene_errors`, the model id's rule in :mod:`service.model_id`.
+:mod:`service.scene.tables`, its node sets resolved in :mod:`service.scene.ids`, its errors in
+:mod:`service.scene.errors`, the model id's rule in :mod:`service.scene.model_id`.
 """
 
 from __future__ import annotations
@@ -44,12 +44,12 @@ from typing import Annotated
 import numpy as np
 from pydantic import Field, PrivateAttr, ValidationError, model_validator
 
-from . import scene_ids
-from .mesh import MeshError, TetMesh
-from .meshfile import LoadedMesh, load_mesh, mesh_quality
-from .model_id import MODEL_ID, MODEL_ID_RULE, check_model_id
-from .scene_errors import SceneError, describe, scene_error
-from .scene_tables import (
+from ..mesh import MeshError, TetMesh
+from ..meshfile import LoadedMesh, load_mesh, mesh_quality
+from . import ids as scene_ids
+from .errors import SceneError, describe, scene_error
+from .model_id import MODEL_ID
+from .tables import (
     FIXED_KEYS,
     BoundarySpec,
     MaterialSpec,
@@ -60,13 +60,12 @@ from .scene_tables import (
     given_keys,
 )
 
-log = logging.getLogger(__name__)
+log = logging.getLogger("service.scene")  # a scene's warnings under one name, whichever module finds them
 
 Array = np.ndarray
 
-#: Scenes shipped in the package (service/scenes/NAME.toml).
+#: Scenes shipped in the package (service/scene/shipped/NAME.toml).
 BUILTIN_SCENES = ("beam", "phantom")
-GENERATORS = ("beam", "phantom")
 
 #: the span (bounding-box diagonal, m) outside which a mesh is probably in the wrong unit: a
 #: finger's width to a torso's
@@ -113,7 +112,7 @@ class Scene(Table):
         """The loaded mesh, and a generator's default clamp (None for a file)."""
         scale = self.mesh.scale
         if self.mesh.generator is not None:
-            from . import phantoms
+            from .. import phantoms
 
             gen = getattr(phantoms, self.mesh.generator)()
             nodes = gen.nodes * scale
@@ -137,7 +136,7 @@ class Scene(Table):
 
         Shape: mesh.fixed (f,) in the mesh's numbering (mapped from the file's ids).
         Refuses a scene that fixes no node, or fixes them at a point or along a line: the
-        static problem would be singular (:func:`~service.scene_ids.fixed_nodes`).
+        static problem would be singular (:func:`~service.scene.ids.fixed_nodes`).
         """
         loaded, default_fixed = self._load()
         fixed, key = scene_ids.fixed_nodes(self.boundary, loaded, default_fixed, self._origin)
@@ -158,7 +157,7 @@ class Scene(Table):
             )
         return mesh, loaded
 
-    # -- node sets (scene_ids.py) -------------------------------------------------------------
+    # -- node sets (ids.py) -------------------------------------------------------------
 
     def region_nodes(self, mesh: TetMesh, loaded: LoadedMesh | None = None) -> Array:
         """Free surface nodes where training loads may be centred (every one by default).
@@ -221,7 +220,7 @@ def builtin_scene(name: str) -> Scene:
     """A scene shipped in the package: "beam" (the paper's cantilever) or "phantom" (an organ)."""
     if name not in BUILTIN_SCENES:
         raise SceneError(f"no builtin scene {name!r} (builtins: {', '.join(BUILTIN_SCENES)})")
-    res = resources.files("service.scenes").joinpath(f"{name}.toml")
+    res = resources.files("service.scene.shipped").joinpath(f"{name}.toml")
     with resources.as_file(res) as path:
         return parse_scene(path.read_text(encoding="utf-8"), f"builtin:{name}", path.parent)
 
@@ -236,18 +235,3 @@ def resolve_scene(arg: str | Path) -> Scene:
     raise SceneError(
         f"{arg}: no such scene file, and no builtin scene of that name (builtins: {', '.join(BUILTIN_SCENES)})"
     )
-
-
-__all__ = [
-    "BUILTIN_SCENES",
-    "MODEL_ID",
-    "MODEL_ID_RULE",
-    "MaterialSpec",
-    "Scene",
-    "SceneError",
-    "builtin_scene",
-    "check_model_id",
-    "load_scene",
-    "parse_scene",
-    "resolve_scene",
-]

@@ -3,7 +3,7 @@ fixed nodes, load region, support and matching triangles its tables name.
 
 Node ids in a scene are the file's ids; when loading drops unused nodes they are mapped onto the
 mesh's numbering (`loaded`, the record of loading; without one the ids are the mesh's). Errors
-name the scene's `origin` and the key (:func:`~service.scene_errors.scene_error`).
+name the scene's `origin` and the key (:func:`~service.scene.errors.scene_error`).
 """
 
 from __future__ import annotations
@@ -15,10 +15,10 @@ from typing import Any
 
 import numpy as np
 
-from .mesh import TetMesh
-from .meshfile import LoadedMesh
-from .scene_errors import scene_error
-from .scene_tables import BoundarySpec, RegistrationSpec, TrainingSpec
+from ..mesh import TetMesh
+from ..meshfile import LoadedMesh
+from .errors import scene_error
+from .tables import BoundarySpec, RegistrationSpec, TrainingSpec
 
 log = logging.getLogger("service.scene")  # a scene's warnings under one name, whichever module finds them
 

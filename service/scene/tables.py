@@ -1,6 +1,6 @@
 """A scene's tables ([mesh], [material], [boundary], [training], [registration]) as frozen
 pydantic models, and the field types they share. The keys and their meaning: SCENES.md and
-:mod:`service.scene`; what the node sets resolve to: :mod:`service.scene_ids`.
+:mod:`service.scene`; what the node sets resolve to: :mod:`service.scene.ids`.
 """
 
 from __future__ import annotations
