@@ -22,6 +22,9 @@ POLY_HEADER = struct.Struct(">10I")
 POINT_ITEM = 136  # name 64, group 32, rgba 4, xyz 12, diameter 4, owner 20
 MAX_BODY = 256 << 20
 ASCII, UTF8 = 3, 106  # IANA character sets used by STRING
+STRING_MAX = 0xFFFF  # a STRING's length field is 16 bits
+#: characters of a sender's name (an attribute's: unbounded) that an error quotes
+QUOTE_MAX = 64
 
 
 class ProtocolError(ValueError):
@@ -78,6 +81,12 @@ class Message:
     content: bytes = b""
     metadata: dict[str, str] = dataclasses.field(default_factory=dict)
     message_id: int = 0
+
+
+def quoted(name: str) -> str:
+    """``name`` as an error quotes it: its first QUOTE_MAX characters, so that the error stays
+    a line whatever the sender put in it."""
+    return repr(name) if len(name) <= QUOTE_MAX else f"{name[:QUOTE_MAX]!r}…"
 
 
 def _name(raw: bytes) -> str:
@@ -272,7 +281,7 @@ def _attributes(content: bytes, at: int, count: int) -> dict[str, np.ndarray]:
             width = ncomp if comps is None else comps
             size = 4 * width * n
             if at + size > len(content):
-                raise ProtocolError(f"POLYDATA: attribute {name!r} runs past the body")
+                raise ProtocolError(f"POLYDATA: attribute {quoted(name)} runs past the body")
             out[name] = np.frombuffer(content, ">f4", width * n, at).astype(np.float32).reshape(n, width)
             at += size
         return out
@@ -316,6 +325,6 @@ def decode_string(content: bytes) -> str:
 
 def encode_string(text: str) -> bytes:
     raw = text.encode("utf-8")
-    if len(raw) > 0xFFFF:
-        raise ValueError("a STRING holds at most 65535 bytes")
+    if len(raw) > STRING_MAX:
+        raise ValueError(f"a STRING holds at most {STRING_MAX} bytes")
     return struct.pack(">HH", UTF8, len(raw)) + raw

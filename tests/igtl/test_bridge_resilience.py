@@ -10,6 +10,7 @@ import json
 import math
 import shutil
 import socket
+import struct
 import threading
 import time
 from pathlib import Path
@@ -200,23 +201,28 @@ def test_a_client_that_takes_no_answers_frees_the_only_slot(api_server, run_brid
 def test_malformed_messages_get_the_error_shape_a_refused_frame_gets(api_server, run_bridge):
     """{"error": {"code", "detail"}} for every error: 400 a message that cannot be parsed (a
     corrupt body, a POINT of part of a point), 422 one parsed but invalid (a cell naming a point
-    the message does not hold), as the HTTP API answers; the connection goes on."""
+    the message does not hold), as the HTTP API answers, with a detail of a line however long
+    the names it quotes (an attribute's, 70 kB); the connection goes on."""
     api = api_server()
     mesh = get_mesh(api.url, "bar")
     cloud = surface_cloud(mesh)
     corrupt = bytearray(point_frame(cloud))
     corrupt[-1] ^= 0xFF
     beyond = p.pack("POLYDATA", "cloud", p.encode_polydata(cloud, np.array([[0, 1, len(cloud)]])))
+    # one point and one attribute of 5 values (past the body), named with 70 kB
+    long_name = p.POLY_HEADER.pack(1, 0, 0, 0, 0, 0, 0, 0, 0, 1) + bytes(12)
+    long_name += struct.pack(">BBI", 0, 1, 5) + b"a" * 70_000 + b"\0"
     bridge = run_bridge(api.url)
     with bridge.connect() as sock:
         for message, code, words in [
             (bytes(corrupt), 400, "CRC"),
             (p.pack("POINT", "cloud", b"\0" * (p.POINT_ITEM + 1)), 400, "whole number"),
             (beyond, 422, "beyond"),
+            (p.pack("POLYDATA", "cloud", long_name), 400, "aaaa'… runs past the body"),
         ]:
             sock.sendall(message)
             error = read_answer(sock)[1]["error"]
-            assert error["code"] == code and words in error["detail"], error
+            assert error["code"] == code and words in error["detail"] and len(error["detail"]) < 200, error
         sock.sendall(point_frame(cloud))
         registered(read_answer(sock), len(mesh["surface_nodes"]))
 

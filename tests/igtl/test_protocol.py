@@ -133,3 +133,14 @@ def test_cells_of_one_size_are_read_whole_and_checked_against_the_points():
     empty = struct.pack(">IIIIIIIIII", 0, 0, 0, 0, 0, 1, 16, 0, 0, 0) + struct.pack(">IIII", 3, 0, 1, 2)
     with pytest.raises(p.ProtocolError, match="beyond the 0 points"):
         p.decode_polydata(empty)
+
+
+def test_an_error_quotes_a_long_name_shortened():
+    """A POLYDATA whose attribute (a 70 kB name) runs past the body: the error quotes the
+    name's first characters, so that it stays a line a STRING can carry."""
+    content = struct.pack(">10I", 1, 0, 0, 0, 0, 0, 0, 0, 0, 1) + bytes(12)
+    content += struct.pack(">BBI", 0, 1, 5) + b"a" * 70_000 + b"\0"
+    with pytest.raises(p.ProtocolError, match="runs past the body") as err:
+        p.decode_polydata(content)
+    assert err.value.code == 400 and len(str(err.value)) < 40 + 2 * p.QUOTE_MAX
+    assert f"{'a' * p.QUOTE_MAX!r}…" in str(err.value)
