@@ -9,8 +9,11 @@ the body is ``extended header (12 bytes) + content + metadata header + metadata`
 from __future__ import annotations
 
 import dataclasses
+import functools
 import struct
 import time
+from collections.abc import Sequence
+from typing import overload
 
 import numba
 import numpy as np
@@ -174,55 +177,119 @@ def pack(
 # -- POLYDATA ----------------------------------------------------------------------------------
 
 
+@numba.njit(cache=True)
+def _word(raw, i):
+    """The ``i``-th big-endian uint32 of the bytes ``raw`` (numba reads native order only)."""
+    at = 4 * i
+    return (
+        (np.int64(raw[at]) << 24) | (np.int64(raw[at + 1]) << 16) | (np.int64(raw[at + 2]) << 8) | np.int64(raw[at + 3])
+    )
+
+
+@numba.njit(cache=True)
+def _walk_cells(raw, count, n_points, offsets, indices):
+    """Walk a section's ``count`` cells, records ``k, i_1 .. i_k`` (uint32) in the bytes ``raw``:
+    0 when they fill it exactly and name only points below ``n_points``, else the fault
+    (_CELL_FAULTS). Fills ``offsets`` (count + 1) and ``indices`` unless they are empty."""
+    words = raw.size // 4
+    fill = offsets.size > 0
+    at, beyond = 0, False
+    for c in range(count):
+        if at >= words:
+            return 1
+        k = _word(raw, at)
+        if k > words - at - 1:
+            return 2
+        for j in range(at + 1, at + 1 + k):
+            i = _word(raw, j)
+            beyond |= i >= n_points
+            if fill:
+                indices[j - c - 1] = i  # the c + 1 size words before it are no index
+        if fill:
+            offsets[c + 1] = offsets[c] + k
+        at += 1 + k
+    if at != words:
+        return 3
+    return 4 if beyond else 0
+
+
+_CELL_FAULTS = {
+    1: ("{what} section ends before its {count} cells", 400),
+    2: ("a {what} cell runs past its section", 400),
+    3: ("{what} section holds more than its {count} cells", 400),
+    4: ("a {what} cell refers to a point beyond the {n_points} points", 422),
+}
+_NONE = np.empty(0, np.int64)
+
+
+class Cells(Sequence[np.ndarray]):
+    """One POLYDATA cell section (vertices, lines, polygons or triangle strips): cells of any
+    size, checked when the message is decoded and read only when used (the bridge reads a
+    cloud's points alone; its 4 M vertex cells would be 4 M arrays). ``indices`` holds every
+    cell's point indices, cell ``c`` at ``offsets[c]:offsets[c + 1]``."""
+
+    def __init__(self, raw: np.ndarray, count: int) -> None:
+        self._raw = raw  # the section's bytes, a view of the message's
+        self._count = count
+
+    @classmethod
+    def checked(cls, raw: np.ndarray, count: int, n_points: int, what: str) -> Cells:
+        fault = _walk_cells(raw, count, n_points, _NONE, _NONE)
+        if fault:
+            text, code = _CELL_FAULTS[fault]
+            raise ProtocolError("POLYDATA: " + text.format(what=what, count=count, n_points=n_points), code)
+        return cls(raw, count)
+
+    @functools.cached_property
+    def _read(self) -> tuple[np.ndarray, np.ndarray]:
+        offsets = np.zeros(self._count + 1, np.int64)
+        indices = np.empty(self._raw.size // 4 - self._count, np.int64)  # all words but the sizes
+        _walk_cells(self._raw, self._count, np.iinfo(np.int64).max, offsets, indices)
+        return offsets, indices
+
+    @property
+    def offsets(self) -> np.ndarray:
+        return self._read[0]
+
+    @property
+    def indices(self) -> np.ndarray:
+        return self._read[1]
+
+    @property
+    def sizes(self) -> np.ndarray:
+        return np.diff(self.offsets)
+
+    def __len__(self) -> int:
+        return self._count
+
+    @overload
+    def __getitem__(self, c: int) -> np.ndarray: ...
+    @overload
+    def __getitem__(self, c: slice) -> list[np.ndarray]: ...
+    def __getitem__(self, c: int | slice) -> np.ndarray | list[np.ndarray]:
+        if isinstance(c, slice):
+            return [self[i] for i in range(len(self))[c]]
+        c = range(self._count)[c]  # negative counts from the end; IndexError past it
+        return self.indices[self.offsets[c] : self.offsets[c + 1]]
+
+
 @dataclasses.dataclass
 class PolyData:
-    """Shape: points (n, 3) float32; polygons, lines, vertices, strips: lists of index arrays
-    (cells of any size), triangles (f, 3) when every polygon is a triangle."""
+    """Shape: points (n, 3) float32; polygons, lines, vertices, strips: :class:`Cells` (index
+    arrays of any size), triangles (f, 3) when every polygon is a triangle."""
 
     points: np.ndarray
-    vertices: list[np.ndarray]
-    lines: list[np.ndarray]
-    polygons: list[np.ndarray]
-    strips: list[np.ndarray]
+    vertices: Cells
+    lines: Cells
+    polygons: Cells
+    strips: Cells
     attributes: dict[str, np.ndarray]
 
     @property
     def triangles(self) -> np.ndarray:
-        if any(len(p) != 3 for p in self.polygons):
+        if np.any(self.polygons.sizes != 3):
             raise ValueError("not every polygon is a triangle")
-        return np.array(self.polygons, np.int64).reshape(-1, 3)
-
-
-def _cells(raw: bytes, count: int, n_points: int, what: str) -> list[np.ndarray]:
-    """Cells of ``(N, i_1 .. i_N)`` records (uint32, big-endian)."""
-    a = np.frombuffer(raw, ">u4").astype(np.int64)
-    cells, at = [], 0
-    for _ in range(count):  # a Python loop over cells only where the cells are not all triangles
-        if at >= a.size:
-            raise ProtocolError(f"POLYDATA: {what} section ends before its {count} cells")
-        k = int(a[at])
-        cell = a[at + 1 : at + 1 + k]
-        if cell.size != k:
-            raise ProtocolError(f"POLYDATA: a {what} cell runs past its section")
-        cells.append(cell)
-        at += 1 + k
-    if at != a.size:
-        raise ProtocolError(f"POLYDATA: {what} section holds more than its {count} cells")
-    if cells and (max(int(c.max(initial=0)) for c in cells) >= n_points):
-        raise ProtocolError(f"POLYDATA: a {what} cell refers to a point beyond the {n_points} points", 422)
-    return cells
-
-
-def _uniform_cells(raw: bytes, count: int) -> np.ndarray | None:
-    """Cells that all have one size (a cloud's vertex cells, a mesh's triangles) as one array
-    (count, size), read without a loop; None where the sizes differ."""
-    a = np.frombuffer(raw, ">u4")
-    if count == 0 or a.size == 0:
-        return None
-    k = int(a[0])
-    if a.size != count * (k + 1) or not np.all(a[:: k + 1] == k):
-        return None
-    return a.reshape(count, k + 1)[:, 1:].astype(np.int64)
+        return self.polygons.indices.reshape(-1, 3)
 
 
 _ATTR_COMPONENTS = {
@@ -247,6 +314,7 @@ def decode_polydata(content: bytes) -> PolyData:
         raise ProtocolError(f"POLYDATA: {len(content)} bytes, but its header announces at least {need}")
     points = np.frombuffer(content, ">f4", 3 * npts, at).astype(np.float32).reshape(npts, 3)
     at += 12 * npts
+    body = np.frombuffer(content, np.uint8)
     sections = []
     for count, size, what in (
         (nv, sv, "vertices"),
@@ -254,11 +322,7 @@ def decode_polydata(content: bytes) -> PolyData:
         (npoly, spoly, "polygons"),
         (ns, sstrip, "triangle strips"),
     ):
-        raw = content[at : at + size]
-        uniform = _uniform_cells(raw, count)
-        if uniform is not None and uniform.size and int(uniform.max()) >= npts:
-            raise ProtocolError(f"POLYDATA: a {what} cell refers to a point beyond the {npts} points", 422)
-        sections.append(list(uniform) if uniform is not None else _cells(raw, count, npts, what))
+        sections.append(Cells.checked(body[at : at + size], count, npts, what))
         at += size
     attributes = _attributes(content, at, natt)
     return PolyData(points, *sections, attributes)

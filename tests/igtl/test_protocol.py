@@ -4,6 +4,7 @@ POLYDATA, POINT, STRING), our own packing read back by pyigtl, and malformed inp
 from __future__ import annotations
 
 import struct
+import tracemalloc
 
 import numpy as np
 import pytest
@@ -144,3 +145,45 @@ def test_an_error_quotes_a_long_name_shortened():
         p.decode_polydata(content)
     assert err.value.code == 400 and len(str(err.value)) < 40 + 2 * p.QUOTE_MAX
     assert f"{'a' * p.QUOTE_MAX!r}…" in str(err.value)
+
+
+def _cloud_of_cells(cells: np.ndarray, count: int, n_points: int = 1) -> bytes:
+    """A POLYDATA body of ``n_points`` points and ``count`` vertex cells (``cells``: their records)."""
+    cells = np.asarray(cells, ">u4")
+    header = p.POLY_HEADER.pack(n_points, count, cells.nbytes, 0, 0, 0, 0, 0, 0, 0)
+    return header + bytes(12 * n_points) + cells.tobytes()
+
+
+@pytest.mark.parametrize("mixed", [False, True])
+def test_a_million_cells_are_checked_without_an_array_each(mixed):
+    """Cells are read and ignored by the bridge: a body of a million vertex cells (one size, or
+    sizes that alternate) is decoded in less memory than its own size, its cells read when used."""
+    n = 1_000_000
+    records = np.tile([1, 0, 2, 0, 0], n // 2) if mixed else np.tile([1, 0], n)
+    body = _cloud_of_cells(records, n)
+    p.decode_polydata(_cloud_of_cells([1, 0], 1))  # compiled before it is measured
+    tracemalloc.start()
+    try:
+        poly = p.decode_polydata(body)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < len(body) // 4, f"{peak} bytes to decode a body of {len(body)}"
+    assert len(poly.vertices) == n and poly.vertices[-1].tolist() == ([0, 0] if mixed else [0])
+    assert poly.vertices.sizes.sum() == (3 * n // 2 if mixed else n)
+
+
+@pytest.mark.parametrize(
+    "records, count, words, code",
+    [
+        ([1, 0, 2, 0], 2, "cell runs past its section", 400),
+        ([1, 0, 1, 0], 3, "ends before its 3 cells", 400),
+        ([1, 0, 1, 0, 1], 2, "holds more than its 2 cells", 400),
+        ([2, 0, 1, 1, 5], 2, "refers to a point beyond the 3 points", 422),
+        ([1, 5, 2, 0], 2, "runs past", 400),  # a section that cannot be read is 400 before any 422
+    ],
+)
+def test_malformed_cell_sections_are_refused(records, count, words, code):
+    with pytest.raises(p.ProtocolError, match=words) as err:
+        p.decode_polydata(_cloud_of_cells(records, count, n_points=3))
+    assert err.value.code == code
