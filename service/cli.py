@@ -169,7 +169,13 @@ def _igtl(args: argparse.Namespace) -> int:
         if v is not None
     }
     if args.support:
-        settings["support"] = [int(v) for v in Path(args.support).read_text().split()]
+        from .scene import read_node_ids
+
+        try:  # a scene's support_file's rules, several ids a line allowed
+            settings["support"] = read_node_ids(Path(args.support), several_a_line=True).tolist()
+        except ValueError as exc:  # a bridge that cannot start: one line, exit status 1
+            print(f"error: --support: {' '.join(str(exc).split())}", file=sys.stderr)
+            return 1
     return run(
         args.model,
         host=args.host,
@@ -307,7 +313,11 @@ def parser() -> argparse.ArgumentParser:
     g.add_argument("--gtol", type=float, default=None)
     g.add_argument("--max-iter", type=int, default=None)
     g.add_argument("--force-bound", type=float, default=None)
-    g.add_argument("--support", default=None, help="a file of node ids (whitespace-separated) forces may act on")
+    g.add_argument(
+        "--support",
+        default=None,
+        help="a file of node ids forces may act on: whitespace-separated ('#' comments), or a .npy array",
+    )
     g.add_argument("--token", default=None, help="the API token, for a --server with tokens (default: $ELASTREG_TOKEN)")
     g.set_defaults(func=_igtl)
 

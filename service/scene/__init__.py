@@ -9,6 +9,7 @@
 """
 
 from .errors import SceneError
+from .ids import read_node_ids
 from .model_id import MODEL_ID, MODEL_ID_RULE, check_model_id
 from .scene import BUILTIN_SCENES, Scene, builtin_scene, load_scene, parse_scene, resolve_scene
 from .tables import MaterialSpec
@@ -24,5 +25,6 @@ __all__ = [
     "check_model_id",
     "load_scene",
     "parse_scene",
+    "read_node_ids",
     "resolve_scene",
 ]

@@ -26,25 +26,37 @@ Array = np.ndarray
 
 
 def read_ids(path: Path, key: str, origin: str) -> Array:
-    """Node ids from a .npy int array, or a text file with one id a line ('#' comments; a
-    UTF-8 BOM, which Windows editors write, skipped)."""
+    """A scene's id file (:func:`read_node_ids`), its errors naming the scene's key."""
+    try:
+        return read_node_ids(path)
+    except ValueError as exc:
+        raise scene_error(origin, key, str(exc)) from exc
+
+
+def read_node_ids(path: Path, *, several_a_line: bool = False) -> Array:
+    """Node ids from a .npy int array, or a text file with one id a line (any number a line,
+    whitespace-separated, with ``several_a_line``): '#' comments, and a UTF-8 BOM, which Windows
+    editors write, skipped. ValueError, one line naming the file, where it holds no such ids."""
     try:
         if path.suffix == ".npy":
             ids = np.load(path, allow_pickle=False)
+        elif several_a_line:
+            lines = path.read_text(encoding="utf-8-sig").splitlines()
+            ids = np.array([w for line in lines for w in line.split("#", 1)[0].split()], np.int64)
         else:
             with warnings.catch_warnings():  # numpy's two-line "no data" warning: refused below
                 warnings.filterwarnings("ignore", "loadtxt: input contained no data", UserWarning)
                 ids = np.loadtxt(path, dtype=np.int64, ndmin=2, comments="#", encoding="utf-8-sig")
-    except (OSError, ValueError) as exc:
-        raise scene_error(origin, key, f"cannot read node ids from {path}: {exc}") from exc
+    except (OSError, ValueError, OverflowError) as exc:
+        raise ValueError(f"cannot read node ids from {path}: {exc}") from exc
     if not np.issubdtype(ids.dtype, np.integer):
-        raise scene_error(origin, key, f"{path} must hold integer node ids, got {ids.dtype}")
+        raise ValueError(f"{path} must hold integer node ids, got {ids.dtype}")
     # a table's columns would be read as ids, flattened; an array's one row of ids is a list
     # of them, a text file's is not (one id a line)
     if ids.ndim > 1 and ids.size != (max(ids.shape) if path.suffix == ".npy" else len(ids)):
-        raise scene_error(origin, key, f"{path} holds rows of {ids.size // len(ids)} ids: node ids go one id a line")
+        raise ValueError(f"{path} holds rows of {ids.size // len(ids)} ids: node ids go one id a line")
     if ids.size == 0:
-        raise scene_error(origin, key, f"{path} holds no node id")
+        raise ValueError(f"{path} holds no node id")
     return ids.ravel().astype(np.int64)
 
 

@@ -41,3 +41,24 @@ def test_a_bridge_that_cannot_start_says_why_in_one_line(case, api_server):
     lines = r.stderr.strip().splitlines()
     assert r.returncode == 1 and len(lines) == 1, r.stderr
     assert lines[0].startswith("error: ") and words in lines[0], lines
+
+
+@pytest.mark.parametrize(
+    "content, words",
+    [
+        ("1 2 3.5\n", "cannot read node ids from {f}: invalid literal for int() with base 10: '3.5'"),
+        (None, "cannot read node ids from {f}: [Errno 2] No such file or directory"),
+        ("# none yet\n", "{f} holds no node id"),
+        ("1 2 # the patch\n3\n", "cannot be reached"),  # read (as a scene's support_file): the API is next
+    ],
+)
+def test_a_support_file_it_cannot_read_is_one_line(content, words, tmp_path):
+    """--support is read before the bridge starts, with a scene's support_file's rules (several
+    ids a line allowed): a file that is not there or holds no ids is one line and exit 1."""
+    ids = tmp_path / "support.txt"
+    if content is not None:
+        ids.write_text(content)
+    r = igtl("--model", "bar", "--server", f"http://127.0.0.1:{free_port()}", "--support", str(ids))
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 1 and len(lines) == 1, r.stderr
+    assert lines[0].startswith("error: ") and words.format(f=ids) in lines[0], lines
