@@ -36,6 +36,17 @@ def _model_id(text: str) -> str:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
+def _device_name(text: str) -> str:
+    """An argparse type for an OpenIGTLink device name: one a message's header can carry (any
+    longer, and no cloud sent under it would ever be answered)."""
+    from .igtl.protocol import check_device_name
+
+    try:
+        return check_device_name(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def _train(args: argparse.Namespace) -> int:
     from .build import Interrupted, WorseThanInstalled, build
     from .scene import resolve_scene
@@ -307,7 +318,12 @@ def parser() -> argparse.ArgumentParser:
     g.add_argument("--port", type=_port, default=18944, help="OpenIGTLink port (default: 18944)")
     g.add_argument("--server", default=None, help="URL of a running API (default: serve --store in this process)")
     g.add_argument("--store", default=None, help="model store when no --server is given")
-    g.add_argument("--device", default="cloud", help="device name of the incoming clouds (default: cloud)")
+    g.add_argument(
+        "--device",
+        type=_device_name,
+        default="cloud",
+        help="device name of the incoming clouds, at most 20 ASCII characters (default: cloud)",
+    )
     g.add_argument("--method", choices=["network", "fem"], default=None)
     g.add_argument("--alpha", type=float, default=None)
     g.add_argument("--gtol", type=float, default=None)

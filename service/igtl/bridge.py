@@ -58,7 +58,7 @@ class Bridge(Relay):
         token: str | None = None,
     ) -> None:
         super().__init__(api_url, model, settings=settings, encoding=encoding, token=token)
-        self.device = device
+        self.device = p.check_device_name(device)  # a longer name no message could carry
         self._client: Connection | None = None  # the client that holds the one slot
         self._ignored: set[tuple[str, str]] = set()  # (type, device) of messages ignored so far
 

@@ -28,6 +28,7 @@ ASCII, UTF8 = 3, 106  # IANA character sets used by STRING
 STRING_MAX = 0xFFFF  # a STRING's length field is 16 bits
 #: characters of a sender's name (an attribute's: unbounded) that an error quotes
 QUOTE_MAX = 64
+DEVICE_MAX = 20  # bytes of a header's device name
 
 
 class ProtocolError(ValueError):
@@ -90,6 +91,17 @@ def quoted(name: str) -> str:
     """``name`` as an error quotes it: its first QUOTE_MAX characters, so that the error stays
     a line whatever the sender put in it."""
     return repr(name) if len(name) <= QUOTE_MAX else f"{name[:QUOTE_MAX]!r}…"
+
+
+def check_device_name(name: str) -> str:
+    """``name`` where a header can carry it and reads back the same (see _name): 1 to
+    DEVICE_MAX printable ASCII characters, no space at either end; ValueError otherwise."""
+    if not (0 < len(name) <= DEVICE_MAX and name.isascii() and name.isprintable() and name == name.strip()):
+        raise ValueError(
+            f"a device name is 1 to {DEVICE_MAX} printable ASCII characters, no space at either end "
+            f"(OpenIGTLink's header field), got {quoted(name)}"
+        )
+    return name
 
 
 def _name(raw: bytes) -> str:

@@ -62,3 +62,11 @@ def test_a_support_file_it_cannot_read_is_one_line(content, words, tmp_path):
     lines = r.stderr.strip().splitlines()
     assert r.returncode == 1 and len(lines) == 1, r.stderr
     assert lines[0].startswith("error: ") and words.format(f=ids) in lines[0], lines
+
+
+@pytest.mark.parametrize("name", ["abcdefghijklmnopqrstuvwxyz", "wolkè", " cloud", ""])
+def test_a_device_name_no_header_can_carry_is_refused_at_parse_time(name):
+    """Over 20 bytes (or not ASCII, or padded) no message names it: nothing would be answered."""
+    r = igtl("--model", "bar", "--server", f"http://127.0.0.1:{free_port()}", "--device", name)
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.strip().splitlines()[-1].startswith("elastreg igtl: error: argument --device: a device name is")

@@ -187,3 +187,15 @@ def test_malformed_cell_sections_are_refused(records, count, words, code):
     with pytest.raises(p.ProtocolError, match=words) as err:
         p.decode_polydata(_cloud_of_cells(records, count, n_points=3))
     assert err.value.code == code
+
+
+def test_device_names_are_those_a_header_carries():
+    """The bridge's names, in and out, fit the header's 20 bytes and read back as sent."""
+    from service.igtl.answers import STATUS, SURFACE
+
+    for name in ("cloud", SURFACE, STATUS, "a" * 20, "my cloud"):
+        assert p.check_device_name(name) == name
+        assert p.parse_header(p.pack("STRING", name, b"")[: p.HEADER_SIZE])[2] == name
+    for name in ("a" * 21, "", "wolkè", "cloud ", "a\tb"):
+        with pytest.raises(ValueError, match="1 to 20 printable ASCII"):
+            p.check_device_name(name)
