@@ -187,16 +187,20 @@ def _igtl(args: argparse.Namespace) -> int:
         except ValueError as exc:  # a bridge that cannot start: one line, exit status 1
             print(f"error: --support: {' '.join(str(exc).split())}", file=sys.stderr)
             return 1
-    return run(
-        args.model,
-        host=args.host,
-        port=args.port,
-        server=args.server,
-        store=args.store,
-        device=args.device,
-        settings=settings,
-        token=args.token or os.environ.get("ELASTREG_TOKEN"),
-    )
+    try:
+        return run(
+            args.model,
+            host=args.host,
+            port=args.port,
+            server=args.server,
+            store=args.store,
+            device=args.device,
+            settings=settings,
+            token=args.token or os.environ.get("ELASTREG_TOKEN"),
+        )
+    except KeyboardInterrupt:  # Ctrl-C: clients told and closed, one line, as demo and train
+        print("interrupted", file=sys.stderr)
+        return 130
 
 
 def _bench(args: argparse.Namespace) -> int:

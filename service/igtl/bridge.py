@@ -41,6 +41,8 @@ _THREAD_DECODE = 256 << 10
 #: before it is refused: a client that reconnects closes its old connection first, but the two
 #: may arrive together and the close be seen a moment after the new connection
 _RECONNECT_GRACE = 1.0
+#: seconds the connections' teardown may take when the bridge stops (Ctrl-C)
+_STOP_GRACE = 5.0
 
 
 class Bridge(Relay):
@@ -103,6 +105,9 @@ class Bridge(Relay):
         except ApiRefused as exc:  # the API refused or could not be reached: the client is told
             log.warning("client %s: %s", client.peer, exc)
             error = error_body(exc.code, str(exc), exc.retry_after)
+        except asyncio.CancelledError:  # the bridge stops (Ctrl-C): the client is told why
+            error = error_body(503, "the bridge is stopping")
+            raise
         except ClientStalled as exc:  # the slot is freed: a stalled or vanished client holds it no longer
             log.warning("client %s: %s; closing it", client.peer, exc)
             error = error_body(408, str(exc))  # the HTTP API's code for a body that comes too slowly
@@ -171,12 +176,25 @@ class Bridge(Relay):
 
 
 async def serve(bridge: Bridge, host: str, port: int, ready=None) -> None:
-    """Serve until cancelled; ``ready`` (a callable) is told the bound port."""
+    """Serve until cancelled (Ctrl-C), then end the connections: each client is told, its
+    session closed and its socket; ``ready`` (a callable) is told the bound port."""
     await bridge.prepare()
     loop = asyncio.get_running_loop()
+    connections: set[asyncio.Task] = set()
+
+    async def handled(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        task = asyncio.current_task()
+        assert task is not None
+        connections.add(task)
+        try:
+            await bridge.handle(reader, writer)
+        except asyncio.CancelledError:  # ended by serve (its teardown done): a task ending
+            pass  # cancelled is logged with tracebacks by 3.11's StreamReaderProtocol
+        finally:
+            connections.discard(task)
 
     def connection() -> asyncio.StreamReaderProtocol:  # asyncio.start_server's, with a ConnectionReader
-        return asyncio.StreamReaderProtocol(ConnectionReader(loop=loop), bridge.handle, loop=loop)
+        return asyncio.StreamReaderProtocol(ConnectionReader(loop=loop), handled, loop=loop)
 
     try:
         server = await loop.create_server(connection, host, port)
@@ -193,8 +211,14 @@ async def serve(bridge: Bridge, host: str, port: int, ready=None) -> None:
     )
     if ready is not None:
         ready(bound)
-    async with server:
-        await server.serve_forever()
+    try:
+        await asyncio.Future()  # served (create_server starts serving) until cancelled
+    finally:
+        server.close()  # no new client; not serve_forever's close, which on 3.12 waits for clients
+        for task in connections:
+            task.cancel()
+        if connections:  # their teardown (a last status, the API stream) under a bound
+            await asyncio.wait(connections, timeout=_STOP_GRACE)
 
 
 def run(
@@ -228,10 +252,8 @@ def run(
                 flush=True,
             )
 
-        try:
+        try:  # Ctrl-C (KeyboardInterrupt, once the connections are ended) is the caller's
             asyncio.run(serve(bridge, host, port, ready))
-        except KeyboardInterrupt:
-            pass
         except BridgeError as exc:  # one line, as `elastreg serve` refuses a bad start
             raise SystemExit(f"error: {exc}") from None
     return 0
