@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 import time
 from collections.abc import Callable
 
@@ -43,6 +44,7 @@ from .drive_levenberg import levenberg_marquardt
 from .objective import Objective, Start, Timing, rest_state
 from .options import SolveOptions, check_optimizer, refuse_bounds
 from .precondition import Curvature
+from .reach import REACH, Box
 from .stops import Done, Stop, roundoff_gain
 
 #: a cloud this near its rest surface (rms, a share of the organ's size: 10 nm on a 10 cm organ)
@@ -65,7 +67,7 @@ class FrameSolution:
     value: float  # J + alpha/2 |g|^2
     rms: float  # RMS distance of all the cloud's points to the surface at g (m)
     converged: bool
-    status: str  # converged | max_iter | time_limit | line_search | forward_failed | non_finite | stalled
+    status: str  # converged | max_iter | time_limit | line_search | forward_failed | non_finite | stalled | too_far
     iterations: int
     evaluations: int
     timing: Timing
@@ -145,6 +147,8 @@ def solve_frame(
         # the stopping test, in force space whatever variables the optimiser runs in
         g_tol = options.gtol * float(np.abs(grad_rest).max())
         if g_tol == 0.0:  # no force on the support moves what the points match (a cloud off a held face)
+            if np.any(grad_rest):  # the tolerance underflowed: the test would pass anything
+                raise Stop("stalled", f"the rest gradient ({np.abs(grad_rest).max():.3g}) is below what gtol resolves")
             raise Done(
                 f"no force on the support moves the surface the points match: the rest state stands "
                 f"({evaluate.rest_rms:.3g} m rms from the cloud)"
@@ -158,8 +162,9 @@ def solve_frame(
             status, message, nit = lbfgsb(
                 op, distance, evaluate, best, v_rest, g_tol, options, curvature, max_eval, deadline
             )
-    except Done as done:
-        status, message = "converged", done.message
+    except Done as done:  # the rest state is the answer, if the cloud is near enough to say so
+        far = _past_reach(distance, rest_positions)
+        status, message = ("too_far", far) if far else ("converged", done.message)
         evaluate.best_g, evaluate.best_value, evaluate.best_J = np.zeros((k, 3)), v_rest, v_rest
         evaluate.best_u = evaluate.rest_u
         evaluate.best_rms = evaluate.rest_rms
@@ -170,6 +175,8 @@ def solve_frame(
         if timed_op:
             op.deadline = None  # the session's outputs are computed after the frame, in full
 
+    if status == "converged" and not math.isfinite(evaluate.best_rms):  # API.md: never converged
+        status, message = "non_finite", f"the distance at the answer is not finite ({message})"
     timing.total = time.perf_counter() - t_start
     return FrameSolution(
         g=evaluate.best_g,
@@ -195,6 +202,20 @@ def _check_rest(rest_rms: float, rest_positions: Array) -> None:
     size = float(np.linalg.norm(np.ptp(rest, axis=1))) or 1.0
     if rest_rms <= REST_RMS * size + _F32_EPS * float(np.abs(rest).max()):
         raise Done("the cloud lies on the rest surface: no force needed")
+
+
+def _past_reach(distance: PointToSurface, rest_positions: Array) -> str:
+    """Why a cloud lies too far from the model for its rest state to be an answer ("" where it
+    does not): past the reach (reach.py) rounding ties every closest point, and a gradient it
+    zeroes is no optimum (1e20 m off was once answered converged at rest)."""
+    box = Box(rest_positions)
+    offset = box.median_offset(distance.points)
+    if box.within(offset):
+        return ""
+    return (
+        f"the cloud lies too far from the model for a registration ({offset:.3g} m, {offset / box.size:.3g} "
+        f"times its size; at most {REACH:g}): no force was estimated"
+    )
 
 
 def _check_alpha(alpha: float, v_rest: float, grad_rest: Array, v_best: float) -> None:

@@ -7,8 +7,9 @@ diverged, or something was not finite) returns its best iterate with ``converged
 leaves the warm start exactly as it was; a frame that merely ran out of iterations still moves
 the warm start to its best iterate, which is better than where it began, but the next frame also
 tries the last converged frame's forces and starts from the better of the two (a cloud that was
-garbage, a kilometre away say, costs one evaluation, not the frames after it), and only
-converged frames teach the carried curvature.
+garbage, metres off say, costs one evaluation, not the frames after it), and only
+converged frames teach the carried curvature. A cloud past the model's reach (:mod:`.reach`: in
+millimetres against metres, say) is refused before anything changes.
 
 A session told its clouds' noise moves alpha after every frame that did not fail
 (:mod:`.noise_prior`), and shifts the carried curvature by the same amount.
@@ -41,11 +42,13 @@ from .distance import PointToSurface
 from .engine import FrameSolution, SolveOptions, check_optimizer, solve_frame
 from .noise_prior import AlphaTracker
 from .precondition import Curvature
+from .reach import Box, check_reach
 from .settings import DEFAULT_ALPHA, DEFAULT_GTOL, METHODS, OUTPUT_NAMES, SessionConfig
 
 Array = np.ndarray
 
-FAILED = ("forward_failed", "non_finite")
+#: statuses whose frame leaves the warm start as it was (too_far: its rest state says nothing)
+FAILED = ("forward_failed", "non_finite", "too_far")
 
 
 @dataclasses.dataclass
@@ -144,6 +147,7 @@ class Session:
             self._options, force_scale=self._options.force_scale * (float(model.material.E) / E_model)
         )
         self._rest = self.mesh.nodes[self.distance.nodes]
+        self._box = Box(self.mesh.nodes)  # how far off a cloud may lie (reach.py)
         self._lock = threading.Lock()
         self._set_support(support, None)
         # the same distance, only ever at rest: a warm frame's rest state evaluated beside its
@@ -243,6 +247,7 @@ class Session:
             raise ValueError(f"points must be a non-empty (m, 3) array, got shape {points.shape}")
         if not np.isfinite(points).all():
             raise ValueError("points contain NaN or infinite values")
+        check_reach(self._box, points)  # before any state is touched: a refused cloud changes nothing
         with self._lock, spare.frame():
             self.last_used = time.monotonic()
             t0 = time.perf_counter()

@@ -235,11 +235,14 @@ def test_a_gone_streams_queued_frames_are_dropped_and_its_slot_is_held_until_its
 
 @pytest.mark.filterwarnings("ignore::RuntimeWarning")  # the overflow is the point
 def test_non_finite_results_are_never_converged(live, http, support, clouds):
-    """Points at 1e200 m overflow the objective: the frame says so, and the session's next frame
-    is what it would have been without it."""
+    """Points at 1e200 m, which overflowed the objective, are now refused (past the model's
+    reach); a cloud 5 m above the bar, within it, folds elements: the frame says so, and the
+    session's next frame is what it would have been without it."""
     sid = http.post("/sessions", json={"model": "bar", "support": support.tolist()}).json()["session"]
     ref = http.post("/sessions", json={"model": "bar", "support": support.tolist()}).json()["session"]
     r = http.post(f"/sessions/{sid}/frames", json={"points": (clouds[0] * 1e200).tolist()})
+    assert r.status_code == 422 and "too far from the model" in r.text
+    r = http.post(f"/sessions/{sid}/frames", json={"points": (clouds[0] + [0.0, 0.0, 5.0]).tolist()})
     assert r.status_code == 200
     body = r.json()
     assert body["converged"] is False and body["status"] == "non_finite"

@@ -54,6 +54,9 @@ def _bad_frames(entry, support):
             "integers",
         ),
         ("unknown field", j, json.dumps({"points": pts, "colour": "red"}), 422, "Extra inputs"),
+        # past the model's reach: millimetres against metres, and 1e20 m off (once converged)
+        ("cloud in millimetres", j, json.dumps({"points": (1e3 * np.array(pts)).tolist()}), 422, "millimetres"),
+        ("cloud 1e20 m off", j, json.dumps({"points": (np.array(pts) + 1e20).tolist()}), 422, "too far from the model"),
         ("float frame id", j, json.dumps({"points": pts, "frame_id": 1.5}), 422, "frame_id"),
         ("body is a list", j, json.dumps([pts]), 422, "map"),
         ("invalid JSON", j, b'{"points": [[1, 2, 3]', 422, "not valid JSON"),

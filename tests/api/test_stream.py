@@ -74,6 +74,9 @@ BAD_FRAMES = [
     ("", 422, "JSON"),
     ('{"points": [[NaN, 0, 0]], "frame_id": 3}', 422, "NaN"),
     (json.dumps({"points": [[1, 2]], "frame_id": "x"}), 422, "(m, 3)"),
+    # a cloud in millimetres against the bar in metres, and one 1e20 m off (once converged)
+    (json.dumps({"points": [[1000.0, 500.0, 1000.0], [4000.0, 0.0, 0.0]]}), 422, "millimetres"),
+    (json.dumps({"points": [[1e20, 1e20, 1e20]], "frame_id": "far"}), 422, "too far from the model"),
     (json.dumps({"points": [[1, 2, 3]], "support": [0]}), 422, "fixed"),
     (json.dumps({"points": [[1, 2, 3]], "support": [1.5]}), 422, "integers"),
     (json.dumps({"points": [[1, 2, 3]], "support": []}), 422, "non-empty"),

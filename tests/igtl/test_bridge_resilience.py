@@ -1,7 +1,8 @@
 """The bridge keeps serving its client through what happens to the API: a stream closed for
 idleness is reopened for the frame, a cloud over the API's limits gets the API's 413 and keeps
-its session, an API restarted with the model rebuilt gets the new surface; an internal error
-is reported and the next client served; a stalled client does not hold the only slot."""
+its session (one in the wrong unit its 422), an API restarted with the model rebuilt gets the
+new surface; an internal error is reported and the next client served; a stalled client does
+not hold the only slot."""
 
 from __future__ import annotations
 
@@ -84,6 +85,26 @@ def test_a_cloud_over_the_api_limits_gets_413_and_keeps_the_session(api_server, 
         after = registered(read_answer(sock), n)
         assert after["frame_id"] == 3 and after["session"] == sid
     assert bridge.bridge.sessions == [sid]
+
+
+def test_a_cloud_in_the_wrong_unit_gets_422_and_keeps_the_session(api_server, run_bridge):
+    """A cloud in millimetres against the bar in metres, past the model's reach, is answered in
+    the API's words (a 422 that names the likely mistake), not registered; the session goes on."""
+    api = api_server()
+    mesh = get_mesh(api.url, "bar")
+    n = len(mesh["surface_nodes"])
+    cloud = surface_cloud(mesh)
+    bridge = run_bridge(api.url)
+    with bridge.connect() as sock:
+        sock.sendall(point_frame(cloud))
+        sid = registered(read_answer(sock), n)["session"]
+        sock.sendall(polydata_frame(1e3 * cloud))
+        surface, status = read_answer(sock)
+        assert surface is None and status["frame_id"] == 1
+        assert status["error"]["code"] == 422 and "millimetres" in status["error"]["detail"]
+        sock.sendall(point_frame(cloud))
+        after = registered(read_answer(sock), n)
+        assert after["frame_id"] == 2 and after["session"] == sid
 
 
 def _entry_as(src: Path, store: Path, name: str) -> None:

@@ -331,3 +331,21 @@ def test_prefetch_is_told_each_trial_point_and_the_answer_is_the_last(entry):
     assert sol.converged and sol.iterations >= 1
     assert len(told) == sol.evaluations - 2  # all but the rest state and the start
     np.testing.assert_array_equal(told[-1], sol.g)
+
+
+@pytest.mark.parametrize("method", ["fem", "network"])
+@pytest.mark.parametrize("offset", [(-1e3, 0.0, 0.0), (-1e20, 0.0, 0.0), (1e20, 1e20, 1e20), (1e150, 1e150, 1e150)])
+def test_a_cloud_past_the_models_reach_is_never_converged(method, offset, entry):
+    """A cloud whose closest faces are held, or whose closest points rounding ties (every one
+    at 1e16 sizes off), has a zero rest gradient: the phantom's 1e20 m off (network) and 1e150 m
+    (auto's FEM) were answered converged, "no force on the support moves the surface the points
+    match" (review repro far_converged.py), as is the bar's cloud a kilometre behind its clamp."""
+    mesh = entry.mesh
+    model = entry.fem if method == "fem" else entry.network
+    support = tip_support(mesh, entry.region)
+    dist = PointToSurface(mesh.surface_faces)
+    dist.bind(mesh.nodes[mesh.surface_nodes[:20]] + offset)
+    op = model.restrict(support, dist.nodes)
+    sol = solve_frame(op, dist, mesh.nodes[dist.nodes], np.zeros((support.size, 3)), SolveOptions(alpha=1e-6))
+    assert not sol.converged, (sol.status, sol.message)
+    assert sol.status != "too_far" or "too far" in sol.message
