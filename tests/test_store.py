@@ -624,3 +624,33 @@ def test_a_users_backups_named_like_old_build_folders_are_kept_and_only_cut_off_
         + [f"model store {root}: kept {name}: named like an older version's build folder, but it holds a complete "
            "entry (rename it if it is yours, remove it if not)" for name in backups]
     )  # fmt: skip
+
+
+def test_a_manifest_claiming_a_huge_network_is_refused_before_it_is_built(bar_store, tmp_path):
+    """A manifest edited (as a corrupt or hostile store's may be) to claim hidden layers 2e6 wide
+    over the bar's small weights: the network was built from it (635 MiB), and only then
+    compared with the weights. Now the layout is compared on the meta device first: refused,
+    naming the entry, the file and the mismatch, with no more memory than a good entry takes
+    (peak RSS, measured in a process of its own)."""
+    import subprocess
+    import sys
+
+    root = tmp_path / "store"
+    shutil.copytree(bar_store[0] / "bar", root / "bar")
+    shutil.copytree(bar_store[0] / "bar", root / "huge")
+    _edit(root / "huge", id="huge")
+    _network(root / "huge", hidden=[2_000_000, 64])
+    script = (
+        "import json, resource, sys; from service.store import StoreError, load_entry\n"
+        "peak = lambda: resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024\n"
+        "load_entry(sys.argv[1] + '/bar'); before = peak()\n"  # a good entry's cost first
+        "try:\n    load_entry(sys.argv[1] + '/huge'); error = None\n"
+        "except StoreError as exc:\n    error = str(exc)\n"
+        "print(json.dumps([peak() - before, error]))"
+    )
+    run = subprocess.run([sys.executable, "-c", script, str(root)], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    grew_mib, error = json.loads(run.stdout)
+    assert error is not None and error.startswith("huge: the weights do not fit the manifest (weights.safetensors:")
+    assert "[2000000] in the network" in error
+    assert grew_mib < 100, f"refusing the manifest took {grew_mib:.0f} MiB"

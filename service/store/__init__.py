@@ -15,10 +15,11 @@ Loading checks the manifest's shape and every name in it before any other file i
 file names must be exactly the two above, regular files inside the entry's folder: a manifest
 naming ``../../../dev/zero`` is refused without reading it; what it records twice, the material
 and load distribution it serves beside its scene's, must agree), re-hashes every file against the
-manifest and the mesh arrays against the recorded mesh hash, builds the network from the
-manifest and loads the weights strictly; any mismatch, and any file the system will not let us
-read or whose own format refuses it, is a :class:`StoreError` naming the entry, the file and
-what is wrong. :func:`open_store` isolates entries: whatever goes wrong with one (a StoreError,
+manifest and the mesh arrays against the recorded mesh hash, compares the manifest's network
+with the weights' shapes (laid out on torch's meta device, so a manifest claiming a huge network
+allocates nothing), then builds it and loads the weights strictly; any mismatch, and any file
+the system will not let us read or whose own format refuses it, is a :class:`StoreError` naming
+the entry, the file and what is wrong. :func:`open_store` isolates entries: whatever goes wrong with one (a StoreError,
 or any other exception) skips it with one logged line while the others load (the traceback of
 an unexpected exception only at DEBUG). Weights are read with safetensors: no pickle anywhere.
 An entry goes in with the modes the writer's umask gives a new folder and file: another user

@@ -14,24 +14,31 @@ from .files import MESH, WEIGHTS, StoreError
 def network_from_manifest(spec: dict, state: dict[str, torch.Tensor]) -> torch.nn.Module:
     """Rebuild the module the manifest describes (shapes come from the saved tensors). A
     ValueError in one line when the tensors do not fit it (``spec`` checked by _check_network)."""
+    # laid out on the meta device first (shapes, no storage): a manifest that claims a network
+    # far larger than its weights is refused before it allocates (hidden 10^6: 3.2 GB, then refused)
+    with torch.device("meta"):
+        mismatch = _state_mismatch(_network_of(spec, state).state_dict(), state)
+    if mismatch:
+        raise ValueError(mismatch)
+    net = _network_of(spec, state)
+    net.load_state_dict(state, strict=True)
+    return net.eval()
+
+
+def _network_of(spec: dict, state: dict[str, torch.Tensor]) -> torch.nn.Module:
+    """The manifest's layout, untrained, on the default device (the caller's ``torch.device``)."""
     layout = spec.get("layout")
     if layout == "reduced":
         basis = state.get("basis")
         if basis is None or basis.ndim != 2:
             raise ValueError("no 'basis' matrix among its tensors" if basis is None else "its 'basis' is not a matrix")
-        net: torch.nn.Module = ReducedSurrogate(
+        return ReducedSurrogate(
             int(spec["n_in"]), basis, [int(h) for h in spec["hidden"]], members=int(spec.get("members", 1)),
             feature_basis=state.get("feature_basis"),  # the physics layout's (older entries: none)
         )  # fmt: skip
-    elif layout == "paper":
-        net = PaperSurrogate(int(spec["n_in"]), int(spec["n_out"]), depth=len(spec["hidden"]) + 1)
-    else:
-        raise StoreError(f"unknown network layout {layout!r}")
-    mismatch = _state_mismatch(net.state_dict(), state)
-    if mismatch:
-        raise ValueError(mismatch)
-    net.load_state_dict(state, strict=True)
-    return net.eval()
+    if layout == "paper":
+        return PaperSurrogate(int(spec["n_in"]), int(spec["n_out"]), depth=len(spec["hidden"]) + 1)
+    raise StoreError(f"unknown network layout {layout!r}")
 
 
 def _state_mismatch(wanted: dict[str, torch.Tensor], got: dict[str, torch.Tensor]) -> str | None:
