@@ -152,6 +152,33 @@ def test_a_timed_generation_of_very_many_paths_keeps_to_its_clock(tmp_path, bar,
     assert len(got) >= 1 and len(got) == len(done_indices(tmp_path / "d"))
 
 
+def test_a_path_starts_only_where_the_slowest_so_far_says_it_ends_in_time(bar, spec):
+    """In-process generation started a path just before its clock and ran it to its end: 5 s
+    past a 0.3-minute build's data share on a 3,003-node liver. A path now starts only where
+    the slowest of the paths solved so far (their measured solve seconds) ends by the clock;
+    the first starts on any time left."""
+    from service.surrogate.data import path_fits
+
+    took = [solve_path(bar, MAT, spec, i)["seconds"] for i in range(3)]
+    slowest, now = max(took), 100.0
+    assert slowest > 0
+    assert path_fits(now + slowest, took, now=now)
+    assert not path_fits(now + 0.99 * slowest, took, now=now)  # the old test: still before the clock
+    assert path_fits(now + 1e-9, [], now=now) and not path_fits(now - 1e-9, [], now=now)
+    assert path_fits(None, took, now=now)
+
+
+def test_a_timed_generation_in_this_process_ends_by_its_clock_with_its_paths(tmp_path, bar, spec):
+    """A real in-process generation under a 2 s clock: it ends near the clock (a generous
+    margin: a loaded machine) with every path it solved written."""
+    import time
+
+    until = time.perf_counter() + 2.0
+    got = list(generate(bar, MAT, spec, tmp_path / "d", 1_000_000, workers=0, progress=False, until=until))
+    assert time.perf_counter() - until < 1.0
+    assert len(got) >= 2 and len(got) == len(done_indices(tmp_path / "d"))
+
+
 _LISTED: dict[str, int] = {}  # folder -> listings seen while it is watched
 
 
