@@ -13,7 +13,10 @@ from .bodies import frame_body
 from .encoding import decode, encode
 from .errors import StreamError, retry_after, stream_error
 
-_OUT_OF_STEP = "a reply timed out, so this stream's replies no longer match its frames: open a new stream"
+_OUT_OF_STEP = (
+    "a frame's reply never came (timed out, cancelled or interrupted), so this stream's replies no longer "
+    "match its frames: open a new stream"
+)
 
 # RFC 6455 7.1.5: the close code of a connection that ended without a close frame received
 _ABNORMAL_CLOSURE = 1006
@@ -204,8 +207,11 @@ class Stream(_SyncSocket):
             raise
 
     def send(self, points, *, support=None, frame_id=None) -> None:
+        self._send(_message(frame_body(points, support, frame_id), self.encoding))
+
+    def _send(self, message: bytes | str) -> None:
         with _closes_as_stream_error():
-            self.ws.send(_message(frame_body(points, support, frame_id), self.encoding))
+            self.ws.send(message)
 
     def recv(self, timeout: float | None = None) -> dict:
         with _closes_as_stream_error():
@@ -213,17 +219,22 @@ class Stream(_SyncSocket):
         return _reply(message)
 
     def frame(self, points, *, support=None, frame_id=None) -> dict:
-        """Send one frame and return its result. After a reply that timed out, the stream is out
-        of step (that reply may still come, and would be taken for the next frame's): a
-        StreamError says so, and a new stream is needed."""
+        """Send one frame and return its result. A call left before its reply came (timed out,
+        Ctrl-C) puts the stream out of step (that reply may still come, and would be taken for
+        the next frame's): the next frame() raises a StreamError that says so, and a new stream
+        is needed. A frame refused before it was sent (bad points) leaves the stream in step."""
         if self._out_of_step:
             raise StreamError(0, _OUT_OF_STEP)
-        self.send(points, support=support, frame_id=frame_id)
+        message = _message(frame_body(points, support, frame_id), self.encoding)
+        self._out_of_step = True  # until its reply (or its error) came, whatever ends the call
+        self._send(message)
         try:
-            return self.recv()
-        except TimeoutError:
-            self._out_of_step = True
+            reply = self.recv()
+        except StreamError:  # the frame's error reply, or the socket closed: nothing pending
+            self._out_of_step = False
             raise
+        self._out_of_step = False
+        return reply
 
 
 class AsyncStream(_AsyncSocket):
@@ -257,8 +268,11 @@ class AsyncStream(_AsyncSocket):
             raise
 
     async def send(self, points, *, support=None, frame_id=None) -> None:
+        await self._send(_message(frame_body(points, support, frame_id), self.encoding))
+
+    async def _send(self, message: bytes | str) -> None:
         with _closes_as_stream_error():
-            await self.ws.send(_message(frame_body(points, support, frame_id), self.encoding))
+            await self.ws.send(message)
 
     async def recv(self, timeout: float | None = None) -> dict:
         import asyncio
@@ -269,15 +283,20 @@ class AsyncStream(_AsyncSocket):
         return _reply(message)
 
     async def frame(self, points, *, support=None, frame_id=None) -> dict:
-        """As :meth:`Stream.frame`: after a reply that timed out, a StreamError (out of step)."""
+        """As :meth:`Stream.frame`: after a call left before its reply came (timed out, or
+        cancelled: ``asyncio.wait_for``, ``task.cancel()``), a StreamError (out of step)."""
         if self._out_of_step:
             raise StreamError(0, _OUT_OF_STEP)
-        await self.send(points, support=support, frame_id=frame_id)
+        message = _message(frame_body(points, support, frame_id), self.encoding)
+        self._out_of_step = True  # until its reply (or its error) came, whatever ends the call
+        await self._send(message)
         try:
-            return await self.recv()
-        except TimeoutError:
-            self._out_of_step = True
+            reply = await self.recv()
+        except StreamError:  # the frame's error reply, or the socket closed: nothing pending
+            self._out_of_step = False
             raise
+        self._out_of_step = False
+        return reply
 
 
 def _watching(hello: dict) -> tuple[str, str, dict]:

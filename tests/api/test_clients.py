@@ -17,6 +17,8 @@ from clients.loadtest import check_target, run_load
 from service.demo import run as demo
 from service.loadtest import main as loadtest_main
 
+from .conftest import occupied
+
 
 @pytest.mark.parametrize("encoding", ["msgpack", "json"])
 def test_sync_client(live, entry, support, clouds, encoding):
@@ -266,6 +268,50 @@ def test_a_frame_whose_reply_timed_out_puts_the_stream_out_of_step(live, support
 
     sync()
     asyncio.run(asynchronous())
+
+
+def test_a_frame_cancelled_or_interrupted_before_its_reply_puts_the_stream_out_of_step(live, support, clouds):
+    """A frame() left by a cancel (asyncio.wait_for, the usual bound) or by Ctrl-C while its
+    reply was pending: the next frame() returned that late reply, the previous frame's result
+    under the new frame's call. It raises the out-of-step StreamError now, as after a timeout."""
+    import signal
+
+    pool = live.app.state.pool
+
+    async def cancelled() -> None:
+        async with AsyncClient(live.url) as api:
+            s = await api.stream("bar", support=support)
+            with occupied(pool, pool.threads):  # the frame waits for a solver thread: no reply yet
+                with pytest.raises(TimeoutError):
+                    await asyncio.wait_for(s.frame(clouds[0], frame_id="a"), 0.3)
+            with pytest.raises(StreamError, match="open a new stream"):
+                await s.frame(clouds[1], frame_id="b")
+            await s.close()
+
+    def interrupt(*_) -> None:
+        raise KeyboardInterrupt
+
+    asyncio.run(cancelled())
+    previous = signal.signal(signal.SIGALRM, interrupt)
+    try:
+        with Client(live.url) as api, api.stream("bar", support=support) as s:
+            with occupied(pool, pool.threads):
+                signal.setitimer(signal.ITIMER_REAL, 0.3)  # Ctrl-C while the reply is pending
+                with pytest.raises(KeyboardInterrupt):
+                    s.frame(clouds[0], frame_id="a")
+            with pytest.raises(StreamError, match="open a new stream"):
+                s.frame(clouds[1], frame_id="b")
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
+
+
+def test_a_frame_refused_before_it_was_sent_leaves_the_stream_in_step(live, support, clouds):
+    """Bad points raise before anything is sent; the stream's next frame is answered as usual."""
+    with Client(live.url) as api, api.stream("bar", support=support) as s:
+        with pytest.raises(ValueError, match="integer node ids"):
+            s.frame(clouds[0], support=[1.5])
+        assert s.frame(clouds[0], frame_id="c")["frame_id"] == "c"
 
 
 def test_the_viewer_demo_on_a_busy_port_says_so(bar_store, capsys):
