@@ -16,6 +16,7 @@ from __future__ import annotations
 import sys
 import time
 from pathlib import Path
+from urllib.parse import quote
 
 import numpy as np
 from pydantic import ValidationError
@@ -182,7 +183,7 @@ def viewer(model: str = "phantom", store=None, port: int | None = None, *, out=N
         url = f"{server.url}/viewer?model={model}&demo=1"
         # a server with tokens: the page needs one, in the fragment (never sent to a server); the
         # browser opened here gets the first, the printed line only says where it goes
-        fragment = f"#token={own.api_tokens[0]}" if own.api_tokens else ""
+        fragment = f"#token={quote(own.api_tokens[0], safe='')}" if own.api_tokens else ""
         print(
             f"the viewer: {url}{'#token=TOKEN' if fragment else ''}\n"
             f"(watch any session with {server.url}/viewer?session=ID; Ctrl-C to stop)",

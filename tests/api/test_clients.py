@@ -457,7 +457,7 @@ def test_the_viewer_demo_with_tokens_gives_its_browser_one_and_prints_none(bar_s
     browser = tmp_path / "browser.sh"
     browser.write_text(f'#!/bin/sh\nprintf %s "$1" > {opened}\n')
     browser.chmod(0o755)
-    token = "viewer-token-aaaaaaaaaaaa"
+    token = "viewer+token/aaaaaaaaaa=="  # base64's + / =: percent-encoded in the fragment
     argv = [sys.executable, "-m", "service.cli", "demo", "--viewer", "--store", str(bar_store[0]), "--model", "bar"]
     env = {**os.environ, "BROWSER": str(browser), "ELASTREG_API_TOKENS": f"{token},viewer-token-bbbbbbbbbbbb"}
     proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
@@ -466,7 +466,7 @@ def test_the_viewer_demo_with_tokens_gives_its_browser_one_and_prints_none(bar_s
         while not opened.exists() or not opened.read_text():
             assert proc.poll() is None and time.monotonic() < deadline, proc.stderr and proc.stderr.read()
             time.sleep(0.1)
-        assert opened.read_text().endswith(f"/viewer?model=bar&demo=1#token={token}")
+        assert opened.read_text().endswith("/viewer?model=bar&demo=1#token=viewer%2Btoken%2Faaaaaaaaaa%3D%3D")
     finally:
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=60)

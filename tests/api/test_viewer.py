@@ -175,3 +175,29 @@ def test_a_watch_that_the_server_ends_is_an_error(bar_store, browser):
     page.wait_for_function("() => window.elastregViewer.lastError !== null", timeout=30_000)
     assert "closed" in state(page)["lastError"]
     page.close()
+
+
+def test_a_token_holding_plus_reaches_the_server_as_it_is_or_percent_encoded(bar_store, browser):
+    """The page read #token= as a form (URLSearchParams): a base64 token's '+' became a space and
+    the server refused it (401). Written as it is, or percent-encoded (as `elastreg demo --viewer`
+    writes it), the token the page sends is the one given."""
+    from urllib.parse import quote
+
+    import httpx
+
+    from .conftest import start
+
+    token = "plus+slash/Token=Base64xx"
+    server = start(bar_store[0], instance_id="plus", api_tokens=token)
+    try:
+        auth = {"authorization": f"Bearer {token}"}
+        sid = httpx.post(f"{server.url}/sessions", json={"model": "bar"}, headers=auth).json()["session"]
+        for fragment in (token, quote(token, safe="")):
+            page = browser.new_page(viewport={"width": 640, "height": 480})
+            page.goto(f"{server.url}/viewer?session={sid}#token={fragment}")
+            page.wait_for_function("() => window.elastregViewer.model === 'bar' || window.elastregViewer.lastError")
+            s = state(page)
+            assert s["lastError"] is None and s["session"] == sid, (fragment, s["lastError"])
+            page.close()
+    finally:
+        server.stop()

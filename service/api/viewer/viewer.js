@@ -3,13 +3,29 @@
 //   /viewer?session=ID            watch a session (WS /sessions/{id}/watch)
 //   /viewer?model=ID&demo=1       stream a synthetic sequence itself (GET /models/{id}/demo, WS /stream)
 //   optional: &rate=10 (demo frames per second), &frames=40, &points=500, &colour=error
-//   a token, where the server needs one: #token=T (the fragment never reaches a server)
+//   a token, where the server needs one: #token=T, as it is or percent-encoded (the fragment
+//   never reaches a server)
 import * as THREE from './vendor/three.module.min.js';
 import { OrbitControls } from './vendor/OrbitControls.js';
 
 const params = new URLSearchParams(location.search);
-const fragment = new URLSearchParams(location.hash.slice(1));
-const token = fragment.get('token');
+const token = fragmentValue('token');
+
+// A fragment's value, split by hand: URLSearchParams decodes a form, where a token's '+' (base64)
+// would become a space; a percent-encoded value (%2B) still decodes
+function fragmentValue(name) {
+  for (const part of location.hash.slice(1).split('&')) {
+    const eq = part.indexOf('=');
+    if ((eq < 0 ? part : part.slice(0, eq)) !== name) continue;
+    const raw = eq < 0 ? '' : part.slice(eq + 1);
+    try {
+      return decodeURIComponent(raw);
+    } catch {  // a stray '%': no token has one, the server's refusal will say so
+      return raw;
+    }
+  }
+  return null;
+}
 const state = {
   framesRendered: 0, lastError: null, mode: null, session: null, model: null,
   lastFrameId: null, lastSeq: null, lastAck: null, errorEstimate: null, latencyMs: null, fps: null,
