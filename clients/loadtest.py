@@ -98,14 +98,15 @@ async def run_load(
     encoding: str = "msgpack",
     method: str = "network",
     warmup: int = 1,
+    token: str | None = None,
 ) -> LoadReport:
     """Replay `frames` (clouds, (m, 3) each) over `streams` streams for `seconds`, bounded (see
-    :func:`check_target`), and return the report. ``service/loadtest.py`` makes frames for a
-    served model and runs this from the command line."""
+    :func:`check_target`), and return the report; ``token`` for a server with tokens.
+    ``service/loadtest.py`` makes frames for a served model and runs this from the command line."""
     if not frames:
         raise ValueError("the load test needs frames to replay")
     check_target(url, streams, seconds)
-    async with AsyncClient(url, encoding=encoding) as api:
+    async with AsyncClient(url, encoding=encoding, token=token) as api:
         config = {"method": method}
         if support is not None:
             config["support"] = support

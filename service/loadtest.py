@@ -2,6 +2,8 @@
 
     python -m service.loadtest --url http://127.0.0.1:8000 --model phantom --streams 4 --seconds 10
 
+A server with tokens needs one: ``--token T``, or ``$ELASTREG_TOKEN``.
+
 The frames need the model's geometry (a surface patch to pull, its normals, clouds sampled on
 the deformed surface), so they are made here; the streams themselves are an ordinary client's
 (:func:`clients.loadtest.run_load`).
@@ -11,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import os
 import sys
 
 import httpx
@@ -49,7 +52,8 @@ async def make_frames(
 
 
 async def _run(args: argparse.Namespace) -> LoadReport:
-    async with AsyncClient(args.url, encoding=args.encoding) as api:
+    token = args.token or os.environ.get("ELASTREG_TOKEN")  # as `elastreg igtl --token` reads it
+    async with AsyncClient(args.url, encoding=args.encoding, token=token) as api:
         frames, support = await make_frames(api, args.model, n_points=args.points)
     return await run_load(
         args.url,
@@ -60,6 +64,7 @@ async def _run(args: argparse.Namespace) -> LoadReport:
         seconds=args.seconds,
         encoding=args.encoding,
         method=args.method,
+        token=token,
     )
 
 
@@ -72,6 +77,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--encoding", choices=["msgpack", "json"], default="msgpack")
     p.add_argument("--method", choices=METHODS, default=METHODS[0])
     p.add_argument("--points", type=whole_number(1), default=1000, help="points per frame")
+    p.add_argument("--token", default=None, help="the API token, for a server with tokens (default: $ELASTREG_TOKEN)")
     args = p.parse_args(argv)
     try:
         check_target(args.url, args.streams, args.seconds)

@@ -161,6 +161,26 @@ def test_loadtest_errors_are_one_line_not_tracebacks(live, capsys):
     assert exit_.value.code == 2 and "must be a whole number >= 1" in capsys.readouterr().err
 
 
+def test_loadtest_takes_a_token_from_its_flag_or_the_environment(bar_store, monkeypatch, capsys):
+    """The load test had no --token and read no $ELASTREG_TOKEN: against a server with tokens it
+    could only fail with 401. With either it runs; without, the 401 is its one line."""
+    from .conftest import start
+
+    token = "load+test/token=0123456789"
+    server = start(bar_store[0], instance_id="loaded", api_tokens=token)
+    argv = ["--url", server.url, "--model", "bar", "--seconds", "1", "--streams", "1", "--points", "200"]
+    try:
+        monkeypatch.delenv("ELASTREG_TOKEN", raising=False)
+        assert loadtest_main([*argv, "--token", token]) == 0, capsys.readouterr().err
+        monkeypatch.setenv("ELASTREG_TOKEN", token)
+        assert loadtest_main(argv) == 0, capsys.readouterr().err
+        monkeypatch.delenv("ELASTREG_TOKEN")
+        capsys.readouterr()
+        assert loadtest_main(argv) == 1 and "401" in capsys.readouterr().err
+    finally:
+        server.stop()
+
+
 def test_loadtest_runs(live, support, clouds):
     report = asyncio.run(run_load(live.url, "bar", streams=2, seconds=1.0, frames=clouds, support=support))
     assert report.frames > 0 and report.errors == 0 and len(report.per_stream) == 2
