@@ -243,6 +243,25 @@ def _json_budget(data: bytes | str, max_elements: int) -> None:
     _Budget(len(raw), max_elements).check(raw.count(b",") + containers, containers)
 
 
+#: msgpack's errors that carry no message (its C unpacker raises them bare), in words
+_MSGPACK_WORDS = {
+    msgpack.FormatError: "a byte that starts no MessagePack value (0xc1 is reserved)",
+    msgpack.StackError: "lists and maps nested too deep",
+    RecursionError: "lists and maps nested too deep",
+}
+
+
+def _msgpack_why(exc: Exception) -> str:
+    """What is wrong with a MessagePack body: msgpack's message, else its error's kind in words
+    (a detail that ends at "not valid MessagePack: " says nothing)."""
+    if str(exc):
+        return str(exc)
+    for kind, words in _MSGPACK_WORDS.items():
+        if isinstance(exc, kind):
+            return words
+    return re.sub(r"(?<=[a-z])(?=[A-Z])", " ", type(exc).__name__).lower()  # ExtraData -> extra data
+
+
 def decode(data: bytes | str, kind: str, *, max_bytes: int = 64 << 20, max_elements: int = 1 << 24):
     """Parse a body. Raises DecodeError for anything malformed, never a crash; TooLarge for a
     body over ``max_bytes``, or whose decoding would build more than ``max_elements`` array
@@ -286,9 +305,9 @@ def decode(data: bytes | str, kind: str, *, max_bytes: int = 64 << 20, max_eleme
                     f"the body declares an array or map beyond its own size or this server's limit of "
                     f"{max_elements} array elements ({exc})"
                 ) from None
-            raise DecodeError(f"not valid MessagePack: {exc}") from None
-        except (msgpack.ExtraData, msgpack.FormatError, msgpack.StackError, RecursionError) as exc:
-            raise DecodeError(f"not valid MessagePack: {exc}") from None
+            raise DecodeError(f"not valid MessagePack: {_msgpack_why(exc)}") from None
+        except RecursionError as exc:
+            raise DecodeError(f"not valid MessagePack: {_msgpack_why(exc)}") from None
         return _unpack_tree(obj)
     raise ValueError(f"unknown encoding {kind!r}")
 

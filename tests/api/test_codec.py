@@ -105,7 +105,9 @@ def test_bad_packed_arrays(packed, words):
         ('{"frame_id": "\u00e9t\u00e9", "a": NaN}', JSON, "NaN"),  # where it failed, counted in characters
         (b"\xff\xfe\x00", JSON, "not valid JSON"),
         (b"[" * 100_000, JSON, "lists and maps"),  # refused before parsing (TooLarge, a DecodeError)
-        (b"\xc1", MSGPACK, "not valid MessagePack"),
+        (b"\xc1", MSGPACK, "not valid MessagePack: a byte that starts no MessagePack value"),  # msgpack says nothing
+        (b"\x81\xa1a" * 5000 + b"\xc0", MSGPACK, "not valid MessagePack: lists and maps nested too deep"),
+        (b"\x91" * 100_000 + b"\xc0", MSGPACK, "not valid MessagePack: lists and maps nested too deep"),
         (msgpack.packb({"a": 1}) + b"\x00", MSGPACK, "extra data"),
         (msgpack.packb({1: 2}), MSGPACK, "map key"),
         (msgpack.packb(msgpack.ExtType(7, b"x")), MSGPACK, "extension"),

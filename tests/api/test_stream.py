@@ -86,6 +86,8 @@ BAD_FRAMES = [
     (mp({"points": {"dtype": "<f8", "shape": [5, 3], "data": b"\0" * 8}}), 422, "bytes"),
     (mp({"points": packed(np.zeros((MAX_POINTS + 1, 3)))}), 413, "limit"),
     (bytes(range(256)) * 4, 422, "MessagePack"),
+    (b"\xc1", 422, "not valid MessagePack: a byte that starts no"),  # msgpack's bare errors, in words
+    (b"\x81\xa1a" * 5000 + b"\xc0", 422, "not valid MessagePack: lists and maps nested too deep"),
     # a large body that does not decode is not parsed a second time (on the event loop) for its id
     ('{"frame_id": "big", "points": [[NaN, 0, 0]' + ", [0, 0, 0]" * 20_000 + "]}", 422, "NaN"),
 ]
