@@ -8,8 +8,11 @@ import numpy as np
 
 def _node_ids(ids, what: str) -> np.ndarray:
     """Node ids as int64, refused here if they are not integers: a cast would truncate 1.5 to 1
-    and register over another node than the one meant (the server refuses them too)."""
+    and register over another node than the one meant (the server refuses them too). An empty
+    list goes as it is: the server's 422 says why it is refused."""
     a = np.asarray(ids)
+    if a.size == 0:  # [] is float64 to numpy: no ids, which the server refuses (422) as API.md says
+        return a.astype(np.int64)
     if a.dtype.kind not in "iu":
         raise ValueError(f"{what} must be integer node ids, got dtype {a.dtype}")
     return a.astype(np.int64, copy=False)

@@ -85,6 +85,26 @@ def test_async_client(live, support, clouds, encoding):
     asyncio.run(main())
 
 
+@pytest.mark.parametrize("encoding", ["msgpack", "json"])
+def test_an_empty_support_is_the_servers_422_not_a_local_dtype_error(live, clouds, encoding):
+    """[] is float64 to numpy: the client refused it as "dtype float64", not integer ids, where
+    API.md has the server refuse an empty support with a 422 that says so."""
+    with Client(live.url, encoding=encoding) as api:
+        for empty in ([], np.array([], int), ()):
+            with pytest.raises(ApiError) as err:
+                api.open_session("bar", support=empty)
+            assert err.value.status == 422 and "non-empty" in str(err.value.detail), err.value
+        with pytest.raises(StreamError) as err:
+            api.stream("bar", support=[])
+        assert err.value.status == 422 and "non-empty" in str(err.value.detail), err.value
+        with api.open_session("bar") as s, api.stream("bar") as st:
+            for handle, refused in ((s, ApiError), (st, StreamError)):
+                with pytest.raises(refused) as err:
+                    handle.frame(clouds[0], support=[])
+                assert err.value.status == 422 and "non-empty" in str(err.value.detail), err.value
+            assert st.frame(clouds[0], frame_id="after")["frame_id"] == "after"  # the stream goes on
+
+
 def test_a_socket_the_server_closed_raises_stream_error(small, live, support, clouds):
     """A stream idle past the server's session_ttl_s (2 s on `small`) is closed (1000, "idle
     for 2 s"): the next frame raises the client's StreamError with that close code and reason,
