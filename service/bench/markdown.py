@@ -41,6 +41,9 @@ def write_report(results: dict, out: Path) -> None:
               f"commit {m['commit']}; sparse solver {m['sparse_solver']}; torch {m['torch']}, numpy {m['numpy']}, "
               f"scipy {m['scipy']}; {m.get('blas_threads') or 'default'} BLAS thread(s) per solve and {m.get('spare_threads', 0)} spare thread(s) beside a frame, as the server runs. Whole run: {results['seconds']:.0f} s. Times are medians over warm frames "
               f"(the first frame of a stream is a cold start).\n")  # fmt: skip
+    if results.get("smoke"):
+        md.append(f"A --smoke run on the tiny model {results['smoke']!r}: it runs every code path, its figures "
+                  "measure nothing.\n")  # fmt: skip
     runs = {(v["started"], v["commit"]) for v in results.get("made_by", {}).values()}
     if len(runs) > 1:
         md.append("Parts come from more than one run (and machine: compare times within a part, not across "

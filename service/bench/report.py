@@ -6,7 +6,7 @@ both methods), ``beam`` (the paper's beam experiment), ``pareto`` (error against
 ``stability`` (stiff and extreme cases), ``anysite`` (tool sites the build never aimed at, truth
 from a finer mesh, the error estimates' honesty), and, asked for by name since it takes hours,
 ``minutes`` (validation error against build minutes, :mod:`.minutes`). ``--smoke`` runs every code path on a tiny model in
-seconds (the default tests do), so the report cannot rot.
+seconds (the default tests do), so the report cannot rot; a smoke report never mixes with full runs'.
 """
 
 from __future__ import annotations
@@ -15,14 +15,16 @@ import argparse
 import dataclasses
 import json
 import logging
+import sys
 import time
 from pathlib import Path
+from typing import NoReturn
 
 import numpy as np
 
 from ..argtypes import build_minutes, whole_number
 from .markdown import write_report
-from .results import PARTS, merge_previous, prior_part
+from .results import PARTS, merge_previous, prior_part, prior_run
 from .truth import TRUTHS
 
 log = logging.getLogger(__name__)
@@ -84,8 +86,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     g.add_argument("--keep-store", default=None, help="keep each scene's last build in this store (default: discard)")
     p.add_argument(
-        "--smoke", metavar="MODEL", default=None, help="every part on a tiny model of --store (seconds; for the tests)"
+        "--smoke",
+        metavar="MODEL",
+        default=None,
+        help="every part on a tiny model of --store (seconds; for the tests; never into a report of full runs)",
     )
+
+
+def _refuse(message: str) -> NoReturn:
+    """A command that cannot run as asked: one line, exit status 2, nothing written."""
+    print(f"error: {message}", file=sys.stderr)
+    raise SystemExit(2)
 
 
 def _entry(store: Path, model_id: str, hint: str):
@@ -120,10 +131,14 @@ def main(args: argparse.Namespace) -> int:
         limit_threads(blas_threads)
     store = Path(args.store) if args.store else default_store()
     out = Path(args.out)
+    prior = prior_run(out)
+    if args.smoke is not None and prior is not None and prior.get("smoke") is None:
+        _refuse(f"{out} holds a report of full runs, which a --smoke run's figures would mix with: give another --out")
     (out / "figures").mkdir(parents=True, exist_ok=True)
     results: dict = {
         "machine": {**machine.describe(), "blas_threads": blas_threads, "spare_threads": spare.threads()},
         "started": time.strftime("%Y-%m-%d %H:%M:%S"),
+        "smoke": args.smoke,  # the tiny model of a --smoke run: its report merges with no full run's
         "parts": {},
     }
     quick = args.quick or args.smoke is not None
@@ -290,8 +305,7 @@ def main(args: argparse.Namespace) -> int:
         plot_honesty(results["parts"]["anysite"]["records"], out / "figures" / "anysite_estimates.png")
 
     results["seconds"] = time.perf_counter() - t_all
-    if args.smoke is None:
-        results = merge_previous(results, out)
+    results = merge_previous(results, out)
     write_report(results, out)
     print(f"report written to {out / 'report.md'} ({results['seconds']:.0f} s)")
     return 0

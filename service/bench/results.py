@@ -1,5 +1,6 @@
 """What a benchmark run keeps on disk besides report.md: results.json (merged with the parts of
-an earlier run that this one did not redo) and each part's rows as CSV."""
+an earlier run of the same kind, full or --smoke, that this one did not redo) and each part's
+rows as CSV."""
 
 from __future__ import annotations
 
@@ -48,17 +49,14 @@ def write_results(results: dict, out: Path) -> None:
 def merge_previous(results: dict, out: Path) -> dict:
     """Keep the parts of the report already in `out` that this run did not redo, so that
     ``elastreg bench beam`` refreshes one part without rerunning the hour-long rest. Each part
-    remembers the run that made it."""
+    remembers the run that made it. Only a report of the same kind is kept from: a smoke run's
+    tiny-model figures never sit beside a full run's (``results["smoke"]``: the smoke model)."""
     from .cases import FrameRecord
 
     stamp = {"started": results["started"], "commit": results["machine"]["commit"], "cpu": results["machine"]["cpu"]}
     results["made_by"] = {part: stamp for part in results["parts"]}
-    path = out / "results.json"
-    if not path.exists():
-        return results
-    try:
-        prior = json.loads(path.read_text())
-    except (OSError, ValueError):
+    prior = prior_run(out)
+    if prior is None or prior.get("smoke") != results.get("smoke"):
         return results
     machine = prior.get("machine", {})
     old_stamp = {"started": prior.get("started"), "commit": machine.get("commit"), "cpu": machine.get("cpu")}
@@ -73,9 +71,17 @@ def merge_previous(results: dict, out: Path) -> dict:
     return results
 
 
-def prior_part(out: Path, part: str) -> dict | None:
-    """A part of the report already in `out`, or None."""
+def prior_run(out: Path) -> dict | None:
+    """The results.json of the report already in `out`, or None (none there, or unreadable).
+    Its ``smoke`` names the model of a --smoke run; a full run's has none (nor has a report
+    from before smoke runs were marked: all were full runs)."""
     try:
-        return json.loads((out / "results.json").read_text()).get("parts", {}).get(part)
+        prior = json.loads((out / "results.json").read_text())
     except (OSError, ValueError):
         return None
+    return prior if isinstance(prior, dict) else None
+
+
+def prior_part(out: Path, part: str) -> dict | None:
+    """A part of the report already in `out`, or None."""
+    return (prior_run(out) or {}).get("parts", {}).get(part)

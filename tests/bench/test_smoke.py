@@ -1,10 +1,20 @@
 """The benchmark's every part on a tiny model, in seconds: so the report cannot rot."""
 
 import json
+import shutil
+from pathlib import Path
 
 import pytest
 
 from service.cli import main
+
+#: the committed report of full runs (the default --out), copied where a test needs one
+LATEST = Path(__file__).resolve().parents[2] / "reports" / "latest"
+
+
+def files(folder: Path) -> dict[str, bytes]:
+    """Every file under `folder` by its relative path, with its bytes."""
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
 def test_bench_smoke_writes_the_whole_report(bar_store, tmp_path):
@@ -69,6 +79,40 @@ def test_bench_smoke_writes_the_whole_report(bar_store, tmp_path):
     assert len(timed["network"]) == 1 and len(timed[lm]) == 1  # the smoke run's one pass, recorded
     assert timed["fem"] is None and timed["auto"] is None  # one pass of seconds-long frames: not listed
     assert (out / "figures" / "anysite_estimates.png").stat().st_size > 1000
+
+
+def test_a_smoke_run_never_replaces_a_report_of_full_runs(bar_store, tmp_path, capsys):
+    """`bench --smoke MODEL` into a folder holding a full report (the default --out is
+    reports/latest) kept only its smoke part: results.json lost every other part and report.md
+    shrank from 240 lines to 19. A smoke run's figures are not comparable with a full run's, so
+    it refuses such a folder: one line, exit status 2, not a byte changed."""
+    out = tmp_path / "latest"
+    shutil.copytree(LATEST, out)
+    before = files(out)
+    with pytest.raises(SystemExit) as exit_:
+        main(["bench", "fem", "--smoke", "bar", "--store", str(bar_store[0]), "--out", str(out)])
+    err = capsys.readouterr().err
+    refusal = (
+        f"error: {out} holds a report of full runs, which a --smoke run's figures would mix with: give another --out"
+    )
+    assert exit_.value.code == 2 and err == refusal + "\n", err
+    assert files(out) == before
+
+
+def test_a_report_keeps_parts_only_from_a_run_of_its_kind(tmp_path):
+    """merge_previous keeps an earlier smoke run's parts for a smoke run, never for a full one
+    (nor a full run's for a smoke one): each report holds one kind of figures."""
+    from service.bench.results import merge_previous
+
+    def run(smoke, parts):
+        return {"started": "now", "smoke": smoke, "machine": {"commit": "c", "cpu": "x"}, "parts": parts}
+
+    (tmp_path / "results.json").write_text(json.dumps(run("bar", {"fem": {"backends": []}})))
+    assert set(merge_previous(run("bar", {"beam": {}}), tmp_path)["parts"]) == {"fem", "beam"}
+    assert set(merge_previous(run(None, {"beam": {}}), tmp_path)["parts"]) == {"beam"}
+    full = {k: v for k, v in run(None, {"fem": {"backends": []}}).items() if k != "smoke"}  # as committed reports
+    (tmp_path / "results.json").write_text(json.dumps(full))
+    assert set(merge_previous(run("bar", {"beam": {}}), tmp_path)["parts"]) == {"beam"}
 
 
 def test_passes_take_the_same_steps_and_time_each_frame_by_its_median(entry):
