@@ -206,7 +206,11 @@ def _igtl(args: argparse.Namespace) -> int:
 def _bench(args: argparse.Namespace) -> int:
     from .bench.report import main
 
-    return main(args)
+    try:
+        return main(args)
+    except KeyboardInterrupt:  # Ctrl-C, in any part: the report as it was, one line, not a traceback
+        print("interrupted", file=sys.stderr)
+        return 130
 
 
 def _command(sub, name: str, text: str) -> argparse.ArgumentParser:

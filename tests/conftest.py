@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import signal
 import subprocess
 import sys
 import threading
@@ -164,6 +165,40 @@ def build_writer(store: Path) -> Iterator[tuple[subprocess.Popen, str]]:
         if p.poll() is None:
             p.kill()
         p.wait(timeout=30)
+
+
+def interrupt(argv: list[str], after: str) -> tuple[int, str]:
+    """Run `elastreg` in a process of its own, press Ctrl-C (SIGINT) once a line holding `after`
+    is out, and return its exit status and everything it wrote."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "service.cli", *argv],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env={**os.environ, "BROWSER": "true", "PYTHONUNBUFFERED": "1"},  # no browser opens
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # as in a terminal
+    )
+    lines: list[str] = []
+    seen = threading.Event()
+
+    def read() -> None:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            lines.append(line)
+            if after in line:
+                seen.set()
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    try:
+        assert seen.wait(180), "".join(lines)
+        proc.send_signal(signal.SIGINT)
+        status = proc.wait(90)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    reader.join(10)
+    return status, "".join(lines)
 
 
 def correlated_paths(

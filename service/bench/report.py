@@ -16,6 +16,7 @@ import dataclasses
 import json
 import logging
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import NoReturn
@@ -24,7 +25,7 @@ import numpy as np
 
 from ..argtypes import build_minutes, whole_number
 from .markdown import write_report
-from .results import PARTS, merge_previous, prior_part, prior_run
+from .results import PARTS, merge_previous, prior_part, prior_run, publish
 from .truth import TRUTHS
 
 log = logging.getLogger(__name__)
@@ -122,9 +123,7 @@ def _smoke_case(entry):
 
 
 def main(args: argparse.Namespace) -> int:
-    from .. import spare
     from ..config import Settings, default_store, limit_threads
-    from . import machine
 
     blas_threads = Settings().blas_threads
     if blas_threads:  # measure what the server runs: its solves use this many BLAS threads
@@ -134,7 +133,25 @@ def main(args: argparse.Namespace) -> int:
     prior = prior_run(out)
     if args.smoke is not None and prior is not None and prior.get("smoke") is None:
         _refuse(f"{out} holds a report of full runs, which a --smoke run's figures would mix with: give another --out")
-    (out / "figures").mkdir(parents=True, exist_ok=True)
+    out.mkdir(parents=True, exist_ok=True)
+    # the run's files go to a scratch folder, moved into `out` once all are written: a run that
+    # stops half way (Ctrl-C, a crash) leaves the report there as it was, not half old, half new
+    with tempfile.TemporaryDirectory(prefix=".bench-", dir=out) as scratch:
+        new = Path(scratch)
+        (new / "figures").mkdir()
+        results = merge_previous(_run_parts(args, store, out, new / "figures", blas_threads), out)
+        write_report(results, new)
+        publish(new, out)
+    print(f"report written to {out / 'report.md'} ({results['seconds']:.0f} s)")
+    return 0
+
+
+def _run_parts(args: argparse.Namespace, store: Path, out: Path, figures: Path, blas_threads: int | None) -> dict:
+    """Every part asked for, each figure drawn into `figures`; the results, before the merge with
+    the report in `out` (whose minutes rows the minutes part extends)."""
+    from .. import spare
+    from . import machine
+
     results: dict = {
         "machine": {**machine.describe(), "blas_threads": blas_threads, "spare_threads": spare.threads()},
         "started": time.strftime("%Y-%m-%d %H:%M:%S"),
@@ -198,9 +215,7 @@ def main(args: argparse.Namespace) -> int:
                       fem_lm_gtols=(1e-2,))
                  if args.smoke is not None else None)  # fmt: skip
         results["parts"]["beam"] = beam_part(beam_entry, n_cases=n, n_points=150 if args.smoke else 500, sweep=sweep)
-        plot(
-            results["parts"]["beam"]["pareto"], out / "figures" / "beam_pareto.png", "error against run time: the beam"
-        )
+        plot(results["parts"]["beam"]["pareto"], figures / "beam_pareto.png", "error against run time: the beam")
 
     if "pareto" in parts:
         from ..store import open_store
@@ -244,7 +259,7 @@ def main(args: argparse.Namespace) -> int:
             sweep = {}
         rows = pareto_part(liver_entry, case, variants=variants, **sweep)
         results["parts"]["pareto"] = rows
-        plot(rows, out / "figures" / "pareto.png", f"error against run time: {case.name}")
+        plot(rows, figures / "pareto.png", f"error against run time: {case.name}")
 
     if "stability" in parts:
         from .cases import liver_paper_case
@@ -284,7 +299,7 @@ def main(args: argparse.Namespace) -> int:
             keep=Path(args.keep_store) if args.keep_store else None,
             on_row=save_rows,
         )
-        plot_minutes(latest(results["parts"]["minutes"]["rows"]), out / "figures" / "build_minutes.png")
+        plot_minutes(latest(results["parts"]["minutes"]["rows"]), figures / "build_minutes.png")
 
     if "anysite" in parts:
         from .anysite import anysite_part, plot_honesty
@@ -302,13 +317,10 @@ def main(args: argparse.Namespace) -> int:
                 truth=args.truth,
             )
         results["parts"]["anysite"]["model"] = args.smoke or args.anysite_model
-        plot_honesty(results["parts"]["anysite"]["records"], out / "figures" / "anysite_estimates.png")
+        plot_honesty(results["parts"]["anysite"]["records"], figures / "anysite_estimates.png")
 
     results["seconds"] = time.perf_counter() - t_all
-    results = merge_previous(results, out)
-    write_report(results, out)
-    print(f"report written to {out / 'report.md'} ({results['seconds']:.0f} s)")
-    return 0
+    return results
 
 
 def _surrogate_label(name: str, net: dict) -> str:

@@ -7,6 +7,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -44,6 +45,16 @@ def write_csv(path: Path, rows: list[dict]) -> None:
 def write_results(results: dict, out: Path) -> None:
     """results.json: every part's rows and records, what the report is drawn from."""
     (out / "results.json").write_text(json.dumps(results, indent=1, default=jsonable))
+
+
+def publish(new: Path, out: Path) -> None:
+    """Move a finished run's files from its scratch folder `new` into the report folder `out`,
+    results.json last: renames within one file system, so the report's files change together."""
+    files = sorted((f for f in new.rglob("*") if f.is_file()), key=lambda f: f.name == "results.json")
+    for f in files:
+        dest = out / f.relative_to(new)
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(f, dest)
 
 
 def merge_previous(results: dict, out: Path) -> dict:

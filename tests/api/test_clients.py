@@ -16,6 +16,7 @@ from clients import ApiError, AsyncClient, Client, StreamError
 from clients.loadtest import check_target, run_load
 from service.demo import run as demo
 from service.loadtest import main as loadtest_main
+from tests.conftest import interrupt
 
 from .conftest import occupied
 
@@ -368,46 +369,6 @@ def test_the_viewer_demo_on_a_busy_port_says_so(bar_store, capsys):
     assert err.startswith("error: ") and f"port {port} is in use" in err and "Traceback" not in err
 
 
-def _interrupt(argv: list[str], after: str) -> tuple[int, str]:
-    """Run `elastreg` in a process of its own, press Ctrl-C (SIGINT) once a line holding `after`
-    is out, and return its exit status and everything it wrote."""
-    import os
-    import signal
-    import subprocess
-    import sys
-    import threading
-
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "service.cli", *argv],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        env={**os.environ, "BROWSER": "true", "PYTHONUNBUFFERED": "1"},  # no browser opens
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # as in a terminal
-    )
-    lines: list[str] = []
-    seen = threading.Event()
-
-    def read() -> None:
-        assert proc.stdout is not None
-        for line in proc.stdout:
-            lines.append(line)
-            if after in line:
-                seen.set()
-
-    reader = threading.Thread(target=read, daemon=True)
-    reader.start()
-    try:
-        assert seen.wait(180), "".join(lines)
-        proc.send_signal(signal.SIGINT)
-        status = proc.wait(90)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    reader.join(10)
-    return status, "".join(lines)
-
-
 @pytest.mark.parametrize(
     "argv, after",
     [
@@ -418,7 +379,7 @@ def _interrupt(argv: list[str], after: str) -> tuple[int, str]:
 def test_ctrl_c_in_the_demo_is_one_line_and_exit_status_130(bar_store, argv, after):
     """Ctrl-C in `elastreg demo` was a traceback (exit by the signal), and in `--viewer` a silent
     exit 0; the rest of the command line answers it with one line and 130."""
-    status, text = _interrupt(["demo", "--store", str(bar_store[0]), "--model", "bar", *argv], after)
+    status, text = interrupt(["demo", "--store", str(bar_store[0]), "--model", "bar", *argv], after)
     assert status == 130 and "Traceback" not in text, text
     assert text.rstrip().splitlines()[-1] == "interrupted", text
 

@@ -7,6 +7,7 @@ from pathlib import Path
 import pytest
 
 from service.cli import main
+from tests.conftest import interrupt
 
 #: the committed report of full runs (the default --out), copied where a test needs one
 LATEST = Path(__file__).resolve().parents[2] / "reports" / "latest"
@@ -97,6 +98,21 @@ def test_a_smoke_run_never_replaces_a_report_of_full_runs(bar_store, tmp_path, c
     )
     assert exit_.value.code == 2 and err == refusal + "\n", err
     assert files(out) == before
+
+
+def test_ctrl_c_leaves_the_report_as_it_was_and_is_one_line(bar_store, tmp_path):
+    """Ctrl-C during a later part left the figures the run had drawn beside the old run's
+    results.json and report.md, and a KeyboardInterrupt traceback. The run's files now change
+    together when it writes its results: Ctrl-C leaves the report as it was (no scratch left
+    behind) and answers one line, `interrupted`, exit status 130, as `train` and `demo` do."""
+    smoke = ["bench", "--smoke", "bar", "--store", str(bar_store[0]), "--out", str(tmp_path / "report")]
+    assert main([*smoke, "beam"]) == 0  # the report there: the beam part, its figure drawn
+    before = files(tmp_path / "report")
+    # stopped in the stability part, once the beam's and the Pareto part's figures are drawn
+    status, text = interrupt(["-v", *smoke, "beam", "pareto", "stability"], "service.bench.stability: stability ")
+    assert status == 130 and "Traceback" not in text, text[-3000:]
+    assert text.rstrip().splitlines()[-1] == "interrupted", text[-3000:]
+    assert files(tmp_path / "report") == before and not list((tmp_path / "report").glob(".bench-*"))
 
 
 def test_a_report_keeps_parts_only_from_a_run_of_its_kind(tmp_path):
