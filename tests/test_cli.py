@@ -248,14 +248,14 @@ def test_a_build_with_dask_drops_distributeds_ctrl_c_race_with_or_without_v(tmp_
 def test_the_benchs_timed_builds_quiet_dasks_logs_unless_verbose(tmp_path, verbose, level):
     """`elastreg bench minutes` runs its timed builds on a LocalCluster, whose ~30 lines of start
     and stop buried the bench's own output: without -v distributed logs warnings only, as a
-    build's do (the unknown part stops the bench once its logging is set)."""
+    build's do (a missing scene stops the bench once its logging is set)."""
     pytest.importorskip("distributed")
     log = logging.getLogger("distributed")
     before = log.level
     try:
         log.setLevel(logging.INFO)  # as distributed's import leaves it
-        with pytest.raises(SystemExit, match="unknown parts"):
-            main([*verbose, "bench", "minutes", "nosuch", "--out", str(tmp_path / "out")])
+        with pytest.raises(SystemExit, match="cannot read the scene file"):
+            main([*verbose, "bench", "minutes", "--scenes", str(tmp_path / "no.toml"), "--out", str(tmp_path / "out")])
         assert log.level == level
     finally:
         log.setLevel(before)

@@ -13,6 +13,7 @@ import time
 
 import numpy as np
 
+from ..fem.model import MAX_JACOBIAN_SUPPORT
 from ..registration.session import Session, SessionConfig, default_support
 from ..synthetic import sample_surface
 from .cases import same_steps
@@ -24,10 +25,30 @@ log = logging.getLogger(__name__)
 PAPER = {"error": (6e-5, 6.15e-5), "ms": (48.0, 19.0), "iterations": (27.0, 11.0)}
 
 
+def tip(mesh) -> np.ndarray:
+    """The free end's nodes: those at the largest x. Shape: (k,)."""
+    return np.flatnonzero(np.isclose(mesh.nodes[:, 0], mesh.nodes[:, 0].max()))
+
+
+def beam_missing(entry) -> str | None:
+    """What a model lacks for the beam part, or None: a free end of a face's nodes at least (a
+    torque about the axis needs arms), and a load region the Newton method's Levenberg-Marquardt
+    rows can take (a dense Jacobian, MAX_JACOBIAN_SUPPORT nodes at most)."""
+    missing = []
+    end = tip(entry.mesh)
+    if end.size < 3:
+        missing.append(f"its largest x is {end.size} node(s), not a free end for the tip loads (a face: 3 at least)")
+    support = default_support(entry.fem).size
+    if support > MAX_JACOBIAN_SUPPORT:
+        missing.append(f"its load region has {support} nodes, the Newton method's Levenberg-Marquardt rows take "
+                       f"{MAX_JACOBIAN_SUPPORT} at most")  # fmt: skip
+    return "; ".join(missing) or None
+
+
 def beam_loads(mesh, max_force: float, n: int, rng: np.random.Generator) -> list[tuple[str, np.ndarray]]:
     """Tip loads on the free end (x = max): a transverse force (bending), a torque about the
     axis (torsion), or both, with random directions and magnitudes up to max_force."""
-    end = np.flatnonzero(np.isclose(mesh.nodes[:, 0], mesh.nodes[:, 0].max()))
+    end = tip(mesh)
     centre = mesh.nodes[end].mean(0)
     arm = mesh.nodes[end] - centre
     twist = np.cross([1.0, 0.0, 0.0], arm)  # tangential at each tip node

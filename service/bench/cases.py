@@ -9,7 +9,10 @@ per frame, the mean target registration error over all nodes (mm), the resultant
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import functools
+import io
 import logging
 import time
 from collections.abc import Callable, Iterator
@@ -30,6 +33,8 @@ Array = np.ndarray
 #: where ../shared sits beside the checkout (the paper's liver and its sequence)
 SHARED = Path(__file__).resolve().parents[3] / "shared"
 LIVER = SHARED / "meshes" / "liver_paper"
+#: its recorded Neo-Hookean sequence, the one the paper reports
+PAPER_SEQUENCE = LIVER / "sequences" / "neohookean" / "s1"
 
 
 @dataclasses.dataclass
@@ -73,19 +78,52 @@ class FrameRecord:
     objective: float | None = None  # J at the answer (m^2), without the regulariser
 
 
-def liver_paper_case() -> Case:
-    """The paper's liver and its recorded Neo-Hookean sequence (shared/meshes/liver_paper)."""
+@functools.cache
+def liver_paper_mesh() -> TetMesh:
+    """The paper's liver, its Dirichlet nodes fixed but node 756 (free in its sequences)."""
     import meshio
 
-    raw = meshio.read(LIVER / "liver.msh")
+    with contextlib.redirect_stdout(io.StringIO()):  # meshio prints a blank line reading gmsh 2.2
+        raw = meshio.read(LIVER / "liver.msh")
     fixed = np.load(LIVER / "dirichlet-vertices.npy")
     mesh, _ = TetMesh.build(raw.points, raw.cells_dict["tetra"], fixed[fixed != 756])
-    seq = LIVER / "sequences" / "neohookean" / "s1"
+    return mesh
+
+
+def liver_paper_support() -> Array:
+    """The recorded sequence's support: where its registration may put forces. Shape: (k,)."""
+    return np.load(PAPER_SEQUENCE / "forces-vertices-default.npy").astype(np.int64)
+
+
+def liver_data_missing() -> str | None:
+    """Why the paper's liver cannot be read (../shared is not beside the checkout), or None."""
+    if not (LIVER / "liver.msh").exists():
+        return f"the paper's liver is not in {LIVER} (../shared beside the checkout)"
+    return None
+
+
+def not_on_paper_liver(mesh: TetMesh, region: Array) -> str | None:
+    """What a model on `mesh` with load region `region` lacks for the cases on the paper's liver
+    (they name its nodes), or None: the liver's data, the liver's nodes, the sequence's support."""
+    if missing := liver_data_missing():
+        return missing
+    liver = liver_paper_mesh()
+    if mesh.n_nodes != liver.n_nodes or not np.allclose(mesh.nodes, liver.nodes):
+        return f"its mesh ({mesh.n_nodes} nodes) is not the paper's liver ({liver.n_nodes} nodes)"
+    outside = np.setdiff1d(liver_paper_support(), region)
+    if outside.size:
+        return f"its load region lacks {outside.size} of the recorded sequence's support nodes"
+    return None
+
+
+def liver_paper_case() -> Case:
+    """The paper's liver and its recorded Neo-Hookean sequence (shared/meshes/liver_paper)."""
+    seq = PAPER_SEQUENCE
     clouds = [np.loadtxt(seq / "pointclouds" / f"pc{k:02d}.txt") for k in range(50)]
     return Case(
         name="liver s1 (paper)",
-        mesh=mesh,
-        support=np.load(seq / "forces-vertices-default.npy").astype(np.int64),
+        mesh=liver_paper_mesh(),
+        support=liver_paper_support(),
         matching=np.load(LIVER / "matching-triangles.npy").astype(np.int64),
         clouds=clouds,
         positions=np.load(seq / "positions-default.npy"),

@@ -32,12 +32,14 @@ log = logging.getLogger(__name__)
 
 #: what a bare ``elastreg bench`` runs: the build-minutes curve is hours of builds
 DEFAULT_PARTS = PARTS[:-1]
+LIVER_HINT = "elastreg train benchmarks/scenes/liver_paper.toml (see the README)"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "parts",
         nargs="*",
+        type=_part,
         default=list(DEFAULT_PARTS),
         help=f"parts to run (default: {', '.join(DEFAULT_PARTS)}; 'minutes' only when named)",
     )
@@ -94,6 +96,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _part(text: str) -> str:
+    """A part's name, refused at parse time otherwise (before the report folder is made)."""
+    if text not in PARTS:
+        raise argparse.ArgumentTypeError(f"unknown part {text!r}; choose from {', '.join(PARTS)}")
+    return text
+
+
 def _refuse(message: str) -> NoReturn:
     """A command that cannot run as asked: one line, exit status 2, nothing written."""
     print(f"error: {message}", file=sys.stderr)
@@ -130,25 +139,82 @@ def main(args: argparse.Namespace) -> int:
         limit_threads(blas_threads)
     store = Path(args.store) if args.store else default_store()
     out = Path(args.out)
+    parts = list(dict.fromkeys(args.parts))
+    if args.smoke is not None and "minutes" in parts:
+        raise SystemExit("error: the minutes part builds scenes (--scenes), not a --smoke model")
     prior = prior_run(out)
     if args.smoke is not None and prior is not None and prior.get("smoke") is None:
         _refuse(f"{out} holds a report of full runs, which a --smoke run's figures would mix with: give another --out")
-    out.mkdir(parents=True, exist_ok=True)
+    models = _models(args, store, parts)
+    scenes = _scenes(args) if "minutes" in parts else []
+    out.mkdir(parents=True, exist_ok=True)  # only now: a refused command leaves nothing behind
     # the run's files go to a scratch folder, moved into `out` once all are written: a run that
     # stops half way (Ctrl-C, a crash) leaves the report there as it was, not half old, half new
     with tempfile.TemporaryDirectory(prefix=".bench-", dir=out) as scratch:
         new = Path(scratch)
         (new / "figures").mkdir()
-        results = merge_previous(_run_parts(args, store, out, new / "figures", blas_threads), out)
+        results = _run_parts(args, parts, models, scenes, store, out, new / "figures", blas_threads)
+        results = merge_previous(results, out)
         write_report(results, new)
         publish(new, out)
     print(f"report written to {out / 'report.md'} ({results['seconds']:.0f} s)")
     return 0
 
 
-def _run_parts(args: argparse.Namespace, store: Path, out: Path, figures: Path, blas_threads: int | None) -> dict:
-    """Every part asked for, each figure drawn into `figures`; the results, before the merge with
-    the report in `out` (whose minutes rows the minutes part extends)."""
+def _models(args: argparse.Namespace, store: Path, parts: list[str]) -> dict:
+    """The model each part runs on ({part: entry}; the fem and minutes parts take none), each
+    checked for what its part needs before any work: a model that lacks it is one line and exit
+    status 2, not a traceback minutes into the run."""
+    from .beam import beam_missing
+    from .cases import liver_data_missing, not_on_paper_liver
+
+    def on_liver(entry) -> str | None:
+        return not_on_paper_liver(entry.mesh, entry.region)
+
+    if args.smoke is not None:  # every part on the one model, its own cases: the liver's needs none
+        names = dict.fromkeys(parts, args.smoke)
+        needs = {"beam": beam_missing}
+        hints = {args.smoke: "elastreg train SCENE"}
+    else:
+        if "fem" in parts and (missing := liver_data_missing()):
+            _refuse(f"the fem part cannot run: {missing}")
+        named = {"liver": args.liver_model, "pareto": args.liver_model, "stability": args.liver_model,
+                 "beam": args.beam_model, "anysite": args.anysite_model}  # fmt: skip
+        names = {part: named[part] for part in parts if part in named}
+        needs = {"liver": on_liver, "pareto": on_liver, "stability": on_liver, "beam": beam_missing}
+        hints = {args.liver_model: LIVER_HINT, args.beam_model: "elastreg train beam"}
+    loaded = {
+        name: _entry(store, name, hints.get(name, f"elastreg train {name}")) for name in dict.fromkeys(names.values())
+    }
+    for part, name in names.items():
+        if part in needs and (missing := needs[part](loaded[name])):
+            _refuse(f"model {name!r} cannot run the {part} part: {missing}")
+    return {part: loaded[name] for part, name in names.items()}
+
+
+def _scenes(args: argparse.Namespace) -> list:
+    """The minutes part's scenes, read before any work (none to redraw the report from its rows)."""
+    from ..scene import SceneError, load_scene
+
+    try:
+        return [load_scene(s) for s in args.scenes] if args.build_minutes else []
+    except SceneError as exc:
+        raise SystemExit(f"error: {exc} (the default scenes are relative to the repository's root)") from None
+
+
+def _run_parts(
+    args: argparse.Namespace,
+    parts: list[str],
+    models: dict,
+    scenes: list,
+    store: Path,
+    out: Path,
+    figures: Path,
+    blas_threads: int | None,
+) -> dict:
+    """Every part in `parts` on its model in `models`, each figure drawn into `figures`; the
+    results, before the merge with the report in `out` (whose minutes rows the minutes part
+    extends)."""
     from .. import spare
     from . import machine
 
@@ -160,24 +226,11 @@ def _run_parts(args: argparse.Namespace, store: Path, out: Path, figures: Path, 
     }
     quick = args.quick or args.smoke is not None
     fem_on = not args.no_fem
-    parts = [p for p in args.parts if p in PARTS]
-    if args.smoke is not None and "minutes" in parts:
-        raise SystemExit("error: the minutes part builds scenes (--scenes), not a --smoke model")
-    unknown = set(args.parts) - set(PARTS)
-    if unknown:
-        raise SystemExit(f"error: unknown parts {sorted(unknown)}; choose from {list(PARTS)}")
-    liver_hint = "elastreg train benchmarks/scenes/liver_paper.toml (see the README)"
     t_all = time.perf_counter()
 
-    if args.smoke is not None:
-        entry = _entry(store, args.smoke, "elastreg train SCENE")
+    if args.smoke is not None:  # one model for every part
+        entry = next(iter(models.values()))
         base = _smoke_case(entry)
-        liver_entry = beam_entry = entry
-    else:
-        needs_liver = set(parts) & {"liver", "pareto", "stability"}
-        liver_entry = _entry(store, args.liver_model, liver_hint) if needs_liver else None
-        beam_entry = _entry(store, args.beam_model, "elastreg train beam") if "beam" in parts else None
-        base = None
 
     if "fem" in parts:
         from .cases import liver_paper_case
@@ -203,7 +256,7 @@ def _run_parts(args: argparse.Namespace, store: Path, out: Path, figures: Path, 
             summaries = [summarise([r for r in recs if r.method == m]) for m in methods]
             results["parts"]["liver"] = {"records": recs, "summaries": summaries}
         else:
-            results["parts"]["liver"] = liver_part(liver_entry, frames=15 if quick else None,
+            results["parts"]["liver"] = liver_part(models["liver"], frames=15 if quick else None,
                                                    own_frames=6 if quick else 20, fem=fem_on, passes=1 if quick else 3)  # fmt: skip
 
     if "beam" in parts:
@@ -214,7 +267,9 @@ def _run_parts(args: argparse.Namespace, store: Path, out: Path, figures: Path, 
         sweep = (dict(gtols=(1e-2,), caps=(5,), points=(50,), fem_gtols=(1e-2,), fem_cases=1, lbfgsb_gtols=(1e-2,),
                       fem_lm_gtols=(1e-2,))
                  if args.smoke is not None else None)  # fmt: skip
-        results["parts"]["beam"] = beam_part(beam_entry, n_cases=n, n_points=150 if args.smoke else 500, sweep=sweep)
+        results["parts"]["beam"] = beam_part(
+            models["beam"], n_cases=n, n_points=150 if args.smoke else 500, sweep=sweep
+        )
         plot(results["parts"]["beam"]["pareto"], figures / "beam_pareto.png", "error against run time: the beam")
 
     if "pareto" in parts:
@@ -227,7 +282,7 @@ def _run_parts(args: argparse.Namespace, store: Path, out: Path, figures: Path, 
         if args.smoke is None:
             entries, _ = open_store(store)
             named = {
-                args.liver_model: liver_entry,
+                args.liver_model: models["pareto"],
                 **{k: e for k, e in entries.items() if k.startswith(args.liver_model + "_")},
             }
             variants = {_surrogate_label(k, e.manifest["network"]): e.network for k, e in named.items()}
@@ -257,7 +312,7 @@ def _run_parts(args: argparse.Namespace, store: Path, out: Path, figures: Path, 
             )
         else:
             sweep = {}
-        rows = pareto_part(liver_entry, case, variants=variants, **sweep)
+        rows = pareto_part(models["pareto"], case, variants=variants, **sweep)
         results["parts"]["pareto"] = rows
         plot(rows, figures / "pareto.png", f"error against run time: {case.name}")
 
@@ -271,11 +326,10 @@ def _run_parts(args: argparse.Namespace, store: Path, out: Path, figures: Path, 
                                                            far=0.25 * entry.mesh.size)  # fmt: skip
         else:
             results["parts"]["stability"] = stability_part(
-                liver_entry, liver_paper_case(), frames=6 if quick else 12, fem=fem_on
+                models["stability"], liver_paper_case(), frames=6 if quick else 12, fem=fem_on
             )
 
     if "minutes" in parts:
-        from ..scene import SceneError, load_scene
         from .minutes import latest, minutes_part
         from .minutes import plot as plot_minutes
 
@@ -285,10 +339,6 @@ def _run_parts(args: argparse.Namespace, store: Path, out: Path, figures: Path, 
         def save_rows(rows: list[dict]) -> None:  # an hour-long build's row survives a later failure
             (out / "minutes_rows.json").write_text(json.dumps(rows, indent=1))
 
-        try:
-            scenes = [load_scene(s) for s in args.scenes] if args.build_minutes else []
-        except SceneError as exc:
-            raise SystemExit(f"error: {exc} (the default scenes are relative to the repository's root)") from None
         results["parts"]["minutes"] = minutes_part(
             scenes,
             args.build_minutes,
@@ -307,9 +357,8 @@ def _run_parts(args: argparse.Namespace, store: Path, out: Path, figures: Path, 
         if args.smoke is not None:
             results["parts"]["anysite"] = anysite_part(entry, sites=2, frames=2, fem=fem_on, passes=1, truth=args.truth)
         else:
-            model = _entry(store, args.anysite_model, f"elastreg train {args.anysite_model}")
             results["parts"]["anysite"] = anysite_part(
-                model,
+                models["anysite"],
                 sites=args.sites,
                 frames=4 if quick else 8,
                 fem=fem_on,

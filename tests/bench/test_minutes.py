@@ -54,4 +54,4 @@ def test_minutes_part_refuses_a_smoke_model_and_a_missing_scene(tmp_path):
         main(["bench", "minutes", "--smoke", "bar", "--out", str(tmp_path)])
     with pytest.raises(SystemExit, match="cannot read the scene file"):
         main(["bench", "minutes", "--scenes", str(tmp_path / "nowhere.toml"), "--out", str(tmp_path / "r")])
-    assert not (tmp_path / "r" / "results.json").exists()  # nothing written for a bad command
+    assert not (tmp_path / "r").exists()  # nothing made for a bad command, not even the folder

@@ -1,9 +1,16 @@
 """`elastreg bench`'s flags: an impossible value is one line naming the flag and exit status 2
 at parse time, before the report folder, a test set or a build is touched."""
 
+from pathlib import Path
+
+import numpy as np
 import pytest
 
 from service.cli import main, parser
+from tests.conftest import needs_liver
+
+#: the shipped store: the beam and the phantom, each the wrong model for the other's parts
+STORE = Path(__file__).resolve().parents[2] / "model_store"
 
 
 @pytest.mark.parametrize(
@@ -21,6 +28,8 @@ from service.cli import main, parser
         (["anysite", "--sites", "0"], "--sites: must be a whole number >= 1, got '0'"),  # ran one site
         (["anysite", "--sites", "-2"], "--sites: must be a whole number >= 1, got '-2'"),
         (["anysite", "--sites", "2.5"], "--sites: must be a whole number >= 1, got '2.5'"),
+        # made the report's figures folder, then refused
+        (["nonsense"], "argument parts: unknown part 'nonsense'; choose from fem, liver, beam, pareto, stability"),
     ],
 )
 def test_impossible_bench_flags_are_refused_before_any_work(argv, words, tmp_path, capsys):
@@ -38,3 +47,69 @@ def test_the_bench_flags_edge_values_parse():
                                 "--workers", "0", "--sites", "1"])  # fmt: skip
     assert (args.build_minutes, args.test_paths, args.workers, args.sites) == ([0.2, 60.0], 1, 0, 1)
     assert parser().parse_args(["bench", "minutes", "--build-minutes"]).build_minutes == []  # redraw the report
+
+
+def refused(argv: list[str], out: Path, capsys) -> str:
+    """`elastreg bench ARGV --out OUT` on the shipped store: refused with exit status 2 before
+    anything is made; its stderr."""
+    with pytest.raises(SystemExit) as exit_:
+        main(["bench", *argv, "--store", str(STORE), "--out", str(out), "--quick", "--no-fem"])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and not out.exists(), err
+    return err
+
+
+@needs_liver()
+@pytest.mark.parametrize(
+    "argv, words",
+    [
+        # a ValueError traceback from own_sequences (rng.choice on no nodes near the paper's tool)
+        (["liver", "--liver-model", "phantom"], "model 'phantom' cannot run the liver part"),
+        (["pareto", "--liver-model", "phantom"], "model 'phantom' cannot run the pareto part"),
+        (["stability", "--liver-model", "beam"], "model 'beam' cannot run the stability part"),
+    ],
+)
+def test_a_liver_part_on_another_mesh_is_refused_before_any_work(argv, words, tmp_path, capsys):
+    """The liver, pareto and stability parts run cases on the paper's liver, by its node ids: a
+    model on another mesh was a traceback; now one line naming the model, the part and why."""
+    err = refused(argv, tmp_path / "report", capsys)
+    model = argv[-1]
+    nodes = {"phantom": 1620, "beam": 500}[model]
+    assert err == f"error: {words}: its mesh ({nodes} nodes) is not the paper's liver (3046 nodes)\n", err
+
+
+def test_the_beam_part_on_a_model_without_a_free_end_is_refused_before_any_work(tmp_path, capsys):
+    """`bench beam --beam-model phantom` made its cases, ran for minutes and ended in a traceback
+    (the Newton method's Levenberg-Marquardt over 592 support nodes, 500 at most; tip loads of
+    NaN, the phantom having one node at its largest x): both are said up front."""
+    err = refused(["beam", "--beam-model", "phantom"], tmp_path / "report", capsys)
+    assert err == (
+        "error: model 'phantom' cannot run the beam part: its largest x is 1 node(s), not a free end for the tip "
+        "loads (a face: 3 at least); its load region has 592 nodes, the Newton method's Levenberg-Marquardt rows "
+        "take 500 at most\n"
+    ), err
+
+
+@needs_liver()
+def test_a_liver_model_whose_region_misses_the_sequences_support_is_refused():
+    """A model on the paper's liver needs the recorded sequence's support in its load region (the
+    network refuses forces outside it): a narrowed region is named, the whole surface passes."""
+    from service.bench.cases import liver_paper_mesh, liver_paper_support, not_on_paper_liver
+
+    mesh, support = liver_paper_mesh(), liver_paper_support()
+    assert not_on_paper_liver(mesh, mesh.free_surface_nodes) is None
+    narrowed = np.setdiff1d(mesh.free_surface_nodes, support[:5])
+    assert not_on_paper_liver(mesh, narrowed) == "its load region lacks 5 of the recorded sequence's support nodes"
+
+
+def test_the_fem_part_without_the_papers_liver_is_refused_before_any_work(tmp_path, capsys, monkeypatch):
+    """Without ../shared beside the checkout the fem part was a FileNotFoundError traceback."""
+    from service.bench import cases
+
+    monkeypatch.setattr(cases, "LIVER", tmp_path / "nowhere")
+    err = refused(["fem"], tmp_path / "report", capsys)
+    nowhere = tmp_path / "nowhere"
+    assert (
+        err
+        == f"error: the fem part cannot run: the paper's liver is not in {nowhere} (../shared beside the checkout)\n"
+    )
