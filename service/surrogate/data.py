@@ -59,7 +59,9 @@ def _probe_scheduler(address: str, seconds: float) -> None:
     """Raise ClusterError unless a Dask scheduler answers at `address` (the comm's handshake)
     within `seconds`. Client(address) alone can wait forever: a port that accepts and never
     answers (a web server, the scheduler's dashboard) leaves its handshake unread, whatever its
-    timeout. Here the wait is cancelled at the bound, and the half-open comm goes with it."""
+    timeout. Here the wait is cancelled at the bound, and the half-open comm goes with it. A
+    server that speaks first (an SSH banner) fails the comm's read in any way (a MemoryError for
+    a banner read as a frame length): all of them mean that no scheduler is there."""
     from distributed.comm import connect
 
     async def probe() -> None:
@@ -68,7 +70,7 @@ def _probe_scheduler(address: str, seconds: float) -> None:
 
     try:
         asyncio.run(asyncio.wait_for(probe(), seconds))
-    except OSError as exc:  # TimeoutError is one
+    except Exception as exc:  # a timeout, or a server of another protocol: a banner read as a frame length
         raise ClusterError(f"no Dask scheduler answers at {address} within {round(seconds, 1):g} s") from exc
 
 

@@ -3,6 +3,7 @@ sees when something goes wrong (a wrong --scheduler, a store it cannot write, Ct
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import socket
@@ -53,6 +54,33 @@ def test_a_scheduler_address_where_no_scheduler_answers_fails_within_its_bound(t
     said = re.search(rf"error: no Dask scheduler answers at {address} within ([0-9.]+) s", r.stderr)
     assert said and float(said[1]) <= bound, r.stderr[-3000:]
     assert wall < bound + 20  # the interpreter's start (torch) on a loaded machine, and the bound
+
+
+def test_a_scheduler_address_whose_server_speaks_first_is_no_scheduler(tmp_path, bar):
+    """--scheduler at an SSH server's port: distributed read its banner as a frame length and the
+    build ended in a traceback (MemoryError: "Unable to allocate 2.82 EiB"), exit 1."""
+    import threading
+
+    scene = write_bar_scene(tmp_path / "scene", bar, samples=30)
+    with socket.socket() as server:
+        server.bind(("127.0.0.1", 0))
+        server.listen(8)
+
+        def greet() -> None:  # as sshd does: the banner first, whoever connects
+            with contextlib.suppress(OSError):  # the socket closed at the test's end
+                while True:
+                    conn, _ = server.accept()
+                    with conn:
+                        conn.sendall(b"SSH-2.0-OpenSSH_9.6p1 Ubuntu-3ubuntu13\r\n")
+                        conn.recv(1 << 16)  # the client's bytes, until it hangs up
+
+        threading.Thread(target=greet, daemon=True).start()
+        address = f"tcp://127.0.0.1:{server.getsockname()[1]}"
+        r = train(scene, tmp_path, "--scheduler", address, timeout=120,
+                  env={"DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT": "5s"})  # fmt: skip
+    assert r.returncode == 2, r.stderr[-3000:]
+    assert "Traceback" not in r.stderr, r.stderr[-3000:]
+    assert re.search(rf"error: no Dask scheduler answers at {address} within [0-9.]+ s", r.stderr), r.stderr[-3000:]
 
 
 @pytest.mark.parametrize(
