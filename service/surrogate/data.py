@@ -45,14 +45,33 @@ class ClusterError(RuntimeError):
 
 
 @contextlib.contextmanager
-def _from_dask(scheduler: str | None) -> Iterator[None]:
+def _from_dask(scheduler: str | None, data_dir: Path | None = None) -> Iterator[None]:
     """An OSError (a comm closed, a connect timed out) out of Dask as a ClusterError that says
-    which cluster: the writes to the data folder are outside these blocks and keep their own."""
+    which cluster: the writes to the data folder are outside these blocks and keep their own.
+    With `data_dir` (paths are being solved) a cluster lost mid-build is one too: its paths
+    cancelled (workers killed: the scattered mesh went with them; the scheduler gone) or its
+    workers killed too often; the error says how many paths the folder keeps for a rerun."""
+    from concurrent.futures import CancelledError  # distributed's FutureCancelledError is one
+
+    lost: tuple[type[BaseException], ...] = (OSError,)
+    if data_dir is not None:
+        from distributed.scheduler import KilledWorker
+
+        lost = (OSError, CancelledError, KilledWorker)
     try:
         yield
-    except OSError as exc:
+    except lost as exc:
         where = f"the Dask scheduler at {scheduler}" if scheduler else "the local Dask workers"
-        raise ClusterError(f"cannot reach {where}: {exc}") from exc
+        reason = (str(exc).splitlines() or [type(exc).__name__])[0]  # one line: Dask's may run on
+        cancelled = r"^\S+ cancelled for reason: (.*?)\.?$"  # a FutureCancelledError: its task's key is noise
+        reason = re.sub(cancelled, r"its paths were cancelled: \1", reason)
+        if data_dir is None:
+            raise ClusterError(f"cannot reach {where}: {reason}") from exc
+        kept = len(done_indices(data_dir))
+        where = f"the Dask cluster at {scheduler}" if scheduler else where  # its workers, or the scheduler itself
+        raise ClusterError(
+            f"lost {where} mid-build ({reason}): {kept} load paths kept in {data_dir}; the same command resumes"
+        ) from exc
 
 
 def _probe_scheduler(address: str, seconds: float) -> None:
@@ -338,7 +357,7 @@ def generate(
                 fut = next(done)
             except (StopIteration, TimeoutError):  # all written, or the clock ran out
                 return
-            with _from_dask(scheduler):
+            with _from_dask(scheduler, data_dir):
                 more = 1
                 if scheduler is not None and time.perf_counter() - checked > SLOTS_CHECK_S:  # workers may join
                     slots, wanted, checked = _slots(client), slots, time.perf_counter()
@@ -353,9 +372,22 @@ def generate(
     finally:
         bar.close()
         if client is not None:
-            client.close()
+            with _quiet("distributed.client"):  # a lost scheduler: its reconnect, cancelled, logs a traceback
+                client.close()
         if cluster is not None:
             cluster.close()
+
+
+@contextlib.contextmanager
+def _quiet(name: str) -> Iterator[None]:
+    """The logger `name` silent while the block runs."""
+    logger = logging.getLogger(name)
+    level = logger.level
+    logger.setLevel(logging.CRITICAL + 1)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
 
 
 @contextlib.contextmanager

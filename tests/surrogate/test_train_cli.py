@@ -172,6 +172,46 @@ def test_ctrl_c_during_the_data_prints_one_line_and_keeps_the_paths(tmp_path, ba
     assert _group_gone(p.pid)  # the workers went with it
 
 
+def test_local_workers_killed_mid_build_end_it_with_one_line_that_keeps_the_paths(tmp_path, bar):
+    """Both local worker processes SIGKILLed mid-build (as the OOM killer does on a big mesh): the
+    scattered mesh went with them and the build ended in a FutureCancelledError traceback, exit 1.
+    Now one line that says what was lost and what was kept, exit status 2."""
+    import signal
+
+    scene = write_bar_scene(tmp_path / "scene", bar, samples=30_000)  # far more than it has time for
+    data = tmp_path / "data"
+    p = subprocess.Popen(
+        [sys.executable, "-m", "service.cli", "train", str(scene), "--store", str(tmp_path / "store"),
+         "--data", str(data), "--workers", "2", "--hidden", "32", "--rank", "8", "--epochs", "5"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=ROOT, start_new_session=True,
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 120
+        while not list(data.rglob("path_*.npz")):  # the workers are solving
+            assert p.poll() is None and time.monotonic() < deadline, "no path was written"
+            time.sleep(0.2)
+        group = subprocess.run(
+            ["ps", "-ww", "-o", "pid=,args=", "-g", str(p.pid)], capture_output=True, text=True
+        ).stdout
+        workers = [int(line.split()[0]) for line in group.splitlines() if "spawn_main" in line]
+        assert len(workers) == 2, group
+        for pid in workers:
+            os.kill(pid, signal.SIGKILL)
+        out, _ = p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+    assert p.returncode == 2, out[-3000:]
+    assert "Traceback" not in out, out[-3000:]
+    (folder,) = data.iterdir()
+    kept = len(list(folder.glob("path_*.npz")))
+    said = re.search(r"error: lost the local Dask workers mid-build \(.*\): (\d+) load paths kept in (.*); "
+                     r"the same command resumes\n", out)  # fmt: skip
+    assert said and int(said[1]) == kept >= 1 and said[2] == str(folder), out[-3000:]
+    assert _group_gone(p.pid)  # the restarted workers went with it
+
+
 def test_ctrl_c_while_the_local_cluster_starts_stops_the_build_with_one_line(tmp_path, bar):
     """SIGINT was ignored for the 1-3 s a LocalCluster takes to start (so that the workers, which
     inherit that, print no tracebacks): a Ctrl-C then was lost and the build carried on. Now it
