@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -212,3 +213,20 @@ def correlated_paths(
     share = np.exp(rng.normal(0.0, path_sd, (paths, 1)) + rng.normal(0.0, step_sd, (paths, steps)))
     truth = ratio * float(np.exp((path_sd**2 + step_sd**2) / 2))  # the lognormal's mean
     return (ratio * share * sizes).ravel(), sizes.ravel(), np.repeat(np.arange(paths), steps), truth
+
+
+@contextlib.contextmanager
+def small_disk(folder: Path, size: int) -> Iterator[Path]:
+    """A tmpfs of `size` bytes mounted on `folder`: a disk that fills up, for real. Skips the
+    test where mounting is not permitted (not root, a container without CAP_SYS_ADMIN)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    if shutil.which("mount") is None:
+        pytest.skip("no mount command")
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(folder)], capture_output=True,
+                       text=True)  # fmt: skip
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {r.stderr.strip()}")
+    try:
+        yield folder
+    finally:
+        subprocess.run(["umount", "-l", str(folder)], check=False)

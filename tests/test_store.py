@@ -4,6 +4,7 @@ hung startup, hashing the endless device)."""
 
 from __future__ import annotations
 
+import errno
 import json
 import logging
 import os
@@ -17,7 +18,7 @@ import numpy as np
 import pytest
 
 from service.store import UNLOCKED_BUILD_AGE_S, StoreError, load_entry, open_store, remove_stale_builds
-from tests.conftest import build_writer
+from tests.conftest import build_writer, small_disk
 
 
 def _edit(path, **changes):
@@ -151,6 +152,23 @@ def _rewrite(entry, store, **changes):
     )
     parts.update(changes)
     return write_entry(store, entry.id, entry.mesh, entry.region, entry.network.net, **parts)
+
+
+def test_a_full_disk_under_the_store_is_an_os_error_that_names_the_file(bar_store, tmp_path):
+    """safetensors raised its own SafetensorError ("I/O error: No space left on device"), which
+    `elastreg train` printed as a traceback, exit 1: now an OSError naming the entry's file (the
+    CLI's one line, exit 2), and no half-written build left behind."""
+    built = bar_store[0] / "bar"
+    mesh_bytes, weights_bytes = (built / "mesh.npz").stat().st_size, (built / "weights.safetensors").stat().st_size
+    room = -(-mesh_bytes // 4096) * 4096 + 4096  # the mesh fits, the weights do not
+    assert weights_bytes > room
+    with small_disk(tmp_path / "disk", room) as disk:
+        with pytest.raises(OSError) as caught:
+            _rewrite(load_entry(built), disk / "store")
+        assert caught.value.errno == errno.ENOSPC
+        assert caught.value.filename == str(disk / "store" / "bar" / "weights.safetensors")
+        assert "No space left on device" in str(caught.value) and "\n" not in str(caught.value)
+        assert list((disk / "store").iterdir()) == []  # the build folder went
 
 
 def test_an_entry_the_store_would_refuse_never_replaces_the_served_one(bar_store, tmp_path):

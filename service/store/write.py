@@ -6,13 +6,16 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import shutil
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import torch
+from safetensors import SafetensorError
 from safetensors.torch import save_file
 
 from .. import __version__
@@ -63,9 +66,13 @@ def write_entry(
     final = store / entry_id
     tmp, lock = _build_folder(store, entry_id)
     try:
-        np.savez(tmp / MESH, nodes=mesh.nodes, tets=mesh.tets, fixed=mesh.fixed, region=np.asarray(region, np.int64))
+        with _naming(final / MESH):
+            np.savez(
+                tmp / MESH, nodes=mesh.nodes, tets=mesh.tets, fixed=mesh.fixed, region=np.asarray(region, np.int64)
+            )
         state = {k: v.detach().cpu().contiguous() for k, v in net.state_dict().items()}
-        save_file(state, str(tmp / WEIGHTS), metadata={"elastreg": __version__})
+        with _naming(final / WEIGHTS):
+            save_file(state, str(tmp / WEIGHTS), metadata={"elastreg": __version__})
         manifest = {
             "format_version": FORMAT_VERSION,
             "id": entry_id,
@@ -79,7 +86,8 @@ def write_entry(
             "rebuild": rebuild,
             "files": {name: sha256(tmp / name) for name in (MESH, WEIGHTS)},
         }
-        (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1, default=_jsonable))
+        with _naming(final / MANIFEST):
+            (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1, default=_jsonable))
         _share(tmp)  # before the rename: no moment where the served entry is private to its builder
         load_entry(tmp, name=entry_id)
         if not final.exists():
@@ -103,6 +111,24 @@ def write_entry(
         if lock is not None:  # the folder is in place or gone: nothing left to guard
             os.close(lock)
     return final
+
+
+@contextlib.contextmanager
+def _naming(path: Path) -> Iterator[None]:
+    """A failed write (a full disk) as an OSError that names the entry's file: a write through
+    an open file names none, and safetensors raises its own SafetensorError ("I/O error: No
+    space left on device (os error 28)")."""
+    try:
+        yield
+    except SafetensorError as exc:
+        code = re.search(r"os error (\d+)", str(exc))
+        if code is None:
+            raise OSError(f"cannot write {path}: {exc}") from exc
+        raise OSError(int(code[1]), os.strerror(int(code[1])), str(path)) from exc
+    except OSError as exc:
+        if exc.filename is not None:
+            raise
+        raise OSError(exc.errno, exc.strerror, str(path)) from exc
 
 
 def _umask() -> int:

@@ -235,8 +235,10 @@ def write_path(data_dir: Path, result: dict) -> None:
         with os.fdopen(fd, "wb") as f:
             np.savez(f, forces=result["forces"], u=result["u"], newton_iterations=result["newton_iterations"])
         os.replace(tmp, final)
-    except BaseException:
+    except BaseException as exc:
         tmp.unlink(missing_ok=True)
+        if isinstance(exc, OSError) and exc.filename is None:  # written through the fd: it names no file
+            raise OSError(exc.errno, exc.strerror, str(final)) from exc
         raise
 
 

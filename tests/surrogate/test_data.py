@@ -16,6 +16,7 @@ from service.surrogate.data import (
     sample_path_load,
     solve_path,
 )
+from tests.conftest import small_disk
 
 MAT = NeoHookean(4500.0, 0.45)
 
@@ -133,6 +134,22 @@ def test_two_builds_writing_one_path_never_trip_over_each_others_temporaries(tmp
     assert [p.name for p in tmp_path.iterdir()] == ["path_000003.npz"]
     F, _, _ = load_dataset(tmp_path)
     assert F.shape == (2, 4, 3)
+
+
+def test_a_full_data_folder_is_an_os_error_that_names_the_path(tmp_path, bar, spec):
+    """A path written through its temporary's fd on a full disk said only "[Errno 28] No space
+    left on device", no file: now the path's file is named, and no temporary is left."""
+    import errno
+
+    with small_disk(tmp_path / "disk", 64 * 1024) as disk:
+        with pytest.raises(OSError) as caught:
+            for _ in generate(bar, MAT, spec, disk / "data", 200, workers=0, progress=False):
+                pass
+        written = done_indices(disk / "data")
+        assert caught.value.errno == errno.ENOSPC
+        assert caught.value.filename == str(path_file(disk / "data", len(written)))
+        assert str(path_file(disk / "data", len(written))) in str(caught.value)
+        assert sorted(p.name for p in (disk / "data").iterdir()) == [path_file(disk, i).name for i in sorted(written)]
 
 
 def test_a_timed_generation_of_very_many_paths_keeps_to_its_clock(tmp_path, bar, spec):
