@@ -149,11 +149,11 @@ class TetMesh:
             tets[inverted, 2], tets[inverted, 3] = tets[inverted, 3], tets[inverted, 2].copy()
 
         labels = components(len(nodes), tets)
-        n_comp = len(np.unique(labels[labels >= 0]))
-        if n_comp > 1:
-            sizes = np.bincount(labels[labels >= 0])
+        sizes = np.unique(labels[labels >= 0], return_counts=True)[1]  # used nodes only: no empty components
+        if sizes.size > 1:
+            largest = sorted(sizes.tolist(), reverse=True)[:5]
             raise MeshError(
-                f"the mesh has {n_comp} separate components (node counts {sorted(sizes.tolist(), reverse=True)[:5]}); "
+                f"the mesh has {sizes.size} separate components (node counts {largest}); "
                 "split it into one scene per body"
             )
 

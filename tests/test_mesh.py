@@ -59,6 +59,14 @@ def test_two_components_are_refused():
         TetMesh.build(nodes, [[0, 1, 2, 3], [4, 5, 6, 7]])
 
 
+def test_the_components_message_counts_only_used_nodes():
+    """An unused node between two bodies is a component of its own to scipy: it was listed as an
+    empty one ("node counts [181, 167, 0, 0, 0]")."""
+    nodes = np.vstack([UNIT_TET, [[9.0, 9, 9], [7.0, 7, 7]], UNIT_TET + 5.0])  # nodes 4 and 5 unused
+    with pytest.raises(MeshError, match=r"2 separate components \(node counts \[4, 4\]\)"):
+        TetMesh.build(nodes, [[0, 1, 2, 3], [6, 7, 8, 9]])
+
+
 def test_unused_node_is_dropped_with_map(caplog):
     nodes = np.vstack([UNIT_TET[:2], [[9.0, 9, 9]], UNIT_TET[2:]])  # node 2 is unused
     with caplog.at_level(logging.WARNING, logger="service.mesh"):
