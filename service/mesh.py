@@ -67,19 +67,47 @@ def components(n_nodes: int, tets: Array) -> Array:
     return np.where(used, labels, -1)
 
 
-def face_components(tets: Array) -> int:
+FaceTable = tuple[Array, Array, Array]
+
+
+def face_table(tets: Array) -> FaceTable:
+    """The tets' faces as TET_FACES orders them (4 t, 3), each one's index among the distinct
+    faces (4 t,), and how many tets share each distinct face."""
+    faces = tets[:, TET_FACES].reshape(-1, 3)
+    _, inverse, counts = np.unique(np.sort(faces, axis=1), axis=0, return_inverse=True, return_counts=True)
+    return faces, inverse.ravel(), counts
+
+
+def face_components(tets: Array, table: FaceTable | None = None) -> int:
     """How many parts the tets make when joined only through shared faces. Raises MeshError for
     a face that more than two tets share."""
-    faces = np.sort(tets[:, TET_FACES], axis=2).reshape(-1, 3)
-    _, inverse, counts = np.unique(faces, axis=0, return_inverse=True, return_counts=True)
+    _, inverse, counts = face_table(tets) if table is None else table
     if counts.max() > 2:
         raise MeshError(f"{int((counts > 2).sum())} faces belong to more than two tets (overlapping or repeated tets)")
-    order = np.argsort(inverse.ravel(), kind="stable")
-    owner, face = order // 4, inverse.ravel()[order]
+    order = np.argsort(inverse, kind="stable")
+    owner, face = order // 4, inverse[order]
     pair = np.flatnonzero(face[1:] == face[:-1])  # the two tets of each interior face, side by side
     n = len(tets)
     graph = sp.coo_matrix((np.ones(pair.size), (owner[pair], owner[pair + 1])), shape=(n, n))
     return int(csgraph.connected_components(graph, directed=False)[0])
+
+
+def folded_faces(nodes: Array, tets: Array, table: FaceTable | None = None) -> tuple[int, float]:
+    """Interior faces whose two (positively oriented) tets lie on the same side of it, and how far
+    the tets' total volume exceeds the volume their boundary encloses (relative). A mesh whose tets
+    only had mixed vertex orders has none once oriented; a tangled one (a node pushed through a
+    face) has some, and its tets overlap: the FEM would count the overlap twice."""
+    faces, inverse, counts = face_table(tets) if table is None else table
+    # a face's orientation: the parity of the permutation that sorts it; the two tets of an interior
+    # face see it in opposite orientations exactly when they lie on its two sides
+    parity = ((faces[:, 0] > faces[:, 1]) ^ (faces[:, 0] > faces[:, 2]) ^ (faces[:, 1] > faces[:, 2])).astype(np.int64)
+    shares = counts[inverse]
+    odd = np.bincount(inverse[shares == 2], weights=parity[shares == 2], minlength=counts.size)  # 0 or 2: one side
+    folded = int(((counts == 2) & (odd != 1)).sum())
+    x = nodes[faces[shares == 1]]
+    enclosed = np.einsum("ij,ij->i", x[:, 0], np.cross(x[:, 1], x[:, 2])).sum() / 6.0  # divergence theorem
+    total = signed_volumes(nodes, tets).sum()
+    return folded, float(total / enclosed - 1.0) if enclosed > 0 else float("inf")
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -113,9 +141,10 @@ class TetMesh:
     ) -> tuple[TetMesh, Array | None]:
         """Validate and repair raw arrays into a mesh.
 
-        Inverted tets are re-oriented (logged); degenerate tets, several components (by nodes,
-        or by faces: parts touching at an edge or a point) and bad indices are refused with a
-        :class:`MeshError`; unused nodes are dropped, in which case
+        Inverted tets are re-oriented (logged): a mesh whose tets only mix their vertex orders;
+        a tangled one (re-oriented, some tets overlap: a node moved through a face), degenerate
+        tets, several components (by nodes, or by faces: parts touching at an edge or a point)
+        and bad indices are refused with a :class:`MeshError`; unused nodes are dropped, in which case
         the second value maps each kept node to its index in the input (else it is None).
         """
         nodes = np.asarray(nodes, np.float64)
@@ -157,11 +186,19 @@ class TetMesh:
                 "split it into one scene per body"
             )
 
-        parts = face_components(tets)
+        table = face_table(tets)  # sorted once: both checks below read it
+        parts = face_components(tets, table)
         if parts > 1:  # one body by its nodes, several by its faces: they touch at edges or points
             raise MeshError(
                 f"the mesh is {parts} parts that touch only along an edge or at a point (no shared face): "
                 "it could turn about the contact, so it is not one body; mesh the contact as a solid or split it"
+            )
+        folded, excess = folded_faces(nodes, tets, table)
+        if folded:  # re-orienting made each tet positive, not the mesh untangled
+            raise MeshError(
+                f"the mesh is tangled: {folded} interior faces have both their tets on one side, so tets overlap "
+                f"(their volumes add up to {1 + excess:.4g} x the volume the boundary encloses), as where a node "
+                "was moved through a face; re-orienting its tets cannot fix that: fix the mesh"
             )
 
         fixed = np.zeros(0, np.int64) if fixed is None else np.asarray(fixed, np.int64)
