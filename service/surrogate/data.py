@@ -24,6 +24,7 @@ import tempfile
 import threading
 import time
 from collections.abc import Generator, Iterator
+from concurrent.futures import CancelledError  # distributed's FutureCancelledError is one
 from functools import lru_cache
 from pathlib import Path
 
@@ -51,8 +52,6 @@ def _from_dask(scheduler: str | None, data_dir: Path | None = None) -> Iterator[
     With `data_dir` (paths are being solved) a cluster lost mid-build is one too: its paths
     cancelled (workers killed: the scattered mesh went with them; the scheduler gone) or its
     workers killed too often; the error says how many paths the folder keeps for a rerun."""
-    from concurrent.futures import CancelledError  # distributed's FutureCancelledError is one
-
     lost: tuple[type[BaseException], ...] = (OSError,)
     if data_dir is not None:
         from distributed.scheduler import KilledWorker
@@ -283,7 +282,10 @@ def generate(
     it pays for them (local_workers_pay), else the paths are solved in this process.
     Connecting to `scheduler`, and waiting for its first worker, each take at most Dask's connect
     timeout (distributed.comm.timeouts.connect), never past `deadline` (a time.perf_counter() value:
-    the build's end); the wait for a worker never past `until` either.
+    the build's end); the wait for a worker never past `until` either. Local workers that their
+    nannies restart mid-build (killed: the OOM killer on a big mesh) are sent the mesh again and
+    the paths in flight solved again, up to LOCAL_RESTARTS times; a cluster lost otherwise is a
+    ClusterError that says how many paths the folder keeps.
     """
     data_dir = Path(data_dir)
     data_dir.mkdir(parents=True, exist_ok=True)
@@ -339,33 +341,55 @@ def generate(
             client = Client(scheduler or cluster)
             if scheduler is not None:
                 _wait_for_workers(client, scheduler, _connect_seconds(until if until is not None else deadline), bar)
-            m, mat, s = client.scatter([mesh, material, spec], broadcast=True)
-            pending = iter(todo)
+            sent = client.scatter([mesh, material, spec], broadcast=True)
+            pending: Iterator[int] = iter(todo)
+            in_flight: dict = {}  # future -> its path's index, until written
 
             def submit(n: int) -> list:
                 """The next n paths, in index order."""
-                return [
-                    client.submit(solve_path, m, mat, s, i, max_newton=max_newton, pure=False)
-                    for i in itertools.islice(pending, n)
-                ]
+                indices = list(itertools.islice(pending, n))
+                futures = [client.submit(solve_path, *sent, i, max_newton=max_newton, pure=False) for i in indices]
+                in_flight.update(zip(futures, indices, strict=True))
+                return futures
+
+            def start(n: int):
+                """Paths as they finish, the next n first, within the clock."""
+                timeout = None if until is None else max(until - time.perf_counter(), 1e-3)
+                return as_completed(submit(n), timeout=timeout)
 
             # a few paths per worker thread in flight, topped up as they finish: submitting every
             # path at once spent a timed build's minutes in Dask's bookkeeping (100,000 paths)
             slots, checked = _slots(client), time.perf_counter()
-            timeout = None if until is None else max(until - time.perf_counter(), 1e-3)
-            done = as_completed(submit(slots), timeout=timeout)
+            done, restarts = start(slots), 0
         while True:
             try:
                 fut = next(done)
             except (StopIteration, TimeoutError):  # all written, or the clock ran out
                 return
             with _from_dask(scheduler, data_dir):
+                try:
+                    result = fut.result()
+                except CancelledError:
+                    if scheduler is not None or restarts == LOCAL_RESTARTS:
+                        raise
+                    # local workers killed (the OOM killer) and restarted by their nannies: the
+                    # mesh scattered to them went too, and every path in flight with it
+                    restarts += 1
+                    lost = sorted(in_flight.values())
+                    client.cancel(list(in_flight))
+                    in_flight.clear()
+                    log.warning("the local Dask workers restarted: the mesh sent again, %d paths again", len(lost))
+                    client.wait_for_workers(workers, timeout=_connect_seconds(deadline))
+                    sent = client.scatter([mesh, material, spec], broadcast=True)
+                    pending = itertools.chain(lost, pending)
+                    done = start(slots)
+                    continue
                 more = 1
                 if scheduler is not None and time.perf_counter() - checked > SLOTS_CHECK_S:  # workers may join
                     slots, wanted, checked = _slots(client), slots, time.perf_counter()
                     more += max(slots - wanted, 0)
                 done.update(submit(more))
-                result = fut.result()
+            in_flight.pop(fut, None)
             write_path(data_dir, result)
             bar.update(1)
             bar.set_postfix(samples=_count(bar, result))
@@ -468,6 +492,9 @@ def path_fits(until: float | None, took: list[float], now: float | None = None) 
     return now + max(took, default=0.0) <= until
 
 
+#: times a generation sends the mesh again to local workers their nannies restarted (killed: the
+#: OOM killer on a big mesh) before it gives up with a ClusterError
+LOCAL_RESTARTS = 3
 #: paths a generation keeps in flight per worker thread (one solving, the next ones queued)
 PATHS_PER_THREAD = 3
 #: seconds between looks at a scheduler's worker threads (a cluster's workers may join late)

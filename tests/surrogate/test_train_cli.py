@@ -14,6 +14,8 @@ from pathlib import Path
 
 import pytest
 
+from service.store import load_entry
+from service.surrogate.data import done_indices
 from tests.conftest import write_bar_scene
 
 pytest.importorskip("distributed")
@@ -172,13 +174,21 @@ def test_ctrl_c_during_the_data_prints_one_line_and_keeps_the_paths(tmp_path, ba
     assert _group_gone(p.pid)  # the workers went with it
 
 
-def test_local_workers_killed_mid_build_end_it_with_one_line_that_keeps_the_paths(tmp_path, bar):
-    """Both local worker processes SIGKILLed mid-build (as the OOM killer does on a big mesh): the
-    scattered mesh went with them and the build ended in a FutureCancelledError traceback, exit 1.
-    Now one line that says what was lost and what was kept, exit status 2."""
+def _first_path_then(p: subprocess.Popen, data: Path) -> None:
+    """Wait until the build `p` has written its first load path (its workers are solving)."""
+    deadline = time.monotonic() + 120
+    while not list(data.rglob("path_*.npz")):
+        assert p.poll() is None and time.monotonic() < deadline, "no path was written"
+        time.sleep(0.05)
+
+
+def test_local_workers_killed_mid_build_are_sent_the_mesh_again_and_the_build_finishes(tmp_path, bar):
+    """Both local worker processes SIGKILLed mid-build (as the OOM killer does on a big mesh): their
+    nannies restart them, but the mesh scattered to them went with them, and the build ended in a
+    FutureCancelledError traceback, exit 1. Now the mesh is sent again and the lost paths solved."""
     import signal
 
-    scene = write_bar_scene(tmp_path / "scene", bar, samples=30_000)  # far more than it has time for
+    scene = write_bar_scene(tmp_path / "scene", bar, samples=300)  # 100 paths: seconds of work
     data = tmp_path / "data"
     p = subprocess.Popen(
         [sys.executable, "-m", "service.cli", "train", str(scene), "--store", str(tmp_path / "store"),
@@ -186,30 +196,62 @@ def test_local_workers_killed_mid_build_end_it_with_one_line_that_keeps_the_path
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=ROOT, start_new_session=True,
     )  # fmt: skip
     try:
-        deadline = time.monotonic() + 120
-        while not list(data.rglob("path_*.npz")):  # the workers are solving
-            assert p.poll() is None and time.monotonic() < deadline, "no path was written"
-            time.sleep(0.2)
-        group = subprocess.run(
-            ["ps", "-ww", "-o", "pid=,args=", "-g", str(p.pid)], capture_output=True, text=True
-        ).stdout
-        workers = [int(line.split()[0]) for line in group.splitlines() if "spawn_main" in line]
-        assert len(workers) == 2, group
+        _first_path_then(p, data)
+        group = subprocess.run(["ps", "-ww", "-o", "pid=,args=", "-g", str(p.pid)], capture_output=True, text=True)
+        workers = [int(line.split()[0]) for line in group.stdout.splitlines() if "spawn_main" in line]
+        assert len(workers) == 2, group.stdout
         for pid in workers:
             os.kill(pid, signal.SIGKILL)
-        out, _ = p.communicate(timeout=120)
+        out, _ = p.communicate(timeout=300)
     finally:
         if p.poll() is None:
             os.killpg(p.pid, signal.SIGKILL)
             p.wait()
+    assert p.returncode == 0, out[-3000:]
+    assert "Traceback" not in out, out[-3000:]
+    assert re.search(r"the local Dask workers restarted: the mesh sent again, \d+ paths again", out), out[-3000:]
+    (folder,) = data.iterdir()
+    assert done_indices(folder) == set(range(100))  # every path, the lost ones solved again
+    assert load_entry(tmp_path / "store" / "bar").manifest["training"]["paths"] == 100
+    assert _group_gone(p.pid)
+
+
+def test_a_clusters_workers_killed_mid_build_end_it_with_one_line_that_keeps_the_paths(tmp_path, bar):
+    """--scheduler at a LocalCluster whose worker processes are all SIGKILLed mid-build: the paths
+    in flight were cancelled and the build ended in a FutureCancelledError traceback, exit 1. Now
+    one line that says what was lost and how many paths the data folder keeps, exit status 2."""
+    import signal
+
+    from distributed import Client, LocalCluster
+
+    scene = write_bar_scene(tmp_path / "scene", bar, samples=30_000)  # far more than it has time for
+    data = tmp_path / "data"
+    env = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
+    with (
+        LocalCluster(n_workers=2, threads_per_worker=1, host="127.0.0.1", dashboard_address=":0", env=env) as cluster,
+        Client(cluster) as client,
+    ):
+        address = cluster.scheduler_address
+        p = subprocess.Popen(
+            [sys.executable, "-m", "service.cli", "train", str(scene), "--store", str(tmp_path / "store"),
+             "--data", str(data), "--scheduler", address, "--hidden", "32", "--rank", "8", "--epochs", "5"],
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=ROOT,
+        )  # fmt: skip
+        try:
+            _first_path_then(p, data)
+            for pid in client.run(os.getpid).values():  # the worker processes, not their nannies
+                os.kill(pid, signal.SIGKILL)
+            out, _ = p.communicate(timeout=120)
+        finally:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
     assert p.returncode == 2, out[-3000:]
     assert "Traceback" not in out, out[-3000:]
     (folder,) = data.iterdir()
-    kept = len(list(folder.glob("path_*.npz")))
-    said = re.search(r"error: lost the local Dask workers mid-build \(.*\): (\d+) load paths kept in (.*); "
-                     r"the same command resumes\n", out)  # fmt: skip
-    assert said and int(said[1]) == kept >= 1 and said[2] == str(folder), out[-3000:]
-    assert _group_gone(p.pid)  # the restarted workers went with it
+    said = re.search(rf"error: lost the Dask cluster at {address} mid-build \(.*\): (\d+) load paths kept in "
+                     rf"(.*); the same command resumes\n", out)  # fmt: skip
+    assert said and int(said[1]) == len(done_indices(folder)) >= 1 and said[2] == str(folder), out[-3000:]
 
 
 def test_ctrl_c_while_the_local_cluster_starts_stops_the_build_with_one_line(tmp_path, bar):
