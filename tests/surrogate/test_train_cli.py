@@ -155,10 +155,7 @@ def test_ctrl_c_during_the_data_prints_one_line_and_keeps_the_paths(tmp_path, ba
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # as a shell's foreground job
     )  # fmt: skip
     try:
-        deadline = time.monotonic() + 120
-        while not list(data.rglob("path_*.npz")):  # the workers are solving
-            assert p.poll() is None and time.monotonic() < deadline, "no path was written"
-            time.sleep(0.2)
+        _first_path_then(p, data)
         os.killpg(p.pid, signal.SIGINT)
         out, _ = p.communicate(timeout=60)
     finally:
