@@ -53,7 +53,10 @@ REST_RMS = 1e-7
 _F32_EPS = float(np.finfo(np.float32).eps)
 
 #: what callers import from here (session.py, the tests): the frame's own names and the re-exported ones
-__all__ = ["FrameSolution", "Objective", "SolveOptions", "Timing", "check_optimizer", "solve_frame"]
+__all__ = ["FAILED", "FrameSolution", "Objective", "SolveOptions", "Timing", "check_optimizer", "solve_frame"]
+
+#: statuses whose frame leaves the warm start as it was (too_far: its answer says nothing of the cloud)
+FAILED = ("forward_failed", "non_finite", "too_far")
 
 Array = np.ndarray
 
@@ -175,8 +178,7 @@ def solve_frame(
         if timed_op:
             op.deadline = None  # the session's outputs are computed after the frame, in full
 
-    if status == "converged" and not math.isfinite(evaluate.best_rms):  # API.md: never converged
-        status, message = "non_finite", f"the distance at the answer is not finite ({message})"
+    status, message = _judge(status, message, evaluate.best_rms, Box(rest_positions))
     timing.total = time.perf_counter() - t_start
     return FrameSolution(
         g=evaluate.best_g,
@@ -216,6 +218,23 @@ def _past_reach(distance: PointToSurface, rest_positions: Array) -> str:
         f"the cloud lies too far from the model for a registration ({offset:.3g} m, {offset / box.size:.3g} "
         f"times its size; at most {REACH:g}): no force was estimated"
     )
+
+
+def _judge(status: str, message: str, rms: float, box: Box) -> tuple[str, str]:
+    """The frame's status given its answer's rms distance: one not finite, or past the reach
+    (points 1e20 m off made the rest state look like an optimum), is never converged and, failed,
+    never moves the warm start. A frame that evaluated nothing (a deadline in its rest state's
+    solve) keeps its own status."""
+    if status in FAILED or (math.isnan(rms) and status != "converged"):
+        return status, message
+    if not math.isfinite(rms):  # API.md: never converged
+        return "non_finite", f"the distance at the answer is not finite ({message})"
+    if not box.within(rms):
+        return "too_far", (
+            f"the answer lies {rms:.3g} m rms from the cloud, {rms / box.size:.3g} times the model's size "
+            f"(at most {REACH:g}): too far for a registration ({message})"
+        )
+    return status, message
 
 
 def _check_alpha(alpha: float, v_rest: float, grad_rest: Array, v_best: float) -> None:

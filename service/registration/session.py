@@ -39,16 +39,13 @@ from ..forward import ForwardFailed, ForwardModel, ForwardOperator, check_suppor
 from ..mesh import TetMesh
 from .confidence import error_estimate, estimator_for, force_prior, inverse_spread, past_max_force, prior_windows
 from .distance import PointToSurface
-from .engine import FrameSolution, SolveOptions, check_optimizer, solve_frame
+from .engine import FAILED, FrameSolution, SolveOptions, check_optimizer, solve_frame
 from .noise_prior import AlphaTracker
 from .precondition import Curvature
 from .reach import Box, check_reach
 from .settings import DEFAULT_ALPHA, DEFAULT_GTOL, METHODS, OUTPUT_NAMES, SessionConfig
 
 Array = np.ndarray
-
-#: statuses whose frame leaves the warm start as it was (too_far: its rest state says nothing)
-FAILED = ("forward_failed", "non_finite", "too_far")
 
 
 @dataclasses.dataclass

@@ -165,8 +165,45 @@ def test_a_cloud_past_the_models_reach_is_refused_and_leaves_the_state(entry, se
             s.frame(far)
     assert np.array_equal(s.g, g) and s.frames == 1
     strays = seq.clouds[3].copy()
-    strays[::10] += 1e3  # one point in ten
-    assert np.isfinite(s.frame(strays).objective) and s.frames == 2
+    strays[::10] += 20.0  # one point in ten, 35 m off the 4 m bar: its rms is within the reach
+    r = s.frame(strays)
+    assert np.isfinite(r.objective) and r.status != "too_far" and s.frames == 2
+
+
+def test_a_cloud_with_any_point_past_far_is_refused_naming_how_many(entry, sequence):
+    """One point of 300 at 1e20 m, or 149 of them (the median still near), was answered
+    converged at rest, rms 1e20 m, the warm start zeroed (review repros one_stray_point.py,
+    far_minority_converged.py): any point past FAR model sizes is no camera's, refused with how
+    many and how far, the stream as it was."""
+    tool, seq = sequence
+    s = Session(entry.network, SessionConfig(support=_support(entry, tool)))
+    s.frame(seq.clouds[2])
+    g = s.g.copy()
+    for n in (1, 149):
+        far = seq.clouds[3].copy()
+        far[:n] = 1e20
+        with pytest.raises(
+            ValueError, match=f"{n} of 300 points are more than 4.24e\\+03 m .* the farthest 1.73e\\+20 m"
+        ):
+            s.frame(far)
+    assert np.array_equal(s.g, g) and s.frames == 1
+
+
+def test_an_answer_whose_rms_lies_past_the_reach_is_too_far_and_keeps_the_warm_start(entry, sequence):
+    """Points within FAR whose rms distance at the answer lies past REACH sizes (a tenth of the
+    cloud 1.5 km off the 4 m bar) are no registration, even where huber keeps the answer finite:
+    too_far, never converged, the warm start as it was; the next frame registers as before."""
+    tool, seq = sequence
+    s = Session(entry.network, SessionConfig(support=_support(entry, tool), loss="huber", loss_param=0.05))
+    before = s.frame(seq.clouds[3])
+    g = s.g.copy()
+    far = seq.clouds[3].copy()
+    far[::10] += 1e3
+    r = s.frame(far)
+    assert r.status == "too_far" and not r.converged and "times the model's size" in r.message, r.message
+    assert np.array_equal(s.g, g)
+    again = s.frame(seq.clouds[3])
+    assert again.distance_rms <= 1.5 * before.distance_rms + 1e-6
 
 
 def test_forces_stay_on_the_support_and_outputs_are_only_those_asked(entry, sequence):
