@@ -89,6 +89,7 @@ def solve_frame(
     rest_distance: PointToSurface | None = None,
     prefetch: Callable[[Array], None] | None = None,
     deadline: float | None = None,
+    box: Box | None = None,
 ) -> FrameSolution:
     """Register one frame.
 
@@ -108,8 +109,15 @@ def solve_frame(
     the deadline (the FEM's solves among them stop at it); the optimiser begins no evaluation
     that would end past it (by the frame's mean evaluation so far) and stops with status
     time_limit.
+    `box`, the model's rest bounding box (reach.py), is what the reach is judged against, as a
+    session's check judges the cloud; without one, the box of `rest_positions` (the matching
+    surface's nodes: a patch's box is smaller than the organ's, so a caller matching a patch
+    passes the model's, as a session does).
     """
-    refuse_bounds(options)  # the Jacobian, Levenberg-Marquardt's other need, at its first use
+    refuse_bounds(options)
+    box = (
+        Box(rest_positions) if box is None else box
+    )  # the Jacobian, Levenberg-Marquardt's other need, at its first use
     t_start = time.perf_counter()
     at_rest = getattr(op, "at_rest", None)
     beside = None
@@ -166,7 +174,7 @@ def solve_frame(
                 op, distance, evaluate, best, v_rest, g_tol, options, curvature, max_eval, deadline
             )
     except Done as done:  # the rest state is the answer, if the cloud is near enough to say so
-        far = _past_reach(distance, rest_positions)
+        far = _past_reach(distance, box)
         status, message = ("too_far", far) if far else ("converged", done.message)
         evaluate.best_g, evaluate.best_value, evaluate.best_J = np.zeros((k, 3)), v_rest, v_rest
         evaluate.best_u = evaluate.rest_u
@@ -178,7 +186,7 @@ def solve_frame(
         if timed_op:
             op.deadline = None  # the session's outputs are computed after the frame, in full
 
-    status, message = _judge(status, message, evaluate.best_rms, Box(rest_positions))
+    status, message = _judge(status, message, evaluate.best_rms, box)
     timing.total = time.perf_counter() - t_start
     return FrameSolution(
         g=evaluate.best_g,
@@ -206,11 +214,10 @@ def _check_rest(rest_rms: float, rest_positions: Array) -> None:
         raise Done("the cloud lies on the rest surface: no force needed")
 
 
-def _past_reach(distance: PointToSurface, rest_positions: Array) -> str:
-    """Why a cloud lies too far from the model for its rest state to be an answer ("" where it
-    does not): past the reach (reach.py) rounding ties every closest point, and a gradient it
-    zeroes is no optimum (1e20 m off was once answered converged at rest)."""
-    box = Box(rest_positions)
+def _past_reach(distance: PointToSurface, box: Box) -> str:
+    """Why a cloud lies too far from the model (its rest `box`) for its rest state to be an
+    answer ("" where it does not): past the reach (reach.py) rounding ties every closest point,
+    and a gradient it zeroes is no optimum (1e20 m off was once answered converged at rest)."""
     offset = box.median_offset(distance.points)
     if box.within(offset):
         return ""

@@ -273,6 +273,7 @@ class Session:
                 self._rest_distance,
                 prefetch,
                 deadline=deadline,
+                box=self._box,
             )
             t1 = time.perf_counter()
             if sol.status == "time_limit" and reserve > 0.0:
@@ -434,6 +435,7 @@ class Session:
             self._corrector_curvature,
             fallbacks,
             deadline=deadline,
+            box=self._box,
         )
 
     def _outputs(
