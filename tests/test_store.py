@@ -672,3 +672,39 @@ def test_a_manifest_claiming_a_huge_network_is_refused_before_it_is_built(bar_st
     assert error is not None and error.startswith("huge: the weights do not fit the manifest (weights.safetensors:")
     assert "[2000000] in the network" in error
     assert grew_mib < 100, f"refusing the manifest took {grew_mib:.0f} MiB"
+
+
+def test_a_manifest_claiming_more_members_or_layers_than_its_weights_is_refused_before_any_layout(tmp_path):
+    """The shipped phantom's manifest edited to claim 20000 ensemble members, or 20000 hidden
+    layers: each was laid out module by module (on the meta device) before the refusal, members
+    100000 taking 123 s and 2.6 GB. The counts are compared with the weights' tensor names
+    first: refused naming the entry, the file and the mismatch, with no more memory than a good
+    entry takes (peak RSS, in a process of its own). The manifest is hashed nowhere: the
+    files' checksums stand."""
+    import subprocess
+    import sys
+
+    shipped = Path(__file__).resolve().parents[1] / "model_store" / "phantom"
+    root = tmp_path / "store"
+    shutil.copytree(shipped, root / "phantom")
+    claims = {"members": {"members": 20000}, "layers": {"hidden": [8] * 20000}}
+    for name, claim in claims.items():
+        shutil.copytree(shipped, root / name)
+        _edit(root / name, id=name)
+        _network(root / name, **claim)
+    script = (
+        "import json, resource, sys; from service.store import StoreError, load_entry\n"
+        "peak = lambda: resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024\n"
+        "load_entry(sys.argv[1] + '/phantom'); before = peak(); errors = []\n"  # a good entry's cost first
+        "for name in ('members', 'layers'):\n"
+        "    try:\n        load_entry(sys.argv[1] + '/' + name); errors.append(None)\n"
+        "    except StoreError as exc:\n        errors.append(str(exc))\n"
+        "print(json.dumps([peak() - before, errors]))"
+    )
+    run = subprocess.run([sys.executable, "-c", script, str(root)], capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-2000:]
+    grew_mib, (members, layers) = json.loads(run.stdout)
+    prefix = "the weights do not fit the manifest (weights.safetensors: the manifest's network"
+    assert members == f"members: {prefix}.members is 20000, the file holds 1 member(s))"
+    assert layers == (f"layers: {prefix}.hidden has 20000 layers (20001 weight matrices per member), the file holds 3)")
+    assert grew_mib < 100, f"refusing the manifests took {grew_mib:.0f} MiB"
