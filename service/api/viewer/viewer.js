@@ -20,7 +20,7 @@ function fragmentValue(name) {
     const raw = eq < 0 ? '' : part.slice(eq + 1);
     try {
       return decodeURIComponent(raw);
-    } catch {  // a stray '%': no token has one, the server's refusal will say so
+    } catch {  // a stray '%': no server token holds one (token68), its 401 will say so
       return raw;
     }
   }
