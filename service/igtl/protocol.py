@@ -378,6 +378,14 @@ def encode_polydata(points: np.ndarray, triangles: np.ndarray) -> bytes:
     return header + pts.tobytes() + cells.tobytes()
 
 
+def warm() -> None:
+    """Compile (or load from numba's cache) the kernels a first message runs, the CRC and the
+    cell walk, so that a bridge's first frame does not pay for them (about 250 ms here)."""
+    body = encode_polydata(np.zeros((3, 3)), np.arange(3)[None])
+    decode_polydata(body)
+    crc64(body)
+
+
 # -- POINT and STRING --------------------------------------------------------------------------
 
 

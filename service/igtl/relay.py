@@ -95,9 +95,11 @@ class Relay:
         )  # what to do with a line a person should see (the CLI prints it)
 
     async def prepare(self) -> None:
-        """Read the API's limits and the model's mesh; BridgeError (one line) when it cannot."""
+        """Read the API's limits and the model's mesh, and ready the message kernels; BridgeError
+        (one line) when it cannot."""
         from clients.client import ApiError
 
+        p.warm()
         async with self._api() as api:
             try:
                 try:

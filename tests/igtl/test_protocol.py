@@ -199,3 +199,24 @@ def test_device_names_are_those_a_header_carries():
     for name in ("a" * 21, "", "wolkè", "cloud ", "a\tb"):
         with pytest.raises(ValueError, match="1 to 20 printable ASCII"):
             p.check_device_name(name)
+
+
+def test_a_bridge_readies_the_message_kernels_before_its_first_client(api_server):
+    """A fresh bridge process's first POLYDATA paid numba's compile or cache load (about 250 ms:
+    the CRC and the cell walk). Bridge.prepare, which runs before the bridge listens, readies
+    them, so the first frame does not wait."""
+    import subprocess
+    import sys
+
+    api = api_server()
+    code = (
+        "import asyncio\n"
+        "from service.igtl import protocol as p\n"
+        "from service.igtl.bridge import Bridge\n"
+        "kernels = (p._crc64, p._walk_cells)\n"
+        "assert not any(k.signatures for k in kernels), 'compiled before the bridge was prepared'\n"
+        f"asyncio.run(Bridge({api.url!r}, 'bar').prepare())\n"
+        "assert all(k.signatures for k in kernels), [k.signatures for k in kernels]\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
