@@ -50,7 +50,8 @@ def _device_name(text: str) -> str:
 def _train(args: argparse.Namespace) -> int:
     from .build import Interrupted, WorseThanInstalled, build
     from .scene import resolve_scene
-    from .surrogate.data import ClusterError, done_indices
+    from .surrogate.cluster import ClusterError
+    from .surrogate.data import done_indices
     from .surrogate.train import TrainConfig
 
     try:  # the config first: a bad combination of flags fails before the scene and any data

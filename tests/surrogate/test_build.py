@@ -335,7 +335,7 @@ def test_a_budget_too_short_for_local_workers_is_spent_in_this_process(tmp_path,
 
     from service.build import build
     from service.scene import load_scene
-    from service.surrogate.data import local_workers_pay
+    from service.surrogate.cluster import local_workers_pay
     from service.surrogate.train import TrainConfig
 
     assert not local_workers_pay(60 * minutes, 2)
@@ -553,7 +553,7 @@ def test_more_local_workers_pay_off_sooner():
     """w workers beat the build's own process once (seconds - cost) w > seconds: 8 of them pay
     off in a 35 s data share where 2 do not (review3/workers_payoff.py: 8 were refused there),
     and one never does."""
-    from service.surrogate.data import LOCAL_CLUSTER_COST_S, local_workers_pay
+    from service.surrogate.cluster import LOCAL_CLUSTER_COST_S, local_workers_pay
 
     assert local_workers_pay(35.0, 8) and not local_workers_pay(35.0, 2)
     assert local_workers_pay(2.01 * LOCAL_CLUSTER_COST_S, 2) and not local_workers_pay(1.99 * LOCAL_CLUSTER_COST_S, 2)
