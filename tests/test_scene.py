@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import textwrap
+import tomllib
 import warnings
 from pathlib import Path
 
@@ -11,7 +12,7 @@ import numpy as np
 import pytest
 
 from service.phantoms import grid_tets
-from service.scene import MODEL_ID_RULE, SceneError, builtin_scene, load_scene, parse_scene, resolve_scene
+from service.scene import MODEL_ID_RULE, MaterialSpec, SceneError, builtin_scene, load_scene, parse_scene, resolve_scene
 from tests.conftest import LIVER, needs_liver
 
 REPO = Path(__file__).resolve().parents[1]
@@ -229,7 +230,31 @@ def test_unknown_key(folder):
 
 def test_nu_too_large(folder):
     msg = error_of(folder, text=edited("nu = 0.49", "nu = 0.6"))
-    assert msg.endswith("scene.toml: [material] nu: must be < 0.5, got 0.6")
+    assert msg.endswith("scene.toml: [material] nu: must be within [0, 0.49999], got 0.6")
+
+
+@pytest.mark.parametrize(
+    "old, new, expected",
+    [
+        # each passed validation and failed only in the build: "first steps did not converge"
+        ("E = 4500", "E = 1e308", "[material] E: must be within [1, 1e+12] Pa, got 1e+308"),
+        ("E = 4500", "E = 1e-3", "[material] E: must be within [1, 1e+12] Pa, got 0.001"),
+        ("nu = 0.49", "nu = 0.499999999", "[material] nu: must be within [0, 0.49999], got 0.499999999"),
+    ],
+)
+def test_non_physical_materials_are_refused_with_their_range(folder, old, new, expected):
+    msg = error_of(folder, text=edited(old, new))
+    assert msg.endswith(f"scene.toml: {expected}") and "\n" not in msg
+
+
+def test_the_material_range_holds_every_shipped_and_benchmark_scene():
+    """The bounds are wide: the scenes the project ships and benchmarks load as they are."""
+    for name in ("beam", "phantom"):
+        builtin_scene(name)
+    benchmarks = sorted((REPO / "benchmarks" / "scenes").glob("*.toml"))
+    assert benchmarks
+    for path in benchmarks:  # their meshes are in ../shared: the material table alone
+        MaterialSpec(**tomllib.loads(path.read_text())["material"])
 
 
 def test_two_fixed_selections(folder):

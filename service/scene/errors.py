@@ -1,7 +1,7 @@
 """A scene's errors: the one type, and pydantic's validation errors as the scene's keys.
 
-Every error names its file and its key, e.g. ``scene.toml: [material] nu: must be < 0.5, got
-0.6``: :func:`describe` turns one pydantic error into that form, :func:`scene_error` makes one
+Every error names its file and its key, e.g. ``scene.toml: [material] nu: must be within [0,
+0.49999], got 0.6``: :func:`describe` turns one pydantic error into that form, :func:`scene_error` makes one
 of the scene's own.
 """
 

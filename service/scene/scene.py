@@ -1,7 +1,7 @@
 """Scenes: the TOML file of SCENES.md, validated into pydantic models, and the mesh it names.
 
 Every key is checked at load time and every error names its key, e.g.
-``scene.toml: [material] nu: must be < 0.5, got 0.6``, so a bad scene fails before hours of
+``scene.toml: [material] nu: must be within [0, 0.49999], got 0.6``, so a bad scene fails before hours of
 training, not during them. All errors are one type, :class:`SceneError` (a ``ValueError``).
 
 Keys beyond SCENES.md (all optional):

@@ -69,12 +69,28 @@ class MeshSpec(Table):
         return self
 
 
+#: soft tissue's E (100 Pa brain .. 10 MPa cartilage) and nu (0.45 .. 0.499), two decades of margin each
+E_RANGE = (1.0, 1e12)  # Pa
+NU_RANGE = (0.0, 0.49999)
+
+
+def _within(bounds: tuple[float, float], unit: str = ""):
+    """A check that a value lies in [lo, hi], its error naming the range."""
+
+    def check(value: float) -> float:
+        if not bounds[0] <= value <= bounds[1]:
+            raise ValueError(f"must be within [{bounds[0]:g}, {bounds[1]:g}]{unit}, got {value!r}")
+        return value
+
+    return AfterValidator(check)
+
+
 class MaterialSpec(Table):
-    """[material]: the Neo-Hookean law of SCENES.md (the only one)."""
+    """[material]: the Neo-Hookean law of SCENES.md (the only one), with physical constants."""
 
     law: Literal["neo-hookean"] = "neo-hookean"
-    E: Annotated[float, Field(strict=True, gt=0.0, allow_inf_nan=False)]
-    nu: Annotated[float, Field(strict=True, ge=0.0, lt=0.5)]
+    E: Annotated[float, Field(strict=True, allow_inf_nan=False), _within(E_RANGE, " Pa")]
+    nu: Annotated[float, Field(strict=True, allow_inf_nan=False), _within(NU_RANGE)]
 
 
 FIXED_KEYS = ("fixed_nodes", "fixed_nodes_file", "fixed_box")
