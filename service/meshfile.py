@@ -15,6 +15,7 @@ import os
 import subprocess
 import sys
 import tempfile
+from collections import Counter
 from collections.abc import Mapping
 from pathlib import Path
 from types import MappingProxyType
@@ -30,6 +31,22 @@ Array = np.ndarray
 
 #: Suffixes read as closed triangle surfaces and tetrahedralised; anything else goes to meshio.
 SURFACE_SUFFIXES = frozenset({".stl", ".obj", ".ply", ".off"})
+
+#: meshio's cell kinds read as tets (a quadratic tet keeps its four corners)
+TET_KINDS = ("tetra", "tetra10")
+#: legacy gmsh v1 element types that fill volume, by meshio's names: dropped, they cut the body
+GMSH1_VOLUME = {
+    "5": "hexahedron",
+    "6": "wedge",
+    "7": "pyramid",
+    "11": "tetra10",
+    "12": "hexahedron27",
+    "13": "wedge18",
+    "14": "pyramid14",
+    "17": "hexahedron20",
+    "18": "wedge15",
+    "19": "pyramid13",
+}
 
 #: TetGen options, as switches ``-pq1.5/18Y -O10/7 -o/165 -Q``: fill a piecewise-linear complex
 #: (p) with quality tets (radius-edge ratio <= 1.5, target dihedral >= 18 deg: q), keep the
@@ -276,7 +293,20 @@ def _read_gmsh1(path: Path) -> tuple[Array, Array]:
     if tets.max() >= len(lookup) or (lookup[tets] < 0).any():
         raise MeshError(f"{path}: elements refer to undefined nodes")
     log.info("%s: legacy gmsh v1 file, %d tets (other elements ignored)", path.name, len(tets))
+    _warn_dropped_volume(path, dict(Counter(GMSH1_VOLUME[r[1]] for r in rows if r[1] in GMSH1_VOLUME)))
     return node_rows[:, 1:4], lookup[tets]
+
+
+def _warn_dropped_volume(path: Path, counts: dict[str, int]) -> None:
+    """A warning naming the volume cells other than tets that loading drops (`counts`: kind ->
+    cells): the mesh then lacks their part of the body, unlike a file's boundary triangles."""
+    if counts:
+        said = ", ".join(f"{n} {kind}" for kind, n in sorted(counts.items()))
+        log.warning(
+            "%s: dropped %s cells (only tets are used): the mesh lacks their volume; split them into tets to keep it",
+            path.name,
+            said,
+        )
 
 
 def _read_tets(path: Path) -> tuple[Array, Array]:
@@ -301,16 +331,21 @@ def _read_tets(path: Path) -> tuple[Array, Array]:
         raise MeshError(f"{path}: meshio could not read it ({type(exc).__name__}: {said or exc})") from exc
     if chatter.getvalue().strip():
         log.debug("%s: meshio says: %s", path.name, " ".join(chatter.getvalue().split()))
-    blocks = [c.data[:, :4] for c in m.cells if c.type in ("tetra", "tetra10")]
+    blocks = [c.data[:, :4] for c in m.cells if c.type in TET_KINDS]
     if not blocks:
         kinds = sorted({c.type for c in m.cells}) or ["none"]
         raise MeshError(
             f"{path}: no tetrahedra in this file (cells: {', '.join(kinds)}); "
-            "give a volume mesh, or a closed surface as .stl/.obj/.ply to tetrahedralise"
+            "give a tetrahedral volume mesh, or a closed surface as .stl/.obj/.ply to tetrahedralise"
         )
-    ignored = sum(len(c.data) for c in m.cells if c.type not in ("tetra", "tetra10"))
+    ignored = sum(len(c.data) for c in m.cells if c.type not in TET_KINDS)
     if ignored:
         log.info("%s: ignored %d non-tet cells (boundary triangles, lines, ...)", path.name, ignored)
+    volume: dict[str, int] = {}
+    for c in m.cells:  # cell blocks, a few per file
+        if c.type not in TET_KINDS and c.dim == 3:  # meshio: the kind's topological dimension
+            volume[c.type] = volume.get(c.type, 0) + len(c.data)
+    _warn_dropped_volume(path, volume)
     return np.asarray(m.points, np.float64)[:, :3], np.concatenate(blocks).astype(np.int64)
 
 

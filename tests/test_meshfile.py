@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+
 import meshio
 import numpy as np
 import pytest
@@ -86,6 +88,53 @@ def test_file_without_tets_names_the_file(tmp_path, box):
     meshio.write(path, meshio.Mesh(nodes, [("triangle", tris)]))
     with pytest.raises(MeshError, match=r"surface_only\.vtu: no tetrahedra"):
         load_mesh(path)
+
+
+def test_dropped_volume_cells_are_a_warning_naming_kinds_and_counts(tmp_path, box, caplog):
+    """Hexes or wedges beside the tets are part of the body: dropping them is said at WARNING
+    (the command line shows it), by kind and count; boundary triangles and vertices stay quiet."""
+    nodes, tets = box
+    tris = TetMesh(nodes, tets).surface_faces
+    hexes = np.arange(16).reshape(2, 8)
+    cells = [("tetra", tets), ("hexahedron", hexes), ("wedge", np.arange(6)[None]), ("triangle", tris)]
+    path = tmp_path / "mixed.vtu"
+    meshio.write(path, meshio.Mesh(nodes, cells))
+    caplog.set_level(logging.INFO, logger="service.meshfile")
+    m = load_mesh(path)
+    np.testing.assert_array_equal(m.tets, tets)  # the tets, as before
+    (warning,) = [r for r in caplog.records if r.levelno == logging.WARNING]
+    assert "mixed.vtu: dropped 2 hexahedron, 1 wedge cells (only tets are used)" in warning.getMessage()
+
+    caplog.clear()
+    quiet = tmp_path / "with_tris.vtu"
+    meshio.write(quiet, meshio.Mesh(nodes, [("tetra", tets), ("triangle", tris), ("vertex", np.array([[0]]))]))
+    load_mesh(quiet)
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
+
+
+def test_a_legacy_gmsh_files_dropped_hexes_are_a_warning(tmp_path, box, caplog):
+    nodes, tets = box
+    rows = [f"{i + 1} 4 1 1 4 " + " ".join(str(v + 1) for v in t) for i, t in enumerate(tets)]
+    rows.append(f"{len(rows) + 1} 5 1 1 8 " + " ".join(str(v) for v in range(1, 9)))  # a hexahedron
+    rows.append(f"{len(rows) + 1} 2 1 1 3 1 2 3")  # a boundary triangle: quiet
+    text = ["$NOD", str(len(nodes))] + [f"{i + 1} {x} {y} {z}" for i, (x, y, z) in enumerate(nodes)]
+    text += ["$ENDNOD", "$ELM", str(len(rows)), *rows, "$ENDELM", ""]
+    path = tmp_path / "sofa.msh"
+    path.write_text("\n".join(text))
+    m = load_mesh(path)
+    assert len(m.tets) == len(tets)
+    (warning,) = [r for r in caplog.records if r.levelno == logging.WARNING]
+    assert "sofa.msh: dropped 1 hexahedron cells" in warning.getMessage()
+
+
+def test_a_file_of_hexes_alone_is_a_one_line_refusal(tmp_path, box):
+    nodes, _ = box
+    path = tmp_path / "hexes.vtu"
+    meshio.write(path, meshio.Mesh(nodes, [("hexahedron", np.arange(16).reshape(2, 8))]))
+    with pytest.raises(MeshError) as info:
+        load_mesh(path)
+    assert "hexes.vtu: no tetrahedra in this file (cells: hexahedron); give a tetrahedral" in str(info.value)
+    assert "\n" not in str(info.value)
 
 
 def test_bad_meshes_name_the_file(tmp_path):
