@@ -39,7 +39,7 @@ from .cluster import (
     _wait_for_workers,
     local_workers_pay,
 )
-from .pathfiles import done_indices, load_dataset, path_file, write_path
+from .pathfiles import done_indices, load_dataset, path_file, write_path, writing
 
 # the data set's files are read through this module too (pathfiles.py holds them)
 __all__ = [
@@ -206,10 +206,32 @@ def generate(
     the build's end); the wait for a worker never past `until` either. Local workers that their
     nannies restart mid-build (killed: the OOM killer on a big mesh) are sent the mesh again and
     the paths in flight solved again, up to LOCAL_RESTARTS times; a cluster lost otherwise is a
-    ClusterError that says how many paths the folder keeps.
+    ClusterError that says how many paths the folder keeps. The temporaries that a build killed
+    mid-write left in the folder are removed first, unless another build is writing there
+    (pathfiles.writing).
     """
     data_dir = Path(data_dir)
     data_dir.mkdir(parents=True, exist_ok=True)
+    with writing(data_dir):  # held by every build that writes here; a killed one's temporaries go first
+        yield from _generate(
+            mesh, material, spec, data_dir, n_paths, workers, scheduler, progress, max_newton, until, deadline
+        )
+
+
+def _generate(
+    mesh: TetMesh,
+    material: NeoHookean,
+    spec: LoadSpec,
+    data_dir: Path,
+    n_paths: int,
+    workers: int,
+    scheduler: str | None,
+    progress: bool,
+    max_newton: int | None,
+    until: float | None,
+    deadline: float | None,
+) -> Generator[dict, None, None]:
+    """generate's work, in a folder held for writing."""
     on_disk = frozenset(i for i in done_indices(data_dir) if i < n_paths)  # listed once, not once per path
     # lazy: a timed build's samples are a ceiling (millions of paths), its clock what ends it
     todo = (i for i in range(n_paths) if i not in on_disk)

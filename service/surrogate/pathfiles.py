@@ -1,21 +1,34 @@
 """The data set on disk: one file per finished load path, written atomically (surrogate/data.py).
 
 Per path file ``path_NNNNNN.npz``: ``forces`` (s, r, 3) float32 on the region nodes, ``u``
-(s, n, 3) float32 for all nodes, ``newton_iterations`` (s,), s <= steps.
+(s, n, 3) float32 for all nodes, ``newton_iterations`` (s,), s <= steps. A generation writes
+them under `writing`, which removes the temporaries of writes killed mid-way first.
 """
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import os
 import re
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
+try:  # advisory locks: POSIX systems
+    import fcntl
+except ImportError:  # pragma: no cover - Windows: no lock, so no temporary is ever taken for a leftover
+    fcntl = None  # type: ignore[assignment]
+
+log = logging.getLogger(__name__)
+
 Array = np.ndarray
 
 _PATH_NAME = re.compile(r"path_(\d{6})\.npz")
+#: write_path's temporary, .path_NNNNNN-XXXXXXXX.tmp.npz (XXXXXXXX: tempfile's 8 characters)
+_TEMPORARY = re.compile(r"\.path_\d{6}-[a-z0-9_]{8}\.tmp\.npz")
 
 
 def path_file(data_dir: Path, index: int) -> Path:
@@ -56,3 +69,41 @@ def load_dataset(data_dir: Path, indices: list[int] | None = None) -> tuple[Arra
     if not F:
         raise FileNotFoundError(f"no samples in {data_dir}")
     return np.concatenate(F), np.concatenate(U), np.concatenate(P)
+
+
+def _flock(fd: int, how: int) -> bool:
+    """flock(fd, how): False where another process holds a conflicting lock (LOCK_NB) or the
+    file system has no locks (NFS refuses flock on a folder: EBADF, ENOLCK, EOPNOTSUPP)."""
+    try:
+        fcntl.flock(fd, how)
+    except OSError:  # BlockingIOError among them
+        return False
+    return True
+
+
+@contextlib.contextmanager
+def writing(data_dir: Path) -> Iterator[None]:
+    """The data folder held while a generation writes paths to it: a shared lock on the folder
+    (builds of one scene share it and may write at once; the kernel drops it with the process).
+    First, where no other process holds it, the temporaries of writes killed mid-way (write_path's,
+    nothing else) are removed: with another build writing, one may be its path in flight."""
+    if fcntl is None:
+        yield
+        return
+    fd = os.open(data_dir, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        if _flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB):
+            _remove_temporaries(Path(data_dir))
+        _flock(fd, fcntl.LOCK_SH)  # waits only for another's clean-up; this build writes nothing yet
+        yield
+    finally:
+        os.close(fd)
+
+
+def _remove_temporaries(data_dir: Path) -> None:
+    """Remove the temporaries in `data_dir` that write_path left when killed mid-write."""
+    left = [p for p in data_dir.glob(".path_*.tmp.npz") if _TEMPORARY.fullmatch(p.name)]
+    for path in left:
+        path.unlink(missing_ok=True)
+    if left:
+        log.info("%s: removed %d half-written path files of a build killed mid-write", data_dir, len(left))

@@ -2,6 +2,8 @@
 
 import os
 import sys
+import tempfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -83,6 +85,43 @@ def test_generation_resumes_without_losing_or_redoing_paths(tmp_path, bar, spec)
     F, U, P = load_dataset(out)
     assert F.shape == (18, len(spec.region), 3) and U.shape == (18, bar.n_nodes, 3)
     np.testing.assert_array_equal(np.unique(P), np.arange(6))
+
+
+def killed_mid_write(data_dir, index: int):
+    """The temporary that write_path leaves when its process is killed (its own mkstemp name)."""
+    fd, name = tempfile.mkstemp(prefix=f".{path_file(data_dir, index).stem}-", suffix=".tmp.npz", dir=data_dir)
+    os.write(fd, b"half written")
+    os.close(fd)
+    return Path(name)
+
+
+def test_a_build_removes_the_temporaries_of_one_killed_mid_write(tmp_path, bar, spec):
+    """A build killed mid-write left .path_NNNNNN-XXXXXXXX.tmp.npz files that nothing removed:
+    the next generation on the folder removes them, and nothing else."""
+    out = tmp_path / "data"
+    out.mkdir()
+    left = [killed_mid_write(out, i) for i in (0, 5)]
+    kept = [out / ".path_000004.tmp.npz", out / "notes.tmp.npz", out / ".path_000001-abc.tmp.npz"]
+    for path in kept:
+        path.write_bytes(b"not write_path's")
+    assert len(list(generate(bar, MAT, spec, out, 2, workers=0, progress=False))) == 2
+    assert not any(path.exists() for path in left)
+    assert all(path.exists() for path in kept)
+    assert done_indices(out) == {0, 1}
+
+
+def test_a_build_leaves_the_temporaries_of_another_writing_the_folder(tmp_path, bar, spec):
+    """Two builds of one scene share its data folder: one that starts while the other writes
+    must not take the other's path in flight for a leftover."""
+    out = tmp_path / "data"
+    first = generate(bar, MAT, spec, out, 6, workers=0, progress=False)
+    next(first)  # the first build holds the folder, between two of its paths
+    in_flight = killed_mid_write(out, 3)  # as its next write would be
+    list(generate(bar, MAT, spec, out, 2, workers=0, progress=False))  # a second build, meanwhile
+    assert in_flight.exists()
+    first.close()  # the first build ends (or is killed): its temporaries are leftovers now
+    list(generate(bar, MAT, spec, out, 2, workers=0, progress=False))
+    assert not in_flight.exists()
 
 
 def test_dask_cluster_gives_the_same_samples(tmp_path, bar, spec):
@@ -225,9 +264,10 @@ sys.addaudithook(_count_listings)
 
 
 @pytest.mark.parametrize("missing", [(), (17, 311)])
-def test_resuming_lists_the_data_folder_once_however_many_paths_it_holds(tmp_path, bar, spec, missing):
-    """The paths on disk are listed once: once per path index made a resume quadratic (4000
-    finished paths took 37 s to find nothing to do, a fresh 6-million-path --samples 207 s)."""
+def test_resuming_lists_the_data_folder_twice_however_many_paths_it_holds(tmp_path, bar, spec, missing):
+    """The paths on disk are listed once (and the folder once more for a killed build's
+    temporaries): once per path index made a resume quadratic (4000 finished paths took 37 s
+    to find nothing to do, a fresh 6-million-path --samples 207 s)."""
     out = tmp_path / "data"
     out.mkdir()
     for i in range(400):
@@ -240,4 +280,4 @@ def test_resuming_lists_the_data_folder_once_however_many_paths_it_holds(tmp_pat
     finally:
         listings = _LISTED.pop(str(out))
     assert redone == list(missing)
-    assert listings == 1
+    assert listings == 2  # the finished paths, the temporaries: never once per path
