@@ -4,6 +4,7 @@ worker, separate processes on loopback, as a cluster's would be on other machine
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import socket
 import subprocess
@@ -28,7 +29,15 @@ def free_port() -> int:
 
 
 @pytest.fixture
-def cluster(tmp_path):
+def cluster(dask_processes):
+    """The address of a scheduler with one worker, each a process of its own."""
+    address, _ = dask_processes
+    return address
+
+
+@pytest.fixture
+def dask_processes(tmp_path):
+    """A scheduler and one worker, each a `dask` process: the address, and the two processes."""
     from distributed import Client
 
     dask = shutil.which("dask", path=str(Path(sys.executable).parent)) or shutil.which("dask")
@@ -55,7 +64,7 @@ def cluster(tmp_path):
                 if time.monotonic() > deadline:
                     raise
                 time.sleep(0.5)
-        yield address
+        yield address, procs
     finally:
         for p in procs[::-1]:
             p.terminate()
@@ -134,3 +143,74 @@ def test_generation_stops_at_its_deadline_with_paths_still_running(tmp_path, bar
     got = list(generate(bar, mat, spec, tmp_path / "d", 200, scheduler=cluster, progress=False,
                         until=time.perf_counter()))  # fmt: skip
     assert len(got) == len(done_indices(tmp_path / "d")) < 200
+
+
+def lost_cluster(exc: BaseException, where: str, data_dir: Path) -> int:
+    """The paths a lost cluster's ClusterError says the folder keeps, checked against the folder."""
+    from service.surrogate.data import done_indices, load_dataset
+
+    message = str(exc)
+    assert "\n" not in message, message
+    match = re.fullmatch(
+        rf"lost {re.escape(where)} mid-build \((.+)\): (\d+) load paths kept in {re.escape(str(data_dir))}; "
+        r"the same command resumes",
+        message,
+    )
+    assert match, message
+    kept = int(match.group(2))
+    assert kept == len(done_indices(data_dir))
+    load_dataset(data_dir)  # whole files: each one read back
+    return kept
+
+
+def test_a_scheduler_killed_mid_build_is_one_line_that_keeps_the_paths(tmp_path, bar, dask_processes):
+    """The scheduler's process killed while paths are solved: a ClusterError of one line that
+    names the cluster and the paths the folder keeps (the same command resumes from them)."""
+    from service.fem.material import NeoHookean
+    from service.surrogate.cluster import ClusterError
+    from service.surrogate.data import LoadSpec, generate
+
+    address, (scheduler, _) = dask_processes
+    spec = LoadSpec(region=tuple(bar.free_surface_nodes.tolist()), max_force=20.0, patch_nodes=(2, 6))
+    paths = generate(bar, NeoHookean(4500.0, 0.45), spec, tmp_path / "d", 10_000, scheduler=address, progress=False)
+    got = [next(paths), next(paths)]
+    scheduler.kill()
+    scheduler.wait(timeout=30)
+    t0 = time.perf_counter()
+    with pytest.raises(ClusterError) as caught:
+        got.extend(paths)
+    assert time.perf_counter() - t0 < 60  # not Dask's reconnect timeouts, one after another
+    assert lost_cluster(caught.value, f"the Dask cluster at {address}", tmp_path / "d") >= len(got) >= 2
+
+
+def local_workers() -> list:
+    """This process's Dask worker processes (a LocalCluster's nannies spawn them)."""
+    import psutil
+
+    return [p for p in psutil.Process().children(recursive=True) if "spawn_main" in " ".join(p.cmdline())]
+
+
+@pytest.mark.slow  # 13 s: four starts of a local worker
+def test_local_workers_killed_once_too_often_end_the_build_in_one_line(tmp_path, bar, caplog):
+    """Local workers killed (the OOM killer) are restarted by their nannies and sent the mesh
+    again LOCAL_RESTARTS times; killed once more, the build ends in one line that says how many
+    paths the folder keeps."""
+    from service.fem.material import NeoHookean
+    from service.surrogate.cluster import LOCAL_RESTARTS, ClusterError
+    from service.surrogate.data import LoadSpec, generate
+
+    spec = LoadSpec(region=tuple(bar.free_surface_nodes.tolist()), max_force=20.0, patch_nodes=(2, 6))
+    paths = generate(bar, NeoHookean(4500.0, 0.45), spec, tmp_path / "d", 10_000, workers=1, progress=False)
+    got, kills = [], 0
+    with pytest.raises(ClusterError) as caught:
+        for result in paths:  # each path back: kill the worker while the next ones are in flight
+            got.append(result)
+            workers = local_workers()
+            assert len(workers) == 1
+            for worker in workers:
+                worker.kill()
+            kills += 1
+    assert kills == LOCAL_RESTARTS + 1
+    restarted = [r for r in caplog.records if "the local Dask workers restarted" in r.getMessage()]
+    assert len(restarted) == LOCAL_RESTARTS
+    assert lost_cluster(caught.value, "the local Dask workers", tmp_path / "d") >= len(got) == kills
