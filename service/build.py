@@ -36,6 +36,9 @@ log = logging.getLogger(__name__)
 DATA_SHARE = 0.6
 #: seconds a timed build keeps back for the final evaluation and writing the entry
 WRITE_RESERVE_S = 5.0
+#: the least --minutes a refused build is told to try where no path finished: 6 s, in which the
+#: tests' 81-node bar builds; a bigger mesh then finishes a path, and the refusal measures it
+LEAST_MINUTES = 0.1
 #: Newton iterations a timed build gives one step of a training path before it drops the rest of
 #: the path: two cuts' worth of a load step's own budget. The steps past it are extreme shapes
 #: that took half of a slow organ's FEM time (docs/performance.md); an untimed build keeps them
@@ -136,6 +139,28 @@ class WorseThanInstalled(RuntimeError):
             f"this build of {entry_id} validates {times:.1f}x worse than the installed one "
             f"(more than {REPLACE_WORSE_FACTOR:g}x{sure}): mean {_figure(new)}, against {_figure(installed)}"
         )
+
+
+def too_short(minutes: float, done: int, spent: float, took: list[float]) -> str:
+    """The refusal of a timed build that finished `done` < 2 load paths after `spent` seconds
+    (`took`: its paths' solve seconds), with about the minutes that finish two: the time spent
+    plus the slowest path for each missing one, as the data's share, doubled for a loaded
+    machine. With no path solved a path's cost is unknown: ten times the budget, at least
+    LEAST_MINUTES. Rounded up to one significant figure."""
+    if took:
+        need = 2.0 * (spent + (2 - done) * max(took)) / DATA_SHARE / 60.0
+        what = f"a path took {max(took):.1f} s"
+    else:
+        need = max(10.0 * minutes, LEAST_MINUTES)
+        what = "this run solved none"
+    step = 10.0 ** math.floor(math.log10(need))
+    need = math.ceil(need / step - 1e-9) * step  # 1e-9: 0.1 / 0.1 is 1.0000000000000002
+    return (
+        f"--minutes {minutes:g} finished {done} load path{'' if done == 1 else 's'}, and a build needs 2 "
+        f"({what}; the data get {DATA_SHARE * 60.0 * minutes:.2g} s, {100 * DATA_SHARE:g} % of the minutes): "
+        f"give it more time, about --minutes {need:.2g}"
+        + ("; the rerun resumes from the finished paths" if done else "")
+    )
 
 
 def relative_error(validation: dict) -> float | None:
@@ -277,16 +302,16 @@ def build(
             workers=workers, scheduler=scheduler, progress=progress, max_newton=max_newton, until=data_until,
             deadline=deadline,
         )  # fmt: skip
-        for _ in paths:
+        took = []  # this run's paths' solve seconds
+        for solved in paths:
+            took.append(solved["seconds"])
             if data_until is not None and time.perf_counter() > data_until:
                 paths.close()  # cancels the paths still running; those written stay for a rerun
                 break
         data_seconds = time.perf_counter() - t0
         done = sorted(i for i in done_indices(data_dir) if i < n_paths)
         if len(done) < 2:
-            raise ValueError(
-                f"{minutes} minutes gave {len(done)} finished load paths; a build needs 2 (give it more time)"
-            )
+            raise ValueError(too_short(minutes, len(done), time.perf_counter() - t_start, took))
         F, U, P = load_dataset(data_dir, done)
         if np.unique(P).size < 2:  # paths whose first step failed hold no sample
             raise ValueError(

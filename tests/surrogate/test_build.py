@@ -349,12 +349,42 @@ def test_a_budget_too_short_for_local_workers_is_spent_in_this_process(tmp_path,
 
 
 def test_a_build_too_short_for_two_paths_is_refused(tmp_path, bar):
+    """The refusal says what to do and how much: it said only "a build needs 2 (give it more
+    time)". With no path solved it names LEAST_MINUTES, in which the bar builds."""
+    from service.build import build
+    from service.scene import load_scene
+    from service.surrogate.train import TrainConfig
+
+    scene = load_scene(write_bar_scene(tmp_path / "scene", bar))
+    with pytest.raises(ValueError) as caught:
+        build(scene, tmp_path / "store", workers=0, data_root=tmp_path / "data", progress=False, minutes=1e-4)
+    assert str(caught.value) == (
+        "--minutes 0.0001 finished 0 load paths, and a build needs 2 (this run solved none; the data get 0.0036 s, "
+        "60 % of the minutes): give it more time, about --minutes 0.1"
+    )
+    report = build(scene, tmp_path / "store", workers=0, data_root=tmp_path / "data", progress=False, minutes=0.1,
+                   config=TrainConfig(hidden=(32,), rank=8, features=8))  # fmt: skip
+    assert report.paths >= 2
+
+
+def test_a_refused_build_is_told_the_minutes_its_first_path_says(tmp_path, bar):
+    """One path solved: twice the time spent plus a path for the missing one, as the data's
+    share (60 %), rounded up; the path on disk stays for the rerun."""
+    from service.build import too_short
+
+    message = too_short(0.05, 1, spent=2.1, took=[1.4])  # 2 (2.1 + 1.4) / 0.6 s: 0.19 minutes
+    assert message == (
+        "--minutes 0.05 finished 1 load path, and a build needs 2 (a path took 1.4 s; the data get 1.8 s, "
+        "60 % of the minutes): give it more time, about --minutes 0.2; the rerun resumes from the finished paths"
+    )
+    assert too_short(2, 0, spent=80.0, took=[]).endswith("about --minutes 20")  # ten times, unmeasured
+
+
+def test_a_timed_build_refuses_a_budget_out_of_range(tmp_path, bar):
     from service.build import build
     from service.scene import load_scene
 
     scene = load_scene(write_bar_scene(tmp_path / "scene", bar))
-    with pytest.raises(ValueError, match="needs 2"):
-        build(scene, tmp_path / "store", workers=0, data_root=tmp_path / "data", progress=False, minutes=1e-4)
     for minutes in (0, math.nan, 1e308):  # 60 * 1e308 overflowed to an infinite deadline
         with pytest.raises(ValueError, match="positive and at most 525600"):
             build(scene, tmp_path / "store", workers=0, data_root=tmp_path / "data", progress=False, minutes=minutes)
