@@ -12,7 +12,7 @@ import shlex
 import sys
 from pathlib import Path
 
-from .argtypes import build_minutes, whole_number
+from .argtypes import build_minutes, positive, whole_number
 
 _at_least_one = whole_number(1)
 _at_least_zero = whole_number(0)
@@ -198,6 +198,7 @@ def _igtl(args: argparse.Namespace) -> int:
             device=args.device,
             settings=settings,
             token=args.token or os.environ.get("ELASTREG_TOKEN"),
+            idle_timeout=args.idle_timeout,
         )
     except KeyboardInterrupt:  # Ctrl-C: clients told and closed, one line, as demo and train
         print("interrupted", file=sys.stderr)
@@ -344,6 +345,13 @@ def parser() -> argparse.ArgumentParser:
         help="a file of node ids forces may act on: whitespace-separated ('#' comments), or a .npy array",
     )
     g.add_argument("--token", default=None, help="the API token, for a --server with tokens (default: $ELASTREG_TOKEN)")
+    g.add_argument(
+        "--idle-timeout",
+        type=positive,
+        default=None,
+        metavar="SECONDS",
+        help="a client silent this long gives the one slot up to a new connection (default: 10)",
+    )
     g.set_defaults(func=_igtl)
 
     b = command("bench", "error against run time: tables and plots (see the README)")

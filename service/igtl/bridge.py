@@ -5,7 +5,9 @@ The bridge is a client of the HTTP/WebSocket API (:class:`clients.AsyncClient`),
 of the engine: each OpenIGTLink client gets one ``/stream`` session, which a viewer can watch
 (``/viewer?session=ID``). One client at a time: a second, while the first is connected, is told
 so and closed; one that comes as the first leaves (a reconnect) is served at once, while the
-first's session closes.
+first's session closes; one that comes while the first is silent (a Slicer that crashed or slept
+and left its connection half-open) takes the slot once the first has been silent for
+``idle_timeout``.
 
 In: ``POLYDATA`` (a model's points, as Slicer sends one) or ``POINT`` named ``cloud`` (the
 device name is configurable) is one frame. Out, per frame: ``POLYDATA`` ``registered`` (the
@@ -23,12 +25,13 @@ import asyncio
 import contextlib
 import logging
 import os
+import time
 
 import numpy as np
 
 from . import protocol as p
 from .answers import error_body
-from .connection import ClientStalled, Connection, ConnectionReader, keepalive
+from .connection import ClientStalled, Connection, ConnectionReader, Evicted, keepalive
 from .relay import ApiRefused, BridgeError, Relay, Surface, close_stream
 
 __all__ = ["Bridge", "BridgeError", "Surface", "run", "serve"]
@@ -41,6 +44,10 @@ _THREAD_DECODE = 256 << 10
 #: before it is refused: a client that reconnects closes its old connection first, but the two
 #: may arrive together and the close be seen a moment after the new connection
 _RECONNECT_GRACE = 1.0
+#: seconds a client may stay silent (no message sent, none being answered) and keep the slot
+#: from a new connection (`elastreg igtl --idle-timeout`): longer than a pause between clouds,
+#: shorter than a user who restarted Slicer will wait before giving up
+IDLE_TIMEOUT = 10.0
 #: seconds the connections' teardown may take when the bridge stops (Ctrl-C)
 _STOP_GRACE = 5.0
 
@@ -58,9 +65,13 @@ class Bridge(Relay):
         settings: dict | None = None,
         encoding: str = "msgpack",
         token: str | None = None,
+        idle_timeout: float | None = None,
     ) -> None:
         super().__init__(api_url, model, settings=settings, encoding=encoding, token=token)
         self.device = p.check_device_name(device)  # a longer name no message could carry
+        self.idle_timeout = IDLE_TIMEOUT if idle_timeout is None else idle_timeout
+        if not 0 < self.idle_timeout < float("inf"):
+            raise ValueError(f"idle_timeout must be a positive finite number of seconds, got {idle_timeout!r}")
         self._client: Connection | None = None  # the client that holds the one slot
         self._ignored: set[tuple[str, str]] = set()  # (type, device) of messages ignored so far
 
@@ -76,6 +87,28 @@ class Bridge(Relay):
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(held.left.wait(), 0.05)
 
+    async def _silent_past_bound(self, arrived: float) -> bool:
+        """Whether the client holding the slot, silent since before ``arrived`` (a new
+        connection's time), stays so until it has been silent for idle_timeout: it is then
+        evicted and the slot free. False, at once, if it was not silent then or speaks since (a
+        message begun), or when it leaves on its own; waits at most idle_timeout."""
+        held = self._client
+        while held is not None and not held.gone():
+            quiet_since = held.quiet_since
+            if quiet_since is None or quiet_since > arrived:
+                return False
+            silent = held.silent()
+            if silent >= self.idle_timeout:
+                log.warning("client %s silent for %.1f s: a new connection takes the slot", held.peer, silent)
+                held.evict(
+                    f"another client took this bridge's one slot after this one sent nothing for {silent:.1f} s "
+                    f"(the bridge's idle timeout is {self.idle_timeout:g} s)"
+                )
+                return True
+            with contextlib.suppress(TimeoutError):  # polled: its silence is a clock, not an event
+                await asyncio.wait_for(held.left.wait(), min(0.05, self.idle_timeout - silent))
+        return False
+
     # -- one connection --------------------------------------------------------------------------
 
     async def handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
@@ -86,9 +119,12 @@ class Bridge(Relay):
             send_min_rate=self.send_min_rate,
             read_timeout=self.read_timeout,
         )
+        arrived = time.monotonic()
         if self.busy:  # a reconnecting client's close may be seen a moment after its new connection
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(self._left(), _RECONNECT_GRACE)
+        if self.busy:  # a client that stays silent past the idle bound gives the slot up
+            await self._silent_past_bound(arrived)
         if self.busy:
             log.warning("refusing %s: a client is already connected", client.peer)
             await client.tell(error_body(503, "this bridge serves one client at a time; one is connected"))
@@ -111,6 +147,8 @@ class Bridge(Relay):
         except ClientStalled as exc:  # the slot is freed: a stalled or vanished client holds it no longer
             log.warning("client %s: %s; closing it", client.peer, exc)
             error = error_body(408, str(exc))  # the HTTP API's code for a body that comes too slowly
+        except Evicted as exc:  # a new connection took the slot from this silent one
+            error = error_body(409, str(exc))
         except Exception as exc:  # a bug: this client is told and closed, the next is served
             log.exception("client %s: internal error", client.peer)
             error = error_body(500, f"internal error in the bridge ({type(exc).__name__}); it has been logged")
@@ -231,6 +269,7 @@ def run(
     device: str = "cloud",
     settings: dict | None = None,
     token: str | None = None,
+    idle_timeout: float | None = None,
 ) -> int:
     """``elastreg igtl``: the bridge, over ``server`` or an API it starts in this process."""
     from contextlib import ExitStack
@@ -242,7 +281,7 @@ def run(
 
             api = stack.enter_context(BackgroundServer(Settings(store=store or default_store())))
             server = api.url
-        bridge = Bridge(server, model, device=device, settings=settings, token=token)
+        bridge = Bridge(server, model, device=device, settings=settings, token=token, idle_timeout=idle_timeout)
         bridge.announce = lambda line: print(f"elastreg igtl: {line}", flush=True)
 
         def ready(bound: int) -> None:

@@ -8,6 +8,7 @@ import asyncio
 import contextlib
 import logging
 import socket
+import time
 from typing import TYPE_CHECKING
 
 from ..sendwait import Stalled, drop, progressing
@@ -30,6 +31,10 @@ _PEER_CLOSED = frozenset((7, 8, 9, 11))
 class ClientStalled(Exception):
     """A client began a message and did not finish it in time, took nothing of its answer for
     send_timeout, or vanished."""
+
+
+class Evicted(Exception):
+    """A client silent past the idle bound lost the slot to a new connection (:meth:`Connection.evict`)."""
 
 
 class Connection:
@@ -62,6 +67,20 @@ class Connection:
         self.send_min_rate = send_min_rate
         self.read_timeout = read_timeout
         self._socket = writer.get_extra_info("socket")
+        #: since when it has sent nothing and had nothing answered (monotonic s; its connection at
+        #: first), None while one of its messages is read or answered
+        self.quiet_since: float | None = time.monotonic()
+
+    def silent(self) -> float:
+        """Seconds it has sent nothing and had nothing answered; 0 while a message of its is read
+        or answered."""
+        return 0.0 if self.quiet_since is None else time.monotonic() - self.quiet_since
+
+    def evict(self, why: str) -> None:
+        """End a client that is waiting for its next message: its read raises Evicted(why), and
+        it has left (``left``) at once, so the slot is free before its teardown."""
+        self.reader.set_exception(Evicted(why))
+        self.left.set()  # a ConnectionReader sets it too; a plain StreamReader does not
 
     def gone(self) -> bool:
         """Whether it has left (``left``), its socket's TCP state included: past 128 KiB unread
@@ -76,7 +95,10 @@ class Connection:
         """The next message; None (answered or logged) when it is malformed or not for us.
         A client may be quiet between messages as long as it likes; once a message began, the
         rest must come within read_timeout (ClientStalled past it)."""
+        if self.quiet_since is None:  # its last message answered (or ignored): silent from now
+            self.quiet_since = time.monotonic()
         first = await self.reader.readexactly(1)
+        self.quiet_since = None
         try:
             async with asyncio.timeout(self.read_timeout):
                 return await self._read_rest(first)

@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import asyncio
 import json
+import select
 import threading
+import time
 
 import pytest
 
@@ -19,8 +21,8 @@ from .conftest import get_mesh, is_open, point_frame, read_answer, read_message,
 
 
 def test_a_second_client_while_one_is_connected_is_refused(api_server, run_bridge):
-    """The second is sent a version-1 status {"error": {"code": 503, "detail"}} and closed; the
-    first keeps its session."""
+    """The second, while the first keeps sending frames, is sent a version-1 status {"error":
+    {"code": 503, "detail"}} and closed; the first keeps its session."""
     api = api_server()
     mesh = get_mesh(api.url, "bar")
     n = len(mesh["surface_nodes"])
@@ -30,6 +32,11 @@ def test_a_second_client_while_one_is_connected_is_refused(api_server, run_bridg
         first.sendall(frame)
         sid = registered(read_answer(first), n)["session"]
         with bridge.connect(timeout=30) as second:
+            deadline = time.monotonic() + 30
+            while not select.select([second], [], [], 0.1)[0]:  # frames from the first until told
+                assert time.monotonic() < deadline, "the second client was never answered"
+                first.sendall(frame)
+                assert registered(read_answer(first), n)["session"] == sid
             msg = read_message(second)
             assert (msg.type, msg.device, msg.version) == ("STRING", "status", 1)
             assert json.loads(p.decode_string(msg.content)) == {
@@ -40,6 +47,34 @@ def test_a_second_client_while_one_is_connected_is_refused(api_server, run_bridg
         first.sendall(frame)
         assert registered(read_answer(first), n)["session"] == sid
     assert bridge.bridge.sessions == [sid]
+
+
+def test_a_silent_client_gives_the_slot_to_a_new_connection_past_the_idle_timeout(api_server, run_bridge):
+    """A client that connects and sends nothing (Slicer crashed with its connection half-open, a
+    laptop asleep) held the only slot, and a reconnecting Slicer was refused: a new connection
+    now waits until the silent one has sent nothing for idle_timeout, takes the slot and is
+    served; the silent one is told (409) and closed, its session with it."""
+    idle = 1.5
+    api = api_server()
+    mesh = get_mesh(api.url, "bar")
+    frame = point_frame(surface_cloud(mesh))
+    bridge = run_bridge(api.url, idle_timeout=idle)
+    with bridge.connect() as silent:
+        old_sid = bridge.wait_sessions(1)[0]
+        t0 = time.monotonic()
+        with bridge.connect() as new:
+            new.sendall(frame)
+            status = registered(read_answer(new), len(mesh["surface_nodes"]))
+            served = time.monotonic() - t0
+            assert status["session"] != old_sid
+            assert served < idle + 5.0, f"served {served:.1f} s after it connected"
+            error = json.loads(p.decode_string(read_message(silent).content))["error"]
+            assert error["code"] == 409 and "sent nothing for" in error["detail"], error
+            with pytest.raises(ConnectionError):
+                read_message(silent)  # closed
+            wait_closed(api.url, old_sid)
+            new.sendall(frame)  # and the new client keeps the slot
+            assert registered(read_answer(new), len(mesh["surface_nodes"]))["session"] == status["session"]
 
 
 def test_a_client_that_reconnects_at_once_is_served(api_server, run_bridge, monkeypatch):

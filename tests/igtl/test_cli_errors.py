@@ -70,3 +70,10 @@ def test_a_device_name_no_header_can_carry_is_refused_at_parse_time(name):
     r = igtl("--model", "bar", "--server", f"http://127.0.0.1:{free_port()}", "--device", name)
     assert r.returncode == 2, r.stderr
     assert r.stderr.strip().splitlines()[-1].startswith("elastreg igtl: error: argument --device: a device name is")
+
+
+@pytest.mark.parametrize("value", ["0", "-1", "nan", "inf", "soon"])
+def test_an_idle_timeout_that_is_no_positive_time_is_refused_at_parse_time(value):
+    r = igtl("--model", "bar", "--server", f"http://127.0.0.1:{free_port()}", "--idle-timeout", value)
+    assert r.returncode == 2, r.stderr
+    assert "argument --idle-timeout: must be a positive finite number" in r.stderr.strip().splitlines()[-1]
