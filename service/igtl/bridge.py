@@ -25,6 +25,7 @@ import asyncio
 import contextlib
 import logging
 import os
+import sys
 import time
 
 import numpy as np
@@ -294,5 +295,6 @@ def run(
         try:  # Ctrl-C (KeyboardInterrupt, once the connections are ended) is the caller's
             asyncio.run(serve(bridge, host, port, ready))
         except BridgeError as exc:  # one line, as `elastreg serve` refuses a bad start
-            raise SystemExit(f"error: {exc}") from None
+            print(f"error: {exc}", file=sys.stderr, flush=True)
+            raise SystemExit(exc.exit_status) from None
     return 0

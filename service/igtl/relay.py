@@ -53,7 +53,16 @@ class Surface:
 
 class BridgeError(RuntimeError):
     """The bridge cannot start (the API refuses the model or cannot be reached, the port is
-    taken): its text is one line that says why."""
+    taken): its text is one line that says why; ``exit_status`` the command's."""
+
+    exit_status = 1
+
+
+class SettingsRefused(BridgeError):
+    """The API refuses the session settings given on the command line (a --support id past the
+    model's nodes or on a fixed node, an --alpha out of range): a wrong command line, status 2."""
+
+    exit_status = 2
 
 
 class ApiRefused(Exception):
@@ -95,8 +104,8 @@ class Relay:
         )  # what to do with a line a person should see (the CLI prints it)
 
     async def prepare(self) -> None:
-        """Read the API's limits and the model's mesh, and ready the message kernels; BridgeError
-        (one line) when it cannot."""
+        """Read the API's limits and the model's mesh, check the session settings and ready the
+        message kernels; BridgeError (one line) when it cannot."""
         from clients.client import ApiError
 
         p.warm()
@@ -111,6 +120,29 @@ class Relay:
                 raise BridgeError(f"the API at {self.api_url} refused model {self.model!r}: {exc}") from None
             except (OSError, _http_error()) as exc:
                 raise BridgeError(self._unreachable(exc)) from None
+            await self._check_settings(api)
+
+    async def _check_settings(self, api) -> None:
+        """Open and close a session with this bridge's settings, so that the API's own checks (a
+        support's ids against the model's nodes, its fixed nodes, a network's load region; every
+        setting's range) refuse a wrong command line now, not at each client's connection:
+        SettingsRefused on a 422. Any other refusal (at its session limit, say) is left for a
+        client's connection to report."""
+        from clients.client import ApiError
+
+        try:  # over HTTP: a token goes as the header _api() sets
+            probe = await api.open_session(self.model, **self.settings)
+        except ApiError as exc:
+            if exc.status == 422:
+                raise SettingsRefused(
+                    f"{_refused(exc.detail)} (the API at {self.api_url}, model {self.model!r})"
+                ) from None
+            log.warning("the session settings could not be checked at start: %s", exc)
+            return
+        except (OSError, _http_error()) as exc:
+            raise BridgeError(self._unreachable(exc)) from None
+        with contextlib.suppress(ApiError, OSError, _http_error()):
+            await probe.close()
 
     @property
     def send_timeout(self) -> float:
@@ -260,6 +292,18 @@ class Relay:
     ) -> None:
         """A frame's answer when it has no result: its id and the error."""
         await client.send(status_message({"frame_id": frame, "error": error_body(code, detail, retry_after)}, version))
+
+
+def _refused(detail) -> str:
+    """A 422's detail as one line, each field named by its flag (``--support: ...``)."""
+    if not isinstance(detail, list):
+        return " ".join(str(detail).split())
+    return "; ".join(f"{_flag(e.get('loc') or [])}: {' '.join(str(e.get('msg')).split())}" for e in detail)
+
+
+def _flag(loc: list) -> str:
+    fields = [str(x) for x in loc if x != "body"]
+    return "--" + fields[0].replace("_", "-") if fields else "the session settings"
 
 
 def _ws_errors() -> tuple[type[BaseException], ...]:

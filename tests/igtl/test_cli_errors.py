@@ -11,6 +11,8 @@ import pytest
 
 from service.api.server import free_port
 
+from .conftest import get_mesh
+
 TOKEN = "igtl-test-token-0123456789"
 
 
@@ -77,3 +79,32 @@ def test_an_idle_timeout_that_is_no_positive_time_is_refused_at_parse_time(value
     r = igtl("--model", "bar", "--server", f"http://127.0.0.1:{free_port()}", "--idle-timeout", value)
     assert r.returncode == 2, r.stderr
     assert "argument --idle-timeout: must be a positive finite number" in r.stderr.strip().splitlines()[-1]
+
+
+@pytest.mark.parametrize("case", ["past the nodes", "a fixed node", "an alpha below zero"])
+def test_settings_the_model_refuses_are_one_line_and_exit_2_before_listening(case, api_server, tmp_path):
+    """--support ids the model cannot take (past its node count, on a fixed node) were sent only
+    when a client connected, and each client was refused in turn; the API's own check, made at
+    start, refuses them in one line naming the flag, exit 2, before the bridge listens."""
+    api = api_server()
+    mesh = get_mesh(api.url, "bar")
+    n = len(mesh["nodes"])
+    free = sorted(set(mesh["surface_nodes"]) - set(mesh["fixed_nodes"]))
+    ids = tmp_path / "support.txt"
+    args = ["--model", "bar", "--server", api.url, "--port", str(free_port())]
+    if case == "past the nodes":
+        ids.write_text(f"{free[0]} {n}\n")
+        args += ["--support", str(ids)]
+        words = f"--support: support node ids must lie in 0..{n - 1}"
+    elif case == "a fixed node":
+        ids.write_text(f"{free[0]} {mesh['fixed_nodes'][0]}\n")
+        args += ["--support", str(ids)]
+        words = "--support: support contains fixed nodes"
+    else:
+        args += ["--alpha", "-1"]
+        words = "--alpha: "
+    r = igtl(*args)
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1, r.stderr
+    assert lines[0].startswith("error: ") and words in lines[0], lines
+    assert "OpenIGTLink on" not in r.stdout, r.stdout  # it never listened
