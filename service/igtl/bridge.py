@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
 import os
 import sys
@@ -199,12 +200,14 @@ class Bridge(Relay):
             )
             self._ignored.add(key)
             return None
-        decode = p.decode_polydata if msg.type == "POLYDATA" else p.decode_point
+        # the body is the bridge's own buffer (Connection): a POLYDATA's points are decoded in it
+        decode = functools.partial(p.decode_polydata, reuse=True) if msg.type == "POLYDATA" else p.decode_point
+        content, msg.content = msg.content, b""  # held here only: freed once its points are out
         try:
-            if len(msg.content) > _THREAD_DECODE:  # a large body's cells are read off the event loop
-                decoded = await asyncio.to_thread(decode, msg.content)
+            if len(content) > _THREAD_DECODE:  # a large body's cells are read off the event loop
+                decoded = await asyncio.to_thread(decode, content)
             else:
-                decoded = decode(msg.content)
+                decoded = decode(content)
         except p.ProtocolError as exc:
             await client.malformed(exc, msg.version)
             return None

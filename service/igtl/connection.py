@@ -119,12 +119,26 @@ class Connection:
             await self.malformed(exc, self.version)
             return None
         self.version = min(version, 2)
-        body = await reader.readexactly(size)
+        body = await self._read_body(size)
         try:
             return p.parse_body(version, mtype, device, ts, body, crc)
         except p.ProtocolError as exc:
             await self.malformed(exc, version)
             return None
+
+    async def _read_body(self, size: int) -> bytearray:
+        """``size`` bytes in one buffer, moved into it as they come: readexactly held a large body
+        twice (its reader's buffer grown to the whole body, then the bytes copied out of it)."""
+        body = bytearray(size)
+        at = 0
+        with memoryview(body) as view:  # released before the caller trims the buffer in place
+            while at < size:
+                chunk = await self.reader.read(size - at)  # what is buffered, up to the reader's limit
+                if not chunk:
+                    raise asyncio.IncompleteReadError(b"", size)
+                view[at : at + len(chunk)] = chunk
+                at += len(chunk)
+        return body
 
     # -- out ---------------------------------------------------------------------------------
 

@@ -82,7 +82,7 @@ class Message:
     device: str
     version: int = 1
     timestamp: float = 0.0
-    content: bytes = b""
+    content: bytes | bytearray = b""
     metadata: dict[str, str] = dataclasses.field(default_factory=dict)
     message_id: int = 0
 
@@ -118,8 +118,11 @@ def parse_header(raw: bytes) -> tuple[int, str, str, float, int, int]:
     return version, _name(mtype), _name(device), sec + frac / 2**32, size, crc
 
 
-def parse_body(version: int, mtype: str, device: str, timestamp: float, body: bytes, crc: int | None) -> Message:
-    """The message a header and its body make; ProtocolError when they do not fit."""
+def parse_body(
+    version: int, mtype: str, device: str, timestamp: float, body: bytes | bytearray, crc: int | None
+) -> Message:
+    """The message a header and its body make; ProtocolError when they do not fit. A bytearray
+    body becomes the content itself, trimmed in place (a large body is not copied)."""
     if crc is not None and crc64(body) != crc:
         raise ProtocolError(f"{mtype} {device!r}: CRC mismatch (the body is corrupt)")
     msg = Message(mtype, device, version, timestamp)
@@ -132,8 +135,13 @@ def parse_body(version: int, mtype: str, device: str, timestamp: float, body: by
     end = len(body) - meta_header - meta_size
     if ext < EXT_HEADER.size or end < ext:
         raise ProtocolError(f"{mtype} {device!r}: extended header sizes do not fit the body")
-    msg.content = body[ext:end]
-    msg.metadata = _metadata(body[end:], meta_header, f"{mtype} {device!r}")
+    msg.metadata = _metadata(bytes(body[end:]), meta_header, f"{mtype} {device!r}")
+    if isinstance(body, bytearray):  # bytearray drops its first bytes without moving the rest
+        del body[end:]
+        del body[:ext]
+        msg.content = body
+    else:
+        msg.content = body[ext:end]
     return msg
 
 
@@ -313,8 +321,10 @@ _ATTR_COMPONENTS = {
 }  # scalar (its own count), vector, normal, tensor, RGBA
 
 
-def decode_polydata(content: bytes) -> PolyData:
-    """A POLYDATA body (pyigtl does not decode these; this follows igtl_polydata.c)."""
+def decode_polydata(content: bytes | bytearray, *, reuse: bool = False) -> PolyData:
+    """A POLYDATA body (pyigtl does not decode these; this follows igtl_polydata.c). ``reuse``:
+    the points are byte-swapped where they lie in ``content`` (a bytearray its caller gives up),
+    not copied: a cloud's points are nearly all of its body."""
     if len(content) < POLY_HEADER.size:
         raise ProtocolError(f"POLYDATA: {len(content)} bytes, shorter than its 40-byte header")
     npts, nv, sv, nl, sl, npoly, spoly, ns, sstrip, natt = POLY_HEADER.unpack_from(content)
@@ -324,7 +334,11 @@ def decode_polydata(content: bytes) -> PolyData:
     need = at + 12 * npts + sv + sl + spoly + sstrip
     if len(content) < need:
         raise ProtocolError(f"POLYDATA: {len(content)} bytes, but its header announces at least {need}")
-    points = np.frombuffer(content, ">f4", 3 * npts, at).astype(np.float32).reshape(npts, 3)
+    points = np.frombuffer(content, ">f4", 3 * npts, at)
+    if reuse:
+        points = points.byteswap(inplace=True).view(np.float32).reshape(npts, 3)
+    else:
+        points = points.astype(np.float32).reshape(npts, 3)
     at += 12 * npts
     body = np.frombuffer(content, np.uint8)
     sections = []
@@ -340,7 +354,7 @@ def decode_polydata(content: bytes) -> PolyData:
     return PolyData(points, *sections, attributes)
 
 
-def _attributes(content: bytes, at: int, count: int) -> dict[str, np.ndarray]:
+def _attributes(content: bytes | bytearray, at: int, count: int) -> dict[str, np.ndarray]:
     try:
         heads = [struct.unpack_from(">BBI", content, at + 6 * i) for i in range(count)]
         at += 6 * count
@@ -389,7 +403,7 @@ def warm() -> None:
 # -- POINT and STRING --------------------------------------------------------------------------
 
 
-def decode_point(content: bytes) -> np.ndarray:
+def decode_point(content: bytes | bytearray) -> np.ndarray:
     """The positions (m, 3) of a POINT body (136 bytes a point)."""
     if len(content) % POINT_ITEM:
         raise ProtocolError(f"POINT: {len(content)} bytes is not a whole number of 136-byte points")
@@ -398,7 +412,7 @@ def decode_point(content: bytes) -> np.ndarray:
     return xyz.astype(np.float32).reshape(-1, 3)
 
 
-def decode_string(content: bytes) -> str:
+def decode_string(content: bytes | bytearray) -> str:
     if len(content) < 4:
         raise ProtocolError("STRING: shorter than its 4-byte header")
     encoding, length = struct.unpack_from(">HH", content)

@@ -220,3 +220,20 @@ def test_a_bridge_readies_the_message_kernels_before_its_first_client(api_server
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr[-2000:]
+
+
+@pytest.mark.parametrize("version", [1, 2])
+def test_a_bytearray_body_is_the_content_and_its_points_are_decoded_in_place(surface, version):
+    """The bridge's own buffer: the content is the body trimmed in place, its metadata read
+    first, and reuse=True decodes the points where they lie, as a copy would give them."""
+    points, tris = surface
+    data = p.pack("POLYDATA", "cloud", p.encode_polydata(points, tris), version=version, metadata={"unit": "m"})
+    version_, mtype, device, ts, size, crc = p.parse_header(data[: p.HEADER_SIZE])
+    body = bytearray(data[p.HEADER_SIZE :])
+    msg = p.parse_body(version_, mtype, device, ts, body, crc)
+    assert msg.content is body and bytes(body) == split(data).content
+    assert msg.metadata == ({"unit": "m"} if version == 2 else {})
+    poly = p.decode_polydata(msg.content, reuse=True)
+    np.testing.assert_array_equal(poly.points, points)
+    np.testing.assert_array_equal(poly.triangles, tris)
+    assert np.shares_memory(poly.points, np.frombuffer(body, np.uint8))  # no copy
