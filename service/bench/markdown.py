@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .results import write_csv, write_results
+from .results import write_csv, write_minutes_rows, write_results
 
 _TRUTH_TEXT = {
     "subdivided": "the Neo-Hookean solution on the mesh subdivided once",
@@ -115,6 +115,7 @@ def write_report(results: dict, out: Path) -> None:
         from .minutes import latest  # here: the minutes part imports the whole build
 
         rows = latest(parts["minutes"]["rows"])
+        write_minutes_rows(out, parts["minutes"]["rows"])
         md.append("\n## Validation error against build minutes\n")
         md.append(
             "`elastreg train SCENE --minutes M` from an empty data folder, the whole build on the clock; every "

@@ -13,10 +13,11 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
+import functools
 import logging
+import os
+import shutil
 import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import NoReturn
@@ -25,7 +26,8 @@ import numpy as np
 
 from ..argtypes import build_minutes, whole_number
 from .markdown import write_report
-from .results import PARTS, merge_previous, prior_part, prior_run, publish
+from .results import PARTS, merge_previous, prior_part, prior_run, write_minutes_rows
+from .swap import Busy, carry_over, put_in_place, recover, scratch_folder
 from .truth import TRUTHS
 
 log = logging.getLogger(__name__)
@@ -57,6 +59,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="anysite: the truth's discretisation, linear tets on the mesh subdivided once or ten-node tets on it",
     )
     p.add_argument("--out", default="reports/latest", help="report folder (default: reports/latest)")
+    p.add_argument(
+        "--replace",
+        action="store_true",
+        help="replace the report in --out whole instead of keeping the parts this run does not redo "
+        "(a --smoke run needs it for a folder holding a report of full runs)",
+    )
     p.add_argument("--quick", action="store_true", help="fewer frames and sweep points (minutes, not an hour)")
     p.add_argument(
         "--no-fem",
@@ -139,24 +147,41 @@ def main(args: argparse.Namespace) -> int:
         limit_threads(blas_threads)
     store = Path(args.store) if args.store else default_store()
     out = Path(args.out)
+    out = out.resolve() if out.is_symlink() else out  # the folder a link names is the one swapped
     parts = list(dict.fromkeys(args.parts))
     if args.smoke is not None and "minutes" in parts:
         raise SystemExit("error: the minutes part builds scenes (--scenes), not a --smoke model")
-    prior = prior_run(out)
+    try:  # what a run stopped while writing `out` left, cleared before `out` is read
+        notes = recover(out)
+    except Busy as exc:
+        _refuse(str(exc))
+    except OSError as exc:
+        _refuse(f"cannot clear what a stopped run left beside {out}: {exc}")
+    for note in notes:
+        print(f"note: {note}", file=sys.stderr)
+    prior = None if args.replace else prior_run(out)
     if args.smoke is not None and prior is not None and prior.get("smoke") is None:
-        _refuse(f"{out} holds a report of full runs, which a --smoke run's figures would mix with: give another --out")
+        _refuse(
+            f"{out} holds a report of full runs, which a --smoke run's figures would mix with: give another --out, "
+            "or --replace to replace it"
+        )
     models = _models(args, store, parts)
     scenes = _scenes(args) if "minutes" in parts else []
     out.mkdir(parents=True, exist_ok=True)  # only now: a refused command leaves nothing behind
-    # the run's files go to a scratch folder, moved into `out` once all are written: a run that
-    # stops half way (Ctrl-C, a crash) leaves the report there as it was, not half old, half new
-    with tempfile.TemporaryDirectory(prefix=".bench-", dir=out) as scratch:
-        new = Path(scratch)
+    # the whole new report is written beside `out`, then put in its place at once: a run that
+    # stops at any instant (Ctrl-C, a crash, SIGKILL) leaves the old report or the new, not a mix
+    new, lock = scratch_folder(out)
+    try:
         (new / "figures").mkdir()
         results = _run_parts(args, parts, models, scenes, store, out, new / "figures", blas_threads)
-        results = merge_previous(results, out)
+        results = merge_previous(results, None if args.replace else out)
         write_report(results, new)
-        publish(new, out)
+        if not args.replace and (prior is None or prior.get("smoke") == args.smoke):  # else replaced whole
+            carry_over(out, new)
+        put_in_place(new, out)
+    finally:
+        os.close(lock)
+        shutil.rmtree(new, ignore_errors=True)  # a run stopped before its report went in
     print(f"report written to {out / 'report.md'} ({results['seconds']:.0f} s)")
     return 0
 
@@ -333,21 +358,18 @@ def _run_parts(
         from .minutes import latest, minutes_part
         from .minutes import plot as plot_minutes
 
-        prior = prior_part(out, "minutes")
+        prior = None if args.replace else prior_part(out, "minutes")
         test_data = Path(args.test_data) if args.test_data else Path.home() / ".cache" / "elastreg" / "test-data"
-
-        def save_rows(rows: list[dict]) -> None:  # an hour-long build's row survives a later failure
-            (out / "minutes_rows.json").write_text(json.dumps(rows, indent=1))
 
         results["parts"]["minutes"] = minutes_part(
             scenes,
             args.build_minutes,
-            previous=(prior or {}).get("rows", []),
+            previous=(prior or {}).get("rows", []),  # none with --replace
             test_paths=args.test_paths,
             test_data=test_data,
             workers=args.workers,
             keep=Path(args.keep_store) if args.keep_store else None,
-            on_row=save_rows,
+            on_row=functools.partial(write_minutes_rows, out),
         )
         plot_minutes(latest(results["parts"]["minutes"]["rows"]), figures / "build_minutes.png")
 

@@ -7,7 +7,6 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
-import os
 from pathlib import Path
 
 import numpy as np
@@ -47,26 +46,23 @@ def write_results(results: dict, out: Path) -> None:
     (out / "results.json").write_text(json.dumps(results, indent=1, default=jsonable))
 
 
-def publish(new: Path, out: Path) -> None:
-    """Move a finished run's files from its scratch folder `new` into the report folder `out`,
-    results.json last: renames within one file system, so the report's files change together."""
-    files = sorted((f for f in new.rglob("*") if f.is_file()), key=lambda f: f.name == "results.json")
-    for f in files:
-        dest = out / f.relative_to(new)
-        dest.parent.mkdir(parents=True, exist_ok=True)
-        os.replace(f, dest)
+def write_minutes_rows(folder: Path, rows: list[dict]) -> None:
+    """minutes_rows.json: the minutes part's rows, also written into the live report folder after
+    each build, so that an hour-long build's row survives a later failure."""
+    (folder / "minutes_rows.json").write_text(json.dumps(rows, indent=1, default=jsonable))
 
 
-def merge_previous(results: dict, out: Path) -> dict:
+def merge_previous(results: dict, out: Path | None) -> dict:
     """Keep the parts of the report already in `out` that this run did not redo, so that
-    ``elastreg bench beam`` refreshes one part without rerunning the hour-long rest. Each part
+    ``elastreg bench beam`` refreshes one part without rerunning the hour-long rest (none where
+    `out` is None: ``--replace``). Each part
     remembers the run that made it. Only a report of the same kind is kept from: a smoke run's
     tiny-model figures never sit beside a full run's (``results["smoke"]``: the smoke model)."""
     from .cases import FrameRecord
 
     stamp = {"started": results["started"], "commit": results["machine"]["commit"], "cpu": results["machine"]["cpu"]}
     results["made_by"] = {part: stamp for part in results["parts"]}
-    prior = prior_run(out)
+    prior = None if out is None else prior_run(out)
     if prior is None or prior.get("smoke") != results.get("smoke"):
         return results
     machine = prior.get("machine", {})

@@ -94,10 +94,23 @@ def test_a_smoke_run_never_replaces_a_report_of_full_runs(bar_store, tmp_path, c
         main(["bench", "fem", "--smoke", "bar", "--store", str(bar_store[0]), "--out", str(out)])
     err = capsys.readouterr().err
     refusal = (
-        f"error: {out} holds a report of full runs, which a --smoke run's figures would mix with: give another --out"
+        f"error: {out} holds a report of full runs, which a --smoke run's figures would mix with: give another --out, "
+        "or --replace to replace it"
     )
     assert exit_.value.code == 2 and err == refusal + "\n", err
     assert files(out) == before
+
+
+def test_replace_lets_a_smoke_run_replace_a_report_of_full_runs(bar_store, tmp_path):
+    """No flag let a user put a smoke report where a full one was on purpose: --replace does,
+    and the folder is replaced whole (no file of the full report stays beside the smoke one)."""
+    out = tmp_path / "latest"
+    shutil.copytree(LATEST, out)
+    assert main(["bench", "fem", "--smoke", "bar", "--store", str(bar_store[0]), "--out", str(out), "--replace"]) == 0
+    results = json.loads((out / "results.json").read_text())
+    assert results["smoke"] == "bar" and set(results["parts"]) == {"fem"} and set(results["made_by"]) == {"fem"}
+    assert sorted(files(out)) == ["fem_solvers.csv", "report.md", "results.json"]
+    assert not list(tmp_path.glob(".bench-*"))
 
 
 def test_ctrl_c_leaves_the_report_as_it_was_and_is_one_line(bar_store, tmp_path):
@@ -112,7 +125,7 @@ def test_ctrl_c_leaves_the_report_as_it_was_and_is_one_line(bar_store, tmp_path)
     status, text = interrupt(["-v", *smoke, "beam", "pareto", "stability"], "service.bench.stability: stability ")
     assert status == 130 and "Traceback" not in text, text[-3000:]
     assert text.rstrip().splitlines()[-1] == "interrupted", text[-3000:]
-    assert files(tmp_path / "report") == before and not list((tmp_path / "report").glob(".bench-*"))
+    assert files(tmp_path / "report") == before and not list(tmp_path.glob(".bench-*"))
 
 
 def test_a_report_keeps_parts_only_from_a_run_of_its_kind(tmp_path):

@@ -1,0 +1,157 @@
+"""The report folder's swap: a run writes its whole new report in a locked scratch folder beside
+``--out`` (``.bench-NAME-XXXXXXXX``), then puts it in place at once, so that a run stopped at
+any instant (Ctrl-C, SIGKILL, a crash) leaves ``--out`` the old report or the new one, never a
+mix; the next run clears what such a run left (:func:`recover`).
+
+In place at once: one exchange of the two folders (Linux's renameat2 RENAME_EXCHANGE) where the
+file system has it; elsewhere two renames, the old folder to ``.bench-NAME.old`` and the new to
+``NAME``, for which a run stopped between them leaves ``--out`` missing until the next restores
+it."""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import errno
+import os
+import re
+import shutil
+import signal
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+from ..store.builds import _RANDOM, _lock
+
+_PREFIX = ".bench-"
+#: renameat2's flag that swaps two names in one step (linux/fs.h)
+_RENAME_EXCHANGE = 2
+_AT_FDCWD = -100
+#: glibc 2.28 on: None elsewhere (macOS, musl before 1.2.x), where the two renames serve
+_renameat2 = getattr(ctypes.CDLL(None, use_errno=True), "renameat2", None)
+
+
+class Busy(RuntimeError):
+    """Another run is writing this report folder (its scratch folder is locked)."""
+
+
+def _scratch_name(out: Path) -> re.Pattern[str]:
+    return re.compile(rf"{re.escape(_PREFIX + out.name)}-{_RANDOM}")
+
+
+def backup_of(out: Path) -> Path:
+    """Where the two renames keep the old report while the new one goes in."""
+    return out.parent / f"{_PREFIX}{out.name}.old"
+
+
+def _held(path: Path) -> bool:
+    """Whether another process holds the lock of the folder `path` (a live run's)."""
+    fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW)
+    try:
+        return _lock(fd) is False
+    finally:
+        os.close(fd)  # drops the lock if this process took it
+
+
+def recover(out: Path) -> list[str]:
+    """Clear what a run into `out` stopped at any instant left, before this run touches `out`:
+    its scratch folder (removed), the old report the two renames put aside (put back where `out`
+    is missing, else removed), and an older version's scratch folder inside `out`. One line a
+    folder, for the user; :class:`Busy` where a live run is writing `out`."""
+    notes: list[str] = []
+    if not out.parent.is_dir():
+        return notes
+    scratch = _scratch_name(out)
+    for path in sorted(out.parent.iterdir()):
+        if scratch.fullmatch(path.name) and path.is_dir() and not path.is_symlink():
+            if _held(path):
+                raise Busy(f"another elastreg bench is writing {out} (its scratch folder {path} is locked)")
+            shutil.rmtree(path)
+            notes.append(f"removed {path}, the scratch folder of a run stopped before its report went in")
+    backup = backup_of(out)
+    if backup.is_dir() and not backup.is_symlink():
+        if not out.exists():
+            os.rename(backup, out)
+            notes.append(f"restored {out} from {backup}, where a run stopped while swapping reports had put it")
+        elif out.is_dir() and _held(out):
+            raise Busy(f"another elastreg bench is writing {out} (it is putting its report in place)")
+        else:
+            shutil.rmtree(backup)
+            notes.append(f"removed {backup}, the old report of a run stopped once its own was in {out}")
+    if out.is_dir():  # versions before this module wrote their scratch folder inside `out`
+        for path in sorted(out.glob(f"{_PREFIX}*")):
+            if re.fullmatch(rf"{re.escape(_PREFIX)}{_RANDOM}", path.name) and path.is_dir():
+                shutil.rmtree(path)
+                notes.append(f"removed {path}, the scratch folder of a run stopped before its files were moved")
+    return notes
+
+
+def scratch_folder(out: Path) -> tuple[Path, int]:
+    """A new folder beside `out` for a run's report, and a descriptor holding its lock until
+    closed (the kernel drops it when the process dies: :func:`recover` then removes it)."""
+    for _ in range(8):  # another name each time a recover took the new folder before its lock
+        path = Path(tempfile.mkdtemp(prefix=f"{_PREFIX}{out.name}-", dir=out.parent))
+        try:
+            fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW)
+        except FileNotFoundError:
+            continue
+        if _lock(fd) is not False:  # True, or None where the file system has no locks
+            return path, fd
+        os.close(fd)
+    raise OSError(errno.EAGAIN, f"no scratch folder beside {out} stayed this run's long enough to lock it")
+
+
+def carry_over(old: Path, new: Path) -> None:
+    """Give `new` every file of the report folder `old` it lacks (the parts a run kept, files
+    not its own): hard links, copies where the file system has none; `new` is written by now,
+    so nothing writes through a link into the old report."""
+    for src in sorted(old.rglob("*")):
+        rel = src.relative_to(old)
+        if rel.parts[0].startswith(_PREFIX) or src.is_dir() and not src.is_symlink():
+            continue
+        dest = new / rel
+        if dest.exists() or dest.is_symlink():
+            continue
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            os.link(src, dest, follow_symlinks=False)
+        except OSError:
+            shutil.copy2(src, dest, follow_symlinks=False)
+
+
+def put_in_place(new: Path, out: Path) -> None:
+    """Make the finished report folder `new` the folder `out` and remove the old one."""
+    backup = backup_of(out)
+    with _signals_held():
+        exchanged = out.exists() and _exchange(new, out)
+        if not exchanged:
+            if out.exists():
+                os.rename(out, backup)
+            os.rename(new, out)
+    shutil.rmtree(new if exchanged else backup, ignore_errors=True)  # exchanged: `new` names the old report
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap the names `a` and `b` in one step; False where the system or file system cannot."""
+    if _renameat2 is None:
+        return False
+    if _renameat2(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP):
+        return False
+    raise OSError(err, os.strerror(err), str(b))
+
+
+@contextlib.contextmanager
+def _signals_held() -> Iterator[None]:
+    """Ctrl-C and SIGTERM wait out the renames (microseconds), then act as they would have."""
+    caught: list[int] = []
+    before = {s: signal.signal(s, lambda n, _frame: caught.append(n)) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, handler in before.items():
+            signal.signal(s, signal.SIG_DFL if handler is None else handler)
+        for n in caught:
+            signal.raise_signal(n)
