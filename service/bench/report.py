@@ -123,7 +123,7 @@ def _entry(store: Path, model_id: str, hint: str):
     try:
         return load_entry(store / model_id)
     except StoreError as exc:
-        raise SystemExit(f"error: model {model_id!r} is not usable in {store} ({exc}); build it with: {hint}") from None
+        _refuse(f"model {model_id!r} is not usable in {store} ({exc}); build it with: {hint}")
 
 
 def _smoke_case(entry):
@@ -140,9 +140,16 @@ def _smoke_case(entry):
 
 
 def main(args: argparse.Namespace) -> int:
+    from pydantic import ValidationError
+
     from ..config import Settings, default_store, limit_threads
 
-    blas_threads = Settings().blas_threads
+    try:
+        blas_threads = Settings().blas_threads
+    except ValidationError as exc:  # an ELASTREG_* setting the server would refuse too
+        _refuse(
+            "the ELASTREG_* settings: " + "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
+        )
     if blas_threads:  # measure what the server runs: its solves use this many BLAS threads
         limit_threads(blas_threads)
     store = Path(args.store) if args.store else default_store()
@@ -150,7 +157,9 @@ def main(args: argparse.Namespace) -> int:
     out = out.resolve() if out.is_symlink() else out  # the folder a link names is the one swapped
     parts = list(dict.fromkeys(args.parts))
     if args.smoke is not None and "minutes" in parts:
-        raise SystemExit("error: the minutes part builds scenes (--scenes), not a --smoke model")
+        _refuse("the minutes part builds scenes (--scenes), not a --smoke model")
+    if out.exists() and not out.is_dir():
+        _refuse(f"--out {out} is not a folder")
     try:  # what a run stopped while writing `out` left, cleared before `out` is read
         notes = recover(out)
     except Busy as exc:
@@ -167,7 +176,10 @@ def main(args: argparse.Namespace) -> int:
         )
     models = _models(args, store, parts)
     scenes = _scenes(args) if "minutes" in parts else []
-    out.mkdir(parents=True, exist_ok=True)  # only now: a refused command leaves nothing behind
+    try:  # only now: a refused command leaves nothing behind
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        _refuse(f"cannot make the report folder {out}: {exc.strerror or exc}")
     # the whole new report is written beside `out`, then put in its place at once: a run that
     # stops at any instant (Ctrl-C, a crash, SIGKILL) leaves the old report or the new, not a mix
     new, lock = scratch_folder(out)
@@ -224,7 +236,8 @@ def _scenes(args: argparse.Namespace) -> list:
     try:
         return [load_scene(s) for s in args.scenes] if args.build_minutes else []
     except SceneError as exc:
-        raise SystemExit(f"error: {exc} (the default scenes are relative to the repository's root)") from None
+        why = "; ".join(str(exc).splitlines())  # a scene's every fault, one line
+        _refuse(f"{why} (the default scenes are relative to the repository's root)")
 
 
 def _run_parts(

@@ -49,9 +49,11 @@ def test_a_rerun_replaces_its_commits_row_and_keeps_history():
     assert latest([{**row("c", "4", 0.1), "layout": "raw"}]) == []  # other layouts are history only
 
 
-def test_minutes_part_refuses_a_smoke_model_and_a_missing_scene(tmp_path):
-    with pytest.raises(SystemExit, match="minutes part builds scenes"):
+def test_minutes_part_refuses_a_smoke_model_and_a_missing_scene(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_:
         main(["bench", "minutes", "--smoke", "bar", "--out", str(tmp_path)])
-    with pytest.raises(SystemExit, match="cannot read the scene file"):
+    assert exit_.value.code == 2 and "minutes part builds scenes" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_:
         main(["bench", "minutes", "--scenes", str(tmp_path / "nowhere.toml"), "--out", str(tmp_path / "r")])
+    assert exit_.value.code == 2 and "cannot read the scene file" in capsys.readouterr().err
     assert not (tmp_path / "r").exists()  # nothing made for a bad command, not even the folder

@@ -113,3 +113,58 @@ def test_the_fem_part_without_the_papers_liver_is_refused_before_any_work(tmp_pa
         err
         == f"error: the fem part cannot run: the paper's liver is not in {nowhere} (../shared beside the checkout)\n"
     )
+
+
+@pytest.mark.parametrize(
+    "argv, line",
+    [
+        # each was exit status 1 (SystemExit with a message), the others' refusals being 2
+        (["minutes", "--smoke", "bar"], "the minutes part builds scenes (--scenes), not a --smoke model"),
+        (
+            ["beam", "--beam-model", "nope"],
+            "model 'nope' is not usable in {store} (nope: manifest.json is missing); "
+            "build it with: elastreg train beam",
+        ),
+        (
+            ["fem", "--smoke", "nope"],
+            "model 'nope' is not usable in {store} (nope: manifest.json is missing); "
+            "build it with: elastreg train SCENE",
+        ),
+        (
+            ["minutes", "--scenes", "{tmp}/no.toml"],
+            "{tmp}/no.toml: cannot read the scene file (No such file or directory) (the default scenes are relative "
+            "to the repository's root)",
+        ),
+        # a scene's faults, one line each: one line in all
+        (
+            ["minutes", "--scenes", "{tmp}/empty.toml"],
+            "{tmp}/empty.toml: name: missing (required); {tmp}/empty.toml: [mesh]: missing table; {tmp}/empty.toml: "
+            "[material]: missing table; {tmp}/empty.toml: [training]: missing table (the default scenes are relative "
+            "to the repository's root)",
+        ),
+    ],
+)
+def test_a_command_that_cannot_run_is_one_line_and_exit_status_2(argv, line, tmp_path, capsys):
+    """A --smoke run of the minutes part, a missing model or an unreadable scene was exit status
+    1 (or several lines): every refusal of the command line is one line, exit status 2, before
+    any work."""
+    (tmp_path / "empty.toml").write_text("")
+    argv = [a.format(tmp=tmp_path) for a in argv]
+    err = refused(argv, tmp_path / "report", capsys)
+    assert err == "error: " + line.format(store=STORE, tmp=tmp_path) + "\n", err
+
+
+def test_bad_settings_and_an_out_that_is_a_file_are_refused_before_any_work(tmp_path, capsys, monkeypatch):
+    """An ELASTREG_* setting the server refuses was a pydantic traceback; an --out that is a file
+    a FileExistsError traceback: both one line, exit status 2."""
+    monkeypatch.setenv("ELASTREG_BLAS_THREADS", "many")
+    err = refused(["beam"], tmp_path / "report", capsys)
+    assert err.startswith("error: the ELASTREG_* settings: blas_threads: ") and err.count("\n") == 1, err
+    monkeypatch.delenv("ELASTREG_BLAS_THREADS")
+    afile = tmp_path / "afile"
+    afile.write_text("mine")
+    with pytest.raises(SystemExit) as exit_:
+        main(["bench", "beam", "--store", str(STORE), "--out", str(afile), "--quick", "--no-fem"])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and err == f"error: --out {afile} is not a folder\n", err
+    assert afile.read_text() == "mine"
