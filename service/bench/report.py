@@ -35,6 +35,7 @@ log = logging.getLogger(__name__)
 #: what a bare ``elastreg bench`` runs: the build-minutes curve is hours of builds
 DEFAULT_PARTS = PARTS[:-1]
 LIVER_HINT = "elastreg train benchmarks/scenes/liver_paper.toml (see the README)"
+VARIANT_HINT = "elastreg train benchmarks/scenes/liver_paper.toml --name ID ... (docs/usage.md's recipe)"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -174,7 +175,7 @@ def main(args: argparse.Namespace) -> int:
             f"{out} holds a report of full runs, which a --smoke run's figures would mix with: give another --out, "
             "or --replace to replace it"
         )
-    models = _models(args, store, parts)
+    models, variants = _models(args, store, parts)
     scenes = _scenes(args) if "minutes" in parts else []
     try:  # only now: a refused command leaves nothing behind
         out.mkdir(parents=True, exist_ok=True)
@@ -185,7 +186,7 @@ def main(args: argparse.Namespace) -> int:
     new, lock = scratch_folder(out)
     try:
         (new / "figures").mkdir()
-        results = _run_parts(args, parts, models, scenes, store, out, new / "figures", blas_threads)
+        results = _run_parts(args, parts, models, variants, scenes, out, new / "figures", blas_threads)
         results = merge_previous(results, None if args.replace else out)
         write_report(results, new)
         if not args.replace and (prior is None or prior.get("smoke") == args.smoke):  # else replaced whole
@@ -198,10 +199,11 @@ def main(args: argparse.Namespace) -> int:
     return 0
 
 
-def _models(args: argparse.Namespace, store: Path, parts: list[str]) -> dict:
-    """The model each part runs on ({part: entry}; the fem and minutes parts take none), each
-    checked for what its part needs before any work: a model that lacks it is one line and exit
-    status 2, not a traceback minutes into the run."""
+def _models(args: argparse.Namespace, store: Path, parts: list[str]) -> tuple[dict, dict]:
+    """The model each part runs on ({part: entry}; the fem and minutes parts take none) and the
+    pareto part's variants of the liver model ({id: entry}), each checked for what its part
+    needs before any work: a model that lacks it is one line and exit status 2, not a traceback
+    (or a variant silently left out) minutes into the run."""
     from .beam import beam_missing
     from .cases import liver_data_missing, not_on_paper_liver
 
@@ -212,6 +214,7 @@ def _models(args: argparse.Namespace, store: Path, parts: list[str]) -> dict:
         names = dict.fromkeys(parts, args.smoke)
         needs = {"beam": beam_missing}
         hints = {args.smoke: "elastreg train SCENE"}
+        variants = []
     else:
         if "fem" in parts and (missing := liver_data_missing()):
             _refuse(f"the fem part cannot run: {missing}")
@@ -220,13 +223,29 @@ def _models(args: argparse.Namespace, store: Path, parts: list[str]) -> dict:
         names = {part: named[part] for part in parts if part in named}
         needs = {"liver": on_liver, "pareto": on_liver, "stability": on_liver, "beam": beam_missing}
         hints = {args.liver_model: LIVER_HINT, args.beam_model: "elastreg train beam"}
+        variants = _variant_ids(store, args.liver_model) if "pareto" in parts else []
+        hints |= dict.fromkeys(variants, f"{VARIANT_HINT}, or remove the folder from the store")
     loaded = {
-        name: _entry(store, name, hints.get(name, f"elastreg train {name}")) for name in dict.fromkeys(names.values())
+        name: _entry(store, name, hints.get(name, f"elastreg train {name}"))
+        for name in dict.fromkeys([*names.values(), *variants])
     }
-    for part, name in names.items():
+    for name in variants:  # a copy under another name (a backup) is no variant: open_store refuses it too
+        if loaded[name].id != name:
+            _refuse(f"model {name!r}, a variant the pareto part scores, says it is {loaded[name].id!r} (rename or "
+                    "remove the folder)")  # fmt: skip
+    for part, name in [*names.items(), *(("pareto", v) for v in variants)]:
         if part in needs and (missing := needs[part](loaded[name])):
             _refuse(f"model {name!r} cannot run the {part} part: {missing}")
-    return {part: loaded[name] for part, name in names.items()}
+    return {part: loaded[name] for part, name in names.items()}, {name: loaded[name] for name in variants}
+
+
+def _variant_ids(store: Path, liver_model: str) -> list[str]:
+    """The pareto part's variants: every folder of the store named after the liver model and '_'
+    (docs/usage.md's recipe: liver_paper_small, ...)."""
+    try:
+        return sorted(p.name for p in store.iterdir() if p.name.startswith(liver_model + "_") and p.is_dir())
+    except OSError:  # no store: the liver model's own check says so
+        return []
 
 
 def _scenes(args: argparse.Namespace) -> list:
@@ -244,13 +263,14 @@ def _run_parts(
     args: argparse.Namespace,
     parts: list[str],
     models: dict,
+    variants: dict,
     scenes: list,
-    store: Path,
     out: Path,
     figures: Path,
     blas_threads: int | None,
 ) -> dict:
-    """Every part in `parts` on its model in `models`, each figure drawn into `figures`; the
+    """Every part in `parts` on its model in `models` (the pareto part's `variants` beside its
+    own), each figure drawn into `figures`; the
     results, before the merge with the report in `out` (whose minutes rows the minutes part
     extends)."""
     from .. import spare
@@ -311,19 +331,14 @@ def _run_parts(
         plot(results["parts"]["beam"]["pareto"], figures / "beam_pareto.png", "error against run time: the beam")
 
     if "pareto" in parts:
-        from ..store import open_store
         from .cases import liver_paper_case
         from .pareto import pareto_part, plot
 
         case = base if args.smoke is not None else _first(liver_paper_case(), 12 if quick else 50)
-        variants = {}
+        surrogates = {}
         if args.smoke is None:
-            entries, _ = open_store(store)
-            named = {
-                args.liver_model: models["pareto"],
-                **{k: e for k, e in entries.items() if k.startswith(args.liver_model + "_")},
-            }
-            variants = {_surrogate_label(k, e.manifest["network"]): e.network for k, e in named.items()}
+            named = {args.liver_model: models["pareto"], **variants}
+            surrogates = {_surrogate_label(k, e.manifest["network"]): e.network for k, e in named.items()}
         if args.smoke is not None:
             sweep = dict(
                 gtols=(1e-2, 1e-4),
@@ -350,7 +365,7 @@ def _run_parts(
             )
         else:
             sweep = {}
-        rows = pareto_part(models["pareto"], case, variants=variants, **sweep)
+        rows = pareto_part(models["pareto"], case, variants=surrogates, **sweep)
         results["parts"]["pareto"] = rows
         plot(rows, figures / "pareto.png", f"error against run time: {case.name}")
 

@@ -1,6 +1,7 @@
 """`elastreg bench`'s flags: an impossible value is one line naming the flag and exit status 2
 at parse time, before the report folder, a test set or a build is touched."""
 
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -168,3 +169,37 @@ def test_bad_settings_and_an_out_that_is_a_file_are_refused_before_any_work(tmp_
     err = capsys.readouterr().err
     assert exit_.value.code == 2 and err == f"error: --out {afile} is not a folder\n", err
     assert afile.read_text() == "mine"
+
+
+def test_the_pareto_parts_variants_are_checked_before_any_work(tmp_path, capsys):
+    """The pareto part also scores every model of the store named LIVERMODEL_*, found only when
+    it ran (minutes in): one it could not load was left out with a logged line, one on another
+    mesh a traceback. Each is now loaded and checked with the part's own model, before any
+    work: one line naming it, exit status 2."""
+    from service.store.files import WEIGHTS
+
+    store, out = tmp_path / "store", tmp_path / "report"
+    shutil.copytree(STORE / "phantom", store / "phantom")
+    shutil.copytree(STORE / "phantom", store / "phantom_small")  # a copy under another name
+    argv = ["bench", "pareto", "--liver-model", "phantom", "--store", str(store), "--out", str(out), "--quick"]
+    with pytest.raises(SystemExit) as exit_:
+        main(argv)
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and not out.exists(), err
+    assert err == (
+        "error: model 'phantom_small', a variant the pareto part scores, says it is 'phantom' (rename or remove "
+        "the folder)\n"
+    ), err
+    shutil.rmtree(store / "phantom_small")
+    shutil.copytree(STORE / "phantom", store / "phantom_broken")
+    (store / "phantom_broken" / WEIGHTS).write_bytes(b"cut short")
+    with pytest.raises(SystemExit) as exit_:
+        main(argv)
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and not out.exists(), err
+    assert err == (
+        f"error: model 'phantom_broken' is not usable in {store} (phantom_broken: {WEIGHTS} does not match its "
+        "checksum in the manifest (corrupt or changed)); build it with: elastreg train "
+        "benchmarks/scenes/liver_paper.toml --name ID ... (docs/usage.md's recipe), or remove the folder from the "
+        "store\n"
+    ), err
