@@ -46,20 +46,34 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=list(DEFAULT_PARTS),
         help=f"parts to run (default: {', '.join(DEFAULT_PARTS)}; 'minutes' only when named)",
     )
-    p.add_argument("--store", default=None, help="model store holding liver_paper and beam (default: the project's)")
-    p.add_argument("--liver-model", default="liver_paper")
-    p.add_argument("--beam-model", default="beam")
+    p.add_argument(
+        "--store",
+        default=None,
+        help="model store holding the parts' models (default: $ELASTREG_STORE or the project's model_store/)",
+    )
+    p.add_argument(
+        "--liver-model",
+        default="liver_paper",
+        help="the liver, pareto and stability parts' model (default: liver_paper); the pareto part also scores "
+        "every model of the store named after it and '_'",
+    )
+    p.add_argument("--beam-model", default="beam", help="the beam part's model (default: beam)")
     p.add_argument(
         "--anysite-model", default="phantom", help="a whole-surface model for the anysite part (default: phantom)"
     )
-    p.add_argument("--sites", type=whole_number(1), default=6, help="anysite: tool sites (sequences)")
+    p.add_argument("--sites", type=whole_number(1), default=6, help="anysite: tool sites (sequences; default: 6)")
     p.add_argument(
         "--truth",
         choices=TRUTHS,
         default="subdivided",
-        help="anysite: the truth's discretisation, linear tets on the mesh subdivided once or ten-node tets on it",
+        help="anysite: the truth's discretisation, linear tets on the mesh subdivided once or ten-node tets on it "
+        "(default: subdivided)",
     )
-    p.add_argument("--out", default="reports/latest", help="report folder (default: reports/latest)")
+    p.add_argument(
+        "--out",
+        default="reports/latest",
+        help="report folder, whose other parts a run keeps (default: reports/latest, the minutes part's too)",
+    )
     p.add_argument(
         "--replace",
         action="store_true",
@@ -70,7 +84,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--no-fem",
         action="store_true",
-        help="skip the Newton-based method (and anysite's auto, whose corrections it makes) where it is slow",
+        help="skip the Newton-based method in the liver, stability and anysite parts (and anysite's auto, whose "
+        "corrections it makes); the beam and pareto parts keep their short Newton rows",
     )
     g = p.add_argument_group("the minutes part (the build-minutes curve)")
     g.add_argument(
@@ -88,20 +103,27 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="scene files to build (default: the SOFA and DeepPhysX livers)",
     )
     g.add_argument(
-        "--test-paths", type=whole_number(1), default=40, help="held-out test paths per scene (5 samples each)"
+        "--test-paths",
+        type=whole_number(1),
+        default=40,
+        help="held-out test paths per scene (5 samples each; default: 40)",
     )
     g.add_argument(
         "--test-data", default=None, help="where the test sets are kept (default: ~/.cache/elastreg/test-data)"
     )
     g.add_argument(
-        "--workers", type=whole_number(0), default=2, help="FEM worker processes of each build (0: in this process)"
+        "--workers",
+        type=whole_number(0),
+        default=2,
+        help="FEM worker processes of each build (0: in this process; default: 2)",
     )
     g.add_argument("--keep-store", default=None, help="keep each scene's last build in this store (default: discard)")
     p.add_argument(
         "--smoke",
         metavar="MODEL",
         default=None,
-        help="every part on a tiny model of --store (seconds; for the tests; never into a report of full runs)",
+        help="the parts (not minutes) on a tiny model of --store, in seconds, for the tests (into a report of "
+        "full runs only with --replace)",
     )
 
 

@@ -1,6 +1,8 @@
 """`elastreg bench`'s flags: an impossible value is one line naming the flag and exit status 2
 at parse time, before the report folder, a test set or a build is touched."""
 
+import argparse
+import re
 import shutil
 from pathlib import Path
 
@@ -203,3 +205,38 @@ def test_the_pareto_parts_variants_are_checked_before_any_work(tmp_path, capsys)
         "benchmarks/scenes/liver_paper.toml --name ID ... (docs/usage.md's recipe), or remove the folder from the "
         "store\n"
     ), err
+
+
+def bench_parser() -> argparse.ArgumentParser:
+    sub = next(a for a in parser()._actions if isinstance(a, argparse._SubParsersAction))
+    return sub.choices["bench"]
+
+
+def test_every_bench_flag_with_a_default_says_it_in_its_help():
+    """`bench --help` gave --liver-model and --beam-model no help at all, and --sites, --truth,
+    --test-paths and --workers no default: each flag that has one says it."""
+    quiet = [a for a in bench_parser()._actions if a.default not in (None, False, argparse.SUPPRESS)]
+    assert {a.dest for a in quiet} >= {"liver_model", "beam_model", "sites", "truth", "test_paths", "workers"}
+    for action in quiet:
+        assert action.help and "default" in action.help, action.option_strings or action.dest
+
+
+def test_the_bench_lines_of_usage_md_name_real_flags_and_their_defaults():
+    """docs/usage.md's `elastreg bench` lines show a bracketed flag with its default: `bench
+    minutes [--out reports/build-minutes]` read as the minutes part's default folder, where the
+    code's is reports/latest for every part. Every flag shown is one of the command's, and a
+    bracketed value is its default."""
+    usage = (Path(__file__).resolve().parents[2] / "docs" / "usage.md").read_text()
+    lines = [line for line in usage.splitlines() if line.startswith("elastreg bench")]
+    actions = {s: a for a in bench_parser()._actions for s in a.option_strings}
+    assert len(lines) >= 2
+    for line in lines:
+        for flag in re.findall(r"--[\w-]+", line):
+            assert flag in actions, (flag, line)
+        for flag, shown in re.findall(r"\[(--[\w-]+)([^\]]*)\]", line):
+            values = shown.split()
+            if not values or any(v == "..." or v.isupper() or v.endswith(".toml") for v in values):
+                continue  # a switch, or a placeholder
+            action = actions[flag]
+            parsed = [action.type(v) if action.type else v for v in values]
+            assert (parsed if action.nargs else parsed[0]) == action.default, (flag, line)
