@@ -17,6 +17,7 @@ import os
 import re
 import shutil
 import signal
+import stat
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -87,8 +88,9 @@ def recover(out: Path) -> list[str]:
 
 
 def scratch_folder(out: Path) -> tuple[Path, int]:
-    """A new folder beside `out` for a run's report, and a descriptor holding its lock until
-    closed (the kernel drops it when the process dies: :func:`recover` then removes it)."""
+    """A new folder beside the folder `out` for a run's report, with `out`'s permissions, and a
+    descriptor holding its lock until closed (the kernel drops it when the process dies:
+    :func:`recover` then removes it)."""
     for _ in range(8):  # another name each time a recover took the new folder before its lock
         path = Path(tempfile.mkdtemp(prefix=f"{_PREFIX}{out.name}-", dir=out.parent))
         try:
@@ -96,6 +98,7 @@ def scratch_folder(out: Path) -> tuple[Path, int]:
         except FileNotFoundError:
             continue
         if _lock(fd) is not False:  # True, or None where the file system has no locks
+            os.chmod(fd, stat.S_IMODE(os.stat(out).st_mode))  # mkdtemp's 0700 would become the report's
             return path, fd
         os.close(fd)
     raise OSError(errno.EAGAIN, f"no scratch folder beside {out} stayed this run's long enough to lock it")

@@ -81,6 +81,7 @@ def test_the_report_is_never_seen_half_written(bar_store, tmp_path, capsys, monk
     out = tmp_path / "report"
     assert main(smoke(bar_store[0], out)) == 0
     (out / "mine.txt").write_text("a file of the user's, kept by a run that merges")
+    out.chmod(0o750)  # the folder's own permissions, kept (not the scratch folder's 0700)
     old = snapshot(out)
     views: list = []
     _watch.append((out, views))
@@ -95,6 +96,7 @@ def test_the_report_is_never_seen_half_written(bar_store, tmp_path, capsys, monk
     for view, backup in views:
         assert view in (old, new) or (view is None and backup == old and not exchange), sorted(view or {})
     assert not [p.name for p in tmp_path.iterdir() if p.name.startswith(".bench-")]
+    assert stat.S_IMODE(out.stat().st_mode) == 0o750
 
 
 def leftover(out: Path, name: str) -> Path:
