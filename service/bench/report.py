@@ -176,13 +176,13 @@ def main(args: argparse.Namespace) -> int:
     if blas_threads:  # measure what the server runs: its solves use this many BLAS threads
         limit_threads(blas_threads)
     store = Path(args.store) if args.store else default_store()
-    out = Path(args.out)
+    out = Path(os.path.abspath(args.out))  # "." and ".." named: the swap renames the folder by its name
     out = out.resolve() if out.is_symlink() else out  # the folder a link names is the one swapped
     parts = list(dict.fromkeys(args.parts))
     if args.smoke is not None and "minutes" in parts:
         _refuse("the minutes part builds scenes (--scenes), not a --smoke model")
-    if out.exists() and not out.is_dir():
-        _refuse(f"--out {out} is not a folder")
+    if (out.exists() and not out.is_dir()) or not out.name:
+        _refuse(f"--out {out} is not a folder a report can replace")
     try:  # what a run stopped while writing `out` left, cleared before `out` is read
         notes = recover(out)
     except Busy as exc:

@@ -169,8 +169,11 @@ def test_bad_settings_and_an_out_that_is_a_file_are_refused_before_any_work(tmp_
     with pytest.raises(SystemExit) as exit_:
         main(["bench", "beam", "--store", str(STORE), "--out", str(afile), "--quick", "--no-fem"])
     err = capsys.readouterr().err
-    assert exit_.value.code == 2 and err == f"error: --out {afile} is not a folder\n", err
+    assert exit_.value.code == 2 and err == f"error: --out {afile} is not a folder a report can replace\n", err
     assert afile.read_text() == "mine"
+    with pytest.raises(SystemExit) as exit_:  # the root: no name to swap a new folder in under
+        main(["bench", "beam", "--store", str(STORE), "--out", "/", "--quick", "--no-fem"])
+    assert exit_.value.code == 2 and capsys.readouterr().err == "error: --out / is not a folder a report can replace\n"
 
 
 def test_the_pareto_parts_variants_are_checked_before_any_work(tmp_path, capsys):
