@@ -44,7 +44,7 @@ from .drive_levenberg import levenberg_marquardt
 from .objective import Objective, Start, Timing, rest_state
 from .options import SolveOptions, check_optimizer, refuse_bounds
 from .precondition import Curvature
-from .reach import REACH, Box
+from .reach import Box, answer_past_reach
 from .stops import Done, Stop, roundoff_gain
 
 #: a cloud this near its rest surface (rms, a share of the organ's size: 10 nm on a 10 cm organ)
@@ -173,9 +173,8 @@ def solve_frame(
             status, message, nit = lbfgsb(
                 op, distance, evaluate, best, v_rest, g_tol, options, curvature, max_eval, deadline
             )
-    except Done as done:  # the rest state is the answer, if the cloud is near enough to say so
-        far = _past_reach(distance, box)
-        status, message = ("too_far", far) if far else ("converged", done.message)
+    except Done as done:  # the rest state is the answer, if the cloud is near enough to say so (_judge)
+        status, message = "converged", done.message
         evaluate.best_g, evaluate.best_value, evaluate.best_J = np.zeros((k, 3)), v_rest, v_rest
         evaluate.best_u = evaluate.rest_u
         evaluate.best_rms = evaluate.rest_rms
@@ -186,7 +185,7 @@ def solve_frame(
         if timed_op:
             op.deadline = None  # the session's outputs are computed after the frame, in full
 
-    status, message = _judge(status, message, evaluate.best_rms, box)
+    status, message = _judge(status, message, evaluate, rest_positions, box)
     timing.total = time.perf_counter() - t_start
     return FrameSolution(
         g=evaluate.best_g,
@@ -214,34 +213,23 @@ def _check_rest(rest_rms: float, rest_positions: Array) -> None:
         raise Done("the cloud lies on the rest surface: no force needed")
 
 
-def _past_reach(distance: PointToSurface, box: Box) -> str:
-    """Why a cloud lies too far from the model (its rest `box`) for its rest state to be an
-    answer ("" where it does not): past the reach (reach.py) rounding ties every closest point,
-    and a gradient it zeroes is no optimum (1e20 m off was once answered converged at rest)."""
-    offset = box.median_offset(distance.points)
-    if box.within(offset):
-        return ""
-    return (
-        f"the cloud lies too far from the model for a registration ({offset:.3g} m, {offset / box.size:.3g} "
-        f"times its size; at most {REACH:g}): no force was estimated"
-    )
-
-
-def _judge(status: str, message: str, rms: float, box: Box) -> tuple[str, str]:
-    """The frame's status given its answer's rms distance: one not finite, or past the reach
-    (points 1e20 m off made the rest state look like an optimum), is never converged and, failed,
-    never moves the warm start. A frame that evaluated nothing (a deadline in its rest state's
-    solve) keeps its own status."""
+def _judge(status: str, message: str, evaluate: Objective, rest_positions: Array, box: Box) -> tuple[str, str]:
+    """The frame's status given its answer (the best iterate): one whose distance is not finite,
+    or past the reach (reach.answer_past_reach: points 1e20 m off made the rest state look like an
+    optimum), is never converged and, failed, never moves the warm start. A frame that evaluated
+    nothing (a deadline in its rest state's solve) keeps its own status."""
+    rms = evaluate.best_rms
     if status in FAILED or (math.isnan(rms) and status != "converged"):
         return status, message
     if not math.isfinite(rms):  # API.md: never converged
         return "non_finite", f"the distance at the answer is not finite ({message})"
-    if not box.within(rms):
-        return "too_far", (
-            f"the answer lies {rms:.3g} m rms from the cloud, {rms / box.size:.3g} times the model's size "
-            f"(at most {REACH:g}): too far for a registration ({message})"
-        )
-    return status, message
+    u = evaluate.best_u
+
+    def distances() -> Array:  # at the answer, searched for only where its rms leaves the reach open
+        return evaluate.distance.closest(rest_positions if u is None else rest_positions + u).distance
+
+    far = answer_past_reach(box, rms, distances)
+    return ("too_far", f"{far} ({message})") if far else (status, message)
 
 
 def _check_alpha(alpha: float, v_rest: float, grad_rest: Array, v_best: float) -> None:

@@ -8,24 +8,26 @@ like an optimum. A session refuses (:func:`check_reach`, a ValueError: a 422) a 
 median point lies past REACH sizes (a unit mistake), and one with any point past FAR sizes (no
 depth camera's stray point lies there; 199 of 400 points at 1e20 m leave the median near, and
 drown the gradient). Stray points nearer than FAR are a depth camera's outliers, for the robust
-losses; the engine never calls an answer converged whose rms distance lies past the reach
-(:meth:`Box.within`).
+losses; the engine never calls an answer converged whose median point lies past the reach from
+its surface, or whose rms distance lies past FAR (:func:`answer_past_reach`).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 
 Array = np.ndarray
 
 #: how many model sizes (its rest bounding box's diagonal) from that box a cloud's median point
-#: may lie, and an answer's rms distance: 10x leaves room for any deformation and catches a
+#: may lie, and from an answer's surface: 10x leaves room for any deformation and catches a
 #: millimetre cloud (~500 sizes off)
 REACH = 10.0
-#: how many model sizes from that box any one point may lie: 200 m for a 20 cm liver, past any
-#: depth camera's range, and far below where rounding ties every closest point (1e16 sizes)
+#: how many model sizes from that box any one point may lie, and an answer's rms distance: 200 m
+#: for a 20 cm liver, past any depth camera's range, and far below where rounding ties every
+#: closest point (1e16 sizes)
 FAR = 1000.0
 
 
@@ -41,10 +43,6 @@ class Box:
         # per coordinate, how far past the nearer face (zero inside): whole-array, no loop over points
         gap = np.maximum(np.maximum(self.lo - points, points - self.hi), 0.0)
         return np.sqrt(np.einsum("ij,ij->i", gap, gap))
-
-    def median_offset(self, points: Array) -> float:
-        """The median over the points (m, 3) of their distance from the box (0 inside)."""
-        return float(np.median(self.offsets(points)))
 
     def within(self, distance: float) -> bool:
         """Whether a (finite) distance from the box is within the reach."""
@@ -72,3 +70,26 @@ def check_reach(box: Box, points: Array) -> None:
             f"{bound:.3g} m ({FAR:g} times its size of {box.size:.3g} m) from its bounding box, the farthest "
             f"{farthest:.3g} m; no depth camera sees that far: drop them, or is the cloud not in metres?"
         )
+
+
+def answer_past_reach(box: Box, rms: float, distances: Callable[[], Array]) -> str:
+    """Why an answer lies too far from its cloud for a registration ("" where it does not), by
+    its finite `rms` distance and `distances()`, the (m,) point-to-surface distances at it: its
+    median point past REACH sizes (which a few strays cannot move, and which a rest answer of a
+    cloud past the reach fails: the rest surface lies in its box), or its rms past FAR sizes
+    (199 of 400 points at 1e20 m leave the median near)."""
+    if rms > FAR * box.size:
+        return (
+            f"the answer lies {rms:.3g} m rms from the cloud, {rms / box.size:.3g} times the model's size "
+            f"(at most {FAR:g}): too far for a registration"
+        )
+    # half the points lie at the median or past it, so it is at most sqrt(2) rms: no search needed
+    if math.sqrt(2.0) * rms <= REACH * box.size:
+        return ""
+    median = float(np.median(distances()))
+    if box.within(median):
+        return ""
+    return (
+        f"the answer's median point lies {median:.3g} m from its surface, {median / box.size:.3g} times the "
+        f"model's size (at most {REACH:g}): too far for a registration"
+    )

@@ -189,21 +189,39 @@ def test_a_cloud_with_any_point_past_far_is_refused_naming_how_many(entry, seque
     assert np.array_equal(s.g, g) and s.frames == 1
 
 
-def test_an_answer_whose_rms_lies_past_the_reach_is_too_far_and_keeps_the_warm_start(entry, sequence):
-    """Points within FAR whose rms distance at the answer lies past REACH sizes (a tenth of the
-    cloud 1.5 km off the 4 m bar) are no registration, even where huber keeps the answer finite:
-    too_far, never converged, the warm start as it was; the next frame registers as before."""
+def _strayed(entry, cloud, strays: str, sizes: float):
+    """`cloud` with one point `sizes` model sizes past the bar's far corner, or a tenth of its
+    points moved that far along the diagonal."""
+    size = float(np.linalg.norm(np.ptp(entry.mesh.nodes, axis=0)))
+    if strays == "one":
+        return np.vstack([cloud, entry.mesh.nodes.max(0) + sizes * size / np.sqrt(3)])
+    far = cloud.copy()
+    far[::10] += sizes * size / np.sqrt(3)
+    return far
+
+
+@pytest.mark.parametrize(
+    "strays, loss, loss_param", [("one", "huber", 0.05), ("one", "trimmed", None), ("a tenth", "trimmed", None)]
+)
+def test_far_strays_within_far_converge_under_a_robust_loss(entry, sequence, strays, loss, loss_param):
+    """One point 900 model sizes off the bar (3.8 km, within FAR), or a tenth of the cloud 250
+    sizes off, put the answer's rms past REACH sizes: it was too_far, the warm start kept, though
+    the robust loss fitted the other points. Reach is judged by the answer's median point: the
+    frame converges, moves the warm start, and its forces are those of the same strays 5 sizes
+    off, which the rms let through (past its threshold a stray's pull on huber is one size).
+    (A tenth 250 sizes off under huber stalls: their 2 delta d terms drown J's decrease.)"""
     tool, seq = sequence
-    s = Session(entry.network, SessionConfig(support=_support(entry, tool), loss="huber", loss_param=0.05))
-    before = s.frame(seq.clouds[3])
+    config = SessionConfig(support=_support(entry, tool), loss=loss, loss_param=loss_param)
+    near = Session(entry.network, config).frame(_strayed(entry, seq.clouds[3], strays, 5.0))
+    assert near.converged, (near.status, near.message)
+    s = Session(entry.network, config)
+    s.frame(seq.clouds[2])
     g = s.g.copy()
-    far = seq.clouds[3].copy()
-    far[::10] += 1e3
-    r = s.frame(far)
-    assert r.status == "too_far" and not r.converged and "times the model's size" in r.message, r.message
-    assert np.array_equal(s.g, g)
-    again = s.frame(seq.clouds[3])
-    assert again.distance_rms <= 1.5 * before.distance_rms + 1e-6
+    r = s.frame(_strayed(entry, seq.clouds[3], strays, 900.0 if strays == "one" else 250.0))
+    assert r.converged and r.status == "converged", (r.status, r.message)
+    assert r.distance_rms > 10 * 4.24 and not np.array_equal(s.g, g)  # past the rms rule's reach; moved
+    diff = np.linalg.norm(r.net_force - near.net_force)
+    assert diff <= 0.05 * np.linalg.norm(near.net_force), (diff, near.net_force)
 
 
 def test_forces_stay_on_the_support_and_outputs_are_only_those_asked(entry, sequence):
