@@ -422,7 +422,7 @@ class FrameResult(_Reply):
     skipped: int | None = Field(None, description="skip_stale streams: frames skipped before this one")
     skipped_ids: list[int | str | None] | None = None
     timing_ms: dict[str, float] = Field(
-        description="engine: total, forward, distance, gradient, optimizer, outputs; "
+        description="engine: total, check, forward, distance, gradient, optimizer, outputs; "
         "server: decode, queue, solve, server, encode"
     )
 

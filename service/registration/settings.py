@@ -83,8 +83,8 @@ class SessionConfig:
     force_bound: float | None = setting(None, "bound on each force component, N (none by default)", gt=0)
     time_budget_ms: float | None = setting(
         None,
-        "per frame: bounds the frame as timing_ms.total counts it (from the session taking it to "
-        "its result; not the queue, decoding or encoding): the optimiser begins no evaluation "
+        "per frame: bounds the frame as timing_ms.total counts it (from the session taking it, its "
+        "checks included, to its result; not the queue, decoding or encoding): the optimiser begins no evaluation "
         "that would end past the budget less what the outputs and the error estimate took on the "
         "session's last frames, and returns its best iterate with status time_limit. Nothing "
         "asked for is dropped: a frame takes at least its start's evaluations and its outputs",

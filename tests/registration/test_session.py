@@ -189,6 +189,24 @@ def test_a_cloud_with_any_point_past_far_is_refused_naming_how_many(entry, seque
     assert np.array_equal(s.g, g) and s.frames == 1
 
 
+def test_the_frames_clock_counts_its_input_checks(entry, sequence):
+    """The cloud's checks (the reach's 3-6 ms at 100k points) ran before the frame's clock:
+    timing_ms.total left them out. They are its `check` part now, inside the total with the
+    others; a refused cloud still changes nothing, not even when the session was last used."""
+    tool, seq = sequence
+    s = Session(entry.network, SessionConfig(support=_support(entry, tool)))
+    s.frame(seq.clouds[2])
+    rng = np.random.default_rng(0)
+    dense = np.concatenate([seq.clouds[3] + 1e-4 * rng.normal(size=seq.clouds[3].shape) for _ in range(100)])
+    timing = s.frame(dense).timing_ms
+    parts = ("check", "forward", "distance", "gradient", "optimizer", "outputs")
+    assert timing["check"] > 0.0 and timing["total"] >= sum(timing[k] for k in parts) - 1e-6, timing
+    g, used = s.g.copy(), s.last_used
+    with pytest.raises(ValueError, match="too far"):
+        s.frame(dense + 1e3)
+    assert np.array_equal(s.g, g) and s.last_used == used and s.frames == 2
+
+
 def _strayed(entry, cloud, strays: str, sizes: float):
     """`cloud` with one point `sizes` model sizes past the bar's far corner, or a tenth of its
     points moved that far along the diagonal."""
