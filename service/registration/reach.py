@@ -7,7 +7,9 @@ gradient is lost to rounding (every closest point ties at 1e16 sizes) and the re
 like an optimum. A session refuses (:func:`check_reach`, a ValueError: a 422) a cloud whose
 median point lies past REACH sizes (a unit mistake), and one with any point past FAR sizes (no
 depth camera's stray point lies there; 199 of 400 points at 1e20 m leave the median near, and
-drown the gradient). Stray points nearer than FAR are a depth camera's outliers, for the robust
+drown the gradient), and one of at least SPAN_POINTS points that spans less than SPAN of the
+model's size (a cloud in metres against a model in millimetres, near its origin, lies inside its
+box). Stray points nearer than FAR are a depth camera's outliers, for the robust
 losses; the engine never calls an answer converged whose median point lies past the reach from
 its surface, or whose rms distance lies past FAR (:func:`answer_past_reach`).
 """
@@ -30,6 +32,13 @@ REACH = 10.0
 #: closest point (1e16 sizes)
 FAR = 1000.0
 
+#: the least share of the model's size that a cloud of SPAN_POINTS or more may span (its bounding
+#: box's diagonal): a depth camera's partial view spans a few percent of an organ at least, and a
+#: cloud in metres against a model in millimetres a thousandth; 1/200 lies between, 5x from each
+SPAN = 1 / 200
+#: the fewest points whose span is judged: one point spans nothing, and two or three (markers) tell no unit
+SPAN_POINTS = 4
+
 
 class Box:
     """A model's rest bounding box and its size (the diagonal, m). Shape: nodes (n, 3)."""
@@ -51,8 +60,9 @@ class Box:
 
 def check_reach(box: Box, points: Array) -> None:
     """ValueError, in one line, where the cloud's median point lies farther than REACH model
-    sizes from the model's box (naming the likely unit mistake), or any point farther than FAR
-    (naming how many and how far)."""
+    sizes from the model's box (naming the likely unit mistake), any point farther than FAR
+    (naming how many and how far), or a cloud of SPAN_POINTS or more spans less than SPAN of
+    the model's size (naming the other unit mistake)."""
     offsets = box.offsets(points)
     median = float(np.median(offsets))
     if not box.within(median):
@@ -69,6 +79,13 @@ def check_reach(box: Box, points: Array) -> None:
             f"points lie too far from the model: {int(far.sum())} of {len(points)} points are more than "
             f"{bound:.3g} m ({FAR:g} times its size of {box.size:.3g} m) from its bounding box, the farthest "
             f"{farthest:.3g} m; no depth camera sees that far: drop them, or is the cloud not in metres?"
+        )
+    span = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+    if len(points) >= SPAN_POINTS and span < SPAN * box.size:
+        raise ValueError(
+            f"points lie too close together for the model: the cloud spans {span:.3g} (its bounding box's "
+            f"diagonal), {span / box.size:.3g} of the model's size of {box.size:.3g} (at least {SPAN:g}); points "
+            f"are in the mesh's unit: is the cloud in metres while the model is in millimetres?"
         )
 
 

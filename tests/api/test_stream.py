@@ -77,6 +77,8 @@ BAD_FRAMES = [
     # a cloud in millimetres against the bar in metres, and one 1e20 m off (once converged)
     (json.dumps({"points": [[1000.0, 500.0, 1000.0], [4000.0, 0.0, 0.0]]}), 422, "millimetres"),
     (json.dumps({"points": [[1e20, 1e20, 1e20]], "frame_id": "far"}), 422, "too far from the model"),
+    # a cloud in metres against a model in millimetres: the bar 1,000x smaller, inside its box
+    (json.dumps({"points": (1e-3 * np.eye(4, 3)).tolist()}), 422, "in metres while the model is in millimetres"),
     (json.dumps({"points": [[1, 2, 3]], "support": [0]}), 422, "fixed"),
     (json.dumps({"points": [[1, 2, 3]], "support": [1.5]}), 422, "integers"),
     (json.dumps({"points": [[1, 2, 3]], "support": []}), 422, "non-empty"),
