@@ -115,9 +115,8 @@ def solve_frame(
     passes the model's, as a session does).
     """
     refuse_bounds(options)
-    box = (
-        Box(rest_positions) if box is None else box
-    )  # the Jacobian, Levenberg-Marquardt's other need, at its first use
+    # a direct caller's (30 us-1 ms a frame); a session passes the model's, made when it opens
+    box = Box(rest_positions) if box is None else box
     t_start = time.perf_counter()
     at_rest = getattr(op, "at_rest", None)
     beside = None
