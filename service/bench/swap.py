@@ -22,7 +22,7 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
-from ..store.builds import _RANDOM, _lock
+from ..flock import RANDOM, try_lock
 
 _PREFIX = ".bench-"
 #: renameat2's flag that swaps two names in one step (linux/fs.h)
@@ -37,7 +37,7 @@ class Busy(RuntimeError):
 
 
 def _scratch_name(out: Path) -> re.Pattern[str]:
-    return re.compile(rf"{re.escape(_PREFIX + out.name)}-{_RANDOM}")
+    return re.compile(rf"{re.escape(_PREFIX + out.name)}-{RANDOM}")
 
 
 def backup_of(out: Path) -> Path:
@@ -49,7 +49,7 @@ def _held(path: Path) -> bool:
     """Whether another process holds the lock of the folder `path` (a live run's)."""
     fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW)
     try:
-        return _lock(fd) is False
+        return try_lock(fd) is False
     finally:
         os.close(fd)  # drops the lock if this process took it
 
@@ -81,7 +81,7 @@ def recover(out: Path) -> list[str]:
             notes.append(f"removed {backup}, the old report of a run stopped once its own was in {out}")
     if out.is_dir():  # versions before this module wrote their scratch folder inside `out`
         for path in sorted(out.glob(f"{_PREFIX}*")):
-            if re.fullmatch(rf"{re.escape(_PREFIX)}{_RANDOM}", path.name) and path.is_dir():
+            if re.fullmatch(rf"{re.escape(_PREFIX)}{RANDOM}", path.name) and path.is_dir():
                 shutil.rmtree(path)
                 notes.append(f"removed {path}, the scratch folder of a run stopped before its files were moved")
     return notes
@@ -97,7 +97,7 @@ def scratch_folder(out: Path) -> tuple[Path, int]:
             fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW)
         except FileNotFoundError:
             continue
-        if _lock(fd) is not False:  # True, or None where the file system has no locks
+        if try_lock(fd) is not False:  # True, or None where the file system has no locks
             os.chmod(fd, stat.S_IMODE(os.stat(out).st_mode))  # mkdtemp's 0700 would become the report's
             return path, fd
         os.close(fd)

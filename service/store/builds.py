@@ -14,11 +14,7 @@ import tempfile
 import time
 from pathlib import Path
 
-try:  # advisory locks: POSIX systems
-    import fcntl
-except ImportError:  # pragma: no cover - Windows: builds write unlocked, nothing is taken for stale
-    fcntl = None  # type: ignore[assignment]
-
+from ..flock import RANDOM, try_lock
 from ..scene import MODEL_ID
 from .files import _MAX_MANIFEST, MANIFEST, MESH, WEIGHTS, _digest, _is_digest, log
 
@@ -27,29 +23,13 @@ from .files import _MAX_MANIFEST, MANIFEST, MESH, WEIGHTS, _digest, _is_digest, 
 _ASIDE = ".."
 #: a build's temporary folder ends so: a hidden folder of the user's is never taken for one
 _BUILDING = ".build"
-#: tempfile.mkdtemp's 8 random characters ([a-z0-9_]), which every version's build folder takes
-_RANDOM = "[a-z0-9_]{8}"
-_BUILD_FOLDER = re.compile(rf"\.{MODEL_ID.pattern.strip('^$')}-{_RANDOM}{re.escape(_BUILDING)}")
+_BUILD_FOLDER = re.compile(rf"\.{MODEL_ID.pattern.strip('^$')}-{RANDOM}{re.escape(_BUILDING)}")
 #: a build's folder with no lock: written before the lock came in (ea8e4fa), or where the file
 #: system has none (_build_folder). A user's `.liver-original` or `.liver-20240501` has such a
 #: name too: only a write cut off (_cut_off) is ever removed
-_UNLOCKED_BUILD_FOLDER = re.compile(rf"\.{MODEL_ID.pattern.strip('^$')}-{_RANDOM}")
+_UNLOCKED_BUILD_FOLDER = re.compile(rf"\.{MODEL_ID.pattern.strip('^$')}-{RANDOM}")
 #: an unlocked build folder untouched this long has no writer: write_entry fills one in seconds
 UNLOCKED_BUILD_AGE_S = 24 * 3600.0
-
-
-def _lock(fd: int) -> bool | None:
-    """Take an exclusive advisory lock on an open folder without waiting: True, False where
-    another process holds it, None where this system or file system has no such locks."""
-    if fcntl is None:
-        return None
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        return False
-    except OSError:  # NFS refuses flock on a directory (EBADF); ENOLCK, EOPNOTSUPP
-        return None
-    return True
 
 
 def _names(path: Path, fd: int) -> bool:
@@ -72,7 +52,7 @@ def _build_folder(store: Path, entry_id: str) -> tuple[Path, int | None]:
             fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW)
         except FileNotFoundError:
             continue
-        locked = _lock(fd)
+        locked = try_lock(fd)
         if locked and _names(path, fd):
             return path, fd
         os.close(fd)
@@ -86,8 +66,8 @@ def _build_folder(store: Path, entry_id: str) -> tuple[Path, int | None]:
 def _stale(path: Path, fd: int) -> bool:
     """Whether the build folder `path`, open as `fd`, has no writer left (see remove_stale_builds)."""
     if _BUILD_FOLDER.fullmatch(path.name):  # its lock tells; no locks here: nothing can tell
-        return bool(_lock(fd)) and _names(path, fd)
-    if _lock(fd) is False or not _names(path, fd):
+        return bool(try_lock(fd)) and _names(path, fd)
+    if try_lock(fd) is False or not _names(path, fd):
         return False
     try:
         with os.scandir(fd) as listing:

@@ -17,10 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-try:  # advisory locks: POSIX systems
-    import fcntl
-except ImportError:  # pragma: no cover - Windows: no lock, so no temporary is ever taken for a leftover
-    fcntl = None  # type: ignore[assignment]
+from ..flock import HAS_LOCKS, RANDOM, try_lock
 
 log = logging.getLogger(__name__)
 
@@ -28,7 +25,7 @@ Array = np.ndarray
 
 _PATH_NAME = re.compile(r"path_(\d{6})\.npz")
 #: write_path's temporary, .path_NNNNNN-XXXXXXXX.tmp.npz (XXXXXXXX: tempfile's 8 characters)
-_TEMPORARY = re.compile(r"\.path_\d{6}-[a-z0-9_]{8}\.tmp\.npz")
+_TEMPORARY = re.compile(rf"\.path_\d{{6}}-{RANDOM}\.tmp\.npz")
 
 
 def path_file(data_dir: Path, index: int) -> Path:
@@ -71,30 +68,20 @@ def load_dataset(data_dir: Path, indices: list[int] | None = None) -> tuple[Arra
     return np.concatenate(F), np.concatenate(U), np.concatenate(P)
 
 
-def _flock(fd: int, how: int) -> bool:
-    """flock(fd, how): False where another process holds a conflicting lock (LOCK_NB) or the
-    file system has no locks (NFS refuses flock on a folder: EBADF, ENOLCK, EOPNOTSUPP)."""
-    try:
-        fcntl.flock(fd, how)
-    except OSError:  # BlockingIOError among them
-        return False
-    return True
-
-
 @contextlib.contextmanager
 def writing(data_dir: Path) -> Iterator[None]:
     """The data folder held while a generation writes paths to it: a shared lock on the folder
     (builds of one scene share it and may write at once; the kernel drops it with the process).
     First, where no other process holds it, the temporaries of writes killed mid-way (write_path's,
     nothing else) are removed: with another build writing, one may be its path in flight."""
-    if fcntl is None:
+    if not HAS_LOCKS:  # Windows: no folder to hold, so no temporary is ever taken for a leftover
         yield
         return
     fd = os.open(data_dir, os.O_RDONLY | os.O_DIRECTORY)
     try:
-        if _flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB):
+        if try_lock(fd):  # None where there are no locks: nothing is taken for a leftover
             _remove_temporaries(Path(data_dir))
-        _flock(fd, fcntl.LOCK_SH)  # waits only for another's clean-up; this build writes nothing yet
+        try_lock(fd, shared=True, wait=True)  # waits only for another's clean-up; this build writes nothing yet
         yield
     finally:
         os.close(fd)
