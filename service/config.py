@@ -59,6 +59,9 @@ def _instance_id() -> str:
 #: the longest session_ttl_s a server takes: a week
 MAX_SESSION_TTL_S = 7 * 24 * 3600.0
 
+#: the sparse factorisations ELASTREG_SOLVER may name (service/fem/linsolve.py's BACKENDS)
+SOLVERS = ("pardiso", "cholmod", "superlu")
+
 _TOKEN = r"^[A-Za-z0-9._~+/=-]{16,512}$"  # RFC 6750's token68 characters, at least 16 of them
 
 #: the settings that bound what one client can make the server hold or do: /health lists them
@@ -209,6 +212,9 @@ class Settings(BaseSettings):
         description="names this process in session ids and the X-Elastreg-Instance header",
     )
     access_log: bool = Field(False, description="uvicorn's per-request log lines")
+    solver: str | None = Field(
+        None, description="the sparse factorisation: pardiso, cholmod or superlu (default: the fastest installed)"
+    )
 
     @field_validator("api_tokens", "allowed_origins", mode="before")
     @classmethod
@@ -219,6 +225,24 @@ class Settings(BaseSettings):
     @classmethod
     def _tokens(cls, value: tuple[str, ...]) -> tuple[str, ...]:
         return _check_tokens(value, "ELASTREG_API_TOKENS")
+
+    @field_validator("solver")
+    @classmethod
+    def _solver(cls, value: str | None) -> str | None:
+        # here, at startup: a bad name would otherwise surface as a 422 or a 500 at the first session
+        if not value:
+            return None
+        if value not in SOLVERS:
+            raise ValueError(f"ELASTREG_SOLVER: unknown solver {value!r}; choose from {', '.join(SOLVERS)}")
+        if value == "cholmod":
+            try:
+                import sksparse.cholmod  # noqa: F401
+            except ImportError as exc:
+                raise ValueError(
+                    f"ELASTREG_SOLVER: cholmod needs scikit-sparse, which does not load ({exc}): "
+                    "pip install 'elastreg[cholmod]', or choose pardiso or superlu"
+                ) from None
+        return value
 
     @field_validator("allowed_origins")
     @classmethod

@@ -3,11 +3,18 @@ and the settings' validators."""
 
 from __future__ import annotations
 
+import importlib.util
+import os
+import subprocess
+import sys
+
 import pytest
 from pydantic import ValidationError
 
+from service.api.server import free_port
 from service.api.sessions import Held, RegistryFull, SessionNotFound, SessionRegistry, WrongKind
-from service.config import Settings
+from service.config import SOLVERS, Settings
+from service.fem.linsolve import BACKENDS
 
 
 class Clock:
@@ -111,3 +118,36 @@ def test_settings_from_environment(monkeypatch, tmp_path):
     monkeypatch.setenv("ELASTREG_MAX_SESSIONS", "lots")
     with pytest.raises(ValidationError):
         Settings()
+
+
+def test_settings_take_the_solvers_the_fem_has():
+    assert set(SOLVERS) == set(BACKENDS)
+
+
+@pytest.mark.parametrize(
+    "solver, says",
+    [
+        ("bogus", "unknown solver 'bogus'; choose from pardiso, cholmod, superlu"),
+        pytest.param(
+            "cholmod",
+            "pip install 'elastreg[cholmod]'",
+            marks=pytest.mark.skipif(
+                importlib.util.find_spec("sksparse") is not None, reason="scikit-sparse installed"
+            ),
+        ),
+    ],
+)
+def test_serve_refuses_a_solver_it_cannot_use_in_one_line(solver, says, tmp_path):
+    """Before: /health said ok, then POST /sessions was a 422 (bogus) or a 500 (cholmod)."""
+    r = subprocess.run(
+        [sys.executable, "-m", "service.cli", "serve", "--store", str(tmp_path), "--port", str(free_port())],
+        capture_output=True,
+        text=True,
+        timeout=60,  # refused at once; the old code served on
+        env={**os.environ, "ELASTREG_SOLVER": solver},
+    )
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 1 and len(lines) == 1, r.stderr
+    assert lines[0].startswith("error: ELASTREG_SOLVER: ") and says in lines[0]
+    assert Settings(store=tmp_path, solver="superlu").solver == "superlu"
+    assert Settings(store=tmp_path, solver="").solver is None
