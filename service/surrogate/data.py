@@ -202,8 +202,8 @@ def generate(
     (path_fits); local workers start only where the time to
     it pays for them (local_workers_pay), else the paths are solved in this process.
     Connecting to `scheduler`, and waiting for its first worker, each take at most Dask's connect
-    timeout (distributed.comm.timeouts.connect), never past `deadline` (a time.perf_counter() value:
-    the build's end); the wait for a worker never past `until` either. Local workers that their
+    timeout (distributed.comm.timeouts.connect), never past `until` where it is given, else
+    `deadline` (a time.perf_counter() value: the build's end). Local workers that their
     nannies restart mid-build (killed: the OOM killer on a big mesh) are sent the mesh again and
     the paths in flight solved again, up to LOCAL_RESTARTS times; a cluster lost otherwise is a
     ClusterError that says how many paths the folder keeps. The temporaries that a build killed
@@ -279,7 +279,8 @@ def _generate(
                 )
             bar.set_postfix_str("")
         else:
-            _probe_scheduler(scheduler, _connect_seconds(deadline))
+            # the data share's end, not the build's: a scheduler found later leaves no time for paths
+            _probe_scheduler(scheduler, _connect_seconds(until if until is not None else deadline))
         with _from_dask(scheduler):
             client = Client(scheduler or cluster)
             if scheduler is not None:

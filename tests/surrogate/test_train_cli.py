@@ -58,6 +58,25 @@ def test_a_scheduler_address_where_no_scheduler_answers_fails_within_its_bound(t
     assert wall < bound + 20  # the interpreter's start (torch) on a loaded machine, and the bound
 
 
+def test_a_dead_scheduler_address_ends_a_timed_build_within_its_data_share(tmp_path, bar):
+    """The probe was bounded by the build's end, not its data share (usage.md: "never past the data
+    share"): --minutes 0.3 waited 18 s less the start, not the data share's 10.8 s."""
+    from service.build import DATA_SHARE
+
+    scene = write_bar_scene(tmp_path / "scene", bar, samples=30)
+    with socket.socket() as dead:  # bound, not listening: refused, which Dask retries
+        dead.bind(("127.0.0.1", 0))
+        address = f"tcp://127.0.0.1:{dead.getsockname()[1]}"
+        t0 = time.perf_counter()
+        r = train(scene, tmp_path, "--scheduler", address, "--minutes", "0.3", timeout=90)
+        wall = time.perf_counter() - t0
+    share = DATA_SHARE * 0.3 * 60
+    assert r.returncode == 2, r.stderr[-3000:]
+    said = re.search(rf"error: no Dask scheduler answers at {address} within ([0-9.]+) s", r.stderr)
+    assert said and float(said[1]) <= round(share, 1), r.stderr[-3000:]  # the old code said up to 18 s
+    assert wall < share + 15  # the interpreter's start (torch) on a loaded machine
+
+
 def test_a_scheduler_address_whose_server_speaks_first_is_no_scheduler(tmp_path, bar):
     """--scheduler at an SSH server's port: distributed read its banner as a frame length and the
     build ended in a traceback (MemoryError: "Unable to allocate 2.82 EiB"), exit 1."""
