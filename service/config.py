@@ -64,7 +64,8 @@ SOLVERS = ("pardiso", "cholmod", "superlu")
 
 _TOKEN = r"^[A-Za-z0-9._~+/=-]{16,512}$"  # RFC 6750's token68 characters, at least 16 of them
 
-#: the settings that bound what one client can make the server hold or do: /health lists them
+#: the settings that bound what clients can make the server hold or do, and how long they wait:
+#: /health lists them (deployment.md's limits table, every row)
 LIMITS = (
     "max_points",
     "max_sessions",
@@ -85,6 +86,10 @@ LIMITS = (
     "e_range",
     "solve_queue",
     "session_queue",
+    "solver_threads",
+    "ws_ping_interval_s",
+    "ws_ping_timeout_s",
+    "drain_timeout_s",
 )
 
 

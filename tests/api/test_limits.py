@@ -6,8 +6,10 @@ time_budget_ms and E, and /health listing every limit. A real server with small 
 from __future__ import annotations
 
 import json
+import re
 import time
 import tracemalloc
+from pathlib import Path
 
 import httpx
 import numpy as np
@@ -59,6 +61,19 @@ def test_health_lists_every_limit(tight):
     assert set(limits) == set(LIMITS)
     assert all(limits[k] == getattr(tight.settings, k) for k in LIMITS)
     assert limits["max_array_elements"] == 8192 and limits["max_iter"] == 50
+
+
+def test_health_lists_every_setting_of_the_deployment_guides_limits_table(tight):
+    """deployment.md: "Every limit is a setting and is listed in /health's limits"; four rows
+    (ws_ping_interval_s, ws_ping_timeout_s, solver_threads, drain_timeout_s) were not."""
+    guide = (Path(__file__).resolve().parents[2] / "docs" / "deployment.md").read_text()
+    table = guide.partition("\n## Limits\n")[2].partition("\n## ")[0]
+    rows = [line.split("|")[1] for line in table.splitlines() if line.startswith("| `")]
+    documented = {name for row in rows for name in re.findall(r"`(\w+)`", row)}
+    assert len(documented) > 15 and "drain_timeout_s" in documented
+    limits = httpx.get(tight.url + "/health").json()["limits"]
+    assert documented <= set(limits), sorted(documented - set(limits))
+    assert limits["solver_threads"] == 1 and limits["ws_ping_timeout_s"] == 10.0
 
 
 # -- decoding ------------------------------------------------------------------------------------
