@@ -39,7 +39,7 @@ from .bodies import config_body, frame_body, simulate_body
 from .encoding import JSON_MEDIA, MSGPACK_MEDIA, decode, encode
 from .errors import ApiError, retry_after
 from .errors import StreamError as StreamError  # importable from here, as it always was
-from .sockets import AsyncStream, AsyncWatch, Stream, Watch, handshake_refused
+from .sockets import AsyncStream, AsyncWatch, Opening, Stream, Watch, handshake_refused
 
 
 def _ws_url(base_url: str, path: str = "/stream", query: str | None = None) -> str:
@@ -273,14 +273,22 @@ class AsyncClient(_Base):
         except InvalidStatus as exc:
             raise handshake_refused(exc) from None
 
-    async def stream(self, model: str, *, max_size: int | None = 1 << 27, **config) -> AsyncStream:
+    def stream(self, model: str, *, max_size: int | None = 1 << 27, **config) -> Opening[AsyncStream]:
+        """A stream; see :meth:`Client.stream`. ``async with api.stream(...) as stream`` closes it
+        at the block's end; ``stream = await api.stream(...)`` leaves that to the caller."""
+        return Opening(self._stream(model, max_size, config))
+
+    async def _stream(self, model: str, max_size: int | None, config: dict) -> AsyncStream:
         ws = await self._connect(_ws_url(self.base_url), max_size)
         stream = AsyncStream(ws, self.encoding, self.timeout)
         await stream._open(config_body(model, config))
         return stream
 
-    async def watch(self, session_id: str, *, max_size: int | None = 1 << 27) -> AsyncWatch:
-        """Watch a session; see :meth:`Client.watch`."""
+    def watch(self, session_id: str, *, max_size: int | None = 1 << 27) -> Opening[AsyncWatch]:
+        """Watch a session; see :meth:`Client.watch`. Awaited or in ``async with``, as :meth:`stream`."""
+        return Opening(self._watch(session_id, max_size))
+
+    async def _watch(self, session_id: str, max_size: int | None) -> AsyncWatch:
         ws = await self._connect(_watch_url(self.base_url, session_id, self.encoding), max_size)
         watch = AsyncWatch(ws, self.encoding, self.timeout)
         await watch._open()

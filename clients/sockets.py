@@ -7,7 +7,8 @@ from __future__ import annotations
 
 import contextlib
 import json
-from typing import Any, Self
+from collections.abc import Coroutine, Generator
+from typing import Any, Generic, Self, TypeVar
 
 from .bodies import frame_body
 from .encoding import decode, encode
@@ -235,6 +236,29 @@ class Stream(_SyncSocket):
             raise
         self._out_of_step = False
         return reply
+
+
+H = TypeVar("H", bound=_AsyncSocket)
+
+
+class Opening(Generic[H]):
+    """An async handle being opened: ``await`` it for the handle, or ``async with`` it for a
+    handle closed at the block's end, as the sync client's ``with api.stream(...)`` is."""
+
+    def __init__(self, opening: Coroutine[Any, Any, H]) -> None:
+        self._opening = opening
+        self._handle: H | None = None
+
+    def __await__(self) -> Generator[Any, None, H]:
+        return self._opening.__await__()
+
+    async def __aenter__(self) -> H:
+        self._handle = await self._opening
+        return self._handle
+
+    async def __aexit__(self, *exc) -> None:
+        if self._handle is not None:
+            await self._handle.close()
 
 
 class AsyncStream(_AsyncSocket):

@@ -86,6 +86,33 @@ def test_async_client(live, support, clouds, encoding):
     asyncio.run(main())
 
 
+def test_async_streams_and_watches_open_in_async_with_as_the_sync_ones_do_in_with(live, support, clouds):
+    """`async with api.stream(...)` was a TypeError (a coroutine is no async context manager):
+    only `async with await api.stream(...)` worked. Both forms, and the plain await, now do."""
+
+    async def main() -> None:
+        async with AsyncClient(live.url) as api:
+            async with api.stream("bar", support=support) as stream:
+                assert (await stream.frame(clouds[0], frame_id="a"))["frame_id"] == "a"
+                async with api.watch(stream.session) as frames:
+                    await stream.frame(clouds[1], frame_id="b")
+                    assert (await frames.recv(timeout=30))["result"]["frame_id"] == "b"
+                assert frames.ws.close_code is not None  # closed by the block
+            assert stream.ws.close_code is not None
+            async with await api.stream("bar", support=support) as stream:
+                assert (await stream.frame(clouds[2]))["displacement"].shape == (81, 3)
+            assert stream.ws.close_code is not None
+            stream = await api.stream("bar", support=support)
+            assert (await stream.frame(clouds[3]))["status"]
+            await stream.close()
+            with pytest.raises(StreamError) as err:
+                async with api.stream("nope"):
+                    pass
+            assert err.value.status == 404
+
+    asyncio.run(main())
+
+
 @pytest.mark.parametrize("encoding", ["msgpack", "json"])
 def test_an_empty_support_is_the_servers_422_not_a_local_dtype_error(live, clouds, encoding):
     """[] is float64 to numpy: the client refused it as "dtype float64", not integer ids, where
