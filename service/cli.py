@@ -240,7 +240,7 @@ def parser() -> argparse.ArgumentParser:
         help="auto: the network, with frames whose error estimate is large redone by the FEM",
     )
     d.add_argument("--encoding", choices=["msgpack", "json"], default="msgpack")
-    d.add_argument("--store", default=None, help="model store (default: the project's model_store/)")
+    d.add_argument("--store", default=None, help="model store (default: $ELASTREG_STORE or the project's model_store/)")
     d.add_argument(
         "--viewer", action="store_true", help="serve and open the live viewer's demo instead (Ctrl-C to stop)"
     )
@@ -327,7 +327,11 @@ def parser() -> argparse.ArgumentParser:
     g.add_argument("--host", default="127.0.0.1")
     g.add_argument("--port", type=_port, default=18944, help="OpenIGTLink port (default: 18944)")
     g.add_argument("--server", default=None, help="URL of a running API (default: serve --store in this process)")
-    g.add_argument("--store", default=None, help="model store when no --server is given")
+    g.add_argument(
+        "--store",
+        default=None,
+        help="model store when no --server is given (default: $ELASTREG_STORE or the project's model_store/)",
+    )
     g.add_argument(
         "--device",
         type=_device_name,

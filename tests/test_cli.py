@@ -329,6 +329,16 @@ def test_the_demo_runs_against_its_own_server_with_tokens():
     assert "401" not in r.stderr and "frame" in r.stdout, r.stdout
 
 
+def test_every_store_flag_says_it_defaults_to_elastreg_store(capsys):
+    """demo and igtl read $ELASTREG_STORE before the project's store, as serve and train do, but
+    their --help said only the project's model_store/."""
+    for command in ("serve", "train", "demo", "igtl"):
+        with pytest.raises(SystemExit):
+            parser().parse_args([command, "--help"])
+        flag = re.search(r"\n  --store STORE(.*?)(?=\n  -|\Z)", capsys.readouterr().out, re.S)
+        assert flag and "$ELASTREG_STORE" in " ".join(flag[1].split()), (command, flag)
+
+
 def test_settings_the_demos_server_refuses_end_it_in_one_line():
     """ELASTREG_* settings that contradict each other raised pydantic's traceback out of the
     demo: now one line naming the setting, and exit status 1."""
