@@ -12,7 +12,7 @@ MessagePack; NumPy arrays in, NumPy arrays out.
 ...         show(frame["points"], frame["result"])                     # slow? the newest comes next
 
 HTTP sessions (``open_session``) live in the server process that opened them: behind several
-processes, route them with affinity (see the README) or use ``stream``, whose session lives
+processes, route them with affinity (docs/usage.md, "Scaling out") or use ``stream``, whose session lives
 with its connection. With ``encoding="msgpack"`` (the default) arrays travel as packed bytes.
 On a server with tokens pass ``token=`` (sent as ``Authorization: Bearer``, on the WebSocket's
 handshake too); over HTTPS, ``verify=`` takes a CA file for a private certificate.

@@ -236,11 +236,11 @@ class SessionRegistry:
             return (
                 f"session {session_id!r} is not held here: it was opened by instance {owner!r} and "
                 f"{here}. Sessions live in the process that opened them: route every request of a "
-                "session to that process (session affinity, see the README), or use the WebSocket "
+                'session to that process (session affinity: docs/usage.md, "Scaling out"), or use the WebSocket '
                 "/stream, whose state lives with its connection"
             )
         return (
             f"no session {session_id!r} ({here}): it was closed, expired after {self.ttl_s:g} s "
             "idle, or never existed. Sessions live in the process that opened them (session "
-            "affinity, see the README)"
+            'affinity: docs/usage.md, "Scaling out")'
         )

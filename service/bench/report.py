@@ -34,7 +34,7 @@ log = logging.getLogger(__name__)
 
 #: what a bare ``elastreg bench`` runs: the build-minutes curve is hours of builds
 DEFAULT_PARTS = PARTS[:-1]
-LIVER_HINT = "elastreg train benchmarks/scenes/liver_paper.toml (see the README)"
+LIVER_HINT = 'elastreg train benchmarks/scenes/liver_paper.toml (docs/usage.md, "The paper\'s liver")'
 VARIANT_HINT = "elastreg train benchmarks/scenes/liver_paper.toml --name ID ... (docs/usage.md's recipe)"
 
 

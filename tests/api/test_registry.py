@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import re
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 from pydantic import ValidationError
@@ -87,6 +89,19 @@ def test_not_found_messages():
         reg.get(s.id, kind="http")
     with pytest.raises(WrongKind):
         reg.close(s.id, kind="http")
+
+
+def test_not_found_messages_point_at_the_scaling_out_section():
+    """They said "see the README", which says nothing of session affinity."""
+    reg = SessionRegistry(max_sessions=8, ttl_s=10, instance_id="i1", retry_after=5)
+    usage = (Path(__file__).resolve().parents[2] / "docs" / "usage.md").read_text()
+    for session_id in ("other-abc", "i1-abc"):
+        with pytest.raises(SessionNotFound) as err:
+            reg.get(session_id)
+        message = str(err.value)
+        section = re.search(r'session affinity: docs/usage\.md, "([^"]+)"', message)
+        assert section and "README" not in message, message
+        assert f"\n## {section[1]}\n" in usage and "affinity" in usage.partition(f"## {section[1]}")[2][:2000]
 
 
 @pytest.mark.parametrize(

@@ -243,3 +243,15 @@ def test_the_bench_lines_of_usage_md_name_real_flags_and_their_defaults():
             action = actions[flag]
             parsed = [action.type(v) if action.type else v for v in values]
             assert (parsed if action.nargs else parsed[0]) == action.default, (flag, line)
+
+
+def test_a_missing_liver_model_points_at_the_recipe_in_usage_md(tmp_path, capsys):
+    """The hint said "(see the README)", which has no liver recipe: docs/usage.md's section has."""
+    with pytest.raises(SystemExit) as exit_:
+        main(["bench", "liver", "--store", str(tmp_path), "--out", str(tmp_path / "report"), "--quick", "--no-fem"])
+    message = capsys.readouterr().err
+    assert exit_.value.code == 2
+    assert "elastreg train benchmarks/scenes/liver_paper.toml" in message and "README" not in message, message
+    section = re.search(r'docs/usage\.md, "([^"]+)"', message)
+    usage = (Path(__file__).resolve().parents[2] / "docs" / "usage.md").read_text()
+    assert section and f"\n## {section[1]}" in usage, message

@@ -1,6 +1,6 @@
 """Registration sessions over HTTP: open, post frames, inspect, close.
 
-A session lives in the server process that opened it (see the README on session affinity).
+A session lives in the server process that opened it (docs/usage.md, "Scaling out", on session affinity).
 """
 
 from __future__ import annotations
