@@ -345,7 +345,12 @@ def _generate(
             with _quiet("distributed.client"):  # a lost scheduler: its reconnect, cancelled, logs a traceback
                 client.close()
         if cluster is not None:
-            cluster.close()
+            try:
+                cluster.close()
+            except Exception as exc:
+                # dask's close can race the nannies restarting killed workers (a KeyError, seen under
+                # load); the paths are on disk, and an error raised here would hide the one in flight
+                log.warning("closing the local Dask workers: %s: %s", type(exc).__name__, exc)
 
 
 def path_fits(until: float | None, took: list[float], now: float | None = None) -> bool:
