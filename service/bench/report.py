@@ -177,7 +177,10 @@ def main(args: argparse.Namespace) -> int:
         limit_threads(blas_threads)
     store = Path(args.store) if args.store else default_store()
     out = Path(os.path.abspath(args.out))  # "." and ".." named: the swap renames the folder by its name
-    out = out.resolve() if out.is_symlink() else out  # the folder a link names is the one swapped
+    try:
+        out = out.resolve() if out.is_symlink() else out  # the folder a link names is the one swapped
+    except (RuntimeError, OSError) as exc:  # a loop of links
+        _refuse(f"--out {out} is a symbolic link that names no folder ({exc})")
     parts = list(dict.fromkeys(args.parts))
     if args.smoke is not None and "minutes" in parts:
         _refuse("the minutes part builds scenes (--scenes), not a --smoke model")
@@ -205,18 +208,38 @@ def main(args: argparse.Namespace) -> int:
         _refuse(f"cannot make the report folder {out}: {exc.strerror or exc}")
     # the whole new report is written beside `out`, then put in its place at once: a run that
     # stops at any instant (Ctrl-C, a crash, SIGKILL) leaves the old report or the new, not a mix
-    new, lock = scratch_folder(out)
+    try:
+        new, lock, note = scratch_folder(out)
+    except OSError as exc:
+        _refuse(f"cannot make a scratch folder for the report in or beside {out}: {exc.strerror or exc}")
+    if note:
+        print(f"note: {note}", file=sys.stderr)
+    whole = args.replace or (prior is not None and prior.get("smoke") != args.smoke)
+    finished = placed = False
     try:
         (new / "figures").mkdir()
-        results = _run_parts(args, parts, models, variants, scenes, out, new / "figures", blas_threads)
+        results = _run_parts(args, parts, models, variants, scenes, out, new, blas_threads)
         results = merge_previous(results, None if args.replace else out)
         write_report(results, new)
-        if not args.replace and (prior is None or prior.get("smoke") == args.smoke):  # else replaced whole
+        finished = True
+        if not whole and new.parent != out:
             carry_over(out, new)
-        put_in_place(new, out)
+        try:
+            note = put_in_place(new, out, whole)
+        except OSError as exc:
+            kept = getattr(exc, "kept", new)  # where the files not moved yet are
+            print(f"error: could not put the report in {out} ({exc}); it is kept in {kept}", file=sys.stderr)
+            return 1
+        placed = True
     finally:
         os.close(lock)
-        shutil.rmtree(new, ignore_errors=True)  # a run stopped before its report went in
+        if not placed and (finished or (new / "minutes_rows.json").exists()):
+            if not finished:  # a stopped minutes run: its hour-long builds' rows
+                print(f"note: the minutes rows built so far are kept in {new / 'minutes_rows.json'}", file=sys.stderr)
+        else:
+            shutil.rmtree(new, ignore_errors=True)  # a run stopped before its report went in
+    if note:
+        print(f"note: {note}", file=sys.stderr)
     print(f"report written to {out / 'report.md'} ({results['seconds']:.0f} s)")
     return 0
 
@@ -288,13 +311,13 @@ def _run_parts(
     variants: dict,
     scenes: list,
     out: Path,
-    figures: Path,
+    new: Path,
     blas_threads: int | None,
 ) -> dict:
     """Every part in `parts` on its model in `models` (the pareto part's `variants` beside its
-    own), each figure drawn into `figures`; the
-    results, before the merge with the report in `out` (whose minutes rows the minutes part
-    extends)."""
+    own), each figure drawn into the scratch folder `new`'s figures/ (the minutes part's rows
+    written there after each build); the results, before the merge with the report in `out`
+    (whose minutes rows the minutes part extends)."""
     from .. import spare
     from . import machine
 
@@ -306,6 +329,7 @@ def _run_parts(
     }
     quick = args.quick or args.smoke is not None
     fem_on = not args.no_fem
+    figures = new / "figures"
     t_all = time.perf_counter()
 
     if args.smoke is not None:  # one model for every part
@@ -419,7 +443,7 @@ def _run_parts(
             test_data=test_data,
             workers=args.workers,
             keep=Path(args.keep_store) if args.keep_store else None,
-            on_row=functools.partial(write_minutes_rows, out),
+            on_row=functools.partial(write_minutes_rows, new),  # never the live `out`: no mix
         )
         plot_minutes(latest(results["parts"]["minutes"]["rows"]), figures / "build_minutes.png")
 

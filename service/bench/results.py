@@ -47,8 +47,9 @@ def write_results(results: dict, out: Path) -> None:
 
 
 def write_minutes_rows(folder: Path, rows: list[dict]) -> None:
-    """minutes_rows.json: the minutes part's rows, also written into the live report folder after
-    each build, so that an hour-long build's row survives a later failure."""
+    """minutes_rows.json: the minutes part's rows, also written into the run's scratch folder after
+    each build, so that an hour-long build's row survives a later failure (kept there, its path
+    printed)."""
     (folder / "minutes_rows.json").write_text(json.dumps(rows, indent=1, default=jsonable))
 
 

@@ -6,7 +6,8 @@ mix; the next run clears what such a run left (:func:`recover`).
 In place at once: one exchange of the two folders (Linux's renameat2 RENAME_EXCHANGE) where the
 file system has it; elsewhere two renames, the old folder to ``.bench-NAME.old`` and the new to
 ``NAME``, for which a run stopped between them leaves ``--out`` missing until the next restores
-it."""
+it. Where the folder cannot be swapped (a mount point, an overlayfs lower layer, the working
+directory, a parent the user cannot write), the files are moved in one by one, as before."""
 
 from __future__ import annotations
 
@@ -79,29 +80,58 @@ def recover(out: Path) -> list[str]:
         else:
             shutil.rmtree(backup)
             notes.append(f"removed {backup}, the old report of a run stopped once its own was in {out}")
-    if out.is_dir():  # versions before this module wrote their scratch folder inside `out`
+    if out.is_dir():  # versions before this module, and runs that cannot swap, write theirs inside `out`
         for path in sorted(out.glob(f"{_PREFIX}*")):
-            if re.fullmatch(rf"{re.escape(_PREFIX)}{RANDOM}", path.name) and path.is_dir():
+            if re.fullmatch(rf"{re.escape(_PREFIX)}{RANDOM}", path.name) and path.is_dir() and not path.is_symlink():
+                if _held(path):  # a live run's, which moves its files in one by one
+                    raise Busy(f"another elastreg bench is writing {out} (its scratch folder {path} is locked)")
                 shutil.rmtree(path)
                 notes.append(f"removed {path}, the scratch folder of a run stopped before its files were moved")
     return notes
 
 
-def scratch_folder(out: Path) -> tuple[Path, int]:
-    """A new folder beside the folder `out` for a run's report, with `out`'s permissions, and a
-    descriptor holding its lock until closed (the kernel drops it when the process dies:
-    :func:`recover` then removes it)."""
+def holds_cwd(out: Path) -> bool:
+    """Whether `out` is, or holds, this process's working directory (``--out .``): a swap would
+    leave the caller's shell in the old, deleted folder."""
+    cwd, real = Path(os.path.realpath(os.getcwd())), Path(os.path.realpath(out))
+    return cwd == real or real in cwd.parents
+
+
+def scratch_folder(out: Path) -> tuple[Path, int, str | None]:
+    """A new folder for a run's report and a descriptor holding its lock until closed (the kernel
+    drops it when the process dies: :func:`recover` then removes it), and a note where it is not
+    the swap's: beside the folder `out`, with `out`'s group and permissions; inside `out`, whose
+    files :func:`put_in_place` then moves in one by one, where `out` holds the working directory
+    or no folder can be made beside it (a parent the user cannot write)."""
+    if holds_cwd(out):
+        path, fd = _locked_folder(out, _PREFIX)
+        return path, fd, f"{out} holds the working directory, so the report's files are moved into it one by one"
+    try:
+        path, fd = _locked_folder(out.parent, f"{_PREFIX}{out.name}-")
+    except OSError as exc:
+        path, fd = _locked_folder(out, _PREFIX)
+        why = exc.strerror or exc
+        return path, fd, f"no scratch folder beside {out} ({why}), so the report's files are moved into it one by one"
+    st = os.stat(out)
+    with contextlib.suppress(PermissionError):  # a group the runner is not in keeps the runner's
+        os.chown(fd, -1, st.st_gid)
+    # after the chown, which clears setgid; ACLs and extended attributes are not carried over
+    os.chmod(fd, stat.S_IMODE(st.st_mode))  # mkdtemp's 0700 would become the report's
+    return path, fd, None
+
+
+def _locked_folder(parent: Path, prefix: str) -> tuple[Path, int]:
+    """A new folder in `parent` named `prefix` and 8 random characters, locked."""
     for _ in range(8):  # another name each time a recover took the new folder before its lock
-        path = Path(tempfile.mkdtemp(prefix=f"{_PREFIX}{out.name}-", dir=out.parent))
+        path = Path(tempfile.mkdtemp(prefix=prefix, dir=parent))
         try:
             fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW)
         except FileNotFoundError:
             continue
         if try_lock(fd) is not False:  # True, or None where the file system has no locks
-            os.chmod(fd, stat.S_IMODE(os.stat(out).st_mode))  # mkdtemp's 0700 would become the report's
             return path, fd
         os.close(fd)
-    raise OSError(errno.EAGAIN, f"no scratch folder beside {out} stayed this run's long enough to lock it")
+    raise OSError(errno.EAGAIN, f"no scratch folder in {parent} stayed this run's long enough to lock it")
 
 
 def carry_over(old: Path, new: Path) -> None:
@@ -122,16 +152,80 @@ def carry_over(old: Path, new: Path) -> None:
             shutil.copy2(src, dest, follow_symlinks=False)
 
 
-def put_in_place(new: Path, out: Path) -> None:
-    """Make the finished report folder `new` the folder `out` and remove the old one."""
+def put_in_place(new: Path, out: Path, whole: bool) -> str | None:
+    """Make the finished report folder `new` the folder `out` (`whole`: nothing else of `out`
+    kept) and remove the old one; a note where that could not be done at once (`out` a mount
+    point, EBUSY; an overlayfs lower-layer folder, EXDEV) and the files were moved in one by one."""
+    if new.parent == out:  # a scratch folder inside `out`: no swap
+        move_in(new, out, whole)
+        return None
     backup = backup_of(out)
-    with _signals_held():
-        exchanged = out.exists() and _exchange(new, out)
-        if not exchanged:
-            if out.exists():
-                os.rename(out, backup)
-            os.rename(new, out)
+    try:
+        with _signals_held():
+            exchanged = out.exists() and _exchange(new, out)
+            if not exchanged:
+                _two_renames(new, out, backup)
+    except OSError as exc:
+        inner, fd = _locked_folder(out, _PREFIX)  # on `out`'s file system, so each move is a rename
+        try:
+            try:
+                os.rename(new, inner)  # onto the empty folder
+            except OSError:  # another file system (a mount point)
+                shutil.copytree(new, inner, symlinks=True, dirs_exist_ok=True)
+            move_in(inner, out, whole)
+        except OSError as failed:
+            failed.kept = inner if not new.exists() else new  # type: ignore[attr-defined]
+            raise
+        finally:
+            os.close(fd)
+        shutil.rmtree(inner, ignore_errors=True)
+        shutil.rmtree(new, ignore_errors=True)  # copied
+        return (
+            f"could not swap the report into {out} at once ({exc.strerror or exc}): its files were moved in one by one"
+        )
     shutil.rmtree(new if exchanged else backup, ignore_errors=True)  # exchanged: `new` names the old report
+    return None
+
+
+def _two_renames(new: Path, out: Path, backup: Path) -> None:
+    """The old folder aside, the new in its place; the old put back where the second fails."""
+    if out.exists():
+        os.rename(out, backup)
+    try:
+        os.rename(new, out)
+    except OSError:
+        if backup.exists():
+            os.rename(backup, out)
+        raise
+
+
+def move_in(new: Path, out: Path, whole: bool) -> None:
+    """What versions before the swap did: move the files of the report folder `new` into `out`
+    one by one, results.json last (renames in one file system: each file changes whole); `whole`:
+    then remove what else `out` holds (scratch folders aside), as the swap would have."""
+    files = sorted(
+        (
+            Path(d, f).relative_to(new)
+            for d, dirs, names in os.walk(new)
+            for f in names + [x for x in dirs if Path(d, x).is_symlink()]
+        ),
+        key=lambda rel: rel.name == "results.json",
+    )
+    for rel in files:
+        (out / rel).parent.mkdir(parents=True, exist_ok=True)
+        os.replace(new / rel, out / rel)
+    if not whole:
+        return
+    kept = set(files)
+    for d, dirs, names in os.walk(out, topdown=False):
+        rel_dir = Path(d).relative_to(out)
+        if rel_dir.parts and rel_dir.parts[0].startswith(_PREFIX):
+            continue
+        for name in names + [x for x in dirs if Path(d, x).is_symlink()]:
+            if rel_dir / name not in kept and not (not rel_dir.parts and name.startswith(_PREFIX)):
+                os.remove(Path(d, name))
+        if rel_dir.parts and not os.listdir(d):
+            os.rmdir(d)
 
 
 def _exchange(a: Path, b: Path) -> bool:

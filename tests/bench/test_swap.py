@@ -4,7 +4,10 @@ new one, whole, and the next run clears what it left."""
 import fcntl
 import json
 import os
+import shlex
+import shutil
 import stat
+import subprocess
 import sys
 from pathlib import Path
 
@@ -172,3 +175,163 @@ def test_a_run_into_a_folder_another_run_is_writing_is_refused(bar_store, tmp_pa
     assert exit_.value.code == 2
     assert err == f"error: another elastreg bench is writing {out} (its scratch folder {scratch} is locked)\n", err
     assert files(scratch) == before and not out.exists()
+
+
+#: `elastreg` run in a process of its own
+CLI = "import sys; from service.cli import main; sys.exit(main(sys.argv[1:]))"
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def in_own_mounts(mounts: str, argv: list[str], after: str = "true") -> subprocess.CompletedProcess:
+    """`elastreg ARGV` in a mount namespace of its own between the shell lines `mounts` and
+    `after` (its exit status kept), or a skip where mounts cannot be made here."""
+    if os.geteuid() != 0 or not shutil.which("unshare"):
+        pytest.skip("needs root and unshare to make mounts")
+    probe = subprocess.run(["unshare", "-m", "--propagation", "private", "true"], capture_output=True, text=True)
+    if probe.returncode:
+        pytest.skip(f"cannot unshare the mount namespace: {probe.stderr.strip()}")
+    run = f"{shlex.quote(sys.executable)} -c {shlex.quote(CLI)} {shlex.join(argv)}"
+    script = f"{mounts} || exit 99; {run}; rc=$?; {after}; exit $rc"
+    return subprocess.run(["unshare", "-m", "--propagation", "private", "sh", "-c", script], capture_output=True,
+                          text=True, cwd=ROOT)  # fmt: skip
+
+
+def test_a_mount_point_out_gets_its_files_moved_in(bar_store, tmp_path):
+    """--out a mount point (a bind mount, a docker volume): the exchange failed with EBUSY and
+    the finished report was deleted (traceback, exit 1). Now its files are moved in one by one,
+    with one note, the user's file kept."""
+    out, volume = tmp_path / "report", tmp_path / "volume"
+    out.mkdir()
+    volume.mkdir()
+    (volume / "mine.txt").write_text("kept")
+    done = in_own_mounts(f"mount --bind {volume} {out}", smoke(bar_store[0], out))
+    assert done.returncode == 0, done.stderr
+    assert "note: could not swap the report into" in done.stderr and "moved in one by one" in done.stderr, done.stderr
+    assert (volume / "mine.txt").read_text() == "kept"
+    assert "fem" in json.loads((volume / "results.json").read_text())["parts"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["report", "volume"]
+    assert not list(volume.glob(".bench-*"))
+
+
+def test_an_overlayfs_lower_layer_out_gets_its_files_moved_in(bar_store, tmp_path):
+    """--out a folder of an overlay's lower layer (a container image's reports/latest): EXDEV
+    from the exchange and the renames, the report deleted. Now moved in one by one."""
+    root = tmp_path / "ov"
+    lower = root / "lower/reports/latest"
+    lower.mkdir(parents=True)
+    (lower / "report.md").write_text("the image's report")
+    out = root / "merged/reports/latest"
+    mounts = (f"mount -t tmpfs tmpfs {root / 'up'} 2>/dev/null || true; mkdir -p {root}/up/u {root}/up/w; "
+              f"mount -t overlay overlay -o lowerdir={root}/lower,upperdir={root}/up/u,workdir={root}/up/w "
+              f"{root}/merged")  # fmt: skip
+    (root / "up").mkdir()
+    (root / "merged").mkdir()
+    after = f"echo beside: $(ls -A {out.parent}); grep -q FEM {out}/report.md && echo the new report"
+    done = in_own_mounts(mounts, smoke(bar_store[0], out, "--replace"), after)
+    if done.returncode == 99:
+        pytest.skip(f"cannot mount an overlay here: {done.stderr.strip()}")
+    assert done.returncode == 0, done.stderr
+    assert "note: could not swap the report into" in done.stderr, done.stderr
+    assert "beside: latest\nthe new report\n" in done.stdout, done.stdout
+
+
+def test_an_out_in_a_parent_the_user_cannot_write_is_written(bar_store, tmp_path, capsys):
+    """--out writable inside a parent that is not (a served folder /srv/www/report): the scratch
+    folder beside it could not be made, a PermissionError traceback. Now it is made inside."""
+    if os.geteuid() == 0 and not shutil.which("setpriv"):
+        pytest.skip("root without setpriv: every folder is writable")
+    www = tmp_path / "www"
+    out = www / "report"
+    out.mkdir(parents=True)
+    (out / "mine.txt").write_text("kept")
+    os.chown(www, 65534, -1)  # nobody's: without CAP_DAC_OVERRIDE/FOWNER, root cannot write it
+    www.chmod(0o755)
+    tmp_path.chmod(0o755)
+    drop = ["setpriv", "--inh-caps=-all", "--bounding-set=-dac_override,-dac_read_search,-fowner", "--"]
+    done = subprocess.run([*drop, sys.executable, "-c", CLI, *smoke(bar_store[0], out)], capture_output=True,
+                          text=True, cwd=ROOT)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert "so the report's files are moved into it one by one" in done.stderr, done.stderr
+    assert (out / "mine.txt").read_text() == "kept" and (out / "report.md").exists()
+    assert not list(out.glob(".bench-*")) and sorted(p.name for p in www.iterdir()) == ["report"]
+
+
+def test_out_dot_keeps_the_callers_working_directory(bar_store, tmp_path, capsys, monkeypatch):
+    """`--out .` from the report folder: the swap left the caller's shell in the old, deleted
+    folder. Now the files are moved into the folder the caller stands in."""
+    out = tmp_path / "report"
+    out.mkdir()
+    (out / "mine.txt").write_text("kept")
+    monkeypatch.chdir(out)
+    assert main(smoke(bar_store[0], Path("."))) == 0
+    here = os.listdir(".")
+    assert "report.md" in here and "mine.txt" in here and not [n for n in here if n.startswith(".bench-")], here
+    assert os.path.samefile(".", out)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["report"]
+
+
+def test_the_swapped_in_folder_keeps_its_group_and_setgid(bar_store, tmp_path, capsys):
+    """A served folder root:daemon 2750 became root:root 0750 (only the mode was copied): the web
+    server's group lost it."""
+    out = tmp_path / "report"
+    out.mkdir()
+    gid = next(g for g in (1, 2, 100) if g != os.getgid())
+    try:
+        os.chown(out, -1, gid)
+    except PermissionError:
+        pytest.skip("cannot give the folder another group here")
+    out.chmod(0o2750)
+    assert main(smoke(bar_store[0], out)) == 0
+    st = out.stat()
+    assert st.st_gid == gid and stat.S_IMODE(st.st_mode) == 0o2750, (st.st_gid, oct(st.st_mode))
+
+
+def test_a_symlink_loop_out_is_one_line(bar_store, tmp_path, capsys):
+    """--out a loop of links: a RuntimeError traceback; now one line, exit status 2."""
+    (tmp_path / "a").symlink_to(tmp_path / "b")
+    (tmp_path / "b").symlink_to(tmp_path / "a")
+    with pytest.raises(SystemExit) as exit_:
+        main(smoke(bar_store[0], tmp_path / "a"))
+    err = capsys.readouterr().err
+    assert (
+        exit_.value.code == 2
+        and err.startswith(f"error: --out {tmp_path / 'a'} is a symbolic link")
+        and err.count("\n") == 1
+    ), err
+
+
+def test_a_minutes_run_killed_after_a_build_leaves_the_old_report_whole(bar, tmp_path):
+    """`bench minutes` wrote minutes_rows.json into the live --out after each build: a run killed
+    (SIGKILL) after its first build left the old report's results.json beside the new run's rows.
+    Now the rows go to the run's scratch folder; --out stays the old report, whole."""
+    import signal
+    import time
+
+    from tests.conftest import write_bar_scene
+
+    scene = write_bar_scene(tmp_path / "scene", bar)
+    out = tmp_path / "report"
+    out.mkdir()
+    old_rows = [{"scene": "bar", "minutes": 30.0, "started": "2026-11-01", "test_relative": 0.1}]
+    (out / "results.json").write_text(json.dumps({"smoke": None, "parts": {"minutes": {"rows": old_rows}}}))
+    (out / "minutes_rows.json").write_text(json.dumps(old_rows))
+    (out / "report.md").write_text("old report\n")
+    before = files(out)
+    argv = ["bench", "minutes", "--replace", "--scenes", str(scene), "--test-data", str(tmp_path / "test"),
+            "--build-minutes", "0.1", "0.1", "--test-paths", "2", "--workers", "0", "--out", str(out)]  # fmt: skip
+    proc = subprocess.Popen([sys.executable, "-c", CLI, *argv], cwd=ROOT, stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 240
+        while time.monotonic() < deadline and proc.poll() is None:
+            rows = [*tmp_path.glob(".bench-report-*/minutes_rows.json")]
+            if rows or files(out) != before:  # a build's row written: in the scratch, or in --out
+                break
+            time.sleep(0.05)
+        assert proc.poll() is None, "the run ended before its first build's row"
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.kill()
+        proc.wait()
+    assert files(out) == before
+    (scratch,) = tmp_path.glob(".bench-report-*")  # the row is kept there, till the next run's recover
+    assert json.loads((scratch / "minutes_rows.json").read_text())[0]["minutes"] == 0.1
