@@ -110,23 +110,36 @@ def test_bridge_surface_equals_the_http_api(live, http, bridge, entry, support, 
     http.delete(f"/sessions/{sid}")
 
 
-def test_a_session_the_api_refuses_is_reported_to_the_client(live, tmp_path):
-    """The API refuses the bridge's session (max_iter over its cap): the OpenIGTLink client gets
-    a status saying so, not a connection closed without a word."""
+def test_a_session_the_api_refuses_is_reported_to_the_client(bar_store, tmp_path):
+    """The API refuses the bridge's session when a client connects (at its session limit: a
+    refusal the bridge's start-up check cannot foresee, since settings it refuses stop the
+    bridge before it listens): the OpenIGTLink client gets a status saying so, not a connection
+    closed without a word."""
+    from clients import Client
+
+    from .conftest import start
+
+    server = start(bar_store[0], max_sessions=1)
     port = free_port()
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "service.cli", "igtl", "--model", "bar", "--server", live.url, "--port", str(port),
-         "--max-iter", "100000"],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-    )  # fmt: skip
+    proc = None
     try:
-        line = proc.stdout.readline()
-        assert "OpenIGTLink on" in line, line
-        with socket.create_connection(("127.0.0.1", port), timeout=30) as sock:
-            msg = read_message(sock)
-            assert msg.type == "STRING" and msg.device == "status"
-            status = json.loads(p.decode_string(msg.content))
-            assert status["error"]["code"] == 422 and "max_iter" in status["error"]["detail"]
+        with Client(server.url) as api:
+            held = api.open_session("bar")  # the API's one session, held while the bridge starts
+            proc = subprocess.Popen(
+                [sys.executable, "-m", "service.cli", "igtl", "--model", "bar", "--server", server.url,
+                 "--port", str(port)],
+                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+            )  # fmt: skip
+            lines = [proc.stdout.readline() for _ in range(2)]
+            assert "could not be checked at start" in lines[0] and "OpenIGTLink on" in lines[1], lines
+            with socket.create_connection(("127.0.0.1", port), timeout=30) as sock:
+                msg = read_message(sock)
+                assert msg.type == "STRING" and msg.device == "status"
+                status = json.loads(p.decode_string(msg.content))
+                assert status["error"]["code"] == 503 and "refused the session" in status["error"]["detail"], status
+            held.close()
     finally:
-        proc.terminate()
-        proc.wait(10)
+        if proc is not None:
+            proc.terminate()
+            proc.wait(10)
+        server.stop()
