@@ -7,7 +7,7 @@ of the engine: each OpenIGTLink client gets one ``/stream`` session, which a vie
 so and closed; one that comes as the first leaves (a reconnect) is served at once, while the
 first's session closes; one that comes while the first is silent (a Slicer that crashed or slept
 and left its connection half-open) takes the slot once the first has been silent for
-``idle_timeout``.
+``idle_timeout``, if it is still connected then (a TCP probe that closed evicts no one).
 
 In: ``POLYDATA`` (a model's points, as Slicer sends one) or ``POINT`` named ``cloud`` (the
 device name is configurable) is one frame. Out, per frame: ``POLYDATA`` ``registered`` (the
@@ -89,18 +89,19 @@ class Bridge(Relay):
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(held.left.wait(), 0.05)
 
-    async def _silent_past_bound(self, arrived: float) -> bool:
-        """Whether the client holding the slot, silent since before ``arrived`` (a new
-        connection's time), stays so until it has been silent for idle_timeout: it is then
-        evicted and the slot free. False, at once, if it was not silent then or speaks since (a
-        message begun), or when it leaves on its own; waits at most idle_timeout."""
+    async def _silent_past_bound(self, newcomer: Connection, arrived: float) -> bool:
+        """Whether the client holding the slot, silent since before ``arrived`` (the newcomer's
+        time), stays so until it has been silent for idle_timeout: it is then evicted and the
+        slot free. False, at once, if it was not silent then or speaks since (a message begun),
+        when it leaves on its own, or when the newcomer vanishes (a TCP probe evicts no one);
+        waits at most idle_timeout."""
         held = self._client
         while held is not None and not held.gone():
             quiet_since = held.quiet_since
-            if quiet_since is None or quiet_since > arrived:
+            if quiet_since is None or quiet_since > arrived or newcomer.vanished():
                 return False
             silent = held.silent()
-            if silent >= self.idle_timeout:
+            if silent >= self.idle_timeout:  # the newcomer checked above, in this same loop pass
                 log.warning("client %s silent for %.1f s: a new connection takes the slot", held.peer, silent)
                 held.evict(
                     f"another client took this bridge's one slot after this one sent nothing for {silent:.1f} s "
@@ -126,7 +127,11 @@ class Bridge(Relay):
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(self._left(), _RECONNECT_GRACE)
         if self.busy:  # a client that stays silent past the idle bound gives the slot up
-            await self._silent_past_bound(arrived)
+            await self._silent_past_bound(client, arrived)
+        if client.vanished():  # left while it waited (a TCP probe): no session, nothing to tell
+            log.info("client %s left before it was served", client.peer)
+            await client.close()
+            return
         if self.busy:
             log.warning("refusing %s: a client is already connected", client.peer)
             await client.tell(error_body(503, "this bridge serves one client at a time; one is connected"))

@@ -89,6 +89,12 @@ class Connection:
             self.left.set()
         return self.left.is_set()
 
+    def vanished(self) -> bool:
+        """Whether it left with nothing to serve: closed with no byte unread, or lost (a reset).
+        A TCP probe (`nc -z`, a health check) is so at once; one that sent a message and closed
+        its side is not, and is answered."""
+        return self.reader.at_eof() or self.reader.exception() is not None
+
     # -- in ----------------------------------------------------------------------------------
 
     async def read(self) -> p.Message | None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import json
 import select
+import socket
 import threading
 import time
 
@@ -75,6 +76,23 @@ def test_a_silent_client_gives_the_slot_to_a_new_connection_past_the_idle_timeou
             wait_closed(api.url, old_sid)
             new.sendall(frame)  # and the new client keeps the slot
             assert registered(read_answer(new), len(mesh["surface_nodes"]))["session"] == status["session"]
+
+
+def test_a_connection_that_closes_at_once_evicts_no_silent_client(api_server, run_bridge):
+    """A TCP probe (`nc -z`, a health check) connects and closes while the client holding the slot
+    is quiet between clouds: past idle_timeout that client keeps its slot and its session, is
+    told nothing, and the bridge opens no session for the probe."""
+    idle = 1.5
+    api = api_server()
+    mesh = get_mesh(api.url, "bar")
+    bridge = run_bridge(api.url, idle_timeout=idle)
+    with bridge.connect() as quiet:
+        sid = bridge.wait_sessions(1)[0]
+        socket.create_connection(("127.0.0.1", bridge.port)).close()
+        assert not select.select([quiet], [], [], idle + 2.0)[0], "the quiet client was told something"
+        quiet.sendall(point_frame(surface_cloud(mesh)))
+        assert registered(read_answer(quiet), len(mesh["surface_nodes"]))["session"] == sid
+    assert bridge.bridge.sessions == [sid]
 
 
 def test_a_client_that_reconnects_at_once_is_served(api_server, run_bridge, monkeypatch):
