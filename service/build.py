@@ -146,7 +146,7 @@ def too_short(minutes: float, done: int, spent: float, took: list[float]) -> str
     (`took`: its paths' solve seconds), with about the minutes that finish two: the time spent
     plus the slowest path for each missing one, as the data's share, doubled for a loaded
     machine. With no path solved a path's cost is unknown: ten times the budget, at least
-    LEAST_MINUTES. Rounded up to one significant figure."""
+    LEAST_MINUTES. Rounded up to one significant figure, and no more than the command lines take."""
     if took:
         need = 2.0 * (spent + (2 - done) * max(took)) / DATA_SHARE / 60.0
         what = f"a path took {max(took):.1f} s"
@@ -155,12 +155,22 @@ def too_short(minutes: float, done: int, spent: float, took: list[float]) -> str
         what = "this run solved none"
     step = 10.0 ** math.floor(math.log10(need))
     need = math.ceil(need / step - 1e-9) * step  # 1e-9: 0.1 / 0.1 is 1.0000000000000002
+    most = " (the most it takes)" if need > MAX_MINUTES else ""
     return (
         f"--minutes {minutes:g} finished {done} load path{'' if done == 1 else 's'}, and a build needs 2 "
-        f"({what}; the data get {DATA_SHARE * 60.0 * minutes:.2g} s, {100 * DATA_SHARE:g} % of the minutes): "
-        f"give it more time, about --minutes {need:.2g}"
+        f"({what}; the data get {_plain(DATA_SHARE * 60.0 * minutes)} s, {100 * DATA_SHARE:g} % of the minutes): "
+        f"give it more time, about --minutes {_plain(min(need, MAX_MINUTES))}{most}"
         + ("; the rerun resumes from the finished paths" if done else "")
     )
+
+
+def _plain(x: float) -> str:
+    """A positive figure as a user types it, never in exponent form (:g wrote 1.8e+02): whole
+    from 10, else two significant figures (1.8, 0.19, 0.0036), trailing zeros dropped."""
+    if x >= 10:
+        return f"{x:.0f}"
+    decimals = max(1, 1 - math.floor(math.log10(x)))
+    return f"{x:.{decimals}f}".rstrip("0").rstrip(".")
 
 
 def relative_error(validation: dict) -> float | None:

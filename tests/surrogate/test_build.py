@@ -380,6 +380,24 @@ def test_a_refused_build_is_told_the_minutes_its_first_path_says(tmp_path, bar):
     assert too_short(2, 0, spent=80.0, took=[]).endswith("about --minutes 20")  # ten times, unmeasured
 
 
+def test_a_refused_build_is_told_figures_it_can_type(tmp_path):
+    """Seconds and minutes as a user types them (they were 1.8e+02 s and --minutes 2e+02), and
+    no more minutes than the command line takes (--minutes 6e+05 was refused there)."""
+    from service.argtypes import MAX_MINUTES, build_minutes
+    from service.build import too_short
+
+    assert too_short(5, 1, spent=190.0, took=[120.0]) == (  # 2 (190 + 120) / 0.6 s: 17 minutes
+        "--minutes 5 finished 1 load path, and a build needs 2 (a path took 120.0 s; the data get 180 s, "
+        "60 % of the minutes): give it more time, about --minutes 20; the rerun resumes from the finished paths"
+    )
+    assert too_short(30, 0, spent=1090.0, took=[1000.0]).endswith("data get 1080 s, 60 % of the minutes): "
+                                                                  "give it more time, about --minutes 200")  # fmt: skip
+    message = too_short(60000, 0, spent=3.6e6, took=[])  # ten times the budget: past a year
+    assert message.endswith(f"the data get 2160000 s, 60 % of the minutes): give it more time, "
+                            f"about --minutes {MAX_MINUTES} (the most it takes)")  # fmt: skip
+    assert build_minutes(str(MAX_MINUTES)) == MAX_MINUTES
+
+
 def test_a_timed_build_refuses_a_budget_out_of_range(tmp_path, bar):
     from service.build import build
     from service.scene import load_scene
