@@ -126,7 +126,6 @@ def solve_frame(
     k = len(op.support)
     evaluate = Objective(op, distance, rest_positions, options.alpha, timing)
     evaluate.best_g = np.asarray(g0, np.float64).copy()
-    max_eval = options.max_evaluations or 3 * options.max_iter
     if deadline is None and options.time_budget is not None:
         deadline = t_start + options.time_budget
 
@@ -166,6 +165,8 @@ def solve_frame(
         _check_alpha(options.alpha, v_rest, grad_rest, best.value)
         # the optimiser's trial points only: the starts' share the spare core with the rest state
         evaluate.prefetch = prefetch
+        # the optimiser's own evaluations: the rest state's and the starts' pay for no line search
+        max_eval = evaluate.evaluations + (options.max_evaluations or 3 * options.max_iter)
         if options.optimizer == "levenberg-marquardt":
             status, message, nit = levenberg_marquardt(op, distance, evaluate, best, g_tol, options, max_eval, deadline)
         else:

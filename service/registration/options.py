@@ -27,7 +27,7 @@ class SolveOptions:
     precondition: bool = False  # damped Gauss-Newton preconditioning from the rest Jacobian
     # (precondition.py) where no carried curvature applies: a third of the beam's iterations
     # from rest; on the liver's partial clouds it costs time and force accuracy, so opt-in
-    max_evaluations: int | None = None  # default: 3 x max_iter
+    max_evaluations: int | None = None  # the optimiser's, past the starts'; default: 3 x max_iter
     max_failures: int = 4  # forward failures at trial points before the frame gives up
     time_budget: float | None = None  # seconds: past it the frame returns its best iterate
     # (status time_limit); a display wants a frame in time more than a last digit. A session

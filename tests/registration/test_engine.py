@@ -270,6 +270,19 @@ def test_a_frame_stopped_by_a_limit_reports_its_iterations(entry):
         )
 
 
+@pytest.mark.parametrize("optimizer", ["lbfgsb", "levenberg-marquardt"])
+def test_the_starts_evaluations_leave_the_optimisers_budget_whole(entry, optimizer):
+    """max_iter 1 allows one iteration's evaluations however many starts the frame tried: the
+    rest state, a warm start and a fallback spent the whole 3 x max_iter, and the frame made none
+    (review s24 s4_maxiter.py: every frame of a stream after the first)."""
+    mesh, support, g_true, pts, dist = tip_pull(entry, entry.region)
+    op = entry.network.restrict(support, dist.nodes)
+    options = SolveOptions(alpha=1e-9, optimizer=optimizer, max_iter=1)
+    sol = solve_frame(op, dist, mesh.nodes[dist.nodes], 0.5 * g_true, options, fallbacks=(0.25 * g_true,))
+    assert sol.iterations == 1 and sol.status == "max_iter", (sol.status, sol.message)
+    assert sol.evaluations > 3  # the three starts and the optimiser's own
+
+
 def _lone(mesh, pts):
     rest_distance = PointToSurface(mesh.surface_faces, lone=True)
     rest_distance.bind(pts)
