@@ -195,7 +195,8 @@ def inverse_spread(
     # M A as the Gauss-Newton model forms it (no product with the Newton method's identity M);
     # a C-ordered copy, since alpha goes on its diagonal
     X = np.array(jac.gram_product(A), np.float64, order="C")
-    X.flat[:: len(A) + 1] += alpha
+    lin = max(alpha, precision_floor(X, jac.U.dtype))  # the alpha the model is linearised at
+    X.flat[:: len(A) + 1] += lin
     r = len(A)
     # the objective's gradient through C: C grad = C C^T N^T W d + alpha C g (d: the distances)
     Cg = np.asarray(Cg, np.float64)
@@ -206,9 +207,9 @@ def inverse_spread(
     M = np.asarray(jac.gram(), np.float64) if noise else np.zeros((r, 0))
     sol = np.linalg.solve(X, np.column_stack([Cg, grad, L, M]))
     pull, left, prior_pull, Bt = (
-        alpha * sol[:, 0],
+        lin * sol[:, 0],
         sol[:, 1],
-        alpha * sol[:, 2 : 2 + L.shape[1]],
+        lin * sol[:, 2 : 2 + L.shape[1]],
         sol[:, 2 + L.shape[1] :],
     )
     p = jac.U.shape[0] // 3
@@ -226,6 +227,16 @@ def inverse_spread(
     spread2 = float(noise) ** 2 * max(float(np.sum(cov * readout_gram)), 0.0)
     gamma = float(np.sum(Bt * A.T))  # tr(X^-1 M A): C^T A C's eigenvalues l, sum of l / (l + alpha)
     return math.sqrt((spread2 + bias2 + step2) / p), gamma
+
+
+def precision_floor(MA: Array, dtype) -> float:
+    """The least alpha inverse_spread linearises at: MA (r, r), formed in U's precision `dtype`
+    (A's rows, the network's float32 C), is known to eps x its largest eigenvalue; below that a
+    solve divides rounding by alpha (the phantom network at 1e-15: a 0.27 mm frame estimated
+    5.3 m, through the step left in directions no force reaches). A larger alpha only enlarges
+    the prior's pulls, alpha (l + alpha)^-1 on each eigenvalue l, so the estimate errs high. The
+    trace bounds the largest eigenvalue in O(r) (eigvals: 12 ms at the phantom's r = 192)."""
+    return float(np.finfo(dtype).eps) * max(float(np.trace(MA)), 0.0)
 
 
 def error_estimate(forward_error: float, distance_rms: float, noise: float | None, spread: float = 0.0) -> float:
