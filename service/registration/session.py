@@ -255,7 +255,7 @@ class Session:
             if self.alpha_tracker is not None:
                 options = dataclasses.replace(options, alpha=self.alpha_tracker.alpha)
             prefetch = self._prefetch if self._early_outputs else None
-            reserve = self._reserve() if options.time_budget is not None else 0.0
+            reserve = self._reserve(options.time_budget) if options.time_budget is not None else 0.0
             deadline = None if options.time_budget is None else t0 + options.time_budget - reserve
             sol = solve_frame(
                 self.op,
@@ -364,13 +364,17 @@ class Session:
             return self.g, (self.g + self._trend,)
         return self.g, (self._anchor,)
 
-    def _reserve(self) -> float:
-        """Seconds of a frame's time budget kept for what follows its solve (the outputs, the
+    def _reserve(self, budget: float) -> float:
+        """Seconds of a frame's time `budget` kept for what follows its solve (the outputs, the
         error estimate, the commit): the median of what that took on the session's last
         AFTER_SOLVE_FRAMES frames, its first frame left out (it pays one-time costs, the first
         use of kernels and caches), 0 before there are any; so that the whole frame, not only
-        its optimiser, fits in the budget where it can."""
-        return statistics.median(self._after_solve) if self._after_solve else 0.0
+        its optimiser, fits in the budget where it can. The lower median, so that one slow frame
+        among the first few is ridden out as among five (of two, the faster), and never past
+        RESERVE_SHARE of the budget: a reserve past it left the solve no time, frame after frame."""
+        if not self._after_solve:
+            return 0.0
+        return min(statistics.median_low(self._after_solve), RESERVE_SHARE * budget)
 
     def _commit(self, sol, learn: bool) -> bool:
         """Move the warm start to a frame's answer. A failed one leaves it as it was, and so does a
@@ -581,6 +585,11 @@ def check_faces(mesh: TetMesh, faces) -> Array:
 #: the frames whose time after the solve sizes the next one's reserve (:meth:`Session._reserve`):
 #: their median rides out one slow frame (a collection, a busy core) without chasing it
 AFTER_SOLVE_FRAMES = 5
+#: the most of a time budget kept for what follows the solve: the solve keeps the rest. Outputs
+#: slower than half the budget cannot fit beside a solve that makes progress, so past it the frame
+#: overruns by their excess instead (review s24: one 1.3 s frame at a 150 ms budget left the next
+#: frames 0 iterations, their forces frozen while the load grew)
+RESERVE_SHARE = 0.5
 
 #: the cosine above which two successive changes of the forces count as one steady motion
 STEADY = 0.5

@@ -86,8 +86,9 @@ class SessionConfig:
         "per frame: bounds the frame as timing_ms.total counts it (from the session taking it, its "
         "checks included, to its result; not the queue, decoding or encoding): the optimiser begins no evaluation "
         "that would end past the budget less what the outputs and the error estimate took on the "
-        "session's last frames, and returns its best iterate with status time_limit. Nothing "
-        "asked for is dropped: a frame takes at least its start's evaluations and its outputs",
+        "session's last frames (at most half the budget), and returns its best iterate with status "
+        "time_limit. Nothing asked for is dropped: a frame takes at least its start's evaluations "
+        "and its outputs",
         gt=0,
         le=3_600_000,
     )
