@@ -7,6 +7,7 @@ import statistics
 import numpy as np
 import pytest
 
+from service.registration.engine import FAILED
 from service.registration.session import AFTER_SOLVE_FRAMES, RESERVE_SHARE, Session, SessionConfig
 from service.synthetic import make_sequence
 
@@ -514,6 +515,23 @@ def test_a_frame_whose_field_folds_leaves_the_warm_start_as_it_was(entry):
     assert r.status == "non_finite" and not r.converged and not np.isfinite(r.error_estimate)
     assert np.array_equal(session.g, before) and session.failed == 1
     assert session.frame(seq.clouds[2]).converged
+
+
+def test_a_failed_frame_after_an_unfinished_one_leaves_that_ones_forces(entry, sequence):
+    """docs/usage.md: a failed frame leaves the warm start exactly as it was. After [converged A,
+    unfinished B, failed C] the next frame starts from B's forces, A's tried beside them (the
+    doc said A's alone; review s24 s23_warm.py)."""
+    tool, seq = sequence
+    config = SessionConfig(support=_support(entry, tool), max_iter=4, gtol=1e-3, carry_curvature=False)
+    s = Session(entry.network, config)
+    a = next(r for r in (s.frame(seq.clouds[10]) for _ in range(10)) if r.converged)
+    b = s.frame(seq.clouds[22])
+    assert b.status == "max_iter"
+    c = s.frame(seq.clouds[22] + [0.0, 0.0, 20.0])  # 20 m above a 1 m thick bar: its field folds
+    assert c.status in FAILED, c.status
+    g, fallbacks = s._start()
+    assert np.array_equal(g, b.outputs["forces"])
+    assert len(fallbacks) == 1 and np.array_equal(fallbacks[0], a.outputs["forces"])
 
 
 def test_messages_say_why_a_frame_stopped(entry, sequence):
