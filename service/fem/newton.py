@@ -207,9 +207,9 @@ class NewtonSolver:
 
         `deadline` (a time.perf_counter() value): the solve begins no Newton iteration that
         would end past it, judged by the longest of its latest timed iterations
-        (:meth:`iteration_estimate`), and stops unconverged with status time_limit, so a
-        frame's time budget holds inside a hard solve (seconds on the liver), not only between
-        solves.
+        (:meth:`iteration_estimate`), nor its start's factorisation once past it, and stops
+        unconverged with status time_limit, so a frame's time budget holds inside a hard solve
+        (seconds on the liver), not only between solves.
         Shape: g (n, 3), u0 (n, 3) or None (rest) -> result.u (n, 3).
         """
         t0 = time.perf_counter()
@@ -238,6 +238,8 @@ class NewtonSolver:
         # (g, u0) alone, whatever the solver did before
         if self._factor_x is not None and np.array_equal(self._factor_x, x):
             shifts = 0
+        elif deadline is not None and time.perf_counter() > deadline:  # no factorisation past it (the liver's: ~1 s)
+            return self._result(x, False, "time_limit", 0, 0, [], t0)
         else:
             shifts = self._factor_tangent(asm.tangent(u_start), x)
         s, ds, iterations, steps = 0.0, 1.0, 0, 0

@@ -150,13 +150,16 @@ def test_iteration_cap_is_reported_not_raised(bar):
 
 
 def test_a_solve_past_its_deadline_stops_before_its_next_iteration(bar):
-    """A deadline already past: no Newton iteration is taken, the start comes back with status
+    """A deadline already past: no Newton iteration is taken, nor the start's factorisation (a
+    solve begun past its deadline factorised its tangent before reading the clock: a frame's
+    overrun by one factorisation, the liver's ~1 s), the start comes back with status
     time_limit, and the same solver then converges to a fresh solver's answer (nothing left
     half-done)."""
     solver = NewtonSolver(Assembler(bar, NeoHookean(4500.0, 0.49)))
     g = tip_load(bar, [0.0, 0.0, -80.0])
     cut = solver.solve(g, deadline=time.perf_counter())
     assert not cut.converged and cut.status == "time_limit" and cut.iterations == 0
+    assert solver.n_factor == 0
     assert not cut.u.any()
     full = solver.solve(g, deadline=time.perf_counter() + 3600.0)
     assert full.converged and full.iterations > 0
