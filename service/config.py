@@ -301,6 +301,17 @@ def _check_tokens(tokens: tuple[str, ...], where: str) -> tuple[str, ...]:
     return tokens
 
 
+def setting_problems(exc) -> list[str]:
+    """A settings ValidationError as one line per bad setting, each naming its variable
+    (``ELASTREG_*`` for a rule between settings)."""
+    lines = []
+    for err in exc.errors():
+        msg = err["msg"].removeprefix("Value error, ")
+        name = f"ELASTREG_{str(err['loc'][0]).upper()}" if err["loc"] else "ELASTREG_*"
+        lines.append(msg if msg.startswith(name) else f"{name}: {msg}")
+    return lines
+
+
 @lru_cache
 def get_settings() -> Settings:
     """The process's settings (cached: built on first use, never at import)."""

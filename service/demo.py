@@ -24,7 +24,7 @@ from pydantic import ValidationError
 from clients.client import Client, viewer_url
 from clients.demo import OUTPUTS, score_stream
 
-from .config import MAX_SESSION_TTL_S, Settings, default_store
+from .config import MAX_SESSION_TTL_S, Settings, default_store, setting_problems
 from .fem.material import NeoHookean
 from .mesh import TetMesh
 from .synthetic import make_sequence, tool_patches
@@ -135,8 +135,7 @@ def _own_settings(model: str, store: Path, port: int | None, build: str, **overr
     try:
         return Settings(store=store, **overrides)
     except ValidationError as exc:
-        why = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'settings'}: {e['msg']}" for e in exc.errors())
-        return f"error: the demo's server settings: {why}"
+        return f"error: the demo's server settings: {'; '.join(setting_problems(exc))}"
 
 
 _PORT_IN_USE = "error: port {port} is in use (--port picks another, or leave it out for a free one)"

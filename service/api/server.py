@@ -21,7 +21,7 @@ import math
 import os
 from typing import Any
 
-from ..config import Settings, get_settings
+from ..config import Settings, get_settings, setting_problems
 
 log = logging.getLogger(__name__)
 
@@ -79,16 +79,6 @@ def _draining_server(config, app):
     return DrainingServer(config)
 
 
-def setting_errors(exc) -> list[str]:
-    """A settings ValidationError as one line per bad setting, each naming its variable."""
-    lines = []
-    for err in exc.errors():
-        msg = err["msg"].removeprefix("Value error, ")
-        name = f"ELASTREG_{str(err['loc'][0]).upper()}" if err["loc"] else "ELASTREG_*"
-        lines.append(f"error: {msg}" if msg.startswith(name) else f"error: {name}: {msg}")
-    return lines
-
-
 def serve(
     store=None,
     host: str = "127.0.0.1",
@@ -117,7 +107,7 @@ def serve(
     try:
         settings = get_settings()  # refuses bad settings here, before any process starts
     except ValidationError as exc:
-        raise SystemExit("\n".join(setting_errors(exc))) from None
+        raise SystemExit("\n".join(f"error: {line}" for line in setting_problems(exc))) from None
     try:
         check_bind(host, settings)
     except BindRefused as exc:

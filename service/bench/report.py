@@ -165,14 +165,12 @@ def _smoke_case(entry):
 def main(args: argparse.Namespace) -> int:
     from pydantic import ValidationError
 
-    from ..config import Settings, default_store, limit_threads
+    from ..config import Settings, default_store, limit_threads, setting_problems
 
     try:
         blas_threads = Settings().blas_threads
     except ValidationError as exc:  # an ELASTREG_* setting the server would refuse too
-        _refuse(
-            "the ELASTREG_* settings: " + "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
-        )
+        _refuse("the ELASTREG_* settings: " + "; ".join(setting_problems(exc)))
     if blas_threads:  # measure what the server runs: its solves use this many BLAS threads
         limit_threads(blas_threads)
     store = Path(args.store) if args.store else default_store()

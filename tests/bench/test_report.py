@@ -162,7 +162,7 @@ def test_bad_settings_and_an_out_that_is_a_file_are_refused_before_any_work(tmp_
     a FileExistsError traceback: both one line, exit status 2."""
     monkeypatch.setenv("ELASTREG_BLAS_THREADS", "many")
     err = refused(["beam"], tmp_path / "report", capsys)
-    assert err.startswith("error: the ELASTREG_* settings: blas_threads: ") and err.count("\n") == 1, err
+    assert err.startswith("error: the ELASTREG_* settings: ELASTREG_BLAS_THREADS: ") and err.count("\n") == 1, err
     monkeypatch.delenv("ELASTREG_BLAS_THREADS")
     afile = tmp_path / "afile"
     afile.write_text("mine")
