@@ -30,7 +30,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
             "service.forward",
             "service.spare",
             "service.sendwait",
-            "service.flock",
+            "service.folders",
         ),
     ),
     ("fem", ("service.fem",)),

@@ -205,7 +205,7 @@ def test_a_failed_swap_puts_the_served_entry_back(bar_store, tmp_path, monkeypat
         return real(src, dst)
 
     monkeypatch.setattr(
-        write_module, "_exchange", lambda a, b: False
+        write_module, "_exchanged", lambda a, b: False
     )  # a system without renameat2 (patched where write_entry looks it up)
     monkeypatch.setattr(write_module.os, "replace", second_fails)
     with pytest.raises(OSError, match="not empty"):

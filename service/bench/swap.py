@@ -12,25 +12,17 @@ directory, a parent the user cannot write), the files are moved in one by one, a
 from __future__ import annotations
 
 import contextlib
-import ctypes
-import errno
 import os
 import re
 import shutil
 import signal
 import stat
-import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
-from ..flock import RANDOM, try_lock
+from ..folders import RANDOM, exchange, locked_folder, try_lock
 
 _PREFIX = ".bench-"
-#: renameat2's flag that swaps two names in one step (linux/fs.h)
-_RENAME_EXCHANGE = 2
-_AT_FDCWD = -100
-#: glibc 2.28 on: None elsewhere (macOS, musl before 1.2.x), where the two renames serve
-_renameat2 = getattr(ctypes.CDLL(None, use_errno=True), "renameat2", None)
 
 
 class Busy(RuntimeError):
@@ -121,17 +113,9 @@ def scratch_folder(out: Path) -> tuple[Path, int, str | None]:
 
 
 def _locked_folder(parent: Path, prefix: str) -> tuple[Path, int]:
-    """A new folder in `parent` named `prefix` and 8 random characters, locked."""
-    for _ in range(8):  # another name each time a recover took the new folder before its lock
-        path = Path(tempfile.mkdtemp(prefix=prefix, dir=parent))
-        try:
-            fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW)
-        except FileNotFoundError:
-            continue
-        if try_lock(fd) is not False:  # True, or None where the file system has no locks
-            return path, fd
-        os.close(fd)
-    raise OSError(errno.EAGAIN, f"no scratch folder in {parent} stayed this run's long enough to lock it")
+    """A new folder in `parent` named `prefix` and 8 random characters, locked (where locks exist)."""
+    path, fd, _ = locked_folder(parent, prefix)
+    return path, fd
 
 
 def carry_over(old: Path, new: Path) -> None:
@@ -162,7 +146,7 @@ def put_in_place(new: Path, out: Path, whole: bool) -> str | None:
     backup = backup_of(out)
     try:
         with _signals_held():
-            exchanged = out.exists() and _exchange(new, out)
+            exchanged = out.exists() and exchange(new, out)
             if not exchanged:
                 _two_renames(new, out, backup)
     except OSError as exc:
@@ -226,18 +210,6 @@ def move_in(new: Path, out: Path, whole: bool) -> None:
                 os.remove(Path(d, name))
         if rel_dir.parts and not os.listdir(d):
             os.rmdir(d)
-
-
-def _exchange(a: Path, b: Path) -> bool:
-    """Swap the names `a` and `b` in one step; False where the system or file system cannot."""
-    if _renameat2 is None:
-        return False
-    if _renameat2(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) == 0:
-        return True
-    err = ctypes.get_errno()
-    if err in (errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP):
-        return False
-    raise OSError(err, os.strerror(err), str(b))
 
 
 @contextlib.contextmanager

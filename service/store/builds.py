@@ -14,7 +14,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from ..flock import RANDOM, try_lock
+from ..folders import RANDOM, locked_folder, same_folder, try_lock
 from ..scene import MODEL_ID
 from .files import _MAX_MANIFEST, MANIFEST, MESH, WEIGHTS, _digest, _is_digest, log
 
@@ -32,42 +32,25 @@ _UNLOCKED_BUILD_FOLDER = re.compile(rf"\.{MODEL_ID.pattern.strip('^$')}-{RANDOM}
 UNLOCKED_BUILD_AGE_S = 24 * 3600.0
 
 
-def _names(path: Path, fd: int) -> bool:
-    """Whether `path` (not followed) is still the folder open as `fd`."""
-    try:
-        a, b = os.stat(path, follow_symlinks=False), os.fstat(fd)
-    except FileNotFoundError:
-        return False
-    return (a.st_dev, a.st_ino) == (b.st_dev, b.st_ino)
-
-
 def _build_folder(store: Path, entry_id: str) -> tuple[Path, int | None]:
     """A new folder for a build of `entry_id` to write in, and a descriptor of it holding its
     lock until closed (the kernel drops it when the process dies: a folder nobody locks has no
     writer left). Where locks are missing the folder is named .ID-XXXXXXXX, which a cleaner takes
     only once it has not changed for a day, and the descriptor is None."""
-    for _ in range(8):  # another name each time a cleaner took the new folder before its lock
-        path = Path(tempfile.mkdtemp(prefix=f".{entry_id}-", suffix=_BUILDING, dir=store))
-        try:
-            fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW)
-        except FileNotFoundError:
-            continue
-        locked = try_lock(fd)
-        if locked and _names(path, fd):
-            return path, fd
-        os.close(fd)
-        if locked is None:
-            with contextlib.suppress(OSError):
-                path.rmdir()
-            return Path(tempfile.mkdtemp(prefix=f".{entry_id}-", dir=store)), None
-    raise OSError(errno.EAGAIN, f"no build folder for {entry_id} in {store} stayed ours long enough to lock it")
+    path, fd, locked = locked_folder(store, f".{entry_id}-", _BUILDING)
+    if locked:
+        return path, fd
+    os.close(fd)
+    with contextlib.suppress(OSError):
+        path.rmdir()
+    return Path(tempfile.mkdtemp(prefix=f".{entry_id}-", dir=store)), None
 
 
 def _stale(path: Path, fd: int) -> bool:
     """Whether the build folder `path`, open as `fd`, has no writer left (see remove_stale_builds)."""
     if _BUILD_FOLDER.fullmatch(path.name):  # its lock tells; no locks here: nothing can tell
-        return bool(try_lock(fd)) and _names(path, fd)
-    if try_lock(fd) is False or not _names(path, fd):
+        return bool(try_lock(fd)) and same_folder(path, fd)
+    if try_lock(fd) is False or not same_folder(path, fd):
         return False
     try:
         with os.scandir(fd) as listing:

@@ -20,6 +20,7 @@ from safetensors.torch import save_file
 
 from .. import __version__
 from ..fem.material import NeoHookean
+from ..folders import exchange
 from ..mesh import TetMesh
 from ..scene import check_model_id
 from .builds import _ASIDE, _build_folder
@@ -27,19 +28,12 @@ from .files import FORMAT_VERSION, MANIFEST, MESH, WEIGHTS, sha256
 from .load import load_entry
 
 
-def _exchange(a: Path, b: Path) -> bool:
-    """Swap two folders in one atomic step (Linux's renameat2 with RENAME_EXCHANGE); False where
-    the system cannot, and nothing moved."""
-    import ctypes
-    import ctypes.util
-
+def _exchanged(a: Path, b: Path) -> bool:
+    """exchange(a, b), False where it failed (a mount point, say): the two renames then say what is wrong."""
     try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or None, use_errno=True)
-        renameat2 = libc.renameat2
-    except (OSError, AttributeError):  # not Linux, or a C library older than glibc 2.28
+        return exchange(a, b)
+    except OSError:
         return False
-    at_fdcwd, rename_exchange = -100, 2
-    return renameat2(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), rename_exchange) == 0
 
 
 def write_entry(
@@ -92,7 +86,7 @@ def write_entry(
         load_entry(tmp, name=entry_id)
         if not final.exists():
             os.replace(tmp, final)
-        elif _exchange(tmp, final):  # one atomic step: no moment, crash or not, without the entry
+        elif _exchanged(tmp, final):  # one atomic step: no moment, crash or not, without the entry
             shutil.rmtree(tmp, ignore_errors=True)  # it holds the entry it replaced
         else:  # two renames; a crash between them leaves the old entry aside, and open_store restores it
             old = Path(tempfile.mkdtemp(prefix=f"{_ASIDE}{entry_id}-", dir=store))

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..flock import HAS_LOCKS, RANDOM, try_lock
+from ..folders import HAS_LOCKS, RANDOM, try_lock
 
 log = logging.getLogger(__name__)
 
