@@ -86,7 +86,7 @@ def build_session(
 def check_nodes(model, create: SessionCreate) -> None:
     """A 422 whose ``loc`` names the field, for a support or matching the model cannot take: the
     engine's own ValueError does not say which field it found wrong (a frame's errors name it)."""
-    from ..registration.session import check_faces
+    from ..registration.inputs import check_faces
 
     try:
         if create.support is not None:

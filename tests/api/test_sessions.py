@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from service.api.schemas import FrameResult, SessionInfo, SessionOpened
-from service.registration.session import RESERVE_SHARE, Session
+from service.registration.reserve import RESERVE_SHARE
+from service.registration.session import Session
 from service.registration.settings import DEFAULT_ALPHA, DEFAULT_GTOL, SessionConfig
 
 from .conftest import MSGPACK, mp, packed, unpack

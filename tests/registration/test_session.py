@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from service.registration.engine import FAILED
-from service.registration.session import AFTER_SOLVE_FRAMES, RESERVE_SHARE, Session, SessionConfig
+from service.registration.reserve import AFTER_SOLVE_FRAMES, RESERVE_SHARE
+from service.registration.session import Session, SessionConfig
 from service.synthetic import make_sequence
 
 
@@ -223,14 +224,14 @@ def test_slow_frames_after_the_solve_leave_the_next_solves_time(entry, sequence,
     budget = 0.15
     s = Session(entry.network, SessionConfig(support=_support(entry, tool), time_budget_ms=1e3 * budget))
     s.frame(seq.clouds[3])
-    s._after_solve.clear()
-    s._after_solve.extend(after_solve)  # as the frames' own timing_ms outputs record them
+    s._reserve.after_solve.clear()
+    s._reserve.after_solve.extend(after_solve)  # as the frames' own timing_ms outputs record them
     results = [s.frame(c) for c in seq.clouds[4:7]]
     assert all(r.iterations > 0 for r in results), [(r.iterations, r.message) for r in results]
     forces = [r.net_force for r in results]
     assert all(not np.array_equal(a, b) for a, b in zip(forces[:-1], forces[1:], strict=True))
-    s._after_solve.clear()
-    s._after_solve.extend(after_solve)
+    s._reserve.after_solve.clear()
+    s._reserve.after_solve.extend(after_solve)
     expect = min(min(after_solve) if len(after_solve) < 3 else statistics.median(after_solve), RESERVE_SHARE * budget)
     assert s._reserve(budget) == expect < budget
 
@@ -437,7 +438,7 @@ def test_the_noise_term_beside_the_field_is_the_fields_own(entry, sequence):
         np.testing.assert_array_equal(a.outputs["displacement"], b.outputs["displacement"])
         assert a.error_estimate == b.error_estimate
         u = a.outputs["displacement"]
-        spread, _ = beside._spread(beside.op, beside.g, beside._rest + u[beside.distance.nodes], 1e-7)
+        spread, _ = beside._outputs.spread(beside.op, beside.g, beside._rest + u[beside.distance.nodes], 1e-7)
         forward = estimator_for(entry.network).forward_error(u, beside.g, beside.support)
         expected = error_estimate(forward, a.distance_rms, 1e-3, spread)
         assert spread > 0 and a.error_estimate == pytest.approx(expected, rel=1e-5)
@@ -461,8 +462,8 @@ def test_the_estimate_leaves_the_answers_alone(entry, sequence, method):
     # without noise the prior reads the operator's own rest Jacobian: made once, then kept
     from service.registration.confidence import force_prior
 
-    (jac, prior), *_ = with_prior._priors
-    assert jac is with_prior.op.estimate_jacobian(with_prior.g) and len(with_prior._priors) == 1
+    (jac, prior), *_ = with_prior._outputs._priors
+    assert jac is with_prior.op.estimate_jacobian(with_prior.g) and len(with_prior._outputs._priors) == 1
     expected = force_prior(jac, [np.arange(with_prior.support.size)], with_prior.support.size, model.max_force)
     np.testing.assert_array_equal(prior, expected)
 
@@ -477,9 +478,9 @@ def test_a_frame_out_of_time_forms_no_jacobian_for_its_estimate(entry, sequence)
     assert s.op.n_jacobians == 1  # L-BFGS-B forms none: this one is the noise term's
     g = 1.01 * s.g  # forces the operator has no Jacobian at
     x = s._rest + s.op(g)[0]
-    late, _ = s._spread(s.op, g, x, s.config.alpha, "time_limit")
+    late, _ = s._outputs.spread(s.op, g, x, s.config.alpha, "time_limit")
     assert s.op.n_jacobians == 1 and np.isfinite(late) and late > 0
-    s._spread(s.op, g, x, s.config.alpha, "converged")
+    s._outputs.spread(s.op, g, x, s.config.alpha, "converged")
     assert s.op.n_jacobians == 2
 
 
@@ -490,12 +491,12 @@ def test_auto_keeps_both_operators_readout_grams(entry, sequence):
     config = SessionConfig(method="auto", max_error=1e-9, support=_support(entry, tool))
     s = Session(entry.network, config, corrector=entry.fem)
     made = s._corrector_op._rest_jacobian
-    assert made is not None and len(s._readout_grams) == 2  # made with the session, not a frame
+    assert made is not None and len(s._outputs._readout_grams) == 2  # made with the session, not a frame
     first = None
     for cloud in seq.clouds[:12:4]:
         r = s.frame(cloud)
         assert r.method_used == "fem"  # every frame corrected: both operators read
-        grams = {id(U): G for U, G in s._readout_grams}
+        grams = {id(U): G for U, G in s._outputs._readout_grams}
         assert len(grams) == 2
         first = first or grams
         assert all(grams[k] is first[k] for k in first)
