@@ -27,12 +27,16 @@ from . import deps, errors
 from .guard import OriginGuard
 from .memo import Memo
 from .routes import health, models, sessions, stream, viewer, watch
-from .schemas import REQUEST_MODELS
+from .schemas.models import SimulateIn
+from .schemas.sessions import FrameIn, SessionCreate
 from .sessions import SessionRegistry
 from .work import SolvePool
 from .wsend import KeepTransport
 
 log = logging.getLogger(__name__)
+
+#: the bodies the routes validate themselves, not through FastAPI: the OpenAPI schema adds them
+REQUEST_MODELS = (SessionCreate, FrameIn, SimulateIn)
 
 
 def _warm_up(entries: dict) -> None:

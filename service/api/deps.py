@@ -32,7 +32,9 @@ from ..config import Settings, get_settings
 from ..store import Entry
 from . import codec, errors
 from .errors import ApiError
-from .schemas import ErrorOut, FrameIn, SessionCreate, SimulateIn, check_points_limit
+from .schemas.common import ErrorOut, check_points_limit
+from .schemas.models import SimulateIn
+from .schemas.sessions import FrameIn, SessionCreate
 from .sessions import Held, SessionRegistry
 from .work import SolvePool, not_found_model
 

@@ -26,7 +26,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from . import codec
 from .pool import Dropped, Overloaded
-from .schemas import TooManyPoints, error_list
+from .schemas.common import TooManyPoints, error_list
 from .sessions import RegistryFull, SessionNotFound, WrongKind
 
 log = logging.getLogger(__name__)
@@ -50,7 +50,7 @@ class ApiError(Exception):
     @property
     def text(self) -> str:
         if isinstance(self.detail, list):
-            from .schemas import error_text
+            from .schemas.common import error_text
 
             return error_text(self.detail)
         return str(self.detail)

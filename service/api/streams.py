@@ -39,7 +39,8 @@ from ..sendwait import Stalled
 from . import codec
 from .deps import authorize_websocket, websocket_slot
 from .errors import ApiError, as_api_error, unprocessable
-from .schemas import FrameIn, SessionCreate, check_points_limit
+from .schemas.common import check_points_limit
+from .schemas.sessions import FrameIn, SessionCreate
 from .work import Dropped, check_frame_support, not_found_model, open_session, opened, solve_frame
 from .wsend import close, send_message
 

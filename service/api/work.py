@@ -24,7 +24,8 @@ from ..registration.settings import NAMES
 from . import codec
 from .errors import ApiError, unprocessable
 from .pool import Dropped, Overloaded, SolvePool
-from .schemas import FrameIn, SessionCreate, SimulateIn
+from .schemas.models import SimulateIn
+from .schemas.sessions import FrameIn, SessionCreate
 from .sessions import Held, Reservation, SessionRegistry
 
 __all__ = ["SolvePool", "Overloaded", "Dropped"]  # the pool lives in .pool; routes import it from here

@@ -2,7 +2,7 @@
 
 :class:`SessionConfig` is the one list. The engine runs on it (:mod:`.session`); the API's
 request schema, its echo of the effective config, and the fields the API hands over are built
-from its fields (``service/api/schemas.py``, ``service/api/work.py``), so a new setting is one
+from its fields (``service/api/schemas/sessions.py``, ``service/api/work.py``), so a new setting is one
 line here plus the code that reads it.
 
 Each field is declared with :func:`setting`: its default, a line for the API's documentation,

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from service import __version__
-from service.api.schemas import Health, MeshOut, ModelSummary, SimulateOut
+from service.api.schemas.health import Health
+from service.api.schemas.models import MeshOut, ModelSummary, SimulateOut
 from service.registration.confidence import estimator_for
 
 from .conftest import MAX_POINTS, MSGPACK, mp, packed, unpack

@@ -9,7 +9,7 @@ import httpx
 import numpy as np
 import pytest
 
-from service.api.schemas import FrameResult, SessionInfo, SessionOpened
+from service.api.schemas.sessions import FrameResult, SessionInfo, SessionOpened
 from service.registration.reserve import RESERVE_SHARE
 from service.registration.session import Session
 from service.registration.settings import DEFAULT_ALPHA, DEFAULT_GTOL, SessionConfig

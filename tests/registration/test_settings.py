@@ -6,7 +6,7 @@ import dataclasses
 import pytest
 from pydantic import ValidationError
 
-from service.api.schemas import SessionConfigOut, SessionCreate, SessionSettings
+from service.api.schemas.sessions import SessionConfigOut, SessionCreate, SessionSettings
 from service.api.work import _FIELDS
 from service.registration.engine import SolveOptions
 from service.registration.settings import NAMES, OPTIMIZERS, SETTINGS, SessionConfig

@@ -13,7 +13,7 @@ from fastapi import APIRouter, Request
 
 from ... import __version__
 from ..deps import ALT_MSGPACK, RETRY_AFTER, ModelsDep, PoolDep, RegistryDep, ReplyKind, SettingsDep, reply
-from ..schemas import Health
+from ..schemas.health import Health
 
 router = APIRouter(tags=["health"])
 

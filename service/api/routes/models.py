@@ -17,7 +17,8 @@ from ..deps import (
     request_body,
     unavailable,
 )
-from ..schemas import ErrorOut, MeshOut, ModelSummary, SimulateIn, SimulateOut
+from ..schemas.common import ErrorOut
+from ..schemas.models import MeshOut, ModelSummary, SimulateIn, SimulateOut
 
 router = APIRouter(prefix="/models", tags=["models"])
 NOT_FOUND = {404: {"model": ErrorOut, "description": "unknown model"}}

@@ -26,7 +26,8 @@ from ..deps import (
     request_body,
     unavailable,
 )
-from ..schemas import ErrorOut, FrameIn, FrameResult, SessionCreate, SessionInfo, SessionOpened
+from ..schemas.common import ErrorOut
+from ..schemas.sessions import FrameIn, FrameResult, SessionCreate, SessionInfo, SessionOpened
 
 log = logging.getLogger(__name__)
 router = APIRouter(prefix="/sessions", tags=["sessions"])
