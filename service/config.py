@@ -20,6 +20,8 @@ from typing import Annotated
 from pydantic import Field, field_validator, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
+from .sparse_libs import missing
+
 log = logging.getLogger(__name__)
 
 _THREAD_ENV = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
@@ -239,14 +241,10 @@ class Settings(BaseSettings):
             return None
         if value not in SOLVERS:
             raise ValueError(f"ELASTREG_SOLVER: unknown solver {value!r}; choose from {', '.join(SOLVERS)}")
-        if value == "cholmod":
-            try:
-                import sksparse.cholmod  # noqa: F401
-            except ImportError as exc:
-                raise ValueError(
-                    f"ELASTREG_SOLVER: cholmod needs scikit-sparse, which does not load ({exc}): "
-                    "pip install 'elastreg[cholmod]', or choose pardiso or superlu"
-                ) from None
+        problem = missing(value)  # the probe the FEM's solvers load through
+        if problem:
+            usable = " or ".join(name for name in SOLVERS if missing(name) is None)
+            raise ValueError(f"ELASTREG_SOLVER: {problem}; or choose {usable}")
         return value
 
     @field_validator("allowed_origins")

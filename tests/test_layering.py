@@ -31,6 +31,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
             "service.spare",
             "service.sendwait",
             "service.folders",
+            "service.sparse_libs",
         ),
     ),
     ("fem", ("service.fem",)),

@@ -18,11 +18,8 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
-import glob
 import logging
 import os
-import site
-import sys
 import threading
 from collections.abc import Iterator
 from functools import lru_cache
@@ -33,6 +30,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from ..spare import helping
+from ..sparse_libs import missing
+from ..sparse_libs import mkl as _mkl
 
 log = logging.getLogger(__name__)
 
@@ -117,26 +116,6 @@ class CholmodSolver:
 
 
 @lru_cache(maxsize=1)
-def _mkl() -> ctypes.CDLL | None:
-    """MKL's runtime library, or None where MKL is not installed."""
-    candidates = [os.environ.get("ELASTREG_MKL_RT", "")]
-    for prefix in (sys.prefix, site.getuserbase(), *site.getsitepackages()):
-        candidates += sorted(glob.glob(os.path.join(prefix, "[Ll]ib*", "**", "*mkl_rt*"), recursive=True), key=len)
-    for path in candidates:
-        if not path:
-            continue
-        try:
-            lib = ctypes.CDLL(path)
-        except OSError:
-            continue
-        log.debug("MKL from %s", path)
-        if hasattr(lib, "MKL_Set_Num_Threads_Local"):
-            lib.MKL_Set_Num_Threads_Local.restype = ctypes.c_int
-        return lib
-    return None
-
-
-@lru_cache(maxsize=1)
 def _mkl_pardiso():
     """The MKL ``pardiso`` entry point, or None where MKL is not installed."""
     lib = _mkl()
@@ -192,7 +171,7 @@ class PardisoSolver:
         self.threads = threads
         fn = _mkl_pardiso()
         if fn is None:
-            raise RuntimeError("MKL PARDISO is not available (install the 'mkl' package)")
+            raise RuntimeError(missing("pardiso"))
         self._fn = fn
         upper = sp.triu(sp.csr_matrix(pattern), format="csr")
         upper.sort_indices()
@@ -298,17 +277,7 @@ BACKENDS = {"pardiso": PardisoSolver, "cholmod": CholmodSolver, "superlu": Super
 
 def available_backends() -> list[str]:
     """Backends that load on this machine, fastest first."""
-    names = []
-    if _mkl_pardiso() is not None:
-        names.append("pardiso")
-    try:
-        import sksparse.cholmod  # noqa: F401
-
-        names.append("cholmod")
-    except ImportError:
-        pass
-    names.append("superlu")
-    return names
+    return [name for name in BACKENDS if missing(name) is None]  # BACKENDS lists them fastest first
 
 
 def make_solver(

@@ -6,6 +6,7 @@ from __future__ import annotations
 import importlib.util
 import os
 import re
+import site
 import subprocess
 import sys
 from pathlib import Path
@@ -154,8 +155,46 @@ def test_settings_take_the_solvers_the_fem_has():
 )
 def test_serve_refuses_a_solver_it_cannot_use_in_one_line(solver, says, tmp_path):
     """Before: /health said ok, then POST /sessions was a 422 (bogus) or a 500 (cholmod)."""
+    _refused_at_serve(sys.executable, solver, says, tmp_path)
+    assert Settings(store=tmp_path, solver="superlu").solver == "superlu"
+    assert Settings(store=tmp_path, solver="").solver is None
+
+
+@pytest.fixture(scope="module")
+def python_without_mkl(tmp_path_factory) -> str:
+    """This environment less the mkl wheel, for real: a fresh venv that imports this one's
+    packages (a .pth file) but has none of its prefix, where the wheel put mkl_rt. Its Python;
+    run it without ELASTREG_MKL_RT and the user site, the probe's other places."""
+    root = tmp_path_factory.mktemp("nomkl")
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(root / "venv")], check=True, timeout=120)
+    python = str(root / "venv" / "bin" / "python")
+    purelib = subprocess.run(
+        [python, "-c", "import sysconfig; print(sysconfig.get_path('purelib'))"],
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=60,
+    ).stdout.strip()
+    lines = [f"import site; site.addsitedir({p!r})\n" for p in site.getsitepackages()]
+    Path(purelib, "elastreg_deps.pth").write_text("".join(lines))
+    return python
+
+
+def test_serve_refuses_pardiso_without_mkl_in_one_line(python_without_mkl, tmp_path, monkeypatch):
+    """Before: only the name was checked, so a server without MKL started, then failed at its
+    first session's PARDISO factorisation."""
+    monkeypatch.delenv("ELASTREG_MKL_RT", raising=False)
+    monkeypatch.setenv("PYTHONNOUSERSITE", "1")
+    monkeypatch.setenv("PYTHONUSERBASE", str(tmp_path / "no-user-base"))
+    probe = "from service.fem.linsolve import available_backends as a; print(*a())"
+    backends = subprocess.run([python_without_mkl, "-c", probe], capture_output=True, text=True, timeout=120)
+    assert backends.returncode == 0 and "pardiso" not in backends.stdout.split(), backends.stderr
+    _refused_at_serve(python_without_mkl, "pardiso", "pip install mkl", tmp_path)
+
+
+def _refused_at_serve(python: str, solver: str, says: str, tmp_path: Path) -> None:
     r = subprocess.run(
-        [sys.executable, "-m", "service.cli", "serve", "--store", str(tmp_path), "--port", str(free_port())],
+        [python, "-m", "service.cli", "serve", "--store", str(tmp_path), "--port", str(free_port())],
         capture_output=True,
         text=True,
         timeout=60,  # refused at once; the old code served on
@@ -164,5 +203,3 @@ def test_serve_refuses_a_solver_it_cannot_use_in_one_line(solver, says, tmp_path
     lines = r.stderr.strip().splitlines()
     assert r.returncode == 1 and len(lines) == 1, r.stderr
     assert lines[0].startswith("error: ELASTREG_SOLVER: ") and says in lines[0]
-    assert Settings(store=tmp_path, solver="superlu").solver == "superlu"
-    assert Settings(store=tmp_path, solver="").solver is None
