@@ -32,6 +32,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
             "service.sendwait",
             "service.folders",
             "service.sparse_libs",
+            "service.material_range",
         ),
     ),
     ("fem", ("service.fem",)),

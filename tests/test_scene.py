@@ -11,6 +11,7 @@ import meshio
 import numpy as np
 import pytest
 
+from service.fem.material import NeoHookean
 from service.phantoms import grid_tets
 from service.scene import MODEL_ID_RULE, MaterialSpec, SceneError, builtin_scene, load_scene, parse_scene, resolve_scene
 from tests.conftest import LIVER, needs_liver
@@ -245,6 +246,21 @@ def test_nu_too_large(folder):
 def test_non_physical_materials_are_refused_with_their_range(folder, old, new, expected):
     msg = error_of(folder, text=edited(old, new))
     assert msg.endswith(f"scene.toml: {expected}") and "\n" not in msg
+
+
+@pytest.mark.parametrize(
+    "E, nu", [(1e-3, 0.3), (1.0 - 1e-9, 0.3), (1.0, 0.3), (1e12, 0.3), (1.01e12, 0.3), (1e4, 0.49999), (1e4, 0.4999999)]
+)
+def test_a_scene_takes_the_materials_the_fem_takes(E, nu):
+    """One range: a material the FEM's law refuses (E = 1e-3 was taken by it and refused by a
+    scene) is refused by a scene, and one it takes is taken."""
+    try:
+        NeoHookean(E, nu)
+    except ValueError:
+        with pytest.raises(ValueError, match="must be within"):
+            MaterialSpec(E=E, nu=nu)
+    else:
+        assert (MaterialSpec(E=E, nu=nu).E, MaterialSpec(E=E, nu=nu).nu) == (E, nu)
 
 
 def test_the_material_range_holds_every_shipped_and_benchmark_scene():

@@ -63,6 +63,15 @@ BAD = {
     "unknown_layout": (lambda p: _network(p, layout="transformer"), "layout 'transformer' is not"),
     "negative_E": (lambda p: _edit(p, material={"law": "neo-hookean", "E": -1.0, "nu": 0.3}), "material: Young's"),
     "nu_half": (lambda p: _edit(p, material={"law": "neo-hookean", "E": 1e4, "nu": 0.5}), "material: Poisson's"),
+    # within what the law once took (E > 0, nu < 0.5), outside what a scene takes
+    "E_over_range": (
+        lambda p: _edit(p, material={"law": "neo-hookean", "E": 1e13, "nu": 0.45}),
+        "material: Young's modulus E must be within [1, 1e+12] Pa, got 10000000000000.0",
+    ),
+    "nu_over_range": (
+        lambda p: _edit(p, material={"law": "neo-hookean", "E": 4500.0, "nu": 0.4999999}),
+        "material: Poisson's ratio nu must be within [0, 0.49999], got 0.4999999",
+    ),
     "another_law": (lambda p: _edit(p, material={"law": "mooney-rivlin", "E": 1e4, "nu": 0.3}), "law 'mooney-rivlin'"),
     "renumbered_string": (lambda p: _mesh(p, renumbered="no"), "mesh.renumbered must be true or false"),
     "other_widths": (lambda p: _network(p, hidden=[32, 32]), "the weights do not fit the manifest"),

@@ -20,6 +20,7 @@ from collections.abc import Callable
 import numpy as np
 
 from ..forward import check_support
+from ..material_range import E_RANGE
 from ..registration.settings import NAMES
 from . import codec
 from .errors import ApiError, unprocessable
@@ -116,15 +117,17 @@ def model_E(entry) -> float:
 
 
 def check_E(E: float | None, entry, settings) -> None:
-    """A 422 for a Young's modulus further than ``e_range`` from the model's own: far outside
-    it the scaled forces and alpha overflow (E = 1e-300 made alpha infinite)."""
+    """A 422 for a Young's modulus further than ``e_range`` from the model's own (far outside
+    it the scaled forces and alpha overflow: E = 1e-300 made alpha infinite), or outside the
+    range the material law takes."""
     if E is None:
         return
     E0, k = model_E(entry), settings.e_range
-    if not E0 / k <= E <= E0 * k:
+    lo, hi = max(E0 / k, E_RANGE[0]), min(E0 * k, E_RANGE[1])
+    if not lo <= E <= hi:
         raise unprocessable(
             f"E = {E:g} Pa is outside this server's range for model {entry.id!r}: within a factor of "
-            f"{k:g} of its own {E0:g} Pa ({E0 / k:g} to {E0 * k:g})",
+            f"{k:g} of its own {E0:g} Pa and within [{E_RANGE[0]:g}, {E_RANGE[1]:g}] Pa ({lo:g} to {hi:g})",
             "E",
             type_="less_than_equal",
         )

@@ -13,6 +13,8 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from ..material_range import E_RANGE, NU_RANGE
+
 Array = np.ndarray
 
 
@@ -42,16 +44,17 @@ def inv_transpose(F: Array, J: Array) -> Array:
 
 @dataclasses.dataclass(frozen=True)
 class NeoHookean:
-    """Material constants and the law. E in pascals; nu dimensionless, 0 <= nu < 0.5."""
+    """Material constants and the law. E in pascals and nu dimensionless, within E_RANGE and
+    NU_RANGE (service/material_range.py)."""
 
     E: float
     nu: float
 
     def __post_init__(self) -> None:
-        if not (np.isfinite(self.E) and self.E > 0):
-            raise ValueError(f"Young's modulus E must be positive and finite, got {self.E}")
-        if not (0.0 <= self.nu < 0.5):
-            raise ValueError(f"Poisson's ratio nu must lie in [0, 0.5), got {self.nu}")
+        if not E_RANGE[0] <= self.E <= E_RANGE[1]:  # NaN fails too
+            raise ValueError(f"Young's modulus E must be within [{E_RANGE[0]:g}, {E_RANGE[1]:g}] Pa, got {self.E!r}")
+        if not NU_RANGE[0] <= self.nu <= NU_RANGE[1]:
+            raise ValueError(f"Poisson's ratio nu must be within [{NU_RANGE[0]:g}, {NU_RANGE[1]:g}], got {self.nu!r}")
 
     law = "neo-hookean"
 

@@ -10,6 +10,8 @@ from typing import Annotated, Literal
 
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
+from ..material_range import E_RANGE, NU_RANGE
+
 # -- field types ------------------------------------------------------------------------------
 
 
@@ -67,11 +69,6 @@ class MeshSpec(Table):
         if (self.path is None) == (self.generator is None):
             raise ValueError("give exactly one of path, generator")
         return self
-
-
-#: soft tissue's E (100 Pa brain .. 10 MPa cartilage) and nu (0.45 .. 0.499), two decades of margin each
-E_RANGE = (1.0, 1e12)  # Pa
-NU_RANGE = (0.0, 0.49999)
 
 
 def _within(bounds: tuple[float, float], unit: str = ""):

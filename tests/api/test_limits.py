@@ -281,6 +281,23 @@ def test_caps_on_a_sessions_settings_are_422(tight, config, words):
         assert close_code(ws) == 1008
 
 
+def test_an_E_the_material_law_refuses_is_422_whatever_the_factor(bar_store, support):
+    """A factor of 1e4 from the bar's 4500 Pa reaches 0.45 Pa, under the law's 1 Pa: before, the
+    session opened on a material no scene may have; a 422 naming both bounds now."""
+    server = start(bar_store[0], instance_id="wide", e_range=1e4)
+    try:
+        g = {"nodes": support[:3].tolist(), "values": [[0.0, 0.0, 1.0]] * 3}
+        with httpx.Client(base_url=Live(server).url, timeout=60) as c:
+            for path, body in (("/sessions", {"model": "bar"}), ("/models/bar/simulate", {"forces": g})):
+                r = c.post(path, json={**body, "E": 0.45})
+                detail = json.dumps(r.json()["detail"])
+                assert r.status_code == 422 and "within [1, 1e+12] Pa (1 to 4.5e+07)" in detail, r.text
+            r = c.post("/sessions", json={"model": "bar", "E": 1.0})
+            assert r.status_code == 201, r.text
+    finally:
+        server.stop()
+
+
 def test_the_ends_of_the_ranges_are_served_and_the_time_cap_applies_unasked(tight, support):
     with httpx.Client(base_url=tight.url, timeout=60) as c:
         for E in (4.5, 4.5e6):

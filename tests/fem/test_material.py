@@ -101,3 +101,27 @@ def test_the_law_of_a_scene_or_a_manifest():
         NeoHookean.of({"E": 4500.0})
     with pytest.raises(ValueError, match="Poisson"):
         NeoHookean.of({"E": 4500.0, "nu": 0.5})
+
+
+@pytest.mark.parametrize(
+    "E, nu, says",
+    [
+        (1e-3, 0.45, "E must be within [1, 1e+12] Pa, got 0.001"),
+        (2e12, 0.45, "E must be within [1, 1e+12] Pa, got 2000000000000.0"),
+        (float("nan"), 0.45, "E must be within"),
+        (4500.0, 0.4999999, "nu must be within [0, 0.49999], got 0.4999999"),
+        (4500.0, -0.1, "nu must be within [0, 0.49999], got -0.1"),
+    ],
+)
+def test_the_law_refuses_constants_outside_the_range_a_scene_takes(E, nu, says):
+    """Before: any positive E and nu < 0.5 made a law, though a scene refuses them."""
+    with pytest.raises(ValueError) as err:
+        NeoHookean(E, nu)
+    assert says in str(err.value)
+    with pytest.raises(ValueError):
+        NeoHookean.of({"E": 4500.0, "nu": 0.45}).with_stiffness(E if nu == 0.45 else 0.5)
+
+
+def test_the_ends_of_the_range_make_a_law():
+    for E, nu in ((1.0, 0.0), (1e12, 0.49999)):
+        assert NeoHookean(E, nu).mu > 0
