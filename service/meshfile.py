@@ -34,12 +34,13 @@ SURFACE_SUFFIXES = frozenset({".stl", ".obj", ".ply", ".off"})
 
 #: meshio's cell kinds read as tets (a quadratic tet keeps its four corners)
 TET_KINDS = ("tetra", "tetra10")
+#: legacy gmsh v1 element types read as tets, as TET_KINDS (a quadratic tet, 11, lists its corners first)
+GMSH1_TETS = ("4", "11")
 #: legacy gmsh v1 element types that fill volume, by meshio's names: dropped, they cut the body
 GMSH1_VOLUME = {
     "5": "hexahedron",
     "6": "wedge",
     "7": "pyramid",
-    "11": "tetra10",
     "12": "hexahedron27",
     "13": "wedge18",
     "14": "pyramid14",
@@ -272,7 +273,9 @@ def _is_gmsh1(path: Path) -> bool:
 
 def _read_gmsh1(path: Path) -> tuple[Array, Array]:
     """Nodes and tets of a legacy gmsh v1 file ($NOD/$ELM, e.g. SOFA's meshes), which meshio
-    cannot read. Element rows are: id, type, reg-phys, reg-elem, n, node ids; type 4 is a tet.
+    cannot read. Element rows are: id, type, reg-phys, reg-elem, n, node ids; type 4 is a tet,
+    type 11 a quadratic one, which keeps its four corners (its mid-edge nodes are dropped later
+    as unused, as meshio's tetra10 are).
     """
     lines = path.read_text().split("\n")
     try:
@@ -282,7 +285,7 @@ def _read_gmsh1(path: Path) -> tuple[Array, Array]:
         j = next(k for k, line in enumerate(lines) if line.strip() == "$ELM")
         m = int(lines[j + 1])
         rows = [line.split() for line in lines[j + 2 : j + 2 + m]]
-        tets = np.array([r[5:9] for r in rows if r[1] == "4"], np.int64)
+        tets = np.array([r[5:9] for r in rows if r[1] in GMSH1_TETS], np.int64)
     except (ValueError, IndexError, StopIteration) as exc:
         raise MeshError(f"{path}: not a readable gmsh v1 file ({exc})") from exc
     if len(tets) == 0:

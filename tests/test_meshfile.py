@@ -127,6 +127,41 @@ def test_a_legacy_gmsh_files_dropped_hexes_are_a_warning(tmp_path, box, caplog):
     assert "sofa.msh: dropped 1 hexahedron cells" in warning.getMessage()
 
 
+def _quadratic(nodes: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The corners, then one mid-edge node per tet edge (gmsh's ten-node order: corners first)."""
+    edges = tets[:, [0, 1, 2, 0, 1, 2]], tets[:, [1, 2, 0, 3, 3, 3]]
+    mid = len(nodes) + np.arange(6 * len(tets)).reshape(len(tets), 6)
+    middles = (0.5 * (nodes[edges[0]] + nodes[edges[1]])).reshape(-1, 3)
+    return np.vstack([nodes, middles]), np.hstack([tets, mid])
+
+
+def test_a_legacy_gmsh_files_quadratic_tets_keep_their_corners(tmp_path, box, caplog):
+    """Before: type 11 was dropped with a warning (and a file of them alone refused), while
+    meshio's tetra10 kept its corners. Now both give the linear mesh of the corners."""
+    corners, tets = box
+    nodes, tets10 = _quadratic(corners, tets[:2])  # two ten-node tets
+    rows = [f"{i + 1} 11 1 1 10 " + " ".join(str(v + 1) for v in t) for i, t in enumerate(tets10)]
+    text = ["$NOD", str(len(nodes))] + [f"{i + 1} {x:.17g} {y:.17g} {z:.17g}" for i, (x, y, z) in enumerate(nodes)]
+    text += ["$ENDNOD", "$ELM", str(len(rows)), *rows, "$ENDELM", ""]
+    path = tmp_path / "quadratic.msh"
+    path.write_text("\n".join(text))
+    caplog.set_level(logging.INFO, logger="service.meshfile")
+    m = load_mesh(path)
+    assert "cells" not in caplog.text  # no "dropped 2 tetra10 cells"; the unused mid-edge nodes are said
+    linear = tmp_path / "linear.vtu"
+    meshio.write(linear, meshio.Mesh(corners, [("tetra", tets[:2])]))
+    same = load_mesh(linear)  # its unused corners go as the mid-edge nodes do
+    np.testing.assert_array_equal(m.nodes, same.nodes)
+    np.testing.assert_array_equal(m.tets, same.tets)
+    np.testing.assert_array_equal(m.kept, same.kept)
+    meshio_path = tmp_path / "quadratic.vtu"  # the meshio path, the one to agree with
+    meshio.write(meshio_path, meshio.Mesh(nodes, [("tetra10", tets10)]))
+    by_meshio = load_mesh(meshio_path)
+    np.testing.assert_array_equal(m.nodes, by_meshio.nodes)
+    np.testing.assert_array_equal(m.tets, by_meshio.tets)
+    np.testing.assert_array_equal(m.kept, by_meshio.kept)
+
+
 def test_a_file_of_hexes_alone_is_a_one_line_refusal(tmp_path, box):
     nodes, _ = box
     path = tmp_path / "hexes.vtu"
