@@ -243,6 +243,11 @@ def test_a_timed_build_keeps_to_its_minutes_and_still_learns(tmp_path, bar):
     key = (mesh.hash, NeoHookean.of(scene.material), load_spec(scene, scene.region_nodes(mesh, loaded)))
     minutes = 0.25
     config = TrainConfig(hidden=(64, 64), rank=24, epochs=100_000, batch=32, lr=3e-3, physics_skip=True)
+    # a small untimed build first pays this process's one-off loads (MKL's solver, numba, torch's
+    # first forward: up to 19 s under load), which the timed build's clock would count
+    warm = TrainConfig(hidden=(16,), rank=4, epochs=2, physics_skip=True)
+    build(scene, tmp_path / "warm", samples=40, workers=0, data_root=tmp_path / "warm-data", config=warm,
+          progress=False)  # fmt: skip
     t0 = time.perf_counter()
     report = build(
         scene,
@@ -256,7 +261,7 @@ def test_a_timed_build_keeps_to_its_minutes_and_still_learns(tmp_path, bar):
     wall = time.perf_counter() - t0
     assert 2 <= report.paths < 10_000
     assert report.data_seconds < DATA_SHARE * 60 * minutes + 5  # one path past the share at most
-    assert wall < 60 * minutes + 10  # the entry written inside the budget (slack: a loaded machine)
+    assert wall < 60 * minutes  # the entry written inside the budget (10.8 s of 15 under a load of 16)
     assert report.metrics["epochs"] < 100_000
     entry = load_entry(report.entry)
     assert entry.manifest["training"]["minutes"] == minutes
