@@ -180,14 +180,14 @@ def _igtl(args: argparse.Namespace) -> int:
         )
         if v is not None
     }
-    if args.support:
+    if args.support is not None:  # an empty --support is a file name too (none there), not "no support"
         from .scene import read_node_ids
 
         try:  # a scene's support_file's rules, several ids a line allowed
             settings["support"] = read_node_ids(Path(args.support), several_a_line=True).tolist()
-        except ValueError as exc:  # a bridge that cannot start: one line, exit status 1
+        except ValueError as exc:  # a wrong command line, as ids the API refuses: one line, exit 2
             print(f"error: --support: {' '.join(str(exc).split())}", file=sys.stderr)
-            return 1
+            return 2
     try:
         return run(
             args.model,

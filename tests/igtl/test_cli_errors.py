@@ -1,8 +1,12 @@
 """``elastreg igtl`` that cannot start says why in one line on stderr and exits 1: a model the
-API does not have, an API that is not there, a port already in use, a token the API refuses."""
+API does not have, an API that is not there, a port already in use, a token the API refuses. A
+wrong command line (a --support file it cannot read, settings the API refuses) is one line and
+exit 2."""
 
 from __future__ import annotations
 
+import os
+import shutil
 import socket
 import subprocess
 import sys
@@ -16,9 +20,9 @@ from .conftest import get_mesh
 TOKEN = "igtl-test-token-0123456789"
 
 
-def igtl(*args: str) -> subprocess.CompletedProcess:
+def igtl(*args: str, prefix: tuple[str, ...] = ()) -> subprocess.CompletedProcess:
     return subprocess.run(
-        [sys.executable, "-m", "service.cli", "igtl", *args], capture_output=True, text=True, timeout=120
+        [*prefix, sys.executable, "-m", "service.cli", "igtl", *args], capture_output=True, text=True, timeout=120
     )
 
 
@@ -45,25 +49,54 @@ def test_a_bridge_that_cannot_start_says_why_in_one_line(case, api_server):
     assert lines[0].startswith("error: ") and words in lines[0], lines
 
 
-@pytest.mark.parametrize(
-    "content, words",
-    [
-        ("1 2 3.5\n", "cannot read node ids from {f}: invalid literal for int() with base 10: '3.5'"),
-        (None, "cannot read node ids from {f}: [Errno 2] No such file or directory"),
-        ("# none yet\n", "{f} holds no node id"),
-        ("1 2 # the patch\n3\n", "cannot be reached"),  # read (as a scene's support_file): the API is next
-    ],
-)
-def test_a_support_file_it_cannot_read_is_one_line(content, words, tmp_path):
+# (case, the file's content, words of the one line): each a --support the bridge cannot read
+UNREADABLE_SUPPORT = [
+    ("not ids", "1 2 3.5\n", "cannot read node ids from {f}: invalid literal for int() with base 10: '3.5'"),
+    ("not UTF-8", b"\xff\xfe1\n", "cannot read node ids from {f}: 'utf-8' codec can't decode byte 0xff"),
+    ("no file", None, "cannot read node ids from {f}: [Errno 2] No such file or directory"),
+    ("no id", "# none yet\n", "{f} holds no node id"),
+    ("a folder", "", "cannot read node ids from {f}: [Errno 21] Is a directory"),
+    ("no read permission", "1 2\n", "cannot read node ids from {f}: [Errno 13] Permission denied"),
+    ("an empty name", None, "cannot read node ids from .: [Errno 21] Is a directory"),
+]
+
+
+@pytest.mark.parametrize("case, content, words", UNREADABLE_SUPPORT, ids=[c[0] for c in UNREADABLE_SUPPORT])
+def test_a_support_file_it_cannot_read_is_one_line_and_exit_2(case, content, words, tmp_path):
     """--support is read before the bridge starts, with a scene's support_file's rules (several
-    ids a line allowed): a file that is not there or holds no ids is one line and exit 1."""
+    ids a line allowed): a file it cannot read is a wrong command line, as ids the API refuses
+    are: one line naming the flag, exit 2 (it was exit 1, as an API that is not up; an empty
+    name was taken as no --support at all)."""
     ids = tmp_path / "support.txt"
-    if content is not None:
+    prefix: tuple[str, ...] = ()
+    if case == "a folder":
+        ids.mkdir()
+    elif isinstance(content, bytes):
+        ids.write_bytes(content)
+    elif content is not None:
         ids.write_text(content)
+    if case == "no read permission":
+        ids.chmod(0)
+        if os.geteuid() == 0:  # root reads any file: drop the capabilities that let it
+            if shutil.which("setpriv") is None:
+                pytest.skip("root reads any file, and setpriv (util-linux) is not here to drop that")
+            prefix = ("setpriv", "--bounding-set", "-dac_override,-dac_read_search")
+    name = "" if case == "an empty name" else str(ids)
+    r = igtl("--model", "bar", "--server", f"http://127.0.0.1:{free_port()}", "--support", name, prefix=prefix)
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1, r.stderr
+    assert lines[0].startswith("error: --support: ") and words.format(f=ids) in lines[0], lines
+
+
+def test_a_support_file_it_reads_goes_on_to_the_api(tmp_path):
+    """Read as a scene's support_file (ids on one line, a comment): the API is next, and an API
+    that is not up is a bridge that cannot start, exit 1."""
+    ids = tmp_path / "support.txt"
+    ids.write_text("1 2 # the patch\n3\n")
     r = igtl("--model", "bar", "--server", f"http://127.0.0.1:{free_port()}", "--support", str(ids))
     lines = r.stderr.strip().splitlines()
     assert r.returncode == 1 and len(lines) == 1, r.stderr
-    assert lines[0].startswith("error: ") and words.format(f=ids) in lines[0], lines
+    assert lines[0].startswith("error: ") and "cannot be reached" in lines[0], lines
 
 
 @pytest.mark.parametrize("name", ["abcdefghijklmnopqrstuvwxyz", "wolkè", " cloud", ""])
