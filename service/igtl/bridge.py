@@ -89,28 +89,27 @@ class Bridge(Relay):
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(held.left.wait(), 0.05)
 
-    async def _silent_past_bound(self, newcomer: Connection, arrived: float) -> bool:
-        """Whether the client holding the slot, silent since before ``arrived`` (the newcomer's
-        time), stays so until it has been silent for idle_timeout: it is then evicted and the
-        slot free. False, at once, if it was not silent then or speaks since (a message begun),
-        when it leaves on its own, or when the newcomer vanishes (a TCP probe evicts no one);
-        waits at most idle_timeout."""
+    async def _evict_if_silent(self, newcomer: Connection, arrived: float) -> None:
+        """Evict the client holding the slot once it has been silent for idle_timeout, if it was
+        silent since before ``arrived`` (the newcomer's time) and stays so. Returns at once, the
+        slot kept, if it was not silent then or speaks since (a message begun), and as soon as it
+        leaves on its own or the newcomer vanishes (a TCP probe evicts no one); waits at most
+        idle_timeout."""
         held = self._client
         while held is not None and not held.gone():
             quiet_since = held.quiet_since
             if quiet_since is None or quiet_since > arrived or newcomer.vanished():
-                return False
-            silent = held.silent()
+                return
+            silent = time.monotonic() - quiet_since
             if silent >= self.idle_timeout:  # the newcomer checked above, in this same loop pass
                 log.warning("client %s silent for %.1f s: a new connection takes the slot", held.peer, silent)
                 held.evict(
                     f"another client took this bridge's one slot after this one sent nothing for {silent:.1f} s "
                     f"(the bridge's idle timeout is {self.idle_timeout:g} s)"
                 )
-                return True
+                return
             with contextlib.suppress(TimeoutError):  # polled: its silence is a clock, not an event
                 await asyncio.wait_for(held.left.wait(), min(0.05, self.idle_timeout - silent))
-        return False
 
     # -- one connection --------------------------------------------------------------------------
 
@@ -127,7 +126,7 @@ class Bridge(Relay):
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(self._left(), _RECONNECT_GRACE)
         if self.busy:  # a client that stays silent past the idle bound gives the slot up
-            await self._silent_past_bound(client, arrived)
+            await self._evict_if_silent(client, arrived)
         if client.vanished():  # left while it waited (a TCP probe): no session, nothing to tell
             log.info("client %s left before it was served", client.peer)
             await client.close()

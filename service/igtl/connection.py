@@ -71,11 +71,6 @@ class Connection:
         #: first), None while one of its messages is read or answered
         self.quiet_since: float | None = time.monotonic()
 
-    def silent(self) -> float:
-        """Seconds it has sent nothing and had nothing answered; 0 while a message of its is read
-        or answered."""
-        return 0.0 if self.quiet_since is None else time.monotonic() - self.quiet_since
-
     def evict(self, why: str) -> None:
         """End a client that is waiting for its next message: its read raises Evicted(why), and
         it has left (``left``) at once, so the slot is free before its teardown."""
