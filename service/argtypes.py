@@ -41,6 +41,17 @@ def positive_number(maximum: float | None = None, unit: str = ""):
     return parse
 
 
+def model_id(text: str) -> str:
+    """An argparse type for a model id, the store's rule for an entry's folder (scene.MODEL_ID):
+    no path separator, ".." or empty name reaches a path into the store."""
+    from .scene.model_id import check_model_id  # here: the scene package brings pydantic and numpy
+
+    try:
+        return check_model_id(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 #: a positive finite number (a time budget: nan, inf, 0 are none)
 positive = positive_number()
 

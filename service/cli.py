@@ -12,7 +12,7 @@ import shlex
 import sys
 from pathlib import Path
 
-from .argtypes import build_minutes, positive, whole_number
+from .argtypes import build_minutes, model_id, positive, whole_number
 
 _at_least_one = whole_number(1)
 _at_least_zero = whole_number(0)
@@ -24,16 +24,6 @@ def _seed(text: str) -> int:
     from .surrogate.train import SEED_MAX
 
     return whole_number(0, SEED_MAX)(text)
-
-
-def _model_id(text: str) -> str:
-    """An argparse type for a model id: the scene's own rule for its name (scene.MODEL_ID)."""
-    from .scene.model_id import check_model_id
-
-    try:
-        return check_model_id(text)
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def _device_name(text: str) -> str:
@@ -269,7 +259,7 @@ def parser() -> argparse.ArgumentParser:
     t.add_argument("scene", help="a scene .toml, or a shipped scene name (beam, phantom)")
     t.add_argument("--store", default=None, help="model store (default: $ELASTREG_STORE or the project's model_store/)")
     t.add_argument(
-        "--name", type=_model_id, default=None, help="model id in the store (default: the scene's name; the same rule)"
+        "--name", type=model_id, default=None, help="model id in the store (default: the scene's name; the same rule)"
     )
     t.add_argument("--samples", type=_at_least_one, default=None, help="samples to generate (default: the scene's)")
     t.add_argument(

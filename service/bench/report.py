@@ -24,7 +24,7 @@ from typing import NoReturn
 
 import numpy as np
 
-from ..argtypes import build_minutes, whole_number
+from ..argtypes import build_minutes, model_id, whole_number
 from .markdown import write_report
 from .results import PARTS, merge_previous, prior_part, prior_run, write_minutes_rows
 from .swap import Busy, carry_over, put_in_place, recover, scratch_folder
@@ -53,13 +53,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--liver-model",
+        type=model_id,
         default="liver_paper",
         help="the liver, pareto and stability parts' model (default: liver_paper); the pareto part also scores "
         "every model of the store named after it and '_'",
     )
-    p.add_argument("--beam-model", default="beam", help="the beam part's model (default: beam)")
+    p.add_argument("--beam-model", type=model_id, default="beam", help="the beam part's model (default: beam)")
     p.add_argument(
-        "--anysite-model", default="phantom", help="a whole-surface model for the anysite part (default: phantom)"
+        "--anysite-model",
+        type=model_id,
+        default="phantom",
+        help="a whole-surface model for the anysite part (default: phantom)",
     )
     p.add_argument("--sites", type=whole_number(1), default=6, help="anysite: tool sites (sequences; default: 6)")
     p.add_argument(
@@ -120,6 +124,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--keep-store", default=None, help="keep each scene's last build in this store (default: discard)")
     p.add_argument(
         "--smoke",
+        type=model_id,
         metavar="MODEL",
         default=None,
         help="the parts (not minutes) on a tiny model of --store, in seconds, for the tests (into a report of "
@@ -140,13 +145,13 @@ def _refuse(message: str) -> NoReturn:
     raise SystemExit(2)
 
 
-def _entry(store: Path, model_id: str, hint: str):
+def _entry(store: Path, name: str, hint: str):
     from ..store import StoreError, load_entry
 
     try:
-        return load_entry(store / model_id)
+        return load_entry(store / name)
     except StoreError as exc:
-        _refuse(f"model {model_id!r} is not usable in {store} ({exc}); build it with: {hint}")
+        _refuse(f"model {name!r} is not usable in {store} ({exc}); build it with: {hint}")
 
 
 def _smoke_case(entry):

@@ -33,6 +33,13 @@ STORE = Path(__file__).resolve().parents[2] / "model_store"
         (["anysite", "--sites", "2.5"], "--sites: must be a whole number >= 1, got '2.5'"),
         # made the report's figures folder, then refused
         (["nonsense"], "argument parts: unknown part 'nonsense'; choose from fem, liver, beam, pareto, stability"),
+        # a model is a store entry's folder: a path out of the store loaded whatever it named there
+        (["beam", "--beam-model", "../model_store/beam"], "--beam-model: model id '../model_store/beam' must start"),
+        (["anysite", "--anysite-model", "sub/phantom"], "--anysite-model: model id 'sub/phantom' must start"),
+        (["liver", "--liver-model", ".."], "--liver-model: model id '..' must start with a letter or digit"),
+        (["pareto", "--liver-model", ""], "--liver-model: model id '' must start with a letter or digit"),
+        (["--smoke", "tiny model"], "--smoke: model id 'tiny model' must start with a letter or digit and hold only"),
+        (["beam", "--beam-model", "bèam"], "--beam-model: model id 'bèam' must start with a letter or digit and hold"),
     ],
 )
 def test_impossible_bench_flags_are_refused_before_any_work(argv, words, tmp_path, capsys):
