@@ -12,6 +12,7 @@ seconds (the default tests do), so the report cannot rot; a smoke report never m
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import functools
 import logging
@@ -26,8 +27,8 @@ import numpy as np
 
 from ..argtypes import build_minutes, model_id, whole_number
 from .markdown import write_report
-from .results import PARTS, merge_previous, prior_part, prior_run, write_minutes_rows
-from .swap import Busy, carry_over, put_in_place, recover, scratch_folder
+from .results import MINUTES_ROWS, PARTS, merge_previous, prior_part, prior_run, write_minutes_rows
+from .swap import Busy, carry_over, put_in_place, recover, scratch_folder, set_aside
 from .truth import TRUTHS
 
 log = logging.getLogger(__name__)
@@ -235,11 +236,13 @@ def main(args: argparse.Namespace) -> int:
             return 1
         placed = True
     finally:
+        kept = not placed and (finished or (new / MINUTES_ROWS).exists())
+        if kept and not finished:  # a stopped minutes run: its hour-long builds' rows, set aside while locked
+            with contextlib.suppress(OSError):  # else left in its scratch folder, which the next run sets aside
+                new = set_aside(new, out)
+            print(f"note: the minutes rows built so far are kept in {new / MINUTES_ROWS}", file=sys.stderr)
         os.close(lock)
-        if not placed and (finished or (new / "minutes_rows.json").exists()):
-            if not finished:  # a stopped minutes run: its hour-long builds' rows
-                print(f"note: the minutes rows built so far are kept in {new / 'minutes_rows.json'}", file=sys.stderr)
-        else:
+        if not kept:
             shutil.rmtree(new, ignore_errors=True)  # a run stopped before its report went in
     if note:
         print(f"note: {note}", file=sys.stderr)

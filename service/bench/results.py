@@ -13,6 +13,8 @@ import numpy as np
 
 #: the parts a report holds, in the order `elastreg bench` runs them
 PARTS = ("fem", "liver", "beam", "pareto", "stability", "anysite", "minutes")
+#: the minutes part's rows, written into a run's scratch folder after each build (hours each)
+MINUTES_ROWS = "minutes_rows.json"
 
 
 def jsonable(x):
@@ -48,9 +50,9 @@ def write_results(results: dict, out: Path) -> None:
 
 def write_minutes_rows(folder: Path, rows: list[dict]) -> None:
     """minutes_rows.json: the minutes part's rows, also written into the run's scratch folder after
-    each build, so that an hour-long build's row survives a later failure (kept there, its path
-    printed)."""
-    (folder / "minutes_rows.json").write_text(json.dumps(rows, indent=1, default=jsonable))
+    each build, so that an hour-long build's row survives a later failure or a kill (the folder
+    set aside, :func:`.swap.set_aside`)."""
+    (folder / MINUTES_ROWS).write_text(json.dumps(rows, indent=1, default=jsonable))
 
 
 def merge_previous(results: dict, out: Path | None) -> dict:

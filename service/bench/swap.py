@@ -1,7 +1,8 @@
 """The report folder's swap: a run writes its whole new report in a locked scratch folder beside
 ``--out`` (``.bench-NAME-XXXXXXXX``), then puts it in place at once, so that a run stopped at
 any instant (Ctrl-C, SIGKILL, a crash) leaves ``--out`` the old report or the new one, never a
-mix; the next run clears what such a run left (:func:`recover`).
+mix; the next run clears what such a run left (:func:`recover`), a stopped minutes run's rows set
+aside beside ``--out`` (:func:`set_aside`), never removed.
 
 In place at once: one exchange of the two folders (Linux's renameat2 RENAME_EXCHANGE) where the
 file system has it; elsewhere two renames, the old folder to ``.bench-NAME.old`` and the new to
@@ -17,10 +18,12 @@ import re
 import shutil
 import signal
 import stat
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
 from ..folders import RANDOM, exchange, locked_folder, try_lock
+from .results import MINUTES_ROWS
 
 _PREFIX = ".bench-"
 
@@ -47,11 +50,40 @@ def _held(path: Path) -> bool:
         os.close(fd)  # drops the lock if this process took it
 
 
+def set_aside(scratch: Path, out: Path) -> Path:
+    """Move the scratch folder of a run stopped with minutes rows (hours of builds) beside `out`,
+    as ``NAME.interrupted-YYYYMMDD-HHMMSS`` (its last row's time), a name no run clears; its new
+    path. OSError where it cannot be moved."""
+    stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime((scratch / MINUTES_ROWS).stat().st_mtime))
+    aside = out.parent / f"{out.name}.interrupted-{stamp}"
+    if aside.exists() or aside.is_symlink():  # two stopped in one second: the scratch's random part too
+        aside = aside.with_name(f"{aside.name}-{scratch.name[-8:]}")
+    os.rename(scratch, aside)
+    return aside
+
+
+def _clear(scratch: Path, out: Path, what: str) -> str:
+    """Remove a dead run's scratch folder, or set it aside where it holds minutes rows; one line."""
+    if not (scratch / MINUTES_ROWS).is_file():
+        shutil.rmtree(scratch)
+        return f"removed {scratch}, the scratch folder of a run stopped {what}"
+    try:
+        aside = set_aside(scratch, out)
+    except OSError as exc:
+        if scratch.parent != out:  # beside `out`, where this run makes its own: refused, nothing lost
+            raise
+        # inside `out` (no folder can be made beside it): left there, which no run removes
+        why = exc.strerror or exc
+        return f"kept {scratch}, a run stopped {what}, for its minutes rows (not moved beside {out}: {why})"
+    return f"moved {scratch}, a run stopped {what}, to {aside}: its {MINUTES_ROWS} holds the rows built so far"
+
+
 def recover(out: Path) -> list[str]:
     """Clear what a run into `out` stopped at any instant left, before this run touches `out`:
-    its scratch folder (removed), the old report the two renames put aside (put back where `out`
-    is missing, else removed), and an older version's scratch folder inside `out`. One line a
-    folder, for the user; :class:`Busy` where a live run is writing `out`."""
+    its scratch folder (removed, or set aside where it holds minutes rows), the old report the
+    two renames put aside (put back where `out` is missing, else removed), and an older version's
+    scratch folder inside `out`. One line a folder, for the user; :class:`Busy` where a live run
+    is writing `out`."""
     notes: list[str] = []
     if not out.parent.is_dir():
         return notes
@@ -60,8 +92,7 @@ def recover(out: Path) -> list[str]:
         if scratch.fullmatch(path.name) and path.is_dir() and not path.is_symlink():
             if _held(path):
                 raise Busy(f"another elastreg bench is writing {out} (its scratch folder {path} is locked)")
-            shutil.rmtree(path)
-            notes.append(f"removed {path}, the scratch folder of a run stopped before its report went in")
+            notes.append(_clear(path, out, "before its report went in"))
     backup = backup_of(out)
     if backup.is_dir() and not backup.is_symlink():
         if not out.exists():
@@ -77,8 +108,7 @@ def recover(out: Path) -> list[str]:
             if re.fullmatch(rf"{re.escape(_PREFIX)}{RANDOM}", path.name) and path.is_dir() and not path.is_symlink():
                 if _held(path):  # a live run's, which moves its files in one by one
                     raise Busy(f"another elastreg bench is writing {out} (its scratch folder {path} is locked)")
-                shutil.rmtree(path)
-                notes.append(f"removed {path}, the scratch folder of a run stopped before its files were moved")
+                notes.append(_clear(path, out, "before its files were moved"))
     return notes
 
 

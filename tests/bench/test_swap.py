@@ -4,6 +4,7 @@ new one, whole, and the next run clears what it left."""
 import fcntl
 import json
 import os
+import re
 import shlex
 import shutil
 import stat
@@ -177,6 +178,40 @@ def test_a_run_into_a_folder_another_run_is_writing_is_refused(bar_store, tmp_pa
     assert files(scratch) == before and not out.exists()
 
 
+@pytest.mark.parametrize("parent", ["writable", "not writable"])
+def test_rows_left_in_a_scratch_inside_the_report_are_set_aside_or_kept(tmp_path, parent):
+    """A run that could not swap (its scratch inside --out) and was killed after a build: its
+    rows were removed with the folder by the next run. Now they go beside --out like a swapped
+    run's, or, where nothing can be made beside it (a parent the user cannot write), stay in
+    place, which no run removes; one line each way."""
+    www = tmp_path / "www"
+    out = www / "report"
+    scratch = leftover(out / "x", ".bench-abcd1234").rename(out / ".bench-abcd1234")
+    (scratch / "minutes_rows.json").write_text('[{"minutes": 0.1}]')
+    line = "import sys; from pathlib import Path; from service.bench.swap import recover; " \
+        "print(*recover(Path(sys.argv[1])))"  # fmt: skip
+    drop: list[str] = []
+    if parent == "not writable" and os.geteuid() == 0:
+        if not shutil.which("setpriv"):
+            pytest.skip("root without setpriv: every folder is writable")
+        os.chown(www, 65534, -1)  # nobody's: without CAP_DAC_OVERRIDE/FOWNER, root cannot write it
+        tmp_path.chmod(0o755)
+        drop = ["setpriv", "--inh-caps=-all", "--bounding-set=-dac_override,-dac_read_search,-fowner", "--"]
+    if parent == "not writable":
+        www.chmod(0o555)
+    done = subprocess.run([*drop, sys.executable, "-c", line, str(out)], capture_output=True, text=True, cwd=ROOT)
+    assert done.returncode == 0, done.stderr
+    if parent == "writable":
+        (aside,) = www.glob("report.interrupted-*")
+        assert done.stdout == f"moved {scratch}, a run stopped before its files were moved, to {aside}: its " \
+            "minutes_rows.json holds the rows built so far\n", done.stdout  # fmt: skip
+    else:
+        aside = scratch
+        assert done.stdout.startswith(f"kept {scratch}, a run stopped before its files were moved, for its minutes "
+                                      f"rows (not moved beside {out}: Permission denied"), done.stdout  # fmt: skip
+    assert json.loads((aside / "minutes_rows.json").read_text()) == [{"minutes": 0.1}]
+
+
 #: `elastreg` run in a process of its own
 CLI = "import sys; from service.cli import main; sys.exit(main(sys.argv[1:]))"
 ROOT = Path(__file__).resolve().parents[2]
@@ -300,10 +335,15 @@ def test_a_symlink_loop_out_is_one_line(bar_store, tmp_path, capsys):
     ), err
 
 
-def test_a_minutes_run_killed_after_a_build_leaves_the_old_report_whole(bar, tmp_path):
+@pytest.mark.parametrize("how", ["SIGKILL", "SIGINT"])
+def test_a_minutes_run_stopped_after_a_build_keeps_its_rows_beside_the_old_report(bar, tmp_path, how):
     """`bench minutes` wrote minutes_rows.json into the live --out after each build: a run killed
     (SIGKILL) after its first build left the old report's results.json beside the new run's rows.
-    Now the rows go to the run's scratch folder; --out stays the old report, whole."""
+    Then the rows went to the run's scratch folder, --out the old report, whole; but the next run
+    into that --out removed the scratch, and a user who stopped an hour-long curve lost the builds
+    done. Now the folder is set aside beside --out as NAME.interrupted-TIME: by the stopped run
+    itself on Ctrl-C (its path printed), by the next run after a kill (one note line); no run
+    removes it."""
     import signal
     import time
 
@@ -319,7 +359,7 @@ def test_a_minutes_run_killed_after_a_build_leaves_the_old_report_whole(bar, tmp
     before = files(out)
     argv = ["bench", "minutes", "--replace", "--scenes", str(scene), "--test-data", str(tmp_path / "test"),
             "--build-minutes", "0.1", "0.1", "--test-paths", "2", "--workers", "0", "--out", str(out)]  # fmt: skip
-    proc = subprocess.Popen([sys.executable, "-c", CLI, *argv], cwd=ROOT, stderr=subprocess.PIPE)
+    proc = subprocess.Popen([sys.executable, "-c", CLI, *argv], cwd=ROOT, stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 240
         while time.monotonic() < deadline and proc.poll() is None:
@@ -328,10 +368,28 @@ def test_a_minutes_run_killed_after_a_build_leaves_the_old_report_whole(bar, tmp
                 break
             time.sleep(0.05)
         assert proc.poll() is None, "the run ended before its first build's row"
-        proc.send_signal(signal.SIGKILL)
+        proc.send_signal(getattr(signal, how))
+        _, err = proc.communicate(timeout=120)
     finally:
         proc.kill()
         proc.wait()
     assert files(out) == before
-    (scratch,) = tmp_path.glob(".bench-report-*")  # the row is kept there, till the next run's recover
-    assert json.loads((scratch / "minutes_rows.json").read_text())[0]["minutes"] == 0.1
+    if how == "SIGINT":  # the run sets its rows aside itself, and says where
+        assert proc.returncode == 130, err
+        (aside,) = tmp_path.glob("report.interrupted-*")
+        assert f"note: the minutes rows built so far are kept in {aside / 'minutes_rows.json'}" in err, err
+        assert not [*tmp_path.glob(".bench-report-*")]
+    else:
+        (scratch,) = tmp_path.glob(".bench-report-*")
+    redraw = ["bench", "minutes", "--build-minutes", "--scenes", str(scene), "--out", str(out)]  # no builds
+    done = subprocess.run([sys.executable, "-c", CLI, *redraw], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    if how == "SIGKILL":  # the next run sets the dead run's rows aside, one line
+        (aside,) = tmp_path.glob("report.interrupted-*")
+        assert (
+            f"note: moved {scratch}, a run stopped before its report went in, to {aside}: its minutes_rows.json "
+            "holds the rows built so far" in done.stderr.splitlines()
+        ), done.stderr
+    assert re.fullmatch(r"report\.interrupted-\d{8}-\d{6}", aside.name), aside.name
+    assert json.loads((aside / "minutes_rows.json").read_text())[0]["minutes"] == 0.1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["report", aside.name, "scene", "test"]
