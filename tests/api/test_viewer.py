@@ -201,3 +201,51 @@ def test_a_token_holding_plus_reaches_the_server_as_it_is_or_percent_encoded(bar
             page.close()
     finally:
         server.stop()
+
+
+def test_the_demo_goes_on_after_a_frame_refused_under_overload(bar_store, browser, clouds):
+    """Under overload a stream's frame gets error 503 with retry_after and the stream stays open
+    (API.md); the demo took it for a fatal error and never sent another frame. It says the server
+    is busy and sends again after retry_after: its frame count grows once the load has gone."""
+    import httpx
+
+    from .conftest import start
+
+    # one solver thread and one place in its queue (the page's start fetches two things in the
+    # pool at once): with three other sessions' FEM frames going, the demo's frames meet a full pool
+    server = start(bar_store[0], instance_id="busy", solver_threads=1, solve_queue=1)
+    stop = threading.Event()
+    clients = [httpx.Client(base_url=server.url, timeout=60) for _ in range(3)]
+    try:
+        # opened before the demo starts: opening a session needs the solver thread too
+        sids = [c.post("/sessions", json={"model": "bar", "method": "fem"}).json()["session"] for c in clients]
+        page = browser.new_page(viewport={"width": 640, "height": 480})
+        page.goto(f"{server.url}/viewer?model=bar&demo=1&frames=8&points=200&rate=20")
+        wait_frames(page, 2)
+
+        def load(client: httpx.Client, sid: str) -> None:  # another session's FEM frames, back to back
+            t = 0
+            while not stop.is_set():
+                client.post(f"/sessions/{sid}/frames", json={"points": clouds[t % len(clouds)].tolist()})
+                t += 1
+
+        threads = [threading.Thread(target=load, args=(c, sid)) for c, sid in zip(clients, sids, strict=True)]
+        for t in threads:
+            t.start()
+        try:
+            page.wait_for_function(
+                "() => window.elastregViewer.overloads > 0 || window.elastregViewer.lastError", timeout=60_000
+            )
+        finally:
+            stop.set()
+            for t in threads:
+                t.join()
+        s = state(page)
+        assert s["lastError"] is None, s["lastError"]
+        assert "capacity" in s["lastOverload"]
+        wait_frames(page, s["framesRendered"] + 5, timeout=30)  # sent again, and on it goes
+        page.close()
+    finally:
+        for c in clients:
+            c.close()
+        server.stop()

@@ -27,7 +27,7 @@ function fragmentValue(name) {
   return null;
 }
 const state = {
-  framesRendered: 0, lastError: null, mode: null, session: null, model: null,
+  framesRendered: 0, lastError: null, overloads: 0, lastOverload: null, mode: null, session: null, model: null,
   lastFrameId: null, lastSeq: null, lastAck: null, errorEstimate: null, latencyMs: null, fps: null,
   renderLog: [],  // {frame_id, seq, t}: t = wall clock (ms) when the frame was on screen
 };
@@ -340,6 +340,19 @@ async function watch(sessionId) {
   $('status').textContent = 'waiting for frames';  // drawn frames replace it at the next animation frame
 }
 
+// a 503 refuses one frame under overload and the stream stays open (API.md): say so where the
+// status goes, not as an error, and send again after its retry_after
+function overloaded(error, send) {
+  const wait = error.retry_after ?? 1;
+  state.overloads++;
+  state.lastOverload = error.detail;
+  if (state.lastError === null) {
+    $('status').textContent = `server busy (503): sending again in ${wait} s`;
+    $('status').className = 'warn';
+  }
+  setTimeout(send, 1e3 * wait);
+}
+
 async function demo(model) {
   state.mode = 'demo';
   $('mode').textContent = 'demo';
@@ -363,6 +376,7 @@ async function demo(model) {
   const order = [...seq.clouds.keys(), ...[...seq.clouds.keys()].reverse().slice(1, -1)];
   let k = 0, sentAt = 0;
   const send = () => {
+    if (ws.readyState !== WebSocket.OPEN) return;  // a retry timed after the stream closed
     const t = k % order.length;
     sentAt = performance.timeOrigin + performance.now();
     ws.send(JSON.stringify({ points: seq.clouds[order[t]], frame_id: k }));
@@ -370,6 +384,7 @@ async function demo(model) {
   };
   ws.onmessage = (e) => {
     const msg = JSON.parse(e.data);
+    if (msg.error && msg.error.code === 503) return overloaded(msg.error, send);
     if (msg.error) return fail(new Error(`frame: ${msg.error.code}: ${msg.error.detail}`));
     queue(seq.clouds[order[(msg.frame_id) % order.length]], msg, sentAt, k);
     const wait = Math.max(0, 1e3 / rate - (performance.timeOrigin + performance.now() - sentAt));
