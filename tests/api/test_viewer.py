@@ -73,6 +73,8 @@ def test_demo_mode_renders_frames(live, browser, tmp_path):
     assert s["mode"] == "demo" and s["session"].startswith("alpha-")
     assert s["pointsShown"] == 200
     a = picture(page, tmp_path / "demo-1.png")
+    assert s["displacementShown"] and not page.is_visible("#notice")
+    assert page.text_content("#legend-hi").endswith(" mm")
     wait_frames(page, s["framesRendered"] + 5)
     b = picture(page, tmp_path / "demo-2.png")
     check_pictures(a, b)
@@ -127,6 +129,29 @@ def test_watch_mode_follows_a_session(live, http, browser, support, clouds, tmp_
     while acked() is None and time.monotonic() < deadline:
         time.sleep(0.1)
     assert (acked() or 0) >= s["lastSeq"], "the server took no acks from the viewer"
+    http.delete(f"/sessions/{sid}")
+
+
+def test_a_session_without_displacements_is_shown_at_rest_and_said_so(live, http, browser, support, clouds):
+    """A session whose outputs leave displacements out (`outputs: ["forces"]`): the page drew the
+    rest shape with no word of it and a colour scale of "0 - 1000.00 mm" (1 m, for no range at
+    all). It says the session returns no displacements and claims no range."""
+    config = {"model": "bar", "support": support.tolist(), "outputs": ["forces"]}
+    sid = http.post("/sessions", json=config).json()["session"]
+    page = browser.new_page(viewport={"width": 640, "height": 480})
+    page.goto(f"{live.url}/viewer?session={sid}")
+    page.wait_for_function("() => window.elastregViewer.model === 'bar' || window.elastregViewer.lastError")
+    for t in range(2):
+        r = http.post(f"/sessions/{sid}/frames", json={"points": clouds[t + 3].tolist()})
+        assert r.status_code == 200 and "displacement" not in r.json() and "surface_displacement" not in r.json()
+    s = wait_frames(page, 2)
+    legend = page.text_content("#legend")
+    assert "1000" not in legend and "mm" not in legend, legend  # no range: it has none
+    assert page.is_visible("#notice")
+    assert "does not return displacements" in page.text_content("#notice")
+    assert s.get("displacementShown") is False
+    assert s["arrowsShown"] > 0  # the forces it asked for are drawn
+    page.close()
     http.delete(f"/sessions/{sid}")
 
 

@@ -88,6 +88,7 @@ function resize() {
 window.addEventListener('resize', resize);
 resize();
 
+const REST_GREY = 0.6;  // the surface's colour before (or without) displacements
 // viridis, 5 stops
 const STOPS = [[0.267, 0.005, 0.329], [0.231, 0.322, 0.545], [0.129, 0.569, 0.549],
   [0.369, 0.788, 0.384], [0.993, 0.906, 0.144]];
@@ -107,7 +108,7 @@ function setMesh(m) {
 
   const geom = new THREE.BufferGeometry();
   geom.setAttribute('position', new THREE.BufferAttribute(nodes.slice(), 3));
-  geom.setAttribute('color', new THREE.BufferAttribute(new Float32Array(3 * n).fill(0.6), 3));
+  geom.setAttribute('color', new THREE.BufferAttribute(new Float32Array(3 * n).fill(REST_GREY), 3));
   geom.setIndex(Array.from(m.surface_faces.flat()));
   geom.computeVertexNormals();
   surface = new THREE.Mesh(geom, new THREE.MeshPhongMaterial({
@@ -167,6 +168,10 @@ function showFrame(points, result) {
   const colour = surface.geometry.attributes.color.array;
   const mag = new Float32Array(n);
   x.set(mesh.nodes);
+  // a session whose outputs leave displacements out: the surface stays at rest, and the page says so
+  const moved = Boolean(result.displacement || result.surface_displacement);
+  state.displacementShown = moved;
+  $('notice').hidden = moved;
   if (result.displacement) {
     const u = result.displacement;
     for (let i = 0; i < n; i++) {
@@ -187,12 +192,15 @@ function showFrame(points, result) {
   if (byError) {  // one estimate per frame: the whole surface in its colour, scaled to max_error or 5 mm
     hi = (state.maxError || 0.005);
     for (let i = 0; i < n; i++) colormap(result.error_estimate / hi, colour, i);
+  } else if (!moved) {  // no displacement, no scale: the rest colour, and no range claimed
+    colour.fill(REST_GREY);
+    hi = null;
   } else {
     for (let i = 0; i < n; i++) uMax = Math.max(uMax, mag[i]);
-    hi = uMax || 1;
-    for (let i = 0; i < n; i++) colormap(mag[i] / hi, colour, i);
+    hi = uMax;  // 0 until something moves: the scale reads 0 mm, the surface its lowest colour
+    for (let i = 0; i < n; i++) colormap(hi > 0 ? mag[i] / hi : 0, colour, i);
   }
-  $('legend-hi').textContent = `${(1e3 * hi).toFixed(2)} mm`;
+  $('legend-hi').textContent = hi === null ? '-' : `${(1e3 * hi).toFixed(2)} mm`;
   surface.geometry.attributes.position.needsUpdate = true;
   surface.geometry.attributes.color.needsUpdate = true;
   surface.geometry.computeVertexNormals();
