@@ -78,6 +78,7 @@ LIMITS = (
     "stream_queue",
     "stream_queue_bytes",
     "max_sockets",
+    "max_tokenless_sockets",
     "max_connections",
     "first_message_timeout_s",
     "body_timeout_s",
@@ -154,6 +155,16 @@ class Settings(BaseSettings):
         32 << 20, ge=1 << 10, le=1 << 34, description="bytes of frames a stream may queue before its reads pause"
     )
     max_sockets: int = Field(128, ge=1, le=100_000, description="open WebSockets (HTTP 503 for the next handshake)")
+    max_tokenless_sockets: int = Field(
+        16,
+        ge=1,
+        le=100_000,
+        description=(
+            "with tokens: WebSockets whose handshake carried no valid token, waiting for one in their first "
+            "message; counted apart from max_sockets so they cannot lock out clients with a token (HTTP 503 "
+            "for the next such handshake)"
+        ),
+    )
     max_connections: int = Field(
         512,
         ge=2,

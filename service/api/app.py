@@ -106,7 +106,8 @@ async def lifespan(app: FastAPI):
         retry_after=settings.session_retry_after_s,
     )
     app.state.pool = SolvePool(settings.solver_threads, settings.solve_queue, retry_after=settings.retry_after_s)
-    app.state.sockets = 0  # open WebSockets (deps.websocket_slot)
+    app.state.sockets = 0  # open WebSockets against max_sockets (sockets.websocket_slot)
+    app.state.tokenless_sockets = 0  # and those waiting for their first message's token
     app.state.streams = set()  # running /stream runners, told to drain at shutdown
     sweeper = asyncio.create_task(_sweep(app.state.registry, settings.sweep_interval_s))
     try:

@@ -4,8 +4,8 @@ decoded, validated bodies.
 
 Access is checked here and only here: :func:`owner` is the HTTP dependency (every router but
 /health's is included with it, and routes that touch a session take its value as ``Owner``),
-:func:`authorize_websocket` the helper every WebSocket route calls with its first message.
-Both go through :func:`check_token`.
+:func:`authorize_websocket` the helper every WebSocket route calls with its first message
+(through :class:`.sockets.Slot`, which also counts the socket). Both go through :func:`check_token`.
 
 Bodies are read here rather than by FastAPI's JSON parsing so that JSON and MessagePack (with
 packed arrays) go through one strict decoder; each body dependency returns a :class:`Body`
@@ -20,7 +20,7 @@ import dataclasses
 import hashlib
 import hmac
 import time
-from collections.abc import AsyncIterator, Callable, Iterator
+from collections.abc import Callable, Iterator
 from typing import Annotated, Generic, TypeVar
 
 from fastapi import Depends, Request, Response, WebSocket
@@ -141,38 +141,6 @@ def authorize_websocket(websocket: WebSocket, first_message=None) -> str | None:
     if header is not None:
         token = bearer(header)
     return check_token(websocket.app.state.settings, token)
-
-
-async def deny_websocket(websocket: WebSocket, status: int, detail: str, headers: dict | None = None) -> None:
-    """Refuse a WebSocket handshake with an HTTP status (the Denial Response extension, where the
-    server has it; else a close before accept, which clients see as a 403)."""
-    if "websocket.http.response" in websocket.scope.get("extensions", {}):
-        body = codec.encode({"detail": detail}, codec.JSON)
-        await websocket.send_denial_response(Response(body, status, headers, media_type=codec.MEDIA[codec.JSON]))
-    else:
-        await websocket.close(1013 if status == 503 else 1008)
-
-
-@contextlib.asynccontextmanager
-async def websocket_slot(websocket: WebSocket) -> AsyncIterator[bool]:
-    """Every WebSocket route runs inside one: the socket counts against ``max_sockets`` while the
-    block runs; at the cap its handshake is answered 503 (Retry-After) and the block gets False."""
-    state = websocket.app.state
-    settings = state.settings
-    if state.sockets >= settings.max_sockets:
-        await deny_websocket(
-            websocket,
-            503,
-            f"this server has its maximum of {settings.max_sockets} open WebSockets",
-            {"Retry-After": str(settings.retry_after_s)},
-        )
-        yield False
-        return
-    state.sockets += 1
-    try:
-        yield True
-    finally:
-        state.sockets -= 1
 
 
 ModelsDep = Annotated[dict[str, Entry], Depends(models)]

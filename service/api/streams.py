@@ -15,8 +15,9 @@ queued when it becomes free, answers the bad ones, solves only the newest good f
 the frames it skipped (``skipped``, ``skipped_ids``); a support sent with a skipped frame still
 applies.
 
-Access and limits (API.md, "Access"): the socket counts against ``max_sockets`` (a handshake
-over it is answered 503); the token comes in the handshake or the first message
+Access and limits (API.md, "Access"): the socket counts against ``max_sockets``, or while it
+waits for its first message's token ``max_tokenless_sockets`` (:mod:`.sockets`; a handshake over
+either is answered 503); the token comes in the handshake or the first message
 (:func:`~.deps.authorize_websocket`), else the socket closes with 1008; a first message must
 come within ``first_message_timeout_s``. A frame that finds the solve pool saturated gets a 503
 error of its own and the stream goes on. Frames still queued when the client leaves are
@@ -37,10 +38,11 @@ from fastapi import WebSocket
 
 from ..sendwait import Stalled
 from . import codec
-from .deps import authorize_websocket, websocket_slot
+from .deps import authorize_websocket
 from .errors import ApiError, as_api_error, unprocessable
 from .schemas.common import check_points_limit
 from .schemas.sessions import FrameIn, SessionCreate
+from .sockets import Slot, websocket_slot
 from .work import Dropped, check_frame_support, not_found_model, open_session, opened, solve_frame
 from .wsend import close, send_message
 
@@ -66,6 +68,7 @@ class StreamRunner:
         self.models = state.models
         self.registry = state.registry
         self.pool = state.pool
+        self.slot: Slot | None = None  # its place among the open sockets (run)
         self.held = None
         self.busy = False
         self.gone = False  # the client has left: queued frames are dropped
@@ -121,8 +124,9 @@ class StreamRunner:
     # -- the stream --------------------------------------------------------------------------------
 
     async def run(self) -> None:
-        async with websocket_slot(self.ws) as admitted:
-            if admitted:
+        async with websocket_slot(self.ws) as slot:
+            if slot is not None:
+                self.slot = slot
                 await self._run()
 
     async def _run(self) -> None:
@@ -170,7 +174,8 @@ class StreamRunner:
                 obj = self._decode(data, kind)
             if not isinstance(obj, dict):
                 raise ApiError(422, "the first message must be a session config (a map)")
-            owner = authorize_websocket(self.ws, obj)
+            assert self.slot is not None
+            owner = self.slot.authorize(obj)
             create = SessionCreate.model_validate(obj)
             entry = self.models.get(create.model)
             if entry is None:

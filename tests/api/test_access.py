@@ -5,6 +5,7 @@ against real servers on real ports, in JSON and MessagePack."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import socket
@@ -25,7 +26,7 @@ from service.api.errors import ApiError
 from service.api.server import BackgroundServer, BindRefused, check_bind, free_port
 from service.config import Settings, read_token_file
 
-from .conftest import MSGPACK, Live, mp, packed, recv, start, unpack, ws_url
+from .conftest import MSGPACK, Live, mp, packed, recv, start, unpack, wait_for, ws_url
 
 TOKEN_A = "alpha-token-0123456789abcdef"
 TOKEN_B = "bravo-token-0123456789abcdef"
@@ -504,3 +505,51 @@ def test_another_token_cannot_tell_a_closed_session_from_one_that_never_was(guar
 
     assert told(TOKEN_B, sid) == told(TOKEN_B, never)
     assert all("closed" in d for d in told(TOKEN_A, sid))  # its own token is told what happened
+
+
+# -- sockets without a token cannot take the slots of clients with one ----------------------------
+
+
+def test_sockets_without_a_token_cannot_lock_out_clients_with_one(bar_store, support, clouds):
+    """(review s25, probe_slots.py) Token-less sockets that send nothing held every one of
+    max_sockets for first_message_timeout_s: a client with a valid token got 503s. They now
+    count against max_tokenless_sockets, apart, and move to max_sockets once their token comes."""
+    server = start(
+        bar_store[0],
+        instance_id="squat",
+        api_tokens=TOKEN_A,
+        max_sockets=2,
+        max_tokenless_sockets=2,
+        first_message_timeout_s=60.0,
+    )
+    live = Live(server)
+    url = ws_url(live)
+    with contextlib.ExitStack() as held:
+        held.callback(server.stop)
+        squatters = [held.enter_context(connect(url)) for _ in range(2)]  # no token, nothing sent
+        # clients with the token still get in, all of max_sockets of them, stream and watcher alike
+        with Client(live.url, token=TOKEN_A) as api, api.stream("bar", support=support.tolist()) as stream:
+            assert stream.frame(clouds[0], frame_id=1)["frame_id"] == 1
+            with connect(_watch_url(live, stream.session), additional_headers=auth(TOKEN_A)) as watcher:
+                assert recv(watcher)["watching"] == stream.session
+                assert server.app.state.sockets == 2
+                # a token-less socket whose first message brings the token finds max_sockets full:
+                # a 503 it may retry, and a close with 1013
+                squatters[0].send(json.dumps({"model": "bar", "token": TOKEN_A}))
+                refused = recv(squatters[0])["error"]
+                assert refused["code"] == 503 and refused["retry_after"] == 1
+                assert "maximum of 2 open WebSockets" in refused["detail"]
+                assert close_code(squatters[0]) == 1013
+        assert wait_for(lambda: server.app.state.sockets == 0 and server.app.state.tokenless_sockets == 1)
+        held.enter_context(connect(url))  # the refused one's place is free again; the cap holds
+        with pytest.raises(InvalidStatus) as err:
+            connect(url)
+        assert err.value.response.status_code == 503 and err.value.response.headers["retry-after"] == "1"
+        assert b"maximum of 2 WebSockets waiting for a token" in err.value.response.body
+        # with room, a first message's token moves its socket to max_sockets: its place among
+        # the token-less ones is free for the next
+        squatters[1].send(json.dumps({"model": "bar", "token": TOKEN_A}))
+        assert "session" in recv(squatters[1])
+        held.enter_context(connect(url))
+        health = httpx.get(live.url + "/health").json()
+        assert health["sockets"] == 1 and health["tokenless_sockets"] == 2

@@ -50,6 +50,7 @@ async def health(
         "sessions": {**registry.counts(), "closing": registry.closing},
         "solves": pool.counts(),
         "sockets": request.app.state.sockets,
+        "tokenless_sockets": request.app.state.tokenless_sockets,
         "solver_threads": settings.solver_threads,
         "auth": "bearer" if settings.api_tokens else "none",
         "skipped_models": request.app.state.store_errors,

@@ -30,9 +30,9 @@ from starlette.types import Message
 
 from ...sendwait import Stalled
 from .. import codec
-from ..deps import authorize_websocket, websocket_slot
 from ..errors import ApiError, as_api_error
 from ..sessions import Held, SessionNotFound, SessionRegistry
+from ..sockets import Slot, websocket_slot
 from ..watch import Acks, Mailbox
 from ..work import config_of
 from ..wsend import close, send_message
@@ -41,6 +41,7 @@ router = APIRouter(tags=["watch"])
 log = logging.getLogger(__name__)
 
 POLICY = 1008
+TRY_LATER = 1013  # no socket slot free for it now (a 503)
 POLL_S = 0.25  # how often an idle watcher checks that its session and its client still exist
 MAX_ACK_BYTES = 1 << 16  # an ack is a few bytes; a first message (a token) is as small
 
@@ -85,7 +86,7 @@ class Watcher:
 
     async def _refuse(self, status: int, detail: str) -> None:
         await self._send(codec.encode({"error": {"code": status, "detail": detail}}, self.kind))
-        await self._close(POLICY, detail)
+        await self._close(TRY_LATER if status == 503 else POLICY, detail)
 
     async def _first_message(self) -> tuple[bool, dict | None]:
         """(still connected, the first message as a map, or None); a client silent past the
@@ -146,11 +147,11 @@ class Watcher:
                 return
 
     async def run(self) -> None:
-        async with websocket_slot(self.ws) as ok:
-            if ok:
-                await self._run()
+        async with websocket_slot(self.ws) as slot:
+            if slot is not None:
+                await self._run(slot)
 
-    async def _run(self) -> None:
+    async def _run(self, slot: Slot) -> None:
         await self.ws.accept(headers=[(b"x-elastreg-instance", self.settings.instance_id.encode())])
         first = None
         if "authorization" not in self.ws.headers and self.settings.api_tokens:
@@ -158,7 +159,7 @@ class Watcher:
             if not connected:
                 return
         try:
-            owner = authorize_websocket(self.ws, first)
+            owner = slot.authorize(first)
             held = find_session(self.registry, self.session_id, owner)
         except ApiError as exc:
             await self._refuse(exc.status, exc.text)
