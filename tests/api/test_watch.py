@@ -28,7 +28,7 @@ from websockets.sync.client import connect
 
 from service.api.watch import Channel, Mailbox
 
-from .conftest import MAX_POINTS, MSGPACK, mp, packed, unpack
+from .conftest import MAX_POINTS, MSGPACK, mp, packed, unpack, wait_for
 
 TOKEN = "watch-test-token"  # ignored by an open server; what a token-checking server would see
 
@@ -318,3 +318,42 @@ def test_watchers_do_not_slow_the_session(live, http, support, clouds):
     # show as a multiple of the solve time, not a fraction of it
     assert ratio < 3.0
     http.delete(f"/sessions/{sid}")
+
+
+def test_a_session_closed_mid_solve_sends_its_watchers_that_frame_then_closes(live, http, support, clouds):
+    """(review s25, probe_conc.py) API.md: a watcher receives every frame the session solves.
+    A session deleted while a frame of it was being solved closed its watchers at once: the
+    frame, solved and answered to its client, never reached them. The watcher now gets it, then
+    the close. The frame is made slow (FEM, a gradient tolerance it cannot meet, a budget)."""
+    r = http.post(
+        "/sessions",
+        json={
+            "model": "bar",
+            "method": "fem",
+            "support": support.tolist(),
+            "gtol": 1e-12,
+            "max_iter": 1000,
+            "time_budget_ms": 3000,
+        },
+    )
+    assert r.status_code == 201, r.text
+    sid = r.json()["session"]
+    pool = live.app.state.pool
+    with watch(live, sid, token=None) as ws:
+        assert recv(ws)["watching"] == sid
+        answer: dict = {}
+        post = threading.Thread(
+            target=lambda: answer.update(
+                r=http.post(f"/sessions/{sid}/frames", json={"points": clouds[2].tolist(), "frame_id": 41})
+            )
+        )
+        post.start()
+        assert wait_for(lambda: pool.counts()["running"] == 1, timeout=10)
+        assert http.delete(f"/sessions/{sid}").status_code == 204  # while the frame is solved
+        post.join(30)
+        assert answer["r"].status_code == 200 and answer["r"].json()["frame_id"] == 41
+        got = recv(ws)
+        assert got["seq"] == 1 and got["result"]["frame_id"] == 41
+        with pytest.raises(ConnectionClosed) as info:
+            ws.recv(timeout=10)
+        assert info.value.rcvd.code == 1000 and "ended" in info.value.rcvd.reason

@@ -5,7 +5,8 @@ optionally sending a first message ``{"token": ...}``. The server answers ``{"wa
 "model", "config"}``, then one message per frame the session solves: ``{"seq", "time",
 "points", "result"}`` (``result`` as the session's own client received it). A watcher that
 falls behind gets the newest frame next; the frames it missed are the gaps in ``seq``. When the
-session ends the socket is closed (1000); an unknown session gets ``{"error": {"code": 404}}``
+session ends the socket is closed (1000), after the frame that was being solved then, if one
+was (frames still queued are dropped unsolved); an unknown session gets ``{"error": {"code": 404}}``
 and a close with 1008.
 
 Acknowledgements (optional): a watcher may send ``{"ack": seq}`` (JSON text, or MessagePack
@@ -229,12 +230,9 @@ class Watcher:
 
     async def _ended(self, held: Held, box: Mailbox) -> bool:
         """True, after sending the frame published last and closing the socket (1000), when the
-        session has ended."""
-        try:
-            self.registry.get(held.id, touch=False)
+        session has ended and no frame of it is still being solved."""
+        if not held.closed or held.busy:  # a frame in flight is published before busy drops
             return False
-        except SessionNotFound:
-            pass
         last = box.take()  # published just before it closed
         if last is not None:
             await self._send(await asyncio.to_thread(last.encoded, self.kind))
