@@ -2,8 +2,8 @@
 
 A session lives in the process that opened it. Its id starts with that process's instance id
 (``a3f09c-Xq2...``), so a request that reaches another process (several uvicorn workers, or
-replicas behind a load balancer without affinity) gets a 404 that says where the session lives
-instead of a wrong answer, and a load balancer can route on that prefix.
+replicas behind a load balancer without affinity), or a process restarted since, gets a 404 that
+says so instead of a wrong answer, and a load balancer can route on that prefix.
 
 HTTP sessions expire after ``ttl_s`` seconds without a request (a background sweeper drops
 them; a session busy with a frame is never dropped). A WebSocket stream's session belongs to
@@ -232,12 +232,13 @@ class SessionRegistry:
         if gone is not None and (owner is ANY or gone[0] == owner):
             return f"session {session_id!r} {gone[1]} ({here})"
         owner = session_id.split("-", 1)[0] if "-" in session_id else None
-        if owner and owner != self.instance_id:
+        if owner and owner != self.instance_id:  # a restart and a mis-route look the same from here
             return (
-                f"session {session_id!r} is not held here: it was opened by instance {owner!r} and "
-                f"{here}. Sessions live in the process that opened them: route every request of a "
-                'session to that process (session affinity: docs/usage.md, "Scaling out"), or use the WebSocket '
-                "/stream, whose state lives with its connection"
+                f"session {session_id!r} is not held here: it was opened by another server process "
+                f"(instance {owner!r}; {here}): this server restarted (sessions do not survive a restart: "
+                "open a new one) or requests are routed to more than one process (route every request of a "
+                'session to the process that opened it, session affinity: docs/usage.md, "Scaling out"; or '
+                "use the WebSocket /stream, whose state lives with its connection)"
             )
         return (
             f"no session {session_id!r} ({here}): it was closed, expired after {self.ttl_s:g} s "
