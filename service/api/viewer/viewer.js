@@ -48,11 +48,23 @@ window.addEventListener('unhandledrejection', (e) => fail(e.reason));
 // -- the API ------------------------------------------------------------------------------------
 
 const headers = token ? { Authorization: `Bearer ${token}` } : {};
+const API_TRIES = 10;  // a request refused under overload (503) is asked again, at most this often
 async function api(path) {
-  const r = await fetch(path, { headers: { Accept: 'application/json', ...headers } });
-  const body = await r.json().catch(() => ({}));
-  if (!r.ok) throw new Error(`${path}: ${r.status} ${JSON.stringify(body.detail ?? body)}`);
-  return body;
+  for (let tries = 1; ; tries++) {
+    const r = await fetch(path, { headers: { Accept: 'application/json', ...headers } });
+    const body = await r.json().catch(() => ({}));
+    if (r.ok) return body;
+    if (r.status === 503 && tries < API_TRIES) {  // the mesh and demo requests share the solve pool
+      const wait = Number(r.headers.get('Retry-After')) || 1;
+      state.overloads++;
+      state.lastOverload = `${path}: ${JSON.stringify(body.detail ?? body)}`;
+      $('status').textContent = `server busy (503): asking again in ${wait} s`;
+      $('status').className = 'warn';
+      await new Promise((done) => setTimeout(done, 1e3 * wait));
+      continue;
+    }
+    throw new Error(`${path}: ${r.status} ${JSON.stringify(body.detail ?? body)}`);
+  }
 }
 function wsUrl(path) {
   return `${location.protocol === 'https:' ? 'wss' : 'ws'}://${location.host}${path}`;
