@@ -401,6 +401,48 @@ def test_an_unreadable_file_is_named_in_one_line(bar_store, tmp_path):
     assert "Traceback" not in run.stderr, run.stderr
 
 
+#: a server's life in one process: the entry loaded and used, its weights file damaged in place
+#: (the same inode), the entry used again; prints whether both answers are the same
+_DAMAGED_UNDER_IT = """
+import json, os, sys
+from pathlib import Path
+import numpy as np
+from service.store import load_entry
+entry = load_entry(Path(sys.argv[1]))
+support = entry.region[:12]
+forces = np.tile([0.0, 0.5, 1.0], (1, support.size, 1))
+before = entry.network.predict(forces, support)
+weights = Path(sys.argv[1]) / "weights.safetensors"
+if sys.argv[2] == "truncate":
+    os.truncate(weights, 0)
+else:  # every byte past the header inverted: a valid header over other tensors
+    with open(weights, "r+b") as f:
+        start = 8 + int.from_bytes(f.read(8), "little")
+        f.seek(start)
+        rest = np.frombuffer(f.read(), np.uint8)
+        f.seek(start)
+        f.write((rest ^ 0xFF).tobytes())
+after = entry.network.predict(forces, support)
+print(json.dumps(bool(np.array_equal(before, after))))
+"""
+
+
+@pytest.mark.parametrize("damage", ["truncate", "overwrite"])
+def test_a_weights_file_damaged_under_a_loaded_entry_changes_nothing_it_serves(tmp_path, damage):
+    """The tensors were a memory map of weights.safetensors: truncating it under a running
+    server killed the process (SIGBUS), and overwriting it in place changed its answers. The
+    entry is built from the bytes it checked, so neither reaches it (the victim in a process of
+    its own)."""
+    import subprocess
+    import sys
+
+    shutil.copytree(Path(__file__).resolve().parents[1] / "model_store" / "phantom", tmp_path / "phantom")
+    run = subprocess.run([sys.executable, "-c", _DAMAGED_UNDER_IT, str(tmp_path / "phantom"), damage],
+                         capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert run.returncode == 0, f"exit status {run.returncode}: {run.stderr[-2000:]}"
+    assert json.loads(run.stdout) is True, "the loaded entry's answer changed with the file"
+
+
 def _without_root_override(argv: list[str]) -> list[str]:
     """`argv` as a process that file modes bind: root reads and writes anything, so as root it
     runs without the capabilities that let it (setpriv); skipped where setpriv is missing."""

@@ -14,8 +14,10 @@
 Loading checks the manifest's shape and every name in it before any other file is opened (the
 file names must be exactly the two above, regular files inside the entry's folder: a manifest
 naming ``../../../dev/zero`` is refused without reading it; what it records twice, the material
-and load distribution it serves beside its scene's, must agree), re-hashes every file against the
-manifest and the mesh arrays against the recorded mesh hash, compares the manifest's network
+and load distribution it serves beside its scene's, must agree), reads each file once into
+memory and hashes those very bytes against the manifest (then builds from them: nothing maps a
+file, so a file truncated or rewritten under a running server changes nothing it serves), checks
+the mesh arrays against the recorded mesh hash, compares the manifest's network
 with the weights' shapes (laid out on torch's meta device, so a manifest claiming a huge network
 allocates nothing), then builds it and loads the weights strictly; any mismatch, and any file
 the system will not let us read or whose own format refuses it, is a :class:`StoreError` naming

@@ -27,6 +27,11 @@ def sha256(path: Path) -> str:
         return _digest(f)
 
 
+def sha256_of(data: bytes) -> str:
+    """The SHA-256 of bytes already read (the loader checks the very bytes it then serves)."""
+    return hashlib.sha256(data).hexdigest()
+
+
 def _digest(f) -> str:
     """The SHA-256 of an open binary file, read from where it stands to its end."""
     h = hashlib.sha256()

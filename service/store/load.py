@@ -4,6 +4,7 @@ entry isolated from the others."""
 from __future__ import annotations
 
 import dataclasses
+import io
 import json
 import os
 import stat
@@ -14,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from safetensors import SafetensorError
-from safetensors.torch import load_file
+from safetensors.torch import load as load_tensors
 
 from ..fem.material import NeoHookean
 from ..fem.model import FEMModel
@@ -22,7 +23,7 @@ from ..mesh import TetMesh
 from ..scene import MODEL_ID
 from ..surrogate.model import NetworkModel
 from .builds import _restore_aside, remove_stale_builds
-from .files import _MAX_MANIFEST, MANIFEST, MESH, WEIGHTS, StoreError, log, sha256
+from .files import _MAX_MANIFEST, MANIFEST, MESH, WEIGHTS, StoreError, log, sha256_of
 from .manifest import _check_manifest, _max_force, _tool_patch
 from .network import _check_fit, network_from_manifest
 
@@ -123,15 +124,19 @@ def load_entry(path: Path, name: str | None = None) -> Entry:
     _check_manifest(manifest, name)
     for fname in (MESH, WEIGHTS):  # every name checked before any file is read
         _regular_file(path / fname, path, name, fname)
+    # each file read once: what is checked is what is served, and nothing keeps a map of the file
+    # (a weights file truncated under a mapped server killed it with SIGBUS; one rewritten in place
+    # changed its answers)
+    data: dict[str, bytes] = {}
     for fname, digest in manifest["files"].items():
         try:
-            actual = sha256(path / fname)
+            data[fname] = (path / fname).read_bytes()
         except OSError as exc:
             raise _unreadable(name, fname, exc) from None
-        if actual != digest:
+        if sha256_of(data[fname]) != digest:
             raise StoreError(f"{name}: {fname} does not match its checksum in the manifest (corrupt or changed)")
     try:  # a zip of .npy arrays, read without pickle
-        with np.load(path / MESH, allow_pickle=False) as z:
+        with np.load(io.BytesIO(data.pop(MESH)), allow_pickle=False) as z:
             arrays = {key: z[key] for key in ("nodes", "tets", "fixed", "region")}
     except (KeyError, ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
         raise StoreError(f"{name}: {MESH} is unreadable ({_one_line(str(exc))})") from None
@@ -143,11 +148,9 @@ def load_entry(path: Path, name: str | None = None) -> Entry:
     if mesh.hash != manifest["mesh"].get("hash"):
         raise StoreError(f"{name}: the mesh does not match the hash recorded in the manifest")
     try:  # safetensors: a header and raw tensors, nothing a file could run (no pickle)
-        state = load_file(str(path / WEIGHTS))
+        state = load_tensors(data.pop(WEIGHTS))
     except SafetensorError as exc:  # truncated, empty, another format under this name
         raise StoreError(f"{name}: {WEIGHTS} is not a readable safetensors file ({exc})") from None
-    except OSError as exc:
-        raise _unreadable(name, WEIGHTS, exc) from None
     broken = sorted(k for k, t in state.items() if t.is_floating_point() and not bool(torch.isfinite(t).all()))
     if broken:  # a training run that diverged: every answer would be NaN (a 200 of nulls, a frame's 422)
         raise StoreError(f"{name}: {WEIGHTS} holds NaN or infinite values (in {', '.join(broken[:3])})")
