@@ -71,6 +71,7 @@ _TOKEN = r"^[A-Za-z0-9._~+/=-]{16,512}$"  # RFC 6750's token68 characters, at le
 LIMITS = (
     "max_points",
     "max_sessions",
+    "max_sessions_per_token",
     "session_ttl_s",
     "max_body_bytes",
     "max_message_bytes",
@@ -125,6 +126,11 @@ class Settings(BaseSettings):
     store: Path = Field(default_factory=default_store, description="the model store folder")
     max_points: int = Field(100_000, ge=1, le=10_000_000, description="points per frame (413 over it)")
     max_sessions: int = Field(64, ge=1, le=100_000, description="open sessions and streams (503 over it)")
+    # None: half of max_sessions where tokens are set (one client cannot lock the others out);
+    # without tokens every client is one owner, so it is max_sessions (_consistent resolves it)
+    max_sessions_per_token: int | None = Field(
+        None, ge=1, le=100_000, description="open sessions and streams of one token (503 over it; at most max_sessions)"
+    )
     session_ttl_s: float = Field(600.0, gt=0, le=MAX_SESSION_TTL_S, description="idle seconds before a session expires")
     sweep_interval_s: float = Field(5.0, gt=0, le=3600, description="how often expired sessions are dropped")
     solver_threads: int = Field(2, ge=1, le=256, description="threads that run solves")
@@ -291,6 +297,10 @@ class Settings(BaseSettings):
         if self.token_file is not None:  # read once, here: a bad file stops the server at startup
             extra = _check_tokens(read_token_file(self.token_file), str(self.token_file))
             object.__setattr__(self, "api_tokens", tuple(dict.fromkeys(self.api_tokens + extra)))
+        per_token = self.max_sessions_per_token if self.api_tokens else None
+        if per_token is None and self.api_tokens:
+            per_token = max(1, self.max_sessions // 2)
+        object.__setattr__(self, "max_sessions_per_token", min(per_token or self.max_sessions, self.max_sessions))
         return self
 
     @property

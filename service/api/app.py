@@ -104,6 +104,7 @@ async def lifespan(app: FastAPI):
         ttl_s=settings.session_ttl_s,
         instance_id=settings.instance_id,
         retry_after=settings.session_retry_after_s,
+        max_per_owner=settings.max_sessions_per_token,
     )
     app.state.pool = SolvePool(settings.solver_threads, settings.solve_queue, retry_after=settings.retry_after_s)
     app.state.sockets = 0  # open WebSockets against max_sockets (sockets.websocket_slot)

@@ -11,8 +11,10 @@ its connection: it counts against the limit but is never swept; the stream close
 
 A session belongs to the token that opened it (``owner``, a fingerprint of the token; None on a
 server without tokens): asked for by any other owner it is not found (404), exactly as if it did
-not exist. A session closed while a frame of it is still being solved keeps its slot until
-that solve ends, so the limit counts every session that holds a thread.
+not exist. One owner holds at most ``max_per_owner`` slots, so a single token cannot take them
+all and lock the others out until its sessions expire. A session closed while a frame of it is
+still being solved keeps its slot (its owner's too) until that solve ends, so the limits count
+every session that holds a thread.
 """
 
 from __future__ import annotations
@@ -81,6 +83,7 @@ class Held:
 class Reservation:
     id: str
     kind: str
+    owner: str | None = None
     done: bool = False
 
 
@@ -94,9 +97,11 @@ class SessionRegistry:
         ttl_s: float,
         instance_id: str,
         retry_after: int,
+        max_per_owner: int | None = None,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.max_sessions = max_sessions
+        self.max_per_owner = max_sessions if max_per_owner is None else max_per_owner
         self.retry_after = retry_after  # seconds, for the 503 at the limit
         self.ttl_s = ttl_s
         self.instance_id = instance_id
@@ -104,13 +109,15 @@ class SessionRegistry:
         self._held: dict[str, Held] = {}
         self._pending = 0
         self._draining = 0  # closed sessions whose frame is still being solved
+        self._owned: collections.Counter[str | None] = collections.Counter()  # slots by owner, all three kinds
         self._gone: collections.OrderedDict[str, tuple[object, str]] = collections.OrderedDict()  # id: owner, why
         self._lock = threading.Lock()
 
     # -- opening -----------------------------------------------------------------------------------
 
-    def reserve(self, kind: str) -> Reservation:
-        """A slot and an id for a session about to be built; RegistryFull at the limit."""
+    def reserve(self, kind: str, owner: str | None = None) -> Reservation:
+        """A slot and an id for a session `owner` is about to build; RegistryFull at the limit
+        of the process or of the owner."""
         with self._lock:
             if len(self._held) + self._pending + self._draining >= self.max_sessions:
                 raise RegistryFull(
@@ -118,14 +125,23 @@ class SessionRegistry:
                     f"close one (DELETE /sessions/{{id}}) or retry in {self.retry_after} s",
                     self.retry_after,
                 )
+            if self._owned[owner] >= self.max_per_owner:
+                raise RegistryFull(
+                    f"this token holds its maximum of {self.max_per_owner} sessions on this server process "
+                    f"(max_sessions_per_token); close one (DELETE /sessions/{{id}}) or retry in {self.retry_after} s",
+                    self.retry_after,
+                )
             self._pending += 1
-            return Reservation(f"{self.instance_id}-{secrets.token_urlsafe(9)}", kind)
+            self._owned[owner] += 1
+            return Reservation(f"{self.instance_id}-{secrets.token_urlsafe(9)}", kind, owner)
 
     def commit(self, reservation: Reservation, held: Held) -> Held:
+        """The built session in its reserved slot, owned by the reservation's owner."""
         with self._lock:
             if not reservation.done:
                 reservation.done = True
                 self._pending -= 1
+            held.owner = reservation.owner
             held.touched = self.clock()
             self._held[held.id] = held
         return held
@@ -135,6 +151,13 @@ class SessionRegistry:
             if not reservation.done:
                 reservation.done = True
                 self._pending -= 1
+                self._release(reservation.owner)
+
+    def _release(self, owner: str | None) -> None:
+        """One of `owner`'s slots is free (under the lock)."""
+        self._owned[owner] -= 1
+        if self._owned[owner] <= 0:
+            del self._owned[owner]
 
     # -- use ---------------------------------------------------------------------------------------
 
@@ -169,6 +192,7 @@ class SessionRegistry:
             held.touched = self.clock()
             if held.closed and held.busy == 0:
                 self._draining -= 1
+                self._release(held.owner)
 
     def close(self, session_id: str, *, kind: str | None = None, why: str = "closed", owner=ANY) -> Held:
         with self._lock:
@@ -177,6 +201,8 @@ class SessionRegistry:
             held.closed = True
             if held.busy:
                 self._draining += 1
+            else:
+                self._release(held.owner)
             self._forget(session_id, held.owner, why)
             return held
 
@@ -192,6 +218,7 @@ class SessionRegistry:
             for sid in gone:
                 held = self._held.pop(sid)
                 held.closed = True
+                self._release(held.owner)
                 self._forget(sid, held.owner, f"expired after {self.ttl_s:g} s without a request")
         return gone
 

@@ -161,15 +161,15 @@ async def open_session(
     settings,
     owner: str | None = None,
 ) -> Held:
-    """Caps applied (422), a slot reserved (RegistryFull at the limit), built, registered."""
+    """Caps applied (422), a slot reserved (RegistryFull at the process's or the owner's limit),
+    built, registered."""
     admit_config(create, entry, settings)
-    reservation = registry.reserve(kind)
+    reservation = registry.reserve(kind, owner)
     try:
         held = await pool.run(build_session, entry, create, reservation, settings.max_time_budget_ms, settings.max_iter)
     except BaseException:
         registry.cancel(reservation)
         raise
-    held.owner = owner
     return registry.commit(reservation, held)
 
 

@@ -140,6 +140,36 @@ def test_a_session_belongs_to_the_token_that_opened_it(guarded, support, clouds)
         assert a.delete(f"/sessions/{sid}").status_code == 204
 
 
+def test_one_token_cannot_take_every_session_slot(bar_store):
+    """One token could open all max_sessions sessions and lock every other token out for
+    session_ttl_s. With tokens, one holds at most max_sessions_per_token (half, here 2 of 4):
+    over it a 503 with the session limit's Retry-After that names the per-token limit, over
+    HTTP and the WebSocket, while another token still opens its own."""
+    server = start(bar_store[0], instance_id="shared", api_tokens=f"{TOKEN_A},{TOKEN_B}", max_sessions=4)
+    a = httpx.Client(base_url=server.url, headers=auth(TOKEN_A), timeout=60)
+    b = httpx.Client(base_url=server.url, headers=auth(TOKEN_B), timeout=60)
+    try:
+        mine = [a.post("/sessions", json={"model": "bar"}) for _ in range(2)]
+        assert [r.status_code for r in mine] == [201, 201]
+        r = a.post("/sessions", json={"model": "bar"})
+        assert r.status_code == 503 and r.headers.get("retry-after") == "5", r.text[:200]
+        assert "this token holds its maximum of 2 sessions" in r.json()["detail"]
+        assert "max_sessions_per_token" in r.json()["detail"]
+        with connect(ws_url(Live(server)), additional_headers=auth(TOKEN_A)) as ws:
+            ws.send(mp({"model": "bar"}))
+            err = recv(ws)["error"]
+            assert err["code"] == 503 and err["retry_after"] == 5 and "this token" in err["detail"]
+            assert close_code(ws) == 1013
+        assert [b.post("/sessions", json={"model": "bar"}).status_code for _ in range(2)] == [201, 201]
+        assert a.delete(f"/sessions/{mine[0].json()['session']}").status_code == 204
+        assert a.post("/sessions", json={"model": "bar"}).status_code == 201  # its slot came back
+        assert httpx.get(server.url + "/health").json()["limits"]["max_sessions_per_token"] == 2
+    finally:
+        a.close()
+        b.close()
+        server.stop()
+
+
 def test_the_client_sends_its_token_on_http_and_the_websocket(guarded, support, clouds):
     with Client(guarded.url, token=TOKEN_A) as api:
         assert [m["id"] for m in api.models()] == ["bar"]

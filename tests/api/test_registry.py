@@ -47,6 +47,40 @@ def test_limit_counts_reservations_and_frees_on_cancel():
     held(reg)
 
 
+def test_one_owner_holds_at_most_its_share_and_every_way_out_frees_one():
+    """A single token could take every slot and lock the others out for session_ttl_s. Each
+    owner now holds at most max_per_owner; a slot comes back on cancel, close, expiry and, for a
+    session closed mid-frame, when that frame ends."""
+    clock = Clock()
+    reg = SessionRegistry(max_sessions=8, ttl_s=10, instance_id="i1", retry_after=5, max_per_owner=3, clock=clock)
+
+    def own(owner: str, kind: str = "http") -> Held:
+        r = reg.reserve(kind, owner)
+        return reg.commit(r, Held(id=r.id, kind=kind, model="m", session=None, config={}))
+
+    a = [own("A"), own("A", "stream")]
+    pending = reg.reserve("http", "A")
+    with pytest.raises(RegistryFull, match=r"this token holds its maximum of 3 sessions .*max_sessions_per_token"):
+        reg.reserve("http", "A")
+    assert own("B").owner == "B" and a[0].owner == "A"  # another token is not locked out
+    reg.cancel(pending)
+    a.append(own("A"))
+    reg.close(a[0].id)
+    a.append(own("A"))
+    reg.begin(a[1])  # closed mid-frame: the slot is A's until the frame ends
+    reg.close(a[1].id)
+    with pytest.raises(RegistryFull, match="this token"):
+        reg.reserve("http", "A")
+    reg.end(a[1])
+    a.append(own("A"))
+    clock.t = 11  # A's idle HTTP sessions expire: its three slots come back
+    assert {h.id for h in a[2:]} <= set(reg.expire())
+    for _ in range(3):
+        own("A", "stream")
+    with pytest.raises(RegistryFull, match="this token"):
+        reg.reserve("stream", "A")
+
+
 def test_idle_http_sessions_expire_streams_and_busy_ones_do_not():
     clock = Clock()
     reg = SessionRegistry(max_sessions=8, ttl_s=10, instance_id="i1", retry_after=5, clock=clock)
@@ -127,6 +161,24 @@ def test_not_found_messages_point_at_the_scaling_out_section():
 def test_settings_refuse_bad_values(bad, tmp_path):
     with pytest.raises(ValidationError):
         Settings(store=tmp_path, **bad)
+
+
+def test_the_per_token_session_cap_is_half_the_sessions_with_tokens_and_none_without(tmp_path):
+    token = "t" * 20
+    assert Settings(store=tmp_path, max_sessions=64, api_tokens=token).max_sessions_per_token == 32
+    assert Settings(store=tmp_path, max_sessions=1, api_tokens=token).max_sessions_per_token == 1
+    assert (
+        Settings(store=tmp_path, max_sessions=8, api_tokens=token, max_sessions_per_token=3).max_sessions_per_token == 3
+    )
+    # at most the process's cap; without tokens every client is one owner: the process's cap
+    assert (
+        Settings(store=tmp_path, max_sessions=8, api_tokens=token, max_sessions_per_token=20).max_sessions_per_token
+        == 8
+    )
+    assert Settings(store=tmp_path, max_sessions=8).max_sessions_per_token == 8
+    assert Settings(store=tmp_path, max_sessions=8, max_sessions_per_token=2).max_sessions_per_token == 8
+    with pytest.raises(ValidationError):
+        Settings(store=tmp_path, max_sessions_per_token=0)
 
 
 def test_settings_from_environment(monkeypatch, tmp_path):
