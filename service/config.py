@@ -126,8 +126,8 @@ class Settings(BaseSettings):
     store: Path = Field(default_factory=default_store, description="the model store folder")
     max_points: int = Field(100_000, ge=1, le=10_000_000, description="points per frame (413 over it)")
     max_sessions: int = Field(64, ge=1, le=100_000, description="open sessions and streams (503 over it)")
-    # None: half of max_sessions where tokens are set (one client cannot lock the others out);
-    # without tokens every client is one owner, so it is max_sessions (_consistent resolves it)
+    # None: half of max_sessions where two tokens or more are set (one client cannot lock the
+    # others out); with one token or none every client is one owner: max_sessions (_consistent)
     max_sessions_per_token: int | None = Field(
         None, ge=1, le=100_000, description="open sessions and streams of one token (503 over it; at most max_sessions)"
     )
@@ -298,7 +298,7 @@ class Settings(BaseSettings):
             extra = _check_tokens(read_token_file(self.token_file), str(self.token_file))
             object.__setattr__(self, "api_tokens", tuple(dict.fromkeys(self.api_tokens + extra)))
         per_token = self.max_sessions_per_token if self.api_tokens else None
-        if per_token is None and self.api_tokens:
+        if per_token is None and len(self.api_tokens) > 1:
             per_token = max(1, self.max_sessions // 2)
         object.__setattr__(self, "max_sessions_per_token", min(per_token or self.max_sessions, self.max_sessions))
         return self

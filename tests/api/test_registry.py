@@ -165,8 +165,11 @@ def test_settings_refuse_bad_values(bad, tmp_path):
 
 def test_the_per_token_session_cap_is_half_the_sessions_with_tokens_and_none_without(tmp_path):
     token = "t" * 20
-    assert Settings(store=tmp_path, max_sessions=64, api_tokens=token).max_sessions_per_token == 32
-    assert Settings(store=tmp_path, max_sessions=1, api_tokens=token).max_sessions_per_token == 1
+    tokens = f"{token},{'u' * 20}"
+    assert Settings(store=tmp_path, max_sessions=64, api_tokens=tokens).max_sessions_per_token == 32
+    assert Settings(store=tmp_path, max_sessions=1, api_tokens=tokens).max_sessions_per_token == 1
+    # one token: one owner, whose deployment (a frontend, a load test) may use every slot
+    assert Settings(store=tmp_path, max_sessions=64, api_tokens=token).max_sessions_per_token == 64
     assert (
         Settings(store=tmp_path, max_sessions=8, api_tokens=token, max_sessions_per_token=3).max_sessions_per_token == 3
     )
