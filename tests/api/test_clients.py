@@ -18,7 +18,7 @@ from service.demo import run as demo
 from service.loadtest import main as loadtest_main
 from tests.conftest import interrupt
 
-from .conftest import occupied
+from .conftest import occupied, wait_for
 
 
 @pytest.mark.parametrize("encoding", ["msgpack", "json"])
@@ -341,17 +341,26 @@ def test_a_frame_whose_reply_timed_out_puts_the_stream_out_of_step(live, support
 def test_a_frame_cancelled_or_interrupted_before_its_reply_puts_the_stream_out_of_step(live, support, clouds):
     """A frame() left by a cancel (asyncio.wait_for, the usual bound) or by Ctrl-C while its
     reply was pending: the next frame() returned that late reply, the previous frame's result
-    under the new frame's call. It raises the out-of-step StreamError now, as after a timeout."""
+    under the new frame's call. It raises the out-of-step StreamError now, as after a timeout.
+    Each is left once the server has admitted the frame: a fixed 0.3 s could end, on a loaded
+    machine, before the frame was sent, and a frame never sent rightly leaves the stream in step."""
     import signal
 
     pool = live.app.state.pool
+
+    def admitted(before: int) -> None:
+        assert wait_for(lambda: pool.in_flight > before, 30), "the frame never reached the server"
 
     async def cancelled() -> None:
         async with AsyncClient(live.url) as api:
             s = await api.stream("bar", support=support)
             with occupied(pool, pool.threads):  # the frame waits for a solver thread: no reply yet
-                with pytest.raises(TimeoutError):
-                    await asyncio.wait_for(s.frame(clouds[0], frame_id="a"), 0.3)
+                before = pool.in_flight
+                pending = asyncio.ensure_future(s.frame(clouds[0], frame_id="a"))
+                await asyncio.to_thread(admitted, before)
+                pending.cancel()
+                with pytest.raises(asyncio.CancelledError):
+                    await pending
             with pytest.raises(StreamError, match="open a new stream"):
                 await s.frame(clouds[1], frame_id="b")
             await s.close()
@@ -361,16 +370,21 @@ def test_a_frame_cancelled_or_interrupted_before_its_reply_puts_the_stream_out_o
 
     asyncio.run(cancelled())
     previous = signal.signal(signal.SIGALRM, interrupt)
+    main = threading.get_ident()
     try:
         with Client(live.url) as api, api.stream("bar", support=support) as s:
             with occupied(pool, pool.threads):
-                signal.setitimer(signal.ITIMER_REAL, 0.3)  # Ctrl-C while the reply is pending
+                before = pool.in_flight
+                ctrl_c = threading.Thread(  # Ctrl-C while the reply is pending
+                    target=lambda: (admitted(before), signal.pthread_kill(main, signal.SIGALRM)), daemon=True
+                )
+                ctrl_c.start()
                 with pytest.raises(KeyboardInterrupt):
                     s.frame(clouds[0], frame_id="a")
+                ctrl_c.join(30)
             with pytest.raises(StreamError, match="open a new stream"):
                 s.frame(clouds[1], frame_id="b")
     finally:
-        signal.setitimer(signal.ITIMER_REAL, 0)
         signal.signal(signal.SIGALRM, previous)
 
 
