@@ -221,7 +221,7 @@ def parser() -> argparse.ArgumentParser:
         "serve the shipped default model, stream a synthetic sequence through the API, "
         "print error and latency per frame",
     )
-    d.add_argument("--model", default="phantom", help="model id in the store (default: phantom)")
+    d.add_argument("--model", type=model_id, default="phantom", help="model id in the store (default: phantom)")
     d.add_argument("--frames", type=whole_number(2), default=20)
     d.add_argument(
         "--method",
@@ -313,7 +313,7 @@ def parser() -> argparse.ArgumentParser:
         "an OpenIGTLink bridge (3D Slicer connects as a client): clouds in, "
         "the registered surface and a status out (docs/frontends.md)",
     )
-    g.add_argument("--model", required=True, help="model id in the store")
+    g.add_argument("--model", type=model_id, required=True, help="model id in the store")
     g.add_argument("--host", default="127.0.0.1")
     g.add_argument("--port", type=_port, default=18944, help="OpenIGTLink port (default: 18944)")
     g.add_argument("--server", default=None, help="URL of a running API (default: serve --store in this process)")

@@ -32,6 +32,11 @@ from tests.conftest import write_bar_scene
         (["igtl", "--model", "phantom", "--port", "0"], "whole number in 1..65535"),
         (["demo", "--frames", "0"], "whole number >= 2"),
         (["demo", "--viewer", "--port", "99999"], "whole number in 1..65535"),
+        # a model id is the store's folder rule: a path would reach outside the store
+        (["demo", "--model", "../other/phantom"], "argument --model: model id"),
+        (["demo", "--viewer", "--model", ".."], "argument --model: model id"),
+        (["igtl", "--model", "sub/phantom"], "argument --model: model id"),
+        (["igtl", "--model", ""], "argument --model: model id"),
     ],
 )
 def test_impossible_values_are_refused_at_parse_time(argv, words, capsys):
