@@ -168,7 +168,12 @@ class FEMOperator:
     def _equilibrium(self, g: Array) -> Array:
         """The equilibrium under g: a kept one if g was solved lately (the state the optimiser
         scored, at no cost; a warm frame's start is the last frame's answer), else a Newton
-        solve. The next solve starts from it either way. Read-only. Shape: (n, 3)."""
+        solve. The next solve starts from it either way. Read-only. Shape: (n, 3).
+        Zero load is the rest state, exactly and at no cost, as an evaluation takes it: a solve
+        back to rest from the latest equilibrium took a frame's outputs 3-4 s past its budget
+        (the phantom, E 4.5, a frame whose best iterate was the rest state)."""
+        if not np.any(g):
+            return np.zeros((self.mesh.n_nodes, 3))
         for i, (g_kept, u_kept) in enumerate(self._kept):
             if np.array_equal(g_kept, g):
                 self._kept.insert(0, self._kept.pop(i))  # the latest now

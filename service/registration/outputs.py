@@ -86,6 +86,10 @@ class Outputs:
         self._readout_grams: list[tuple[Array, Array]] = []
         self._priors: list[tuple[object, Array]] = []  # (jac, force_prior), kept as the Grams
         self._early: tuple[Array, spare.Beside] | None = None  # (g, its field and forward error)
+        # the estimate's rest factor and kernels' first use, made as the session opens: a first
+        # frame has no reserve for them (0.25-1.8 s past its budget on the loaded phantom)
+        rest = np.zeros((self.mesh.n_nodes, 3))
+        estimator_for(model).forward_error(rest, rest[:0], np.zeros(0, np.int64))
 
     def move(self, support: Array) -> None:
         """Outputs on a new support: the force prior's windows are made for it."""

@@ -81,6 +81,21 @@ def test_displacement_at_a_recent_equilibrium_takes_no_newton_solve(model):
     assert op.last is not last and op.last.converged
 
 
+def test_displacement_at_zero_load_is_the_rest_state_without_a_solve(model):
+    """A frame whose best iterate is the rest state reads its field at zero load: exactly zero,
+    with no Newton solve back from the latest equilibrium (that solve took a phantom frame's
+    outputs 3-4 s past its time budget), and a copy the caller may change."""
+    support, g = support_and_load(model.mesh)
+    op = model.restrict(support)
+    op(g)
+    last, factors = op.last, op._newton.n_factor
+    u = op.displacement(np.zeros_like(g))
+    assert op.last is last and op._newton.n_factor == factors
+    assert u.shape == (model.mesh.n_nodes, 3) and not np.any(u)
+    u[:] = 1.0
+    assert not np.any(op.displacement(np.zeros_like(g)))
+
+
 def test_an_evaluation_at_the_last_forces_reuses_their_adjoints_factor(model):
     """A warm Newton frame starts where the last one ended: evaluating those forces again is
     the kept equilibrium, and its adjoint the factor the last evaluation left there (before, one
