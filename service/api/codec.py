@@ -5,8 +5,9 @@ little-endian, C order, one of four dtypes. Requests may use it wherever an arra
 value of a map key); MessagePack responses always do. JSON responses carry nested lists.
 
 Decoding is strict: no pickle or extension types, sizes bounded, JSON's ``NaN``/``Infinity``
-literals refused, packed arrays checked against their declared shape before they are viewed
-(``np.frombuffer``, no copy, no per-element Python). Its cost is bounded by a small multiple of
+literals refused and its numbers past a double's range too ("out of range"), packed arrays
+checked against their declared shape before they are viewed (``np.frombuffer``, no copy, no
+per-element Python). Its cost is bounded by a small multiple of
 the body: an empty list is one byte of MessagePack and 64 bytes of Python, so the containers a
 body may hold are bounded by its size (one per ``_BYTES_PER_CONTAINER`` bytes, beyond a few
 thousand) and its array elements by ``max_elements``; JSON is counted before it is parsed (a
@@ -28,6 +29,7 @@ from __future__ import annotations
 import json
 import math
 import re
+import sys
 import time
 
 import msgpack
@@ -186,17 +188,45 @@ def _no_ext(code: int, data: bytes):
 _NON_FINITE = re.compile(r"NaN|Infinity")
 
 
+#: orjson's words for a number past a double's range (1e999, or an integer of 309 digits or more)
+_ORJSON_RANGE = "number is infinity when parsed as double"
+
+
+def _out_of_range(where: str) -> DecodeError:
+    return DecodeError(f"a JSON number is out of range: its magnitude is past {sys.float_info.max:.4g} ({where})")
+
+
+def _finite_float(text: str) -> float:
+    """The standard library's float, refused past a double's range (it reads 1e999 as inf)."""
+    value = float(text)
+    if math.isinf(value):
+        raise _out_of_range(text[:20])
+    return value
+
+
+def _ranged_int(text: str) -> int:
+    """The standard library's integer, refused past a double's range, as orjson refuses it."""
+    value = int(text)
+    if len(text) > 300 and abs(value) > sys.float_info.max:  # exact: an int compares to a float exactly
+        raise _out_of_range(f"an integer of {len(text.lstrip('-'))} digits")
+    return value
+
+
 def _loads_json(data: bytes | str):
     if orjson is not None:
         try:
             return orjson.loads(data)
         except orjson.JSONDecodeError as exc:
             text = data if isinstance(data, str) else bytes(data).decode("utf-8", "replace")
-            if "infinity" in str(exc) or _NON_FINITE.match(text, exc.pos):  # 1e999, or a literal where it failed
+            if _ORJSON_RANGE in str(exc):  # 1e999, or 10**400 (orjson reads big integers as doubles)
+                raise _out_of_range(f"char {exc.pos}") from None
+            if _NON_FINITE.match(text, exc.pos):  # a literal where it failed
                 raise DecodeError("NaN and Infinity are not valid JSON numbers") from None
             raise DecodeError(f"not valid JSON: {exc}") from None
     try:
-        return json.loads(data, parse_constant=_no_constants)
+        # numbers past a double's range refused, as orjson refuses them (a call per number: the
+        # fallback's cost, where orjson is not installed)
+        return json.loads(data, parse_constant=_no_constants, parse_float=_finite_float, parse_int=_ranged_int)
     except DecodeError:
         raise
     except (ValueError, UnicodeDecodeError, RecursionError) as exc:

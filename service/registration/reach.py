@@ -51,11 +51,21 @@ class Box:
         """Each point's (m, 3) distance from the box (0 inside), (m,)."""
         # per coordinate, how far past the nearer face (zero inside): whole-array, no loop over points
         gap = np.maximum(np.maximum(self.lo - points, points - self.hi), 0.0)
-        return np.sqrt(np.einsum("ij,ij->i", gap, gap))
+        with np.errstate(over="ignore"):
+            d = np.sqrt(np.einsum("ij,ij->i", gap, gap))
+            over = np.isinf(d)  # squares past a double (points at 1e300): those few again without squares
+            if over.any():
+                d[over] = np.hypot.reduce(gap[over], axis=1)  # inf only past a double's range itself
+        return d
 
     def within(self, distance: float) -> bool:
         """Whether a (finite) distance from the box is within the reach."""
         return math.isfinite(distance) and distance <= REACH * self.size
+
+
+def _amount(x: float, unit: str = "") -> str:
+    """A figure for a message: 3 digits, or where it is not finite, what that means."""
+    return f"{x:.3g}{unit}" if math.isfinite(x) else "beyond float range"
 
 
 def check_reach(box: Box, points: Array) -> None:
@@ -67,8 +77,8 @@ def check_reach(box: Box, points: Array) -> None:
     median = float(np.median(offsets))
     if not box.within(median):
         raise ValueError(
-            f"points lie too far from the model: the median point is {median:.3g} m from its bounding box, "
-            f"{median / box.size:.3g} times its size of {box.size:.3g} m (at most {REACH:g}); points are in "
+            f"points lie too far from the model: the median point is {_amount(median, ' m')} from its bounding box, "
+            f"{_amount(median / box.size)} times its size of {box.size:.3g} m (at most {REACH:g}); points are in "
             f"the mesh's frame and unit (metres): is the cloud in millimetres, or not aligned with the model?"
         )
     bound = FAR * box.size
@@ -78,7 +88,7 @@ def check_reach(box: Box, points: Array) -> None:
         raise ValueError(
             f"points lie too far from the model: {int(far.sum())} of {len(points)} points are more than "
             f"{bound:.3g} m ({FAR:g} times its size of {box.size:.3g} m) from its bounding box, the farthest "
-            f"{farthest:.3g} m; no depth camera sees that far: drop them, or is the cloud not in metres?"
+            f"{_amount(farthest, ' m')}; no depth camera sees that far: drop them, or is the cloud not in metres?"
         )
     span = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
     if len(points) >= SPAN_POINTS and span < SPAN * box.size:

@@ -79,7 +79,8 @@ class SessionConfig:
         gt=0,
         le=1,
     )
-    max_iter: int = setting(200, "L-BFGS-B iterations per frame", ge=1, le=10_000)
+    # no upper bound here: the server's cap (/health's limits.max_iter) is the one, and says so
+    max_iter: int = setting(200, "L-BFGS-B iterations per frame (at most the server's cap)", ge=1)
     force_bound: float | None = setting(None, "bound on each force component, N (none by default)", gt=0)
     time_budget_ms: float | None = setting(
         None,

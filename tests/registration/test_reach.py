@@ -23,3 +23,17 @@ def test_a_cloud_in_metres_against_a_model_in_millimetres_is_refused(bar):
     for few in (metres[:1], metres[:2], metres[:3]):
         check_reach(mm, few)
     check_reach(Box(bar.nodes), metres)  # the same cloud against the bar in metres
+
+
+def test_a_point_past_the_squares_range_reads_its_distance(bar):
+    """A point 1e300 m off: its squared distance overflowed, and the detail read "the farthest
+    inf m". Its distance is read without squares; past a double's range, the detail says so."""
+    box = Box(bar.nodes)
+    near = bar.nodes[:3]
+    with pytest.raises(ValueError, match=r"the farthest 1e\+300 m;"):
+        check_reach(box, np.vstack([near, [[0.0, 1e300, 0.0]]]))
+    np.testing.assert_allclose(box.offsets(np.array([[0.0, 0.5, 3e300 + 0.5]])), [3e300])
+    with pytest.raises(ValueError, match="the farthest beyond float range;"):
+        check_reach(box, np.vstack([near, [[1.7e308, -1.7e308, 0.0]]]))
+    with pytest.raises(ValueError, match=r"the median point is 1e\+300 m from"):
+        check_reach(box, np.tile([0.0, 0.5, 1e300], (3, 1)))
