@@ -13,6 +13,10 @@ from .settings import METHODS, OUTPUT_NAMES, SessionConfig
 
 Array = np.ndarray
 
+#: a matching triangle whose area is under this share of its edges' squares lies on a line (at
+#: rounding, 1e-16, from a collinear one; a sliver of a real surface mesh is far above it)
+FLAT_FACE = 1e-12
+
 
 def check_config(config: SessionConfig, corrector: ForwardModel | None) -> None:
     """The method, method auto's max_error and `corrector` (the FEM), and the outputs asked for."""
@@ -38,7 +42,19 @@ def check_faces(mesh: TetMesh, faces) -> Array:
         raise ValueError("matching node ids must be integers")
     if f.min() < 0 or f.max() >= mesh.n_nodes:
         raise ValueError(f"matching node ids must lie in 0..{mesh.n_nodes - 1}")
-    return f.astype(np.int64)
+    f = f.astype(np.int64)
+    # a triangle without area has no normal: every frame's distance, so its estimate, was not finite
+    repeats = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])
+    if repeats.any():
+        i = int(np.argmax(repeats))
+        raise ValueError(f"matching face {i} {f[i].tolist()} repeats a node: a triangle needs three distinct nodes")
+    ab, ac = mesh.nodes[f[:, 1]] - mesh.nodes[f[:, 0]], mesh.nodes[f[:, 2]] - mesh.nodes[f[:, 0]]
+    twice_area = np.linalg.norm(np.cross(ab, ac), axis=1)
+    flat = twice_area <= FLAT_FACE * (np.einsum("ij,ij->i", ab, ab) + np.einsum("ij,ij->i", ac, ac))
+    if flat.any():
+        i = int(np.argmax(flat))
+        raise ValueError(f"matching face {i} {f[i].tolist()} has no area at rest: its three nodes lie on one line")
+    return f
 
 
 def check_frame(mesh: TetMesh, box: Box, points, support) -> tuple[Array, Array | None]:

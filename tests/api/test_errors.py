@@ -38,6 +38,9 @@ def _bad_frames(entry, support):
         ("frame id of 400 digits", j, f'{{"points": {pts}, "frame_id": {10**400}}}', 422, "out of range"),
         ("a point 1e300 m off", j, json.dumps({"points": [*pts, [1e300, 0.0, 0.0]]}), 422, "the farthest 1e+300 m"),
         ("a point past floats", j, json.dumps({"points": [*pts, [1.7e308, -1.7e308, 0.0]]}), 422, "beyond float"),
+        ("a boolean coordinate", j, json.dumps({"points": [[True, 0.0, 0.0], *pts]}), 422, "not booleans"),
+        ("a boolean in msgpack", MSGPACK, mp({"points": [[0.0, 0.0, False], *pts]}), 422, "not booleans"),
+        ("boolean dtype", MSGPACK, mp({"points": {"dtype": "|b1", "shape": [1, 3], "data": b"\1\0\1"}}), 422, "dtype"),
         ("NaN packed", MSGPACK, mp({"points": packed(nan)}), 422, "NaN or infinite"),
         ("inf listed in msgpack", MSGPACK, mp({"points": inf.tolist()}), 422, "NaN or infinite"),
         ("node id out of range", j, json.dumps({"points": pts, "support": [10_000]}), 422, "0..80"),
@@ -145,6 +148,8 @@ def test_every_frame_error_leaves_the_session_intact(http, entry, support, cloud
         ({"model": "bar", "matching": [[1, 2, 500]]}, 422, "0..80"),
         ({"model": "bar", "matching": [[1, 2]]}, 422, "triples"),
         ({"model": "bar", "matching": [[1, 2, True]]}, 422, "not booleans"),
+        ({"model": "bar", "matching": [[0, 0, 0]]}, 422, "matching face 0 [0, 0, 0] repeats a node"),
+        ({"model": "bar", "matching": [[1, 2, 5], [7, 8, 7]]}, 422, "matching face 1 [7, 8, 7] repeats a node"),
         ({"model": "bar", "loss": "huber"}, 422, "huber"),
         ({"model": "bar", "loss": "trimmed", "loss_param": 1.5}, 422, "less than or equal to 1"),
         ({"model": "bar", "colour": "red"}, 422, "Extra inputs"),
@@ -180,6 +185,23 @@ def test_session_node_errors_name_their_field_as_a_frame_does(http, entry, suppo
         frame = http.post(f"/sessions/{sid}/frames", json={"points": [[0.0, 0.0, 0.0]], "support": value})
         assert frame.json()["detail"][0]["loc"] == error["loc"], frame.text
         http.delete(f"/sessions/{sid}")
+
+
+def test_a_matching_face_without_area_is_refused_naming_it(http, entry):
+    """Three nodes on one line of the bar: a triangle without a normal, whose session opened and
+    answered every frame non_finite with no estimate. A 422 naming the face, nothing opened."""
+    x = entry.mesh.nodes
+    line = np.flatnonzero((x[:, 1] == 0.0) & (x[:, 2] == 0.0))[:3].tolist()
+    good = entry.mesh.surface_faces[:2].tolist()
+    before = http.get("/health").json()["sessions"]["open"]
+    r = http.post("/sessions", json={"model": "bar", "matching": [*good, line]})
+    assert r.status_code == 422, r.text
+    [error] = r.json()["detail"]
+    assert error["loc"] == ["body", "matching"] and f"matching face 2 {line} has no area at rest" in error["msg"]
+    assert http.get("/health").json()["sessions"]["open"] == before
+    r = http.post("/sessions", json={"model": "bar", "matching": good})
+    assert r.status_code == 201, r.text
+    http.delete(f"/sessions/{r.json()['session']}")
 
 
 def test_boolean_coordinates_are_refused_as_booleans(http):

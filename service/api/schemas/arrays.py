@@ -3,6 +3,7 @@ shape, dtype and finiteness (a one-line error naming the array), never an elemen
 
 from __future__ import annotations
 
+import itertools
 from typing import Annotated, Any
 
 import numpy as np
@@ -42,6 +43,10 @@ def _vectors(v: Any, what: str, *, empty: bool = False) -> np.ndarray:
     a = _array(v, what)
     if a.ndim != 2 or a.shape[1] != 3 or (a.shape[0] == 0 and not empty):
         raise ValueError(f"{what} must be a non-empty (m, 3) array, got shape {list(a.shape)}")
+    # NumPy reads true among numbers as 1.0: the elements' types, scanned in C (7 ms at 100k
+    # points, half an np.asarray); packed arrays have no boolean dtype (codec.DTYPES)
+    if isinstance(v, list) and bool in set(map(type, itertools.chain.from_iterable(v))):
+        raise ValueError(f"{what} must hold numbers, not booleans")
     a = a.astype(np.float64, copy=False)
     if not np.isfinite(a).all():
         raise ValueError(f"{what} contain NaN or infinite values")
