@@ -74,14 +74,7 @@ def _node_ids(v: Any) -> np.ndarray:
     a = _array(v, "node ids")
     if a.ndim != 1 or a.size == 0:
         raise ValueError(f"node ids must be a non-empty flat list, got shape {list(a.shape)}")
-    if a.dtype.kind == "f":
-        raise ValueError("node ids must be integers")
-    if a.dtype.kind == "u" and a.max() > INT64:
-        raise ValueError("node ids must be non-negative integers below 2**63")
-    a = a.astype(np.int64, copy=False)
-    if a.min() < 0:
-        raise ValueError("node ids must be non-negative integers")
-    return a
+    return _ids(a, "node ids")
 
 
 def _triangles(v: Any) -> np.ndarray:
@@ -89,13 +82,18 @@ def _triangles(v: Any) -> np.ndarray:
     a = _array(v, "matching")
     if a.ndim != 2 or a.shape[1] != 3 or a.shape[0] == 0:
         raise ValueError(f"matching must be a non-empty list of node-id triples, got shape {list(a.shape)}")
+    return _ids(a, "matching node ids")
+
+
+def _ids(a: np.ndarray, what: str) -> np.ndarray:
+    """A non-empty array of `what` as int64: integers, non-negative, within int64."""
     if a.dtype.kind == "f":
-        raise ValueError("matching node ids must be integers")
+        raise ValueError(f"{what} must be integers")
     if a.dtype.kind == "u" and a.max() > INT64:
-        raise ValueError("matching node ids must be non-negative integers below 2**63")
+        raise ValueError(f"{what} must be non-negative integers below 2**63")
     a = a.astype(np.int64, copy=False)
     if a.min() < 0:
-        raise ValueError("matching node ids must be non-negative integers")
+        raise ValueError(f"{what} must be non-negative integers")
     return a
 
 
