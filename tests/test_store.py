@@ -8,6 +8,7 @@ import errno
 import json
 import logging
 import os
+import re
 import shutil
 import signal
 import stat
@@ -759,3 +760,16 @@ def test_a_manifest_claiming_more_members_or_layers_than_its_weights_is_refused_
     assert members == f"members: {prefix}.members is 20000, the file holds 1 member(s))"
     assert layers == (f"layers: {prefix}.hidden has 20000 layers (20001 weight matrices per member), the file holds 3)")
     assert grew_mib < 100, f"refusing the manifests took {grew_mib:.0f} MiB"
+
+
+@pytest.mark.parametrize("fname", ["weights.safetensors", "mesh.npz"])
+def test_a_file_larger_than_an_entry_holds_is_refused_unread(bar_store, tmp_path, fname):
+    """Each file is read whole into memory (the bytes checked are the bytes served): a sparse
+    8 GiB file (no disk, all memory) is refused by its size before a byte of it is read."""
+    from service.store import StoreError, load_entry
+    from service.store.files import MAX_DATA_FILE
+
+    shutil.copytree(bar_store[0] / "bar", tmp_path / "bar")
+    os.truncate(tmp_path / "bar" / fname, 2 * MAX_DATA_FILE)  # sparse: no disk taken
+    with pytest.raises(StoreError, match=rf"^bar: {re.escape(fname)} is over 4 GiB, more than an entry holds$"):
+        load_entry(tmp_path / "bar")

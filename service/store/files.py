@@ -16,6 +16,9 @@ MANIFEST = "manifest.json"
 MESH = "mesh.npz"
 WEIGHTS = "weights.safetensors"
 _MAX_MANIFEST = 1 << 20  # bytes
+#: the largest mesh or weights file an entry may hold: the loader reads each whole into memory
+#: (a 100k-node organ's reduced ensemble is a few hundred MB; a sparse 8 GiB file is refused unread)
+MAX_DATA_FILE = 4 << 30  # bytes
 
 
 class StoreError(RuntimeError):

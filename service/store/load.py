@@ -23,7 +23,7 @@ from ..mesh import TetMesh
 from ..scene import MODEL_ID
 from ..surrogate.model import NetworkModel
 from .builds import _restore_aside, remove_stale_builds
-from .files import _MAX_MANIFEST, MANIFEST, MESH, WEIGHTS, StoreError, log, sha256_of
+from .files import _MAX_MANIFEST, MANIFEST, MAX_DATA_FILE, MESH, WEIGHTS, StoreError, log, sha256_of
 from .manifest import _check_manifest, _max_force, _tool_patch
 from .network import _check_fit, network_from_manifest
 
@@ -122,8 +122,10 @@ def load_entry(path: Path, name: str | None = None) -> Entry:
     except OSError as exc:
         raise _unreadable(name, MANIFEST, exc) from None
     _check_manifest(manifest, name)
-    for fname in (MESH, WEIGHTS):  # every name checked before any file is read
+    for fname in (MESH, WEIGHTS):  # every name and size checked before any file is read
         _regular_file(path / fname, path, name, fname)
+        if (path / fname).stat().st_size > MAX_DATA_FILE:
+            raise StoreError(f"{name}: {fname} is over {MAX_DATA_FILE >> 30} GiB, more than an entry holds")
     # each file read once: what is checked is what is served, and nothing keeps a map of the file
     # (a weights file truncated under a mapped server killed it with SIGBUS; one rewritten in place
     # changed its answers)
