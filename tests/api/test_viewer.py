@@ -276,36 +276,24 @@ def test_the_demo_goes_on_after_a_frame_refused_under_overload(bar_store, browse
         server.stop()
 
 
-def test_the_page_asks_again_for_what_a_busy_pool_refused(bar_store, browser, support, clouds):
+def test_the_page_asks_again_for_what_a_busy_pool_refused(bar_store, browser):
     """The page's start-up requests (the mesh, the demo sequence) go through the solve pool; on
     a server whose pool is busy they were refused (503) and the page stopped with that error.
-    It now asks again after Retry-After: a page opened while the only solver thread runs a slow
-    frame and the pool has no queue still starts its demo once that frame is done."""
-    import httpx
-
-    from .conftest import start
+    It now asks again after Retry-After: a page opened while the only solver thread is held and
+    the pool has no queue is refused, then starts its demo once the thread is free."""
+    from .conftest import occupied, start
 
     server = start(bar_store[0], instance_id="full", solver_threads=1, solve_queue=0)
     try:
-        with httpx.Client(base_url=server.url, timeout=60) as client:
-            slow = {"model": "bar", "method": "fem", "support": support.tolist(), "gtol": 1e-12, "max_iter": 1000}
-            sid = client.post("/sessions", json={**slow, "time_budget_ms": 3000}).json()["session"]
-            post = threading.Thread(
-                target=client.post, args=(f"/sessions/{sid}/frames",), kwargs={"json": {"points": clouds[2].tolist()}}
-            )
-            post.start()
-            pool = server.app.state.pool
-            deadline = time.monotonic() + 10
-            while pool.counts()["running"] < 1:  # the one thread taken before the page asks
-                assert time.monotonic() < deadline, "the slow frame did not start"
-                time.sleep(0.01)
-            page = browser.new_page(viewport={"width": 640, "height": 480})
+        page = browser.new_page(viewport={"width": 640, "height": 480})
+        with occupied(server.app.state.pool, 1):  # the one thread taken before the page asks
             page.goto(f"{server.url}/viewer?model=bar&demo=1&frames=4&points=200&rate=20")
-            wait_frames(page, 2)
-            post.join(30)
-            s = state(page)
-            assert s["lastError"] is None, s["lastError"]
-            assert s["overloads"] > 0, "the page was never refused: the test did not fill the pool"
-            page.close()
+            page.wait_for_function(
+                "() => window.elastregViewer.overloads > 0 || window.elastregViewer.lastError", timeout=60_000
+            )
+        wait_frames(page, 2)
+        s = state(page)
+        assert s["lastError"] is None and s["overloads"] > 0, s
+        page.close()
     finally:
         server.stop()
