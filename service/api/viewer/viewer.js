@@ -56,10 +56,7 @@ async function api(path) {
     if (r.ok) return body;
     if (r.status === 503 && tries < API_TRIES) {  // the mesh and demo requests share the solve pool
       const wait = Number(r.headers.get('Retry-After')) || 1;
-      state.overloads++;
-      state.lastOverload = `${path}: ${JSON.stringify(body.detail ?? body)}`;
-      $('status').textContent = `server busy (503): asking again in ${wait} s`;
-      $('status').className = 'warn';
+      busy(`${path}: ${JSON.stringify(body.detail ?? body)}`, wait, 'asking again');
       await new Promise((done) => setTimeout(done, 1e3 * wait));
       continue;
     }
@@ -364,13 +361,17 @@ async function watch(sessionId) {
 // status goes, not as an error, and send again after its retry_after
 function overloaded(error, send) {
   const wait = error.retry_after ?? 1;
+  busy(error.detail, wait, 'sending again');
+  setTimeout(send, 1e3 * wait);
+}
+// a refusal under overload, counted and shown where the status goes (an error shown stays)
+function busy(detail, wait, doing) {
   state.overloads++;
-  state.lastOverload = error.detail;
+  state.lastOverload = detail;
   if (state.lastError === null) {
-    $('status').textContent = `server busy (503): sending again in ${wait} s`;
+    $('status').textContent = `server busy (503): ${doing} in ${wait} s`;
     $('status').className = 'warn';
   }
-  setTimeout(send, 1e3 * wait);
 }
 
 async function demo(model) {
