@@ -144,14 +144,17 @@ def minutes_part(
     physics_skip: bool = True,
     keep: Path | None = None,
     on_row=None,
+    built: frozenset[tuple[str, float]] = frozenset(),
 ) -> dict:
-    """Build every scene at every budget; the rows, after `previous` (earlier runs' rows)."""
+    """Build every scene at every budget but the (scene, minutes) pairs `built` (a stopped run's,
+    resumed); the rows, after `previous` (earlier runs' rows)."""
     rows = list(previous or [])
     for scene in scenes:
-        if not minutes:
-            break
+        todo = [m for m in minutes if (scene.name, m) not in built]
+        if not todo:  # nor its test set, which takes FEM solves
+            continue
         test = test_set(scene, test_paths, test_data, workers)
-        for m in minutes:
+        for m in todo:
             rows = merge(rows, timed_build(scene, m, test, workers, physics_skip, keep))
             if on_row is not None:  # a long run keeps what it has made
                 on_row(rows)

@@ -27,7 +27,15 @@ import numpy as np
 
 from ..argtypes import build_minutes, model_id, whole_number
 from .markdown import write_report
-from .results import MINUTES_ROWS, PARTS, merge_previous, prior_part, prior_run, write_minutes_rows
+from .results import (
+    MINUTES_ROWS,
+    PARTS,
+    merge_previous,
+    prior_part,
+    prior_run,
+    read_minutes_rows,
+    write_minutes_rows,
+)
 from .swap import Busy, carry_over, put_in_place, recover, scratch_folder, set_aside
 from .truth import TRUTHS
 
@@ -123,6 +131,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="FEM worker processes of each build (0: in this process; default: 2)",
     )
     g.add_argument("--keep-store", default=None, help="keep each scene's last build in this store (default: discard)")
+    g.add_argument(
+        "--resume",
+        default=None,
+        metavar="PATH",
+        help="merge the rows of a stopped run set aside beside --out (NAME.interrupted-TIME, or its "
+        "minutes_rows.json), built on this machine at this commit, and skip the budgets they hold",
+    )
     p.add_argument(
         "--smoke",
         type=model_id,
@@ -188,6 +203,8 @@ def main(args: argparse.Namespace) -> int:
     parts = list(dict.fromkeys(args.parts))
     if args.smoke is not None and "minutes" in parts:
         _refuse("the minutes part builds scenes (--scenes), not a --smoke model")
+    if args.resume is not None and "minutes" not in parts:
+        _refuse("--resume merges a stopped run's minutes rows: name the minutes part")
     if (out.exists() and not out.is_dir()) or not out.name:
         _refuse(f"--out {out} is not a folder a report can replace")
     try:  # what a run stopped while writing `out` left, cleared before `out` is read
@@ -204,6 +221,7 @@ def main(args: argparse.Namespace) -> int:
             f"{out} holds a report of full runs, which a --smoke run's figures would mix with: give another --out, "
             "or --replace to replace it"
         )
+    resumed = _resumed(Path(args.resume), None if args.replace else out) if args.resume is not None else []
     models, variants = _models(args, store, parts)
     scenes = _scenes(args) if "minutes" in parts else []
     try:  # only now: a refused command leaves nothing behind
@@ -222,7 +240,7 @@ def main(args: argparse.Namespace) -> int:
     finished = placed = False
     try:
         (new / "figures").mkdir()
-        results = _run_parts(args, parts, models, variants, scenes, out, new, blas_threads)
+        results = _run_parts(args, parts, models, variants, scenes, out, new, blas_threads, resumed)
         results = merge_previous(results, None if args.replace else out)
         write_report(results, new)
         finished = True
@@ -290,6 +308,27 @@ def _models(args: argparse.Namespace, store: Path, parts: list[str]) -> tuple[di
     return {part: loaded[name] for part, name in names.items()}, {name: loaded[name] for name in variants}
 
 
+def _resumed(path: Path, out: Path | None) -> list[dict]:
+    """The rows of the stopped run set aside at `path` that the report in `out` lacks, each checked
+    to be built on this machine at this commit (a curve compares builds of one machine and code;
+    refused, one line, otherwise)."""
+    from . import machine
+
+    try:
+        rows = read_minutes_rows(path)
+    except ValueError as exc:
+        _refuse(f"--resume: {exc}")
+    report = (prior_part(out, "minutes") or {}).get("rows", []) if out is not None else []
+    here = machine.describe()
+    new = [r for r in rows if r not in report]
+    for r in new:
+        if (r["commit"], r["cpu"]) != (here["commit"], here["cpu"]):
+            _refuse(f"--resume {path}: its row for {r['scene']} at {r['minutes']:g} minutes was built at commit "
+                    f"{r['commit']} on {r['cpu']}, this run is commit {here['commit']} on {here['cpu']} "
+                    "(rebuild those budgets here instead)")  # fmt: skip
+    return new
+
+
 def _variant_ids(store: Path, liver_model: str) -> list[str]:
     """The pareto part's variants: every folder of the store named after the liver model and '_'
     (docs/usage.md's recipe: liver_paper_small, ...)."""
@@ -319,6 +358,7 @@ def _run_parts(
     out: Path,
     new: Path,
     blas_threads: int | None,
+    resumed: list[dict],
 ) -> dict:
     """Every part in `parts` on its model in `models` (the pareto part's `variants` beside its
     own), each figure drawn into the scratch folder `new`'s figures/ (the minutes part's rows
@@ -435,16 +475,20 @@ def _run_parts(
             )
 
     if "minutes" in parts:
-        from .minutes import latest, minutes_part
+        from .minutes import latest, merge, minutes_part
         from .minutes import plot as plot_minutes
 
         prior = None if args.replace else prior_part(out, "minutes")
         test_data = Path(args.test_data) if args.test_data else Path.home() / ".cache" / "elastreg" / "test-data"
 
+        previous = (prior or {}).get("rows", [])  # none with --replace
+        for row in resumed:  # a stopped run's rows, as if it had finished
+            previous = merge(previous, row)
         results["parts"]["minutes"] = minutes_part(
             scenes,
             args.build_minutes,
-            previous=(prior or {}).get("rows", []),  # none with --replace
+            previous=previous,
+            built=frozenset((r["scene"], r["minutes"]) for r in resumed if r.get("layout") == "physics"),
             test_paths=args.test_paths,
             test_data=test_data,
             workers=args.workers,

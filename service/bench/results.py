@@ -55,6 +55,24 @@ def write_minutes_rows(folder: Path, rows: list[dict]) -> None:
     (folder / MINUTES_ROWS).write_text(json.dumps(rows, indent=1, default=jsonable))
 
 
+def read_minutes_rows(path: Path) -> list[dict]:
+    """The minutes rows a stopped run set aside: `path` its folder (``NAME.interrupted-TIME``) or
+    its minutes_rows.json; ValueError, one line, where it holds none."""
+    file = path / MINUTES_ROWS if path.is_dir() else path
+    try:
+        rows = json.loads(file.read_text())
+    except OSError as exc:
+        raise ValueError(f"cannot read {file}: {exc.strerror or exc}") from None
+    except ValueError as exc:
+        raise ValueError(f"{file} is not JSON ({exc})") from None
+    keys = ("scene", "minutes", "commit", "cpu", "started")
+    if not isinstance(rows, list) or not all(
+        isinstance(r, dict) and all(k in r for k in keys) and isinstance(r["minutes"], (int, float)) for r in rows
+    ):
+        raise ValueError(f"{file} holds no minutes part's rows (a list of rows, each with {', '.join(keys)})")
+    return rows
+
+
 def merge_previous(results: dict, out: Path | None) -> dict:
     """Keep the parts of the report already in `out` that this run did not redo, so that
     ``elastreg bench beam`` refreshes one part without rerunning the hour-long rest (none where

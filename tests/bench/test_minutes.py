@@ -57,3 +57,47 @@ def test_minutes_part_refuses_a_smoke_model_and_a_missing_scene(tmp_path, capsys
         main(["bench", "minutes", "--scenes", str(tmp_path / "nowhere.toml"), "--out", str(tmp_path / "r")])
     assert exit_.value.code == 2 and "cannot read the scene file" in capsys.readouterr().err
     assert not (tmp_path / "r").exists()  # nothing made for a bad command, not even the folder
+
+
+def test_a_stopped_runs_rows_are_merged_back_by_resume(bar, tmp_path, capsys):
+    """The rows a stopped `bench minutes` set aside (NAME.interrupted-TIME) could not be fed back
+    into a report: a user copied them by hand. Now --resume merges them, when built on this
+    machine at this commit (else refused: one line, exit status 2, nothing written), and the
+    budgets they hold are not built again."""
+    from service.bench import machine
+
+    here = machine.describe()
+    scene = write_bar_scene(tmp_path / "scene", bar)
+    out = tmp_path / "report"
+    old = {"scene": "bar", "minutes": 30.0, "layout": "physics", "commit": "0ld", "cpu": "elsewhere",
+           "started": "2026-11-01 10:00:00", "test_relative": 0.3, "test_linear_relative": 0.5}  # fmt: skip
+    (out / "figures").mkdir(parents=True)
+    (out / "results.json").write_text(json.dumps({"smoke": None, "parts": {"minutes": {"rows": [old]}}}))
+    built = {**old, "minutes": 0.2, "commit": here["commit"], "cpu": here["cpu"], "started": "2026-12-01 10:00:00",
+             "test_relative": 0.2}  # fmt: skip
+    aside = tmp_path / "report.interrupted-20261201-100000"
+    aside.mkdir()
+    (aside / "minutes_rows.json").write_text(json.dumps([old, built]))  # the old report's rows, and its own
+    elsewhere = tmp_path / "other.interrupted-20261201-100000"
+    elsewhere.mkdir()
+    (elsewhere / "minutes_rows.json").write_text(json.dumps([old, {**built, "commit": "0ther"}]))
+    before = (out / "results.json").read_bytes()
+
+    argv = ["bench", "minutes", "--scenes", str(scene), "--test-data", str(tmp_path / "test"), "--out", str(out),
+            "--build-minutes", "0.2", "--test-paths", "2", "--workers", "0"]  # fmt: skip
+    with pytest.raises(SystemExit) as exit_:
+        main([*argv, "--resume", str(elsewhere)])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and err.count("\n") == 1, err
+    assert err.startswith(f"error: --resume {elsewhere}: its row for bar at 0.2 minutes was built at commit 0ther"), err
+    assert (out / "results.json").read_bytes() == before and sorted(p.name for p in out.iterdir()) == [
+        "figures",
+        "results.json",
+    ]
+
+    assert main([*argv, "--resume", str(aside / "minutes_rows.json")]) == 0
+    rows = json.loads((out / "results.json").read_text())["parts"]["minutes"]["rows"]
+    assert rows == [old, built]  # the budget the stopped run built is not built again
+    assert not (tmp_path / "test").exists()  # nor its scene's test set solved
+    assert "| bar | 0.2 |" in (out / "report.md").read_text()
+    assert json.loads((aside / "minutes_rows.json").read_text()) == [old, built]  # kept for the user to remove
