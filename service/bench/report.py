@@ -36,7 +36,7 @@ from .results import (
     read_minutes_rows,
     write_minutes_rows,
 )
-from .swap import Busy, carry_over, put_in_place, recover, scratch_folder, set_aside
+from .swap import Busy, carry_over, keep_unplaced, put_in_place, recover, scratch_folder, set_aside
 from .truth import TRUTHS
 
 log = logging.getLogger(__name__)
@@ -249,8 +249,9 @@ def main(args: argparse.Namespace) -> int:
         try:
             note = put_in_place(new, out, whole)
         except OSError as exc:
-            kept = getattr(exc, "kept", new)  # where the files not moved yet are
-            print(f"error: could not put the report in {out} ({exc}); it is kept in {kept}", file=sys.stderr)
+            # the files not moved yet, under a name the next run does not clear
+            aside = keep_unplaced(getattr(exc, "kept", new), out)
+            print(f"error: could not put the report in {out} ({exc}); it is kept in {aside}", file=sys.stderr)
             return 1
         placed = True
     finally:

@@ -50,16 +50,37 @@ def _held(path: Path) -> bool:
         os.close(fd)  # drops the lock if this process took it
 
 
-def set_aside(scratch: Path, out: Path) -> Path:
-    """Move the scratch folder of a run stopped with minutes rows (hours of builds) beside `out`,
-    as ``NAME.interrupted-YYYYMMDD-HHMMSS`` (its last row's time), a name no run clears; its new
-    path. OSError where it cannot be moved."""
-    stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime((scratch / MINUTES_ROWS).stat().st_mtime))
-    aside = out.parent / f"{out.name}.interrupted-{stamp}"
+def set_aside(scratch: Path, out: Path, kind: str = "interrupted") -> Path:
+    """Move the scratch folder of a run stopped with minutes rows (hours of builds; `kind`
+    interrupted) or of a finished report that could not go in (unplaced) beside `out`, as
+    ``NAME.KIND-YYYYMMDD-HHMMSS`` (its last row's or its results' time), a name no run clears;
+    its new path. OSError where it cannot be moved."""
+    made = scratch / (MINUTES_ROWS if kind == "interrupted" else "results.json")
+    stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime(made.stat().st_mtime))
+    aside = out.parent / f"{out.name}.{kind}-{stamp}"
     if aside.exists() or aside.is_symlink():  # two stopped in one second: the scratch's random part too
         aside = aside.with_name(f"{aside.name}-{scratch.name[-8:]}")
     os.rename(scratch, aside)
     return aside
+
+
+def keep_unplaced(scratch: Path, out: Path) -> Path:
+    """Keep the finished report in `scratch` that could not be put in `out` from every later run:
+    set aside beside `out` (NAME.unplaced-TIME), else, for a scratch inside `out` (a parent the
+    user cannot write), renamed there to ``.bench-unplaced-TIME``, which no run clears or
+    replaces; its path (`scratch` itself where neither rename can be done)."""
+    try:
+        return set_aside(scratch, out, "unplaced")
+    except OSError:
+        if scratch.parent != out:
+            return scratch
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    inside = out / f"{_PREFIX}unplaced-{stamp}-{scratch.name[-8:]}"
+    try:
+        os.rename(scratch, inside)
+    except OSError:
+        return scratch
+    return inside
 
 
 def _clear(scratch: Path, out: Path, what: str) -> str:

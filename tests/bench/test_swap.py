@@ -305,6 +305,26 @@ def test_out_dot_keeps_the_callers_working_directory(bar_store, tmp_path, capsys
     assert sorted(p.name for p in tmp_path.iterdir()) == ["report"]
 
 
+def test_a_finished_report_that_cannot_go_in_is_kept_from_the_next_run(bar_store, tmp_path, capsys, monkeypatch):
+    """A finished report whose files could not be moved in (here a folder of the user's named
+    report.md) stayed in its scratch folder, named by one error line, exit status 1; the next run
+    into that --out removed it as a stopped run's leftover. Now it is set aside beside --out as
+    NAME.unplaced-TIME, which no run clears."""
+    out = tmp_path / "report"
+    (out / "report.md").mkdir(parents=True)
+    (out / "report.md" / "mine.txt").write_text("a folder where the report puts a file")
+    monkeypatch.chdir(out)  # --out .: the files are moved in one by one
+    assert main(smoke(bar_store[0], Path("."))) == 1
+    err = capsys.readouterr().err
+    kept = Path(re.search(r"it is kept in (\S+)\n", err)[1])  # type: ignore[index]
+    made = files(kept)
+    assert "fem" in json.loads(made["results.json"])["parts"] and "report.md" in made, sorted(made)
+    shutil.rmtree(out / "report.md")
+    assert main(smoke(bar_store[0], Path("."))) == 0
+    assert files(kept) == made and re.fullmatch(r"report\.unplaced-\d{8}-\d{6}", kept.name), kept
+    assert (out / "report.md").is_file()
+
+
 def test_the_swapped_in_folder_keeps_its_group_and_setgid(bar_store, tmp_path, capsys):
     """A served folder root:daemon 2750 became root:root 0750 (only the mode was copied): the web
     server's group lost it."""
