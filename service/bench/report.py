@@ -36,7 +36,7 @@ from .results import (
     read_minutes_rows,
     write_minutes_rows,
 )
-from .swap import Busy, carry_over, keep_unplaced, put_in_place, recover, scratch_folder, set_aside
+from .swap import Busy, carry_over, hold, keep_unplaced, put_in_place, recover, release, scratch_folder, set_aside
 from .truth import TRUTHS
 
 log = logging.getLogger(__name__)
@@ -207,6 +207,32 @@ def main(args: argparse.Namespace) -> int:
         _refuse("--resume merges a stopped run's minutes rows: name the minutes part")
     if (out.exists() and not out.is_dir()) or not out.name:
         _refuse(f"--out {out} is not a folder a report can replace")
+    with contextlib.ExitStack() as held:
+        taken = _hold(out, held)  # before `out` is read: a second run into it is refused, not merged over
+        return _write(args, store, out, parts, blas_threads, held if not taken else None)
+
+
+def _hold(out: Path, held: contextlib.ExitStack) -> bool:
+    """Lock `out` for this run (released as `held` closes), refused where another run holds it;
+    whether a lock file could be made (not before `out`'s parent exists)."""
+    try:
+        lock = hold(out)
+    except Busy as exc:
+        _refuse(str(exc))
+    held.callback(release, lock)
+    return lock is not None
+
+
+def _write(
+    args: argparse.Namespace,
+    store: Path,
+    out: Path,
+    parts: list[str],
+    blas_threads: int | None,
+    unheld: contextlib.ExitStack | None,
+) -> int:
+    """Clear what stopped runs left, run the parts and put the report in `out` (locked once made
+    where it could not be before: `unheld`)."""
     try:  # what a run stopped while writing `out` left, cleared before `out` is read
         notes = recover(out)
     except Busy as exc:
@@ -228,6 +254,8 @@ def main(args: argparse.Namespace) -> int:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         _refuse(f"cannot make the report folder {out}: {exc.strerror or exc}")
+    if unheld is not None:
+        _hold(out, unheld)
     # the whole new report is written beside `out`, then put in its place at once: a run that
     # stops at any instant (Ctrl-C, a crash, SIGKILL) leaves the old report or the new, not a mix
     try:

@@ -8,7 +8,10 @@ In place at once: one exchange of the two folders (Linux's renameat2 RENAME_EXCH
 file system has it; elsewhere two renames, the old folder to ``.bench-NAME.old`` and the new to
 ``NAME``, for which a run stopped between them leaves ``--out`` missing until the next restores
 it. Where the folder cannot be swapped (a mount point, an overlayfs lower layer, the working
-directory, a parent the user cannot write), the files are moved in one by one, as before."""
+directory, a parent the user cannot write), the files are moved in one by one, as before.
+
+A run holds a lock beside ``--out`` (``.bench-NAME.lock``, :func:`hold`) from before it reads
+``--out`` until it ends, so a second run into the same folder is refused, not merged over."""
 
 from __future__ import annotations
 
@@ -22,7 +25,7 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
-from ..folders import RANDOM, exchange, locked_folder, try_lock
+from ..folders import RANDOM, exchange, locked_folder, same_folder, try_lock
 from .results import MINUTES_ROWS
 
 _PREFIX = ".bench-"
@@ -39,6 +42,43 @@ def _scratch_name(out: Path) -> re.Pattern[str]:
 def backup_of(out: Path) -> Path:
     """Where the two renames keep the old report while the new one goes in."""
     return out.parent / f"{_PREFIX}{out.name}.old"
+
+
+def hold(out: Path) -> tuple[Path, int] | None:
+    """Lock `out` against other runs until :func:`release` (or this process's end) by a file
+    beside it, ``.bench-NAME.lock`` (inside it, ``.bench-lock``, where its parent cannot be
+    written): the file and its descriptor; None where no such file can be made (no parent yet)
+    or the system has no locks; :class:`Busy` where another run holds it. Without it two runs
+    that started together both read the old report, and the later one's swap dropped the other's
+    parts (or mixed its files in)."""
+    for path in (out.parent / f"{_PREFIX}{out.name}.lock", out / f"{_PREFIX}lock"):
+        for _ in range(8):
+            try:
+                fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
+            except OSError:
+                break  # the next place, if any
+            got = try_lock(fd)
+            if got is False:
+                os.close(fd)
+                raise Busy(f"another elastreg bench is writing {out} (it holds {path})")
+            if got is None:
+                os.close(fd)
+                return None
+            if same_folder(path, fd):  # else its holder removed it between the open and the lock
+                return path, fd
+            os.close(fd)
+        else:
+            raise Busy(f"{path} keeps changing hands: other elastreg benches are writing {out}")
+    return None
+
+
+def release(held: tuple[Path, int] | None) -> None:
+    """Remove the lock file, then drop the lock: a run waiting on the removed file tries again."""
+    if held is None:
+        return
+    with contextlib.suppress(OSError):
+        os.remove(held[0])
+    os.close(held[1])
 
 
 def _held(path: Path) -> bool:

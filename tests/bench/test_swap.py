@@ -217,6 +217,73 @@ CLI = "import sys; from service.cli import main; sys.exit(main(sys.argv[1:]))"
 ROOT = Path(__file__).resolve().parents[2]
 
 
+#: `elastreg ARGV` in a process of its own that, at the first audit event EVENT whose path
+#: matches PATTERN, makes the file READY and waits until the file GO exists
+PAUSED = """import fnmatch, os, sys, time
+event_, pattern, ready, go = sys.argv[1:5]
+def pause(event, args):
+    if event == event_ and isinstance(args[0], str) and fnmatch.fnmatch(args[0], pattern) and not os.path.exists(ready):
+        open(ready, "w").close()
+        while not os.path.exists(go):
+            time.sleep(0.02)
+sys.addaudithook(pause)
+from service.cli import main
+sys.exit(main(sys.argv[5:]))
+"""
+
+
+def paused(event: str, pattern: str, ready: Path, go: Path, argv: list[str]) -> subprocess.Popen:
+    """`elastreg ARGV` started, to pause at EVENT on PATTERN (:data:`PAUSED`)."""
+    return subprocess.Popen([sys.executable, "-c", PAUSED, event, pattern, str(ready), str(go), *argv], cwd=ROOT,
+                            stderr=subprocess.PIPE, text=True)  # fmt: skip
+
+
+def wait_for(proc: subprocess.Popen, ready: Path) -> None:
+    """Until `proc` has made `ready` (it pauses there) or has ended."""
+    import time
+
+    deadline = time.monotonic() + 120
+    while not ready.exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+
+
+def test_two_runs_into_one_folder_at_once_keep_both_parts_or_refuse_one(bar_store, tmp_path):
+    """A second run into --out was refused only once the first had made its scratch folder: one
+    started before that (while the first loaded its models) read the same old report, and the
+    one that swapped in last dropped the other's part, its files linked in beside a results.json
+    without it (a mixed report), though both said 'report written'. Now a run holds a lock beside
+    --out from the start, and the second is refused: one line, exit status 2."""
+    out = tmp_path / "report"
+    first_argv = smoke(bar_store[0], out)
+    second_argv = ["bench", "beam", *first_argv[2:]]
+    first = paused("os.mkdir", str(out), tmp_path / "ready1", tmp_path / "go1", first_argv)
+    second = None
+    try:
+        wait_for(first, tmp_path / "ready1")  # the first has read --out and is about to make it
+        # the second pauses (if it runs at all) as it writes its report, its merge with --out done
+        second = paused("open", f"{tmp_path}/.bench-report-*/report.md", tmp_path / "ready2", tmp_path / "go2",
+                        second_argv)  # fmt: skip
+        wait_for(second, tmp_path / "ready2")
+        (tmp_path / "go1").touch()
+        _, err1 = first.communicate(timeout=120)
+        (tmp_path / "go2").touch()
+        _, err2 = second.communicate(timeout=120)
+    finally:
+        for proc in (first, second):
+            if proc is not None:
+                proc.kill()
+                proc.wait()
+    assert first.returncode == 0, err1
+    parts = set(json.loads((out / "results.json").read_text())["parts"])
+    for proc, part in ((first, "fem"), (second, "beam")):
+        assert proc.returncode != 0 or part in parts, (part, parts)  # a run that says its report is written
+    lock = tmp_path / ".bench-report.lock"
+    assert second.returncode == 2 and err2 == f"error: another elastreg bench is writing {out} (it holds {lock})\n", (
+        err2
+    )
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["go1", "go2", "ready1", "report"]
+
+
 def in_own_mounts(mounts: str, argv: list[str], after: str = "true") -> subprocess.CompletedProcess:
     """`elastreg ARGV` in a mount namespace of its own between the shell lines `mounts` and
     `after` (its exit status kept), or a skip where mounts cannot be made here."""
