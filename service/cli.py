@@ -349,7 +349,7 @@ def parser() -> argparse.ArgumentParser:
     g.set_defaults(func=_igtl)
 
     b = command("bench", "error against run time: tables and plots (see docs/usage.md)")
-    from .bench.report import add_arguments
+    from .bench.command import add_arguments
 
     add_arguments(b)
     b.set_defaults(func=_bench)

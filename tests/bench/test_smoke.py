@@ -149,9 +149,9 @@ def test_passes_take_the_same_steps_and_time_each_frame_by_its_median(entry):
     run's steps: the passes are the same registration), and each pass's median time."""
     from service.bench.cases import run_case, run_passes
     from service.bench.liver import NETWORK
-    from service.bench.report import _smoke_case
+    from service.bench.parts import smoke_case
 
-    case = _smoke_case(entry)
+    case = smoke_case(entry)
     records, each = run_passes(entry.network, case, NETWORK, 3)
     single = run_case(entry.network, case, NETWORK)
     assert len(each) == 3 and len(records) == case.frames == len(single)
@@ -168,9 +168,9 @@ def test_a_frames_force_error_splits_along_and_across_the_truth(entry):
     the error lies across it."""
     from service.bench.cases import run_case
     from service.bench.liver import NETWORK
-    from service.bench.report import _smoke_case
+    from service.bench.parts import smoke_case
 
-    case = _smoke_case(entry)
+    case = smoke_case(entry)
     records = run_case(entry.network, case, NETWORK)
     assert records and all(r.force_along_pct is not None for r in records)
     for r in records:
@@ -183,9 +183,9 @@ def test_a_streamed_case_scores_as_run_case_does(entry):
     score makes run_case's record from it, the frame's objective included."""
     from service.bench.cases import run_case, score, stream_case
     from service.bench.liver import NETWORK
-    from service.bench.report import _smoke_case
+    from service.bench.parts import smoke_case
 
-    case = _smoke_case(entry)
+    case = smoke_case(entry)
     streamed = list(stream_case(entry.network, case, NETWORK))
     assert len(streamed) == case.frames and all(r.outputs["displacement"].shape == case.mesh.nodes.shape
                                                 for r, _ in streamed)  # fmt: skip
