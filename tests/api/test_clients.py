@@ -149,8 +149,10 @@ def test_a_socket_the_server_closed_raises_stream_error(small, live, support, cl
     async def main() -> None:
         async with AsyncClient(small.url) as aapi:
             with Client(small.url) as api, api.stream("bar") as sync_stream:
-                async_stream = await aapi.stream("bar")
                 sync_stream.frame(clouds[0])
+                # opened only now: a first frame slower than the ttl (a loaded machine) would
+                # close a stream opened before it, idle, before its own first frame
+                async_stream = await aapi.stream("bar")
                 await async_stream.frame(clouds[0])
                 await asyncio.sleep(3.0)  # past the 2 s ttl, swept every 0.1 s
                 with pytest.raises(StreamError) as err:
