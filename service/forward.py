@@ -25,7 +25,7 @@ holds inside a solve of seconds, not only between solves.
 
 A model that can give du/dg at g (for Levenberg-Marquardt, ``registration/levenberg.py``) offers
 ``op.jacobian(g)`` returning a :class:`Jacobian`: the FEM's ``DenseJacobian``
-(``fem/model.py``), the reduced network's ``CoefficientJacobian`` (``surrogate/jacobian.py``).
+(``fem/jacobian.py``), the reduced network's ``CoefficientJacobian`` (``surrogate/jacobian.py``).
 The FEM forms it with 3 solves a support node, so it also says whether it serves the support
 (``op.has_jacobian``) and offers ``op.jacobian_products(g)``: du/dg's products, a solve each,
 with the Jacobian it formed last to precondition them (or None where forming one is as cheap).

@@ -296,3 +296,15 @@ def make_solver(
     if spare_core and backend == "pardiso":
         return SpareCoreSolver(pattern, single)
     return BACKENDS[backend](pattern, single)
+
+
+def refined_solve(K, approx_solve, b: Array, rtol: float = 1e-10, max_steps: int = 6) -> Array:
+    """Solve K x = b by iterative refinement on a nearby factorisation (approx_solve ~ K^-1)."""
+    x = approx_solve(b)
+    bn = np.linalg.norm(b) or 1.0
+    for _ in range(max_steps):
+        r = b - K @ x
+        if np.linalg.norm(r) <= rtol * bn:
+            break
+        x = x + approx_solve(r)
+    return x

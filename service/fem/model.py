@@ -7,9 +7,7 @@ previous equilibrium, so successive L-BFGS evaluations cost a couple of Newton s
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import time
 from collections.abc import Iterator
 from functools import cached_property
 
@@ -17,11 +15,12 @@ import numpy as np
 
 from ..forward import ForwardFailed, check_support
 from ..mesh import TetMesh
-from ..spare import Beside
 from .assembly import Assembler
-from .linsolve import SparseSolver, make_solver
+from .jacobian import DenseJacobian, JacobianProducts, LowRankJacobian
+from .linsolve import SparseSolver, make_solver, refined_solve
 from .material import NeoHookean
 from .newton import NewtonOptions, NewtonResult, NewtonSolver
+from .response import Solve, support_response
 from .rest import OVERSAMPLE, POWER, RestCompliance, leading_directions, rest_compliance
 
 Array = np.ndarray
@@ -76,11 +75,6 @@ MAX_JACOBIAN_SUPPORT = 500
 #: the directions a larger support's rest Jacobian keeps for the error estimate (as the network's
 #: linear block keeps: the compliance's spectrum decays fast)
 ESTIMATE_RANK = 64
-
-#: A factorisation's cost in back-substitutions (in blocks): the paper's liver, 27 ms against
-#: 0.9 ms, one thread. The Jacobian's columns split so that the spare core's share plus its own
-#: factorisation take as long as the caller's; under twice this, no split pays
-FACTOR_IN_SOLVES = 30
 
 #: Equilibria an operator keeps by their forces, the latest first: a frame's outputs are taken
 #: at its best iterate, which need not be its last evaluation (a frame cut short by its budget
@@ -226,7 +220,7 @@ class FEMOperator:
             jac = DenseJacobian(self._support_response(newton.solver.solve, self.deadline, at=u))
         else:  # an unstable equilibrium: refine on the shifted factor
             K = self.model.assembler.tangent(u)
-            solve = lambda B: _refined_solve(K, newton.solver.solve, B)  # noqa: E731
+            solve = lambda B: refined_solve(K, newton.solver.solve, B)  # noqa: E731
             jac = DenseJacobian(self._support_response(solve, self.deadline))
         self._last_jacobian = (g.copy(), jac)
         self._held = jac
@@ -309,49 +303,21 @@ class FEMOperator:
     def _support_response(
         self, solve, deadline: float | None = None, block: int = 256, at: Array | None = None
     ) -> Array:
-        """K^-1 applied to each unit force on the support, read at the operator's nodes, in
-        blocks of `block` right-hand sides (a block's solution is 3n x block; the whole would be
-        3n x 3k); past `deadline`, ForwardFailed between blocks (the rest responses, made once
-        per operator, take none). `at`: the state u whose exact tangent `solve` holds; given,
-        the last columns go to a spare core, which factorises that tangent on a solver of its
-        own (``spare.Beside``; the caller solves them itself if no thread began). Shape: (3p, 3k)."""
-        n_cols, free = 3 * self.support.size, self.mesh.free_dofs
+        """K^-1 applied to each unit force on the support, read at the operator's nodes
+        (response.support_response); past `deadline`, ForwardFailed between blocks (the rest
+        responses, made once per operator, take none). `at`: the state u whose exact tangent
+        `solve` holds; given, the last columns go to a spare core, which factorises that tangent
+        on a solver of its own. Shape: (3p, 3k)."""
         cols, read = self._dof_maps
-        J = np.zeros((read.size, n_cols))
 
-        def fill(solve, start: int, stop: int) -> None:
-            for lo in range(start, stop, block):
-                if lo and deadline is not None and time.perf_counter() > deadline:
-                    raise ForwardFailed(
-                        "time_limit", f"time budget spent forming the Jacobian, after {lo} of {n_cols} solves"
-                    )
-                hi = min(lo + block, stop)
-                rhs = np.zeros((free.size, hi - lo))
-                rhs[cols[lo:hi], np.arange(hi - lo)] = 1.0
-                X = solve(rhs)
-                J[read >= 0, lo:hi] = X[read[read >= 0]]
+        def beside() -> Solve:
+            helper = self._helper_solver()
+            helper.factor(self.model.assembler.tangent(at))  # at's tangent is SPD: its factor held
+            return helper.solve
 
-        mine = n_cols if at is None else min(n_cols, (n_cols + FACTOR_IN_SOLVES) // 2)  # both halves end together
-        other = None
-        if mine < n_cols - FACTOR_IN_SOLVES // 2:
-
-            def theirs() -> bool:
-                helper = self._helper_solver()
-                helper.factor(self.model.assembler.tangent(at))  # at's tangent is SPD: its factor held
-                fill(helper.solve, mine, n_cols)
-                return True
-
-            other = Beside(theirs)
-        try:
-            fill(solve, 0, mine)
-        except BaseException:
-            if other is not None:  # its solver must be free before the next Jacobian factors on it
-                with contextlib.suppress(Exception):
-                    other.taken()
-            raise
-        if other is not None and other.taken() is None:  # no thread began it: no second factor
-            fill(solve, mine, n_cols)
-        return J
+        return support_response(
+            solve, cols, read, self.mesh.free_dofs.size, deadline, block, None if at is None else beside
+        )
 
     def _helper_solver(self):
         """A second solver of the tangent's pattern, for columns solved on a spare core."""
@@ -389,94 +355,7 @@ class FEMOperator:
             if newton.factor_at(u):
                 p = newton.solver.solve(b)
             else:  # an unstable equilibrium: refine on the shifted factor
-                p = _refined_solve(asm.tangent(u), newton.solver.solve, b)
+                p = refined_solve(asm.tangent(u), newton.solver.solve, b)
             return asm.unpack(p)[support]
 
         return u[nodes], pullback
-
-
-def _refined_solve(K, approx_solve, b: Array, rtol: float = 1e-10, max_steps: int = 6) -> Array:
-    """Solve K x = b by iterative refinement on a nearby factorisation (approx_solve ~ K^-1)."""
-    x = approx_solve(b)
-    bn = np.linalg.norm(b) or 1.0
-    for _ in range(max_steps):
-        r = b - K @ x
-        if np.linalg.norm(r) <= rtol * bn:
-            break
-        x = x + approx_solve(r)
-    return x
-
-
-class JacobianProducts:
-    """du/dg at one g as products, each one solve with the exact tangent's factor there (K =
-    3k force components, p the operator's nodes); `held`, a :class:`DenseJacobian` formed in
-    full at an earlier g, preconditions them (levenberg.KrylovGaussNewton). Past `deadline`
-    a product gives up (ForwardFailed "time_limit")."""
-
-    def __init__(
-        self, ready, solve, cols: Array, read: Array, n_free: int, held: DenseJacobian, deadline: float | None
-    ) -> None:
-        self.ready, self._solve, self._cols, self._read, self._n_free = ready, solve, cols, read, n_free
-        self._moving = read >= 0
-        self.held, self.deadline = held, deadline
-        self.n_rows, self.n_solves = read.size, 0
-
-    def _solved(self, rhs: Array) -> Array:
-        if self.deadline is not None and time.perf_counter() > self.deadline:
-            raise ForwardFailed("time_limit", f"time budget spent in the Jacobian's products, after {self.n_solves}")
-        self.n_solves += 1
-        return self._solve(rhs)
-
-    def matvec(self, x: Array) -> Array:
-        """(du/dg) x. Shape: (K,) -> (3p,) node-major."""
-        rhs = np.zeros(self._n_free)
-        rhs[self._cols] = x
-        out = np.zeros(self.n_rows)
-        out[self._moving] = self._solved(rhs)[self._read[self._moving]]
-        return out
-
-    def rmatvec(self, y: Array) -> Array:
-        """(du/dg)^T y (the tangent is symmetric: one solve). Shape: (3p,) -> (K,)."""
-        rhs = np.zeros(self._n_free)
-        rhs[self._read[self._moving]] = y[self._moving]  # the nodes are distinct
-        return self._solved(rhs)[self._cols]
-
-
-class DenseJacobian:
-    """du/dg as it is: U (3p, K) node-major over the operator's nodes, C the identity (the
-    FEM's Jacobian, K = 3 x support nodes, float64)."""
-
-    def __init__(self, U: Array) -> None:
-        self.U = np.ascontiguousarray(U, np.float64)
-
-    def gram(self) -> Array:
-        """C C^T: the identity (K, K), float64, read-only."""
-        eye = np.eye(self.U.shape[1])
-        eye.flags.writeable = False
-        return eye
-
-    def gram_product(self, A: Array) -> Array:
-        """C C^T A = A, Fortran-ordered (A symmetric): no product with the identity."""
-        return A.T
-
-    def matvec(self, v: Array) -> Array:
-        return np.asarray(v, np.float64).ravel()
-
-    def rmatvec(self, w: Array) -> Array:
-        return np.asarray(w, np.float64).ravel()
-
-
-class LowRankJacobian(DenseJacobian):
-    """du/dg ~ U C with C's rows orthonormal (r, K): a large support's rest Jacobian, for the
-    error estimate alone (FEMOperator._rest_low_rank). C C^T is the identity (r, r), so its
-    Gram products are the dense Jacobian's."""
-
-    def __init__(self, U: Array, C: Array) -> None:
-        super().__init__(U)
-        self.C = np.ascontiguousarray(C, np.float64)
-
-    def matvec(self, v: Array) -> Array:
-        return self.C @ np.asarray(v, np.float64).ravel()
-
-    def rmatvec(self, w: Array) -> Array:
-        return self.C.T @ np.asarray(w, np.float64).ravel()

@@ -11,7 +11,7 @@ with n_j the unit vector from point j to its closest point (its face's normal wh
 lies on the surface) and b_jv its barycentric weights. A damped step (H + mu I) d = -grad
 needs no K x K algebra: with z = C d, (lam I + C C^T A) z = C v and d = (v - C^T A z) / lam,
 lam = alpha + mu, v = -grad, an r x r solve (the beam: K = 939 forces, r = 64). The FEM
-gives du/dg itself (``DenseJacobian`` in ``fem/model.py``: U = du/dg, C = I, r = K), which pays where the
+gives du/dg itself (``DenseJacobian`` in ``fem/jacobian.py``: U = du/dg, C = I, r = K), which pays where the
 support is small (the paper's liver: 60 nodes, 180 solves with the Newton factorisation). Once
 it has formed one, its later steps go through products with du/dg instead (a solve each),
 preconditioned by the one it holds (:class:`KrylovGaussNewton`): a few solves a step.
@@ -92,7 +92,7 @@ KRYLOV_MAX_ITER = 10
 
 class KrylovGaussNewton:
     """The damped Gauss-Newton model of Phi at one accepted point, through products with the
-    exact Jacobian J (``fem/model.py``'s JacobianProducts: a solve each) instead of J itself.
+    exact Jacobian J (``fem/jacobian.py``'s JacobianProducts: a solve each) instead of J itself.
 
     The step solves (J^T A J + (alpha + mu) I) d = -grad by conjugate gradients, preconditioned
     with the same matrix made from the held Jacobian J_h (formed in full at an earlier g) and

@@ -7,8 +7,9 @@ import pytest
 import torch
 
 from service.fem.material import NeoHookean
-from service.fem.model import FACTOR_IN_SOLVES, FEMModel
+from service.fem.model import FEMModel
 from service.fem.newton import NewtonOptions
+from service.fem.response import FACTOR_IN_SOLVES
 from service.forward import ForwardFailed, torch_forward
 from tests.conftest import spare_threads_busy
 

@@ -324,6 +324,7 @@ def test_past_its_dense_jacobian_the_newton_method_reads_the_rest_ones_leading_d
     at 40): the same answers, an estimate near the dense one's, and still honest on the views
     that determine little (without it a one-point cloud on the phantom's region read nil)."""
     import service.fem.model as fem_model
+    from service.fem.jacobian import LowRankJacobian
 
     tool = _tip(entry)
     seq = make_sequence(entry.mesh, entry.fem.material, tool, n_frames=1, peak_force=40.0, n_points=300, seed=4)
@@ -335,7 +336,7 @@ def test_past_its_dense_jacobian_the_newton_method_reads_the_rest_ones_leading_d
             m.setattr(fem_model, "MAX_JACOBIAN_SUPPORT", k - 1)
             s = Session(entry.fem, config)
             leading = s.frame(points)
-            assert isinstance(s.op.estimate_jacobian(s.g), fem_model.LowRankJacobian)
+            assert isinstance(s.op.estimate_jacobian(s.g), LowRankJacobian)
         np.testing.assert_array_equal(leading.outputs["forces"], dense.outputs["forces"])
         assert leading.error_estimate == pytest.approx(dense.error_estimate, rel=1e-2), name
         true = np.linalg.norm(leading.outputs["displacement"] - truth, axis=1).mean()
