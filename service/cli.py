@@ -7,11 +7,9 @@ from __future__ import annotations
 import argparse
 import functools
 import logging
-import os
-import shlex
 import sys
-from pathlib import Path
 
+from . import commands
 from .argtypes import build_minutes, model_id, positive, whole_number
 
 _at_least_one = whole_number(1)
@@ -35,174 +33,6 @@ def _device_name(text: str) -> str:
         return check_device_name(text)
     except ValueError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
-
-
-def _train(args: argparse.Namespace) -> int:
-    from .build import Interrupted, WorseThanInstalled, build
-    from .scene import resolve_scene
-    from .surrogate.cluster import ClusterError
-    from .surrogate.data import done_indices
-    from .surrogate.train import TrainConfig
-
-    try:  # the config first: a bad combination of flags fails before the scene and any data
-        config = TrainConfig(
-            layout=args.layout,
-            hidden=tuple(args.hidden),
-            rank=args.rank,
-            features=args.features,
-            members=args.members,
-            physics_skip=args.physics_skip,
-            epochs=args.epochs,
-            seed=args.seed,
-        )
-        scene = resolve_scene(args.scene)
-    except ValueError as exc:  # a SceneError is one
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    command = "elastreg " + " ".join(shlex.quote(a) for a in sys.argv[1:])
-    try:
-        report = _build_from(build, scene, config, command, args)
-    except ValueError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt as exc:  # Ctrl-C: one line, not the workers' tracebacks
-        if isinstance(exc, Interrupted):
-            kept = len(done_indices(exc.data_dir))
-            print(f"interrupted: {kept} load paths kept in {exc.data_dir}; the same command resumes", file=sys.stderr)
-        else:
-            print("interrupted before any data", file=sys.stderr)
-        return 130
-    except WorseThanInstalled as exc:  # the store keeps the better model it has
-        print(f"error: {exc}", file=sys.stderr)
-        print(
-            f"kept the installed {exc.entry_id}; rerun with --replace to install this build anyway "
-            "(its data are kept for the rerun)",
-            file=sys.stderr,
-        )
-        return 3
-    except ClusterError as exc:  # a scheduler or workers that cannot be reached (it names which)
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    except OSError as exc:  # the disk: its message names the file
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    m = report.metrics
-    print(
-        f"{args.name or scene.name}: {report.samples} samples ({report.data_seconds:.0f} s of FEM), "
-        f"trained in {report.train_seconds:.0f} s; validation mean {m['mean_mm']:.3f} mm, "
-        f"p95 {m['p95_mm']:.3f} mm (u = 0: {m['zero_mean_mm']:.3f} mm"
-        + (f"; linear alone: {m['linear_mean_mm']:.3f} mm" if "linear_mean_mm" in m else "")
-        + f") -> {report.entry}"
-    )
-    return 0
-
-
-def _build_from(build, scene, config, command: str, args: argparse.Namespace):
-    from .config import default_store
-
-    return build(
-        scene,
-        Path(args.store) if args.store else default_store(),
-        samples=args.samples,
-        workers=args.workers,
-        scheduler=args.scheduler,
-        data_root=Path(args.data) if args.data else None,
-        config=config,
-        command=command,
-        name=args.name,
-        minutes=args.minutes,
-        replace=args.replace,
-    )
-
-
-def _serve(args: argparse.Namespace) -> int:
-    from .api.server import serve
-
-    serve(
-        store=args.store,
-        host=args.host,
-        port=args.port,
-        workers=args.workers,
-        token_file=args.token_file,
-        insecure=args.insecure,
-        ssl_certfile=args.ssl_certfile,
-        ssl_keyfile=args.ssl_keyfile,
-    )
-    return 0
-
-
-def _demo(args: argparse.Namespace) -> int:
-    from clients.client import ApiError, StreamError
-
-    from .demo import run, viewer
-
-    try:
-        if args.viewer:
-            return viewer(model=args.model, store=args.store, port=args.port)
-        return run(
-            model=args.model,
-            frames=args.frames,
-            method=args.method,
-            encoding=args.encoding,
-            store=args.store,
-            port=args.port,
-        )
-    except KeyboardInterrupt:  # Ctrl-C, at any stage: the server stopped, one line, not a traceback
-        print("interrupted", file=sys.stderr)
-        return 130
-    except ApiError as exc:  # the server refused a request or closed the stream: one line, not a traceback
-        what = "stream" if isinstance(exc, StreamError) else "request"
-        print(f"error: the demo's {what} failed: {' '.join(str(exc).split())}", file=sys.stderr)
-        return 1
-
-
-def _igtl(args: argparse.Namespace) -> int:
-    from .igtl.bridge import run
-
-    settings = {
-        k: v
-        for k, v in (
-            ("method", args.method),
-            ("alpha", args.alpha),
-            ("gtol", args.gtol),
-            ("max_iter", args.max_iter),
-            ("force_bound", args.force_bound),
-        )
-        if v is not None
-    }
-    if args.support is not None:  # an empty --support is a file name too (none there), not "no support"
-        from .scene import read_node_ids
-
-        try:  # a scene's support_file's rules, several ids a line allowed
-            settings["support"] = read_node_ids(Path(args.support), several_a_line=True).tolist()
-        except ValueError as exc:  # a wrong command line, as ids the API refuses: one line, exit 2
-            print(f"error: --support: {' '.join(str(exc).split())}", file=sys.stderr)
-            return 2
-    try:
-        return run(
-            args.model,
-            host=args.host,
-            port=args.port,
-            server=args.server,
-            store=args.store,
-            device=args.device,
-            settings=settings,
-            token=args.token or os.environ.get("ELASTREG_TOKEN"),
-            idle_timeout=args.idle_timeout,
-        )
-    except KeyboardInterrupt:  # Ctrl-C: clients told and closed, one line, as demo and train
-        print("interrupted", file=sys.stderr)
-        return 130
-
-
-def _bench(args: argparse.Namespace) -> int:
-    from .bench.report import main
-
-    try:
-        return main(args)
-    except KeyboardInterrupt:  # Ctrl-C, in any part: the report as it was, one line, not a traceback
-        print("interrupted", file=sys.stderr)
-        return 130
 
 
 def _command(sub, name: str, text: str) -> argparse.ArgumentParser:
@@ -235,7 +65,7 @@ def parser() -> argparse.ArgumentParser:
         "--viewer", action="store_true", help="serve and open the live viewer's demo instead (Ctrl-C to stop)"
     )
     d.add_argument("--port", type=_port, default=None, help="the server's loopback port (default: a free one)")
-    d.set_defaults(func=_demo)
+    d.set_defaults(func=commands.demo)
 
     s = command("serve", "run the HTTP/WebSocket API over a model store")
     s.add_argument("--store", default=None, help="model store (default: $ELASTREG_STORE or the project's model_store/)")
@@ -253,7 +83,7 @@ def parser() -> argparse.ArgumentParser:
     s.add_argument("--insecure", action="store_true", help="serve a non-loopback address without tokens")
     s.add_argument("--ssl-certfile", default=None, help="TLS certificate (PEM): serve HTTPS and WSS")
     s.add_argument("--ssl-keyfile", default=None, help="the certificate's private key (PEM)")
-    s.set_defaults(func=_serve)
+    s.set_defaults(func=commands.serve)
 
     t = command("train", "generate FEM data for a scene and train its surrogate into the model store")
     t.add_argument("scene", help="a scene .toml, or a shipped scene name (beam, phantom)")
@@ -306,7 +136,7 @@ def parser() -> argparse.ArgumentParser:
     )
     t.add_argument("--epochs", type=_at_least_one, default=200)
     t.add_argument("--seed", type=_seed, default=0)
-    t.set_defaults(func=_train)
+    t.set_defaults(func=commands.train)
 
     g = command(
         "igtl",
@@ -346,13 +176,13 @@ def parser() -> argparse.ArgumentParser:
         metavar="SECONDS",
         help="a client silent this long gives the one slot up to a new connection (default: 10)",
     )
-    g.set_defaults(func=_igtl)
+    g.set_defaults(func=commands.igtl)
 
     b = command("bench", "error against run time: tables and plots (see docs/usage.md)")
     from .bench.command import add_arguments
 
     add_arguments(b)
-    b.set_defaults(func=_bench)
+    b.set_defaults(func=commands.bench)
     return p
 
 

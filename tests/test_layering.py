@@ -41,7 +41,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("store", ("service.store",)),
     ("build, bench", ("service.build", "service.bench")),
     ("api", ("service.api",)),
-    ("apps", ("service.cli", "service.demo", "service.loadtest", "service.igtl")),
+    ("apps", ("service.cli", "service.commands", "service.demo", "service.loadtest", "service.igtl")),
 )
 #: The only layer that may use the client package (to drive a server it starts).
 CLIENT_USERS = "apps"
