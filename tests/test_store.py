@@ -148,6 +148,47 @@ def test_names_are_checked_before_any_file_is_read(store):
         assert time.monotonic() - t0 < 1.0
 
 
+@pytest.mark.parametrize("fname", ["manifest.json", "mesh.npz"])
+def test_a_file_swapped_for_a_fifo_after_its_check_is_refused_not_waited_on(bar_store, tmp_path, monkeypatch, fname):
+    """Between the regular-file check and the read, another process may put a FIFO in the
+    file's place: opening it for reading waited for a writer, and the server's start with it.
+    The swap is made at that moment (right after the real check passes); the load runs in a
+    thread so that a regression fails here rather than hangs."""
+    import threading
+
+    from service.store import load
+
+    shutil.copytree(bar_store[0] / "bar", tmp_path / "bar")
+    target = tmp_path / "bar" / fname
+    checked = load._regular_file
+
+    def check_then_swap(path, *args):
+        checked(path, *args)
+        if path == target:  # the race, made certain: the file is a FIFO by the time it is opened
+            path.unlink()
+            os.mkfifo(path)
+
+    monkeypatch.setattr(load, "_regular_file", check_then_swap)
+    outcome: list[BaseException | object] = []
+    reader = threading.Thread(target=lambda: outcome.append(_outcome(load_entry, tmp_path / "bar")), daemon=True)
+    reader.start()
+    reader.join(timeout=10)
+    if reader.is_alive():  # blocked in open(): a writer's open and close lets it go
+        os.close(os.open(target, os.O_WRONLY | os.O_NONBLOCK))
+        reader.join(timeout=10)
+        pytest.fail(f"loading waited on the FIFO put in place of {fname}")
+    assert isinstance(outcome[0], StoreError), outcome[0]
+    assert str(outcome[0]) == f"bar: {fname} is not a regular file"
+
+
+def _outcome(call, *args):
+    """What `call` returned, or the exception it raised (for a thread to hand back)."""
+    try:
+        return call(*args)
+    except Exception as exc:
+        return exc
+
+
 def _rewrite(entry, store, **changes):
     """write_entry with a loaded entry's own parts (and `changes` to them)."""
     from service.store import write_entry

@@ -78,20 +78,47 @@ def _region(value: np.ndarray, n_nodes: int, name: str) -> np.ndarray:
     return value.astype(np.int64)
 
 
-def _regular_file(path: Path, folder: Path, name: str, fname: str) -> None:
+def _regular_file(path: Path, folder: Path, name: str, fname: str, cap: int) -> None:
     """A StoreError unless ``path`` is a regular file inside ``folder`` (no device, pipe or link
-    out of the entry), checked without opening it."""
+    out of the entry) of at most ``cap`` bytes, checked without opening it."""
     try:
         inside = path.resolve().is_relative_to(folder.resolve())
-        mode = path.stat().st_mode
+        found = path.stat()
     except FileNotFoundError:
         raise StoreError(f"{name}: {fname} is missing") from None
     except OSError as exc:
         raise StoreError(f"{name}: {fname} cannot be read ({exc})") from None
     if not inside:
         raise StoreError(f"{name}: {fname} points outside the entry's folder")
-    if not stat.S_ISREG(mode):
+    _refuse_unless_fits(found, name, fname, cap)
+
+
+def _refuse_unless_fits(found: os.stat_result, name: str, fname: str, cap: int) -> None:
+    """A StoreError unless what `found` describes is a regular file of at most `cap` bytes."""
+    if not stat.S_ISREG(found.st_mode):
         raise StoreError(f"{name}: {fname} is not a regular file")
+    if found.st_size > cap:
+        size = f"{cap >> 30} GiB" if cap >= 1 << 30 else f"{cap >> 20} MiB"
+        raise StoreError(f"{name}: {fname} is over {size}, more than an entry holds")
+
+
+def _read_file(path: Path, name: str, fname: str, cap: int) -> bytes:
+    """The bytes of the regular file at `path` (at most `cap`), judged by the file it opened: one
+    swapped for a FIFO or a device after _regular_file's check is refused, never waited on."""
+    try:  # O_NONBLOCK: opening a FIFO returns at once, with or without a writer
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+    except OSError as exc:
+        raise _unreadable(name, fname, exc) from None
+    with open(fd, "rb") as f:
+        found = os.fstat(fd)
+        _refuse_unless_fits(found, name, fname, cap)
+        try:  # one byte past the size fstat gave: a file growing since is caught, not read on
+            data = f.read(found.st_size + 1)
+        except OSError as exc:
+            raise _unreadable(name, fname, exc) from None
+    if len(data) > found.st_size:
+        raise StoreError(f"{name}: {fname} grew while it was read (a build writing it?)")
+    return data
 
 
 def _unreadable(name: str, fname: str, exc: OSError) -> StoreError:
@@ -112,29 +139,20 @@ def load_entry(path: Path, name: str | None = None) -> Entry:
     name = path.name if name is None else name
     if not MODEL_ID.fullmatch(name):
         raise StoreError(f"{name!r:.80}: an entry's folder name must match {MODEL_ID.pattern}")
-    _regular_file(path / MANIFEST, path, name, MANIFEST)
-    if (path / MANIFEST).stat().st_size > _MAX_MANIFEST:
-        raise StoreError(f"{name}: {MANIFEST} is over {_MAX_MANIFEST} bytes")
+    _regular_file(path / MANIFEST, path, name, MANIFEST, _MAX_MANIFEST)
     try:
-        manifest = json.loads((path / MANIFEST).read_text())
+        manifest = json.loads(_read_file(path / MANIFEST, name, MANIFEST, _MAX_MANIFEST))
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise StoreError(f"{name}: {MANIFEST} is not valid JSON ({exc})") from None
-    except OSError as exc:
-        raise _unreadable(name, MANIFEST, exc) from None
     _check_manifest(manifest, name)
     for fname in (MESH, WEIGHTS):  # every name and size checked before any file is read
-        _regular_file(path / fname, path, name, fname)
-        if (path / fname).stat().st_size > MAX_DATA_FILE:
-            raise StoreError(f"{name}: {fname} is over {MAX_DATA_FILE >> 30} GiB, more than an entry holds")
+        _regular_file(path / fname, path, name, fname, MAX_DATA_FILE)
     # each file read once: what is checked is what is served, and nothing keeps a map of the file
     # (a weights file truncated under a mapped server killed it with SIGBUS; one rewritten in place
     # changed its answers)
     data: dict[str, bytes] = {}
     for fname, digest in manifest["files"].items():
-        try:
-            data[fname] = (path / fname).read_bytes()
-        except OSError as exc:
-            raise _unreadable(name, fname, exc) from None
+        data[fname] = _read_file(path / fname, name, fname, MAX_DATA_FILE)
         if sha256_of(data[fname]) != digest:
             raise StoreError(f"{name}: {fname} does not match its checksum in the manifest (corrupt or changed)")
     try:  # a zip of .npy arrays, read without pickle
