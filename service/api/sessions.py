@@ -1,9 +1,11 @@
 """The sessions a server process holds: bounded in number, expired when idle, thread-safe.
 
 A session lives in the process that opened it. Its id starts with that process's instance id
-(``a3f09c-Xq2...``), so a request that reaches another process (several uvicorn workers, or
-replicas behind a load balancer without affinity), or a process restarted since, gets a 404 that
-says so instead of a wrong answer, and a load balancer can route on that prefix.
+and, after it, the start that made it (``a3f09c-5be21d.Xq2...``: instance, boot nonce, random
+part), so a request that reaches another process (several uvicorn workers, or replicas behind a
+load balancer without affinity) gets a 404 that says so instead of a wrong answer, one for a
+session of an earlier start of this instance (a fixed ELASTREG_INSTANCE_ID) says it restarted,
+and a load balancer can route on the instance prefix.
 
 HTTP sessions expire after ``ttl_s`` seconds without a request (a background sweeper drops
 them; a session busy with a frame is never dropped). A WebSocket stream's session belongs to
@@ -35,6 +37,7 @@ if TYPE_CHECKING:
 
 _FORGET = 4096  # closed / expired ids remembered for a precise 404
 ANY = object()  # an owner that matches every session (the server's own housekeeping)
+BOOT_SEP = "."  # ends a session id's boot nonce (neither an instance id's first "-" nor token_urlsafe has one)
 
 
 class RegistryFull(RuntimeError):
@@ -105,6 +108,7 @@ class SessionRegistry:
         self.retry_after = retry_after  # seconds, for the 503 at the limit
         self.ttl_s = ttl_s
         self.instance_id = instance_id
+        self.boot = secrets.token_hex(3)  # this start's, in every id it makes: a restart's 404 can say so
         self.clock = clock
         self._held: dict[str, Held] = {}
         self._pending = 0
@@ -133,7 +137,7 @@ class SessionRegistry:
                 )
             self._pending += 1
             self._owned[owner] += 1
-            return Reservation(f"{self.instance_id}-{secrets.token_urlsafe(9)}", kind, owner)
+            return Reservation(f"{self.instance_id}-{self.boot}{BOOT_SEP}{secrets.token_urlsafe(9)}", kind, owner)
 
     def commit(self, reservation: Reservation, held: Held) -> Held:
         """The built session in its reserved slot, owned by the reservation's owner."""
@@ -258,8 +262,16 @@ class SessionRegistry:
         gone = self._gone.get(session_id)
         if gone is not None and (owner is ANY or gone[0] == owner):
             return f"session {session_id!r} {gone[1]} ({here})"
-        owner = session_id.split("-", 1)[0] if "-" in session_id else None
-        if owner and owner != self.instance_id:  # a restart and a mis-route look the same from here
+        owner, dash, rest = session_id.partition("-")
+        boot = rest.partition(BOOT_SEP)[0] if BOOT_SEP in rest else None  # None: an id without one
+        if owner == self.instance_id and boot and boot != self.boot:
+            return (
+                f"session {session_id!r} is not held here: it was opened by an earlier start of this server "
+                f"(instance {owner!r}, start {boot!r}; {here}, start {self.boot!r}): this server restarted "
+                "since (sessions do not survive a restart: open a new one), or another process runs with the "
+                "same ELASTREG_INSTANCE_ID (give each process its own)"
+            )
+        if dash and owner and owner != self.instance_id:  # a restart and a mis-route look the same from here
             return (
                 f"session {session_id!r} is not held here: it was opened by another server process "
                 f"(instance {owner!r}; {here}): this server restarted (sessions do not survive a restart: "

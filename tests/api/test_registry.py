@@ -121,6 +121,13 @@ def test_not_found_messages():
     with pytest.raises(SessionNotFound, match="never existed"):
         reg.get("i1-abc")
     h = held(reg)
+    assert h.id.startswith(f"i1-{reg.boot}.") and len(reg.boot) == 6  # instance, this start, random part
+    with pytest.raises(SessionNotFound, match="never existed"):  # this start's own id format, unknown here
+        reg.get(f"i1-{reg.boot}.abc")
+    earlier = SessionRegistry(max_sessions=8, ttl_s=10, instance_id="i1", retry_after=5)  # the same id, restarted
+    with pytest.raises(SessionNotFound) as err:
+        earlier.get(h.id)
+    assert f"opened by an earlier start of this server (instance 'i1', start '{reg.boot}';" in str(err.value)
     reg.close(h.id)
     with pytest.raises(SessionNotFound, match="closed"):
         reg.get(h.id)

@@ -286,6 +286,55 @@ def test_unknown_session_explains_affinity(http, small, clouds, support):
     http.delete(f"/sessions/{sid}")
 
 
+def test_a_session_of_an_earlier_start_under_a_fixed_instance_id_says_the_server_restarted(bar_store, clouds):
+    """With ELASTREG_INSTANCE_ID fixed, a restarted server took an old session's id for one of
+    its own and answered "closed, expired or never existed": each start's ids now carry its boot
+    nonce, so the 404 says the server restarted. Two real starts, one after the other on one port."""
+    import os
+    import subprocess
+    import sys
+
+    from service.api.server import free_port
+
+    port = free_port()
+    url = f"http://127.0.0.1:{port}"
+    argv = [sys.executable, "-m", "service.cli", "serve", "--store", str(bar_store[0]), "--port", str(port)]
+    env = {**os.environ, "ELASTREG_INSTANCE_ID": "fixed"}
+
+    def serve() -> subprocess.Popen:
+        proc = subprocess.Popen(argv, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        deadline = time.monotonic() + 120
+        while True:
+            try:
+                if httpx.get(url + "/health", timeout=2).status_code == 200:
+                    return proc
+            except httpx.HTTPError:
+                pass
+            assert time.monotonic() < deadline and proc.poll() is None, "the server did not start"
+            time.sleep(0.2)
+
+    first = serve()
+    try:
+        sid = httpx.post(url + "/sessions", json={"model": "bar"}, timeout=60).json()["session"]
+        assert sid.startswith("fixed-")  # the instance prefix a load balancer routes on
+    finally:
+        first.terminate()
+        first.wait(timeout=60)
+    second = serve()
+    try:
+        r = httpx.post(f"{url}/sessions/{sid}/frames", json={"points": clouds[0].tolist()}, timeout=60)
+        assert r.status_code == 404 and r.headers["x-elastreg-instance"] == "fixed"
+        detail = r.json()["detail"]
+        assert "opened by an earlier start of this server (instance 'fixed'" in detail, detail
+        assert "sessions do not survive a restart: open a new one" in detail
+        mine = httpx.post(url + "/sessions", json={"model": "bar"}, timeout=60).json()["session"]
+        r = httpx.get(f"{url}/sessions/{mine}x", timeout=60)  # one of this start's, never opened
+        assert r.status_code == 404 and "never existed" in r.json()["detail"], r.text
+    finally:
+        second.terminate()
+        second.wait(timeout=60)
+
+
 def test_session_limit_is_503_then_recovers(small, clouds):
     with httpx.Client(base_url=small.url) as c:
         ids = [c.post("/sessions", json={"model": "bar"}).json()["session"] for _ in range(2)]
