@@ -140,24 +140,9 @@ def test_a_stream_client_that_stops_reading_is_dropped_after_send_timeout(bar_st
     reach it) and its socket slot and session are freed at once, not at the next ping."""
     server = start(bar_store[0], instance_id="deafstream", send_timeout_s=1.0)
     try:
-        state = server.app.state
-        sock = SlowSocket(rate=0)
-        sock.connect(("127.0.0.1", server.port))
-        sock.sendall(
-            b"GET /stream HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
-            b"Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n"
-        )
-        assert b" 101 " in socket.socket.recv(sock, 200)  # accepted; never read from again
-        frames = [{"model": "bar", "support": support.tolist(), "max_iter": 2}]
-        frames += [{"points": clouds[t % len(clouds)].tolist(), "frame_id": t} for t in range(40)]
-        for f in frames:  # masked client frames, text
-            sock.sendall(_client_frame(json.dumps(f).encode()))
-        t0 = time.monotonic()
-        assert wait_for(lambda: state.sockets == 0, timeout=15), "the frozen client still holds its slot"
-        waited = time.monotonic() - t0
-        assert wait_for(lambda: len(state.registry) == 0)
+        sock, waited = frozen_stream_let_go(server, support, clouds)
         assert wait_for(lambda: sock.state() == TCP_CLOSE), "its connection was not dropped"
-        assert 1.0 <= waited < 6.0, waited
+        assert 0.9 <= waited < 1.0 + LOOP_SLACK_S, f"let go {waited:.2f} s after its send stalled"
         sock.close()
     finally:
         server.stop()
@@ -230,15 +215,30 @@ def send_frozen(sock: SlowSocket, support, clouds) -> None:
 
 def frozen_stream_let_go(server, support, clouds) -> tuple[SlowSocket, float]:
     """A stream client that sends its frames and never reads: its socket, once the server has
-    freed its slot and its session, and the seconds that took."""
+    freed its slot and its session, and the seconds from its last frame's solve to that. The
+    reply of that frame is the send that stalled (the stream solves no more while it waits), so
+    this is the wait the deadline bounds, whatever the solves before it took: on a loaded
+    machine filling the buffers took seconds more, and a bound from the first frame failed."""
     state = server.app.state
     sock = open_frozen(server, "/stream")
     send_frozen(sock, support, clouds)
-    t0 = time.monotonic()
-    assert wait_for(lambda: state.sockets == 0, timeout=15), "the frozen client still holds its slot"
-    waited = time.monotonic() - t0
+    solved, last, deadline = 0, time.monotonic(), time.monotonic() + 60
+    while state.sockets and time.monotonic() < deadline:
+        held = [h for h in list(state.registry._held.values()) if h.kind == "stream" and h.session is not None]
+        frames = sum(h.session.frames for h in held)
+        if frames > solved:  # only a rise: the count is gone once the session is
+            solved, last = frames, time.monotonic()
+        time.sleep(0.005)
+    let_go = time.monotonic()
+    assert not state.sockets, "the frozen client still holds its slot"
+    assert solved, "no frame was solved"
     assert wait_for(lambda: len(state.registry) == 0)
-    return sock, waited
+    return sock, let_go - last
+
+
+#: what a loaded machine (two cores, a load of 14) adds to the deadline between a stall and the
+#: slot's release: the event loop's and the threads' turns, never seconds of solves
+LOOP_SLACK_S = 2.0
 
 
 def test_without_a_transport_a_frozen_stream_client_frees_its_slot(bar_store, support, clouds, caplog):
@@ -252,7 +252,7 @@ def test_without_a_transport_a_frozen_stream_client_frees_its_slot(bar_store, su
     try:
         state = server.app.state
         sock, waited = frozen_stream_let_go(server, support, clouds)
-        assert 1.0 <= waited < 8.0, waited
+        assert 0.9 <= waited < 2 * 1.0 + LOOP_SLACK_S, waited  # the send's deadline whole, then the close's
         sock.close()
         open_frozen(server, "/stream").close()  # a second connection: not told again
         assert wait_for(lambda: state.sockets == 0)
@@ -274,7 +274,7 @@ def test_under_uvicorns_trace_logging_a_frozen_stream_client_is_reset(bar_store,
     try:
         sock, waited = frozen_stream_let_go(server, support, clouds)
         assert wait_for(lambda: sock.state() == TCP_CLOSE), "its connection was not dropped"
-        assert 1.0 <= waited < 6.0, waited
+        assert 0.9 <= waited < 1.0 + LOOP_SLACK_S, f"let go {waited:.2f} s after its send stalled"
         assert not [r for r in caplog.records if "no transport to watch" in r.getMessage()]
         sock.close()
     finally:
