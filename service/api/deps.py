@@ -123,12 +123,38 @@ async def owner(conn: HTTPConnection, settings: SettingsDep) -> str | None:
 Owner = Annotated[str | None, Depends(owner)]
 
 
-def authorize_websocket(websocket: WebSocket, first_message=None) -> str | None:
-    """The owner a WebSocket acts as, for every WebSocket route: the token of its handshake's
-    ``Authorization`` header when it sent one (browsers cannot), else the ``token`` field of its
-    first message (a map; the field is removed from it, so the rest validates as the route's
-    own body). Raises ApiError 401 without a valid token on a server that has tokens: the route
-    sends that as its error and closes the socket with 1008.
+@dataclasses.dataclass(frozen=True)
+class HandshakeToken:
+    """A WebSocket handshake's ``Authorization`` header, checked once (:func:`handshake_token`,
+    at admission): the owner it acts as, or the ApiError that refuses it."""
+
+    owner: str | None = None
+    error: ApiError | None = None
+
+    def result(self) -> str | None:
+        if self.error is not None:
+            raise self.error
+        return self.owner
+
+
+def handshake_token(websocket: WebSocket) -> HandshakeToken | None:
+    """The verdict on the handshake's ``Authorization`` header (None when it sent none): the one
+    compare of its token, whose result the socket keeps (:class:`.sockets.Slot`)."""
+    header = websocket.headers.get("authorization")
+    if header is None:
+        return None
+    try:
+        return HandshakeToken(owner=check_token(websocket.app.state.settings, bearer(header)))
+    except ApiError as err:
+        return HandshakeToken(error=err)
+
+
+def authorize_websocket(websocket: WebSocket, handshake: HandshakeToken | None, first_message=None) -> str | None:
+    """The owner a WebSocket acts as, for every WebSocket route: its handshake's ``Authorization``
+    header when it sent one (browsers cannot; ``handshake``, checked at admission), else the
+    ``token`` field of its first message (a map; the field is removed from it, so the rest
+    validates as the route's own body). Raises ApiError 401 without a valid token on a server
+    that has tokens: the route sends that as its error and closes the socket with 1008.
 
     A route without a first message (one that only sends) passes ``None``: the header is then
     the only way in."""
@@ -137,9 +163,8 @@ def authorize_websocket(websocket: WebSocket, first_message=None) -> str | None:
         token = first_message.pop("token", None)
         if token is not None and not isinstance(token, str):
             raise ApiError(401, "the first message's token must be a string")
-    header = websocket.headers.get("authorization")
-    if header is not None:
-        token = bearer(header)
+    if handshake is not None:
+        return handshake.result()
     return check_token(websocket.app.state.settings, token)
 
 

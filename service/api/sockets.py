@@ -8,7 +8,8 @@ smaller ``max_tokenless_sockets`` until its first message's token is found, and 
 ``max_sockets`` then. Peers without a token, however many, so hold at most
 ``max_tokenless_sockets`` sockets (each for ``first_message_timeout_s`` at most) and never the
 slots of clients with one. A handshake over either cap is answered 503 with Retry-After; a
-first message's token that finds ``max_sockets`` full is a 503 error and a close (1013).
+first message's token that finds ``max_sockets`` full is a 503 error and a close (1013). A
+handshake's token is compared once, at admission: the slot keeps the verdict for the route.
 """
 
 from __future__ import annotations
@@ -20,8 +21,8 @@ from collections.abc import AsyncIterator
 from fastapi import Response, WebSocket
 
 from . import codec
-from .deps import authorize_websocket, bearer, check_token
-from .errors import ApiError, unavailable
+from .deps import HandshakeToken, authorize_websocket, handshake_token
+from .errors import unavailable
 
 
 @dataclasses.dataclass(eq=False)
@@ -30,12 +31,13 @@ class Slot:
 
     websocket: WebSocket
     tokenless: bool
+    handshake: HandshakeToken | None  # its Authorization header's verdict, from admission's one check
 
     def authorize(self, first_message=None) -> str | None:
         """The owner the socket acts as (:func:`~.deps.authorize_websocket`: ApiError 401 without a
         valid token); a tokenless socket then takes a ``max_sockets`` slot, ApiError 503 when none
         is free."""
-        owner = authorize_websocket(self.websocket, first_message)
+        owner = authorize_websocket(self.websocket, self.handshake, first_message)
         if self.tokenless:
             state = self.websocket.app.state
             settings = state.settings
@@ -49,18 +51,6 @@ class Slot:
 
 def _full(cap: int) -> str:
     return f"this server has its maximum of {cap} open WebSockets"
-
-
-def _carries_token(websocket: WebSocket) -> bool:
-    """The handshake's Authorization header holds one of the server's tokens."""
-    header = websocket.headers.get("authorization")
-    if header is None:
-        return False
-    try:
-        check_token(websocket.app.state.settings, bearer(header))
-    except ApiError:
-        return False
-    return True
 
 
 async def deny_websocket(websocket: WebSocket, status: int, detail: str, headers: dict | None = None) -> None:
@@ -79,7 +69,8 @@ async def websocket_slot(websocket: WebSocket) -> AsyncIterator[Slot | None]:
     (Retry-After) and the block gets None."""
     state = websocket.app.state
     settings = state.settings
-    tokenless = bool(settings.api_tokens) and not _carries_token(websocket)
+    handshake = handshake_token(websocket)
+    tokenless = bool(settings.api_tokens) and (handshake is None or handshake.error is not None)
     if tokenless and state.tokenless_sockets >= settings.max_tokenless_sockets:
         detail = (
             f"this server has its maximum of {settings.max_tokenless_sockets} WebSockets waiting for a token: "
@@ -93,7 +84,7 @@ async def websocket_slot(websocket: WebSocket) -> AsyncIterator[Slot | None]:
         await deny_websocket(websocket, 503, detail, {"Retry-After": str(settings.retry_after_s)})
         yield None
         return
-    slot = Slot(websocket, tokenless)
+    slot = Slot(websocket, tokenless, handshake)
     if tokenless:
         state.tokenless_sockets += 1
     else:

@@ -38,7 +38,6 @@ from fastapi import WebSocket
 
 from ..sendwait import Stalled
 from . import codec
-from .deps import authorize_websocket
 from .errors import ApiError, as_api_error, unprocessable
 from .schemas.common import check_points_limit
 from .schemas.sessions import FrameIn, SessionCreate
@@ -133,7 +132,7 @@ class StreamRunner:
         await self.ws.accept(headers=[(b"x-elastreg-instance", self.settings.instance_id.encode())])
         if "authorization" in self.ws.headers:  # a bad header token is refused now, not after a message
             try:
-                authorize_websocket(self.ws, None)
+                self.slot.authorize()  # the verdict admission reached: no second compare
             except ApiError as err:
                 await self._error(codec.JSON, err)
                 await self._close(POLICY, err.text)

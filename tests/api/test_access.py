@@ -195,6 +195,34 @@ def test_websocket_token_in_the_handshake_header(guarded, support, clouds):
         assert httpx.get(f"{guarded.url}/sessions/{sid}", headers=auth(TOKEN_A)).status_code == 200
 
 
+def test_a_handshake_token_is_compared_once_per_socket(guarded, support, clouds, monkeypatch):
+    """Admission, the accept and the first message each compared the header's token with the
+    server's (three constant-time checks of one token): the verdict of admission's one check now
+    travels with the socket. Counted on hmac.compare_digest, against one check_token's count."""
+    import hmac
+
+    from service.api.deps import check_token
+
+    compared = 0
+    compare = hmac.compare_digest
+
+    def counted(a, b):
+        nonlocal compared
+        compared += 1
+        return compare(a, b)
+
+    monkeypatch.setattr(hmac, "compare_digest", counted)
+    check_token(guarded.settings, TOKEN_B)
+    one_check, compared = compared, 0
+    assert one_check >= 1
+    with connect(ws_url(guarded), additional_headers=auth(TOKEN_B)) as ws:
+        ws.send(mp({"model": "bar", "support": packed(support, "<i8")}))
+        assert "session" in recv(ws)
+        ws.send(mp({"points": packed(clouds[1]), "frame_id": 1}))
+        assert recv(ws)["frame_id"] == 1
+    assert compared == one_check, f"{compared // one_check} checks of the handshake's token"
+
+
 @pytest.mark.parametrize("binary", [False, True])
 def test_websocket_token_in_the_first_message(guarded, support, clouds, binary):
     """What a browser does (it cannot set headers): the token rides in the session config."""
