@@ -25,17 +25,20 @@ from .fem.material import NeoHookean
 from .fem.newton import NewtonOptions
 from .scene import Scene
 from .scene.model_id import check_model_id
-from .store import StoreError, load_entry, remove_stale_builds, write_entry
+from .store import StoreError, load_entry, network_table, remove_stale_builds, write_entry
 from .surrogate.data import LoadSpec, done_indices, generate, load_dataset
 from .surrogate.train import TrainConfig, train
+from .warmup import warm_up
 
 log = logging.getLogger(__name__)
 
 #: a timed build's share of its minutes for FEM data; the rest trains. Error falls with both
 #: samples and epochs, and neither has been measured against the other yet: an even-handed split
 DATA_SHARE = 0.6
-#: seconds a timed build keeps back for the final evaluation and writing the entry
-WRITE_RESERVE_S = 5.0
+#: a timed build keeps back this many times the write its warm-up measured (warmup.py: a tiny
+#: entry over the scene's own mesh) for writing its entry: the real weights are larger, and the
+#: write's load-back builds the real network
+WRITE_MARGIN = 2.0
 #: the least --minutes a refused build is told to try where no path finished: 6 s, in which the
 #: tests' 81-node bar builds; a bigger mesh then finishes a path, and the refusal measures it
 LEAST_MINUTES = 0.1
@@ -153,8 +156,7 @@ def too_short(minutes: float, done: int, spent: float, took: list[float]) -> str
     else:
         need = max(10.0 * minutes, LEAST_MINUTES)
         what = "this run solved none"
-    step = 10.0 ** math.floor(math.log10(need))
-    need = math.ceil(need / step - 1e-9) * step  # 1e-9: 0.1 / 0.1 is 1.0000000000000002
+    need = _rounded_up(need)
     most = " (the most it takes)" if need > MAX_MINUTES else ""
     return (
         f"--minutes {minutes:g} finished {done} load path{'' if done == 1 else 's'}, and a build needs 2 "
@@ -162,6 +164,35 @@ def too_short(minutes: float, done: int, spent: float, took: list[float]) -> str
         f"give it more time, about --minutes {_plain(min(need, MAX_MINUTES))}{most}"
         + ("; the rerun resumes from the finished paths" if done else "")
     )
+
+
+def _warm_up(mesh, material: NeoHookean, spec: LoadSpec, scene: dict, store: Path, minutes: float, t_start: float,
+             deadline: float) -> float:  # fmt: skip
+    """Pay the one-off loads (warmup.py) inside the budget, before it is planned; the seconds to
+    keep back for the write. A ValueError, before them, where the time left is under what the
+    start took (they cost about as much: 4.5 s after a start of 5.6 s under a load of 10, 15 s
+    after 17 s under 19), or after them, where they leave less than the write; it suggests ten
+    times their cost, as too_short does where no path was solved."""
+    ahead = time.perf_counter() - t_start  # the start's cost: about the loads' to come
+    if deadline - time.perf_counter() > ahead:
+        write = warm_up(mesh, material, spec, scene, Path(store), TIMED_NEWTON_CAP)
+        if deadline - time.perf_counter() > WRITE_MARGIN * write:
+            log.info("one-off loads paid %.1f s after the start; %.2f s kept for the write",
+                     time.perf_counter() - t_start, WRITE_MARGIN * write)  # fmt: skip
+            return WRITE_MARGIN * write
+        ahead = 0.0
+    need = time.perf_counter() - t_start + ahead
+    raise ValueError(
+        f"--minutes {minutes:g} ({_plain(60.0 * minutes)} s) is too short for the start and the one-off loads "
+        f"(imports, compiled kernels, the solver's and torch's first use), about {need:.0f} s here: give it more "
+        f"time, about --minutes {_plain(min(_rounded_up(max(10.0 * need / 60.0, LEAST_MINUTES)), MAX_MINUTES))}"
+    )
+
+
+def _rounded_up(x: float) -> float:
+    """`x` rounded up to one significant figure."""
+    step = 10.0 ** math.floor(math.log10(x))
+    return math.ceil(x / step - 1e-9) * step  # 1e-9: 0.1 / 0.1 is 1.0000000000000002
 
 
 def _plain(x: float) -> str:
@@ -270,13 +301,17 @@ def build(
     name: str | None = None,
     minutes: float | None = None,
     replace: bool = False,
+    started: float | None = None,
 ) -> BuildReport:
     """Generate (or resume) the scene's data, train, and write the store entry (id: `name`,
     else the scene's name; variants of one scene share its data).
 
-    With `minutes` the whole build keeps to that wall time: data until DATA_SHARE of it (the
-    paths finished by then, up to the scene's samples, each step's Newton work capped at
-    TIMED_NEWTON_CAP), training in what is left.
+    With `minutes` the whole build keeps to that wall time, counted from `started` (a
+    time.perf_counter() reading: the command's start, which the CLI gives; default now): first
+    the one-off loads (warmup.py), then data until DATA_SHARE of what they leave (the paths
+    finished by then, up to the scene's samples, each step's Newton work capped at
+    TIMED_NEWTON_CAP), training in the rest less WRITE_MARGIN times the write the warm-up
+    measured. Minutes that the loads alone spend are refused (ValueError) before any data.
 
     An entry already in the store under the id is replaced, unless this build's relative
     validation error is more than REPLACE_WORSE_FACTOR times its own (and is still, at
@@ -284,7 +319,7 @@ def build(
     then WorseThanInstalled is raised and the store is left as it was; `replace` installs the
     build anyway.
     """
-    t_start = time.perf_counter()
+    t_start = time.perf_counter() if started is None else started
     check_model_id(name or scene.name)
     if minutes is not None and not 0 < minutes <= MAX_MINUTES:  # NaN too
         raise ValueError(f"minutes must be positive and at most {MAX_MINUTES} (a year), got {minutes}")
@@ -303,10 +338,14 @@ def build(
     key = data_key(mesh.hash, material, spec, max_newton)
     data_dir = data_root / f"{scene.name}-{key}"
     log.info("data for %s in %s (%d paths)", scene.name, data_dir, n_paths)
+    scene_table = json.loads(scene.model_dump_json())  # the manifest's
+    reserve = (
+        0.0 if deadline is None else _warm_up(mesh, material, spec, scene_table, store, minutes, t_start, deadline)
+    )
 
     try:
         t0 = time.perf_counter()
-        data_until = None if deadline is None else t_start + DATA_SHARE * (deadline - t_start)
+        data_until = None if deadline is None else t0 + DATA_SHARE * (deadline - reserve - t0)
         paths = generate(
             mesh, material, spec, data_dir, n_paths,
             workers=workers, scheduler=scheduler, progress=progress, max_newton=max_newton, until=data_until,
@@ -329,7 +368,7 @@ def build(
                 "converge): check the boundary conditions and the load range, or give the build more time"
             )
         if deadline is not None:
-            left = deadline - time.perf_counter() - WRITE_RESERVE_S
+            left = deadline - time.perf_counter() - reserve
             # the clock bounds training, not an epoch count: as many epochs as fit
             config = dataclasses.replace(config, max_seconds=max(left, 1.0), epochs=max(config.epochs, 100_000))
         if config.members is None:  # the scene's ensemble is the reduced layout's; the paper's has none
@@ -348,17 +387,7 @@ def build(
             "data_key": data_dir.name,
             "max_newton": max_newton,
         }
-        features = int(net.feature_basis.shape[1]) if getattr(net, "physics", False) else None
-        network = {
-            "layout": config.layout,
-            "hidden": list(net.hidden),
-            "n_in": features if features is not None else 3 * len(region),
-            "n_out": 3 * mesh.n_nodes,
-            "rank": int(net.basis.shape[1]) if hasattr(net, "basis") else None,
-            "members": int(getattr(net, "members", 1)),
-            "physics_skip": features is not None,
-            "features": features,
-        }
+        network = network_table(net, config.layout, len(region), mesh.n_nodes)
         installed = installed_validation(store, name or scene.name)
         times, least = worse_by(result.metrics, installed), worse_at_least(result.metrics, installed)
         if installed is not None and times is not None and times > REPLACE_WORSE_FACTOR:
@@ -374,7 +403,7 @@ def build(
         entry = write_entry(
             store, name or scene.name, mesh, region, net,
             material=material,
-            scene=json.loads(scene.model_dump_json()),
+            scene=scene_table,
             training=training,
             network=network,
             rebuild=command,

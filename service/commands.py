@@ -85,6 +85,7 @@ def _build_from(build, scene, config, command: str, args: argparse.Namespace):
         name=args.name,
         minutes=args.minutes,
         replace=args.replace,
+        started=args.started,
     )
 
 

@@ -28,7 +28,7 @@ An entry goes in with the modes the writer's umask gives a new folder and file: 
 serves what one builds.
 
 Its modules, each one idea: files (the names, checksums, StoreError), builds (build folders,
-their locks, stale ones removed, an entry moved aside put back), write (write_entry), manifest
+their locks, stale ones removed, an entry moved aside put back), write (write_entry, network_table), manifest
 (the manifest's checks), network (the network a manifest describes, fitted to the mesh), load
 (load_entry, check_store, open_store).
 """
@@ -39,7 +39,7 @@ from .builds import UNLOCKED_BUILD_AGE_S, _build_folder, remove_stale_builds
 from .files import FORMAT_VERSION, MANIFEST, MESH, WEIGHTS, StoreError, sha256
 from .load import Entry, check_store, load_entry, open_store
 from .network import network_from_manifest
-from .write import write_entry
+from .write import network_table, write_entry
 
 __all__ = [
     "FORMAT_VERSION",
@@ -53,6 +53,7 @@ __all__ = [
     "check_store",
     "load_entry",
     "network_from_manifest",
+    "network_table",
     "open_store",
     "remove_stale_builds",
     "sha256",

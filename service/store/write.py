@@ -12,6 +12,7 @@ import tempfile
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -34,6 +35,22 @@ def _exchanged(a: Path, b: Path) -> bool:
         return exchange(a, b)
     except OSError:
         return False
+
+
+def network_table(net: Any, layout: str, n_region: int, n_nodes: int) -> dict:
+    """The manifest's `network` table of a trained `net` (the trainer's `layout`; Any: its
+    attributes are the layout's own): what the store needs to rebuild it (network_from_manifest)."""
+    features = int(net.feature_basis.shape[1]) if getattr(net, "physics", False) else None
+    return {
+        "layout": layout,
+        "hidden": list(net.hidden),
+        "n_in": features if features is not None else 3 * n_region,
+        "n_out": 3 * n_nodes,
+        "rank": int(net.basis.shape[1]) if hasattr(net, "basis") else None,
+        "members": int(getattr(net, "members", 1)),
+        "physics_skip": features is not None,
+        "features": features,
+    }
 
 
 def write_entry(

@@ -244,7 +244,8 @@ def test_a_timed_build_keeps_to_its_minutes_and_still_learns(tmp_path, bar):
     minutes = 0.25
     config = TrainConfig(hidden=(64, 64), rank=24, epochs=100_000, batch=32, lr=3e-3, physics_skip=True)
     # a small untimed build first pays this process's one-off loads (MKL's solver, numba, torch's
-    # first forward: up to 19 s under load), which the timed build's clock would count
+    # first forward: up to 19 s under load): the timed build's own warm-up then costs little and
+    # leaves its minutes to the data and training checked here (a cold process is test_train_cli's)
     warm = TrainConfig(hidden=(16,), rank=4, epochs=2, physics_skip=True)
     build(scene, tmp_path / "warm", samples=40, workers=0, data_root=tmp_path / "warm-data", config=warm,
           progress=False)  # fmt: skip
