@@ -83,7 +83,11 @@ def lbfgsb(
     lo = -options.force_bound if bounded else -np.inf
     hi = options.force_bound if bounded else np.inf
     z0 = P.to_z(begin.g.ravel())
-    cache = {"z": z0, "out": (begin.value / P.value_scale, P.grad_z(begin.grad.ravel()))}
+    # SciPy's stopping tests are relative to |f|: where far points hold a share no force
+    # changes (huber, PointToSurface.far_share) it sees the decrease from the start, which that
+    # share cannot hide; other losses see Phi itself (ref 0.0: the same bits as before)
+    ref = begin.value if distance.far_share else 0.0
+    cache = {"z": z0, "out": ((begin.value - ref) / P.value_scale, P.grad_z(begin.grad.ravel()))}
 
     best = {"z": z0, "f": cache["out"][0], "grad": begin.grad.ravel()}
     failures = []
@@ -104,10 +108,10 @@ def lbfgsb(
             # a trial point the forward model cannot reach: a steep bowl around the best
             # point, so the line search reads it as an overshoot and shortens the step
             failures.append(stop.message)
-            w = 10.0 * (1.0 + abs(best["f"]))
+            w = 10.0 * (1.0 + abs(best["f"] + ref / P.value_scale))
             dz = z - best["z"]
             return best["f"] + w * float(dz @ dz) + w, 2.0 * w * dz
-        f, gz = value / P.value_scale, P.grad_z(grad.ravel())
+        f, gz = (value - ref) / P.value_scale, P.grad_z(grad.ravel())
         if f < best["f"]:
             best.update(z=z.copy(), f=f, grad=grad.ravel())
         last.update(z=z, g=g, grad=grad.ravel())
@@ -116,6 +120,13 @@ def lbfgsb(
     last = {"z": z0, "g": begin.g.ravel(), "grad": begin.grad.ravel()}
     path_g, path_grad = [last["g"]], [last["grad"]]  # accepted iterates: curvature pairs
 
+    def projected(g: Array, grad: Array) -> float:
+        """The largest component of the projected gradient in force space (a bound's outward
+        pull left out)."""
+        if bounded:
+            grad = np.where(grad > 0, np.minimum(grad, g - lo), np.maximum(grad, g - hi))
+        return float(np.abs(grad).max())
+
     def converged(intermediate_result) -> None:
         """Projected gradient in force space against gtol x the rest state's."""
         if not np.array_equal(intermediate_result.x, last["z"]):
@@ -123,9 +134,7 @@ def lbfgsb(
         g, grad = last["g"], last["grad"]
         path_g.append(g)
         path_grad.append(grad)
-        if bounded:
-            grad = np.where(grad > 0, np.minimum(grad, g - lo), np.maximum(grad, g - hi))
-        if np.abs(grad).max() <= g_tol:
+        if projected(g, grad) <= g_tol:
             raise StopIteration
 
     bounds = None
@@ -146,7 +155,10 @@ def lbfgsb(
         curvature.update(path_g, path_grad)  # only converged frames teach the carried curvature
     # after the curvature: steps at roundoff's scale teach it nothing
     if status == "stalled":
-        status, message = stall(options.alpha, best["grad"], best["f"] * P.value_scale, message)
+        status, message = stall(options.alpha, best["grad"], best["f"] * P.value_scale + ref, message)
+    if status == "stalled":  # how far the gradient test was, in the message
+        ratio = projected(P.to_g(best["z"]), best["grad"]) / g_tol
+        message = _STALLED.format(ratio=ratio, scipy=res.message)
     if failures and status != "converged":
         status, message = "forward_failed", f"{len(failures)} trial points failed: {failures[-1]}"
     return status, message, nit
@@ -156,9 +168,15 @@ def lbfgsb(
 _MESSAGES = {
     "converged": "projected gradient below gtol",
     "max_iter": "{nit} iterations",
-    "stalled": "the objective stopped decreasing at working precision before the gradient test (L-BFGS-B: {scipy})",
     "line_search": "the line search found no lower point along the step (L-BFGS-B: {scipy})",
 }
+#: a stall's: no step lowers Phi, yet its gradient is not small (at a kink of the network's
+#: piecewise-linear activations the slope jumps, and no gradient vanishes at the optimum)
+_STALLED = (
+    "the objective stopped decreasing at working precision with its gradient still {ratio:.3g} times the "
+    "tolerance: no step lowers it, yet the gradient test does not pass (as on a kink, where the network's "
+    "piecewise-linear activations make the slope jump) (L-BFGS-B: {scipy})"
+)
 
 
 def _status(res) -> str:

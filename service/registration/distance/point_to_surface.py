@@ -242,6 +242,12 @@ class PointToSurface:
         self._last = self._uniform = None
         self._hint = _NO_HINT
 
+    @property
+    def far_share(self) -> bool:
+        """Whether J carries a share its forces barely move: huber's far points each add
+        delta (d - delta / 2), which grows with their distance while their pull stays delta."""
+        return self.loss == "huber"
+
     # -- evaluation -------------------------------------------------------------------------------
 
     def __call__(self, x: Array) -> tuple[float, Array]:
