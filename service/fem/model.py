@@ -80,7 +80,8 @@ ESTIMATE_RANK = 64
 #: at its best iterate, which need not be its last evaluation (a frame cut short by its budget
 #: mid line search), and solving for it again would be a Newton solve past the budget. 32
 #: covers a whole L-BFGS-B line search (30 trials at most) or Levenberg-Marquardt's 7 rejected
-#: steps after the best; on the paper's liver they hold 2.3 MB
+#: steps after the best (the best itself is pinned past them: FEMOperator.pin); on the paper's
+#: liver they hold 2.3 MB
 KEPT_EQUILIBRIA = 32
 
 
@@ -103,6 +104,8 @@ class FEMOperator:
         self._low_rank: tuple[Array, Array] | None = None
         # (g, u) of recent equilibria, latest first; the first is the next solve's start
         self._kept: list[tuple[Array, Array]] = []
+        # a frame's best equilibrium (:meth:`pin`), past the list: its outputs are read there
+        self._pinned: tuple[Array, Array] | None = None
         self._rest_jacobian: DenseJacobian | None = None
         self._rest_leading: LowRankJacobian | None = None  # a large support's, for the estimate
         self._helper: SparseSolver | None = None  # a second factor, for the Jacobian's other half
@@ -116,6 +119,7 @@ class FEMOperator:
 
     def reset(self) -> None:
         self._kept = []
+        self._pinned = None
         self._last_jacobian = None
         self._held = None
 
@@ -139,6 +143,13 @@ class FEMOperator:
         others.append((float(np.linalg.norm(g)), None))  # rest
         for _, u in sorted((o for o in others if o[0] < near), key=lambda o: o[0])[:2]:
             yield u
+
+    def pin(self, g: Array) -> None:
+        """Keeps the equilibrium under g, the latest evaluated (a frame's new best iterate), until
+        the next pin or reset, however many solves follow: more than KEPT_EQUILIBRIA after it
+        evicted it, and the frame's outputs solved for it again with no deadline."""
+        if self._kept and np.array_equal(self._kept[0][0], g):
+            self._pinned = self._kept[0]
 
     def _solve(self, g: Array) -> NewtonResult:
         G = np.zeros((self.mesh.n_nodes, 3))
@@ -172,6 +183,10 @@ class FEMOperator:
             if np.array_equal(g_kept, g):
                 self._kept.insert(0, self._kept.pop(i))  # the latest now
                 return u_kept
+        pinned = self._pinned
+        if pinned is not None and np.array_equal(pinned[0], g):  # evicted from the list: back in it
+            self._kept = [pinned, *self._kept[: KEPT_EQUILIBRIA - 1]]
+            return pinned[1]
         return self._solve(g).u
 
     def _rest_solver(self) -> RestCompliance:

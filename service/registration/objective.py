@@ -55,6 +55,8 @@ class Objective:
         self.last_u: Array | None = None  # displacement of op.nodes at the last evaluation
         self.rest_u: Array | None = None  # ... and at g = 0
         self.prefetch: Callable[[Array], None] | None = None  # told each loaded g the model answered
+        # an operator that keeps its solves (the FEM's) holds the best one however many follow
+        self._pin: Callable[[Array], None] | None = getattr(op, "pin", None)
 
     def __call__(self, g: Array) -> tuple[float, Array, float]:
         """(Phi, dPhi/dg (k, 3), J). Raises Stop when the forward model fails or a value is
@@ -93,6 +95,8 @@ class Objective:
             self.best_value, self.best_g, self.best_J = value, np.array(g, np.float64), J
             self.best_u = u
             self.best_rms = self.distance.last_rms
+            if self._pin is not None and g2 > 0.0:  # zero load is the rest state, never solved
+                self._pin(g)
         return value, grad, J
 
     def late(self, deadline: float | None) -> bool:

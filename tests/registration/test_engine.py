@@ -146,6 +146,27 @@ def test_a_start_the_forward_model_cannot_solve_is_skipped(entry):
         np.testing.assert_allclose(sol.g, plain.g, rtol=1e-9, atol=1e-12)
 
 
+def test_a_frames_best_equilibrium_outlives_the_kept_list(entry):
+    """A frame's outputs are read at its best iterate. More than KEPT_EQUILIBRIA evaluations
+    after it (a long line search's, a budget's last ones) evicted its equilibrium, and the
+    outputs solved for it again, after the frame, with no deadline; the best one is kept."""
+    from service.fem.model import KEPT_EQUILIBRIA
+
+    mesh, support, g_true, pts, dist = tip_pull(entry)
+    evaluate = objective_for(FEMModel(mesh, MAT), mesh, support, pts, alpha=1e-9)
+    evaluate(g_true)  # the cloud's own load: J = 0, the best
+    for i in range(KEPT_EQUILIBRIA + 1):
+        evaluate((1.2 + 0.01 * i) * g_true)
+    assert np.array_equal(evaluate.best_g, g_true) and evaluate.evaluations == KEPT_EQUILIBRIA + 2
+    op = evaluate.op
+    last = op.last  # the latest Newton solve's result: a new one for each solve
+    u = op.displacement(evaluate.best_g)  # what the frame's outputs read (outputs._field)
+    assert op.last is last  # no solve
+    assert np.array_equal(u[dist.nodes], evaluate.best_u)
+    op.displacement(1.2 * g_true)  # evicted, and not the best: solved again
+    assert op.last is not last and op.last.converged
+
+
 def test_a_deadline_at_a_start_still_stops_the_frame(entry):
     mesh, support, g_true, pts, dist = tip_pull(entry)
     late = LateSolves(entry.fem.restrict(support, dist.nodes))
