@@ -34,6 +34,7 @@ import numpy as np
 from . import protocol as p
 from .answers import error_body
 from .connection import ClientStalled, Connection, ConnectionReader, Evicted, keepalive
+from .lograte import Seen, Throttle
 from .relay import ApiRefused, BridgeError, Relay, Surface, close_stream
 
 __all__ = ["Bridge", "BridgeError", "Surface", "run", "serve"]
@@ -75,7 +76,8 @@ class Bridge(Relay):
         if not 0 < self.idle_timeout < float("inf"):
             raise ValueError(f"idle_timeout must be a positive finite number of seconds, got {idle_timeout!r}")
         self._client: Connection | None = None  # the client that holds the one slot
-        self._ignored: set[tuple[str, str]] = set()  # (type, device) of messages ignored so far
+        self._ignored = Seen()  # (type, device) of messages ignored lately (an LRU: a peer may send any number)
+        self._throttle = Throttle(log)  # the lines clients' messages cause, all clients together
 
     @property
     def busy(self) -> bool:
@@ -120,6 +122,7 @@ class Bridge(Relay):
             send_timeout=self.send_timeout,
             send_min_rate=self.send_min_rate,
             read_timeout=self.read_timeout,
+            throttle=self._throttle,
         )
         arrived = time.monotonic()
         if self.busy:  # a reconnecting client's close may be seen a moment after its new connection
@@ -194,15 +197,14 @@ class Bridge(Relay):
 
     async def _cloud(self, msg: p.Message, client: Connection) -> np.ndarray | None:
         if msg.device != self.device or msg.type not in ("POLYDATA", "POINT"):
-            key = (msg.type, msg.device)  # a warning the first time, then quietly (a sender may repeat it)
-            log.log(
-                logging.INFO if key in self._ignored else logging.WARNING,
+            first = self._ignored.first((msg.type, msg.device))  # a warning the first time, then quietly
+            self._throttle(
+                logging.WARNING if first else logging.INFO,
                 "ignored a %s message named %r (frames are POLYDATA or POINT named %r)",
                 msg.type,
                 msg.device,
                 self.device,
             )
-            self._ignored.add(key)
             return None
         # the body is the bridge's own buffer (Connection): a POLYDATA's points are decoded in it
         decode = functools.partial(p.decode_polydata, reuse=True) if msg.type == "POLYDATA" else p.decode_point

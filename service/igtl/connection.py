@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 from ..sendwait import Stalled, drop, progressing
 from . import protocol as p
 from .answers import error_body, status_message
+from .lograte import Throttle
 
 if TYPE_CHECKING:
     from clients.client import AsyncStream
@@ -54,6 +55,7 @@ class Connection:
         send_timeout: float,
         send_min_rate: float,
         read_timeout: float,
+        throttle: Throttle | None = None,
     ) -> None:
         self.reader = reader
         self.writer = writer
@@ -66,6 +68,8 @@ class Connection:
         self.send_timeout = send_timeout
         self.send_min_rate = send_min_rate
         self.read_timeout = read_timeout
+        #: what its malformed messages are logged through (the bridge's: shared by its clients)
+        self.throttle = throttle or Throttle(log)
         self._socket = writer.get_extra_info("socket")
         #: since when it has sent nothing and had nothing answered (monotonic s; its connection at
         #: first), None while one of its messages is read or answered
@@ -160,7 +164,7 @@ class Connection:
 
     async def malformed(self, exc: p.ProtocolError, version: int) -> None:
         """A malformed message's answer: its error in the shape a refused frame's has."""
-        log.warning("malformed message: %s", exc)
+        self.throttle(logging.WARNING, "malformed message: %s", exc)
         await self.send(status_message({"error": error_body(exc.code, str(exc))}, version))
 
     async def tell(self, error) -> None:
