@@ -4,10 +4,11 @@ front of the registration API.
 The bridge is a client of the HTTP/WebSocket API (:class:`clients.AsyncClient`), never a part
 of the engine: each OpenIGTLink client gets one ``/stream`` session, which a viewer can watch
 (``/viewer?session=ID``). One client at a time: a second, while the first is connected, is told
-so and closed; one that comes as the first leaves (a reconnect) is served at once, while the
-first's session closes; one that comes while the first is silent (a Slicer that crashed or slept
-and left its connection half-open) takes the slot once the first has been silent for
-``idle_timeout``, if it is still connected then (a TCP probe that closed evicts no one).
+so and closed; one that comes as the first leaves (a reconnect) takes the slot at once, and its
+session opens once the first's frame in flight is answered and its session closed; one that
+comes while the first is silent (a Slicer that crashed or slept and left its connection
+half-open) takes the slot once the first has been silent for ``idle_timeout``, if it is still
+connected then (a TCP probe that closed evicts no one).
 
 In: ``POLYDATA`` (a model's points, as Slicer sends one) or ``POINT`` named ``cloud`` (the
 device name is configurable) is one frame. Out, per frame: ``POLYDATA`` ``registered`` (the
@@ -76,6 +77,7 @@ class Bridge(Relay):
         if not 0 < self.idle_timeout < float("inf"):
             raise ValueError(f"idle_timeout must be a positive finite number of seconds, got {idle_timeout!r}")
         self._client: Connection | None = None  # the client that holds the one slot
+        self._last: Connection | None = None  # the latest to take it: the next waits for its teardown
         self._ignored = Seen()  # (type, device) of messages ignored lately (an LRU: a peer may send any number)
         self._throttle = Throttle(log)  # the lines clients' messages cause, all clients together
 
@@ -140,10 +142,15 @@ class Bridge(Relay):
             await client.close()
             return
         self._client = client
+        previous, self._last = self._last, client
         keepalive(writer.get_extra_info("socket"))
         log.info("client %s connected", client.peer)
         error: dict | str | None = None  # the last status, when the connection ends on an error
         try:
+            if previous is not None:  # its frame in flight and its session end first: a client that
+                await previous.closed.wait()  # reconnects in a loop holds one API session, not one each
+            if client.reader.at_eof():  # left while it waited, having sent nothing: no session
+                return
             await self._serve(client)
         except (ConnectionError, asyncio.IncompleteReadError):
             pass
@@ -163,16 +170,19 @@ class Bridge(Relay):
             error = error_body(500, f"internal error in the bridge ({type(exc).__name__}); it has been logged")
         finally:
             # the slot is freed before the teardown (the last status, the API stream, the socket
-            # can take a while): a client that reconnects at once is served meanwhile, and the
-            # teardown closes only what is this client's own
+            # can take a while): a client that reconnects at once takes it, not refused, and its
+            # session opens once this teardown is over (``closed``)
             client.left.set()
             if self._client is client:
                 self._client = None
-            if error is not None:
-                await client.tell(error)
-            await close_stream(client.stream)
-            await client.close()
-            log.info("client %s disconnected", client.peer)
+            try:
+                if error is not None:
+                    await client.tell(error)
+                await close_stream(client.stream)
+                await client.close()
+                log.info("client %s disconnected", client.peer)
+            finally:
+                client.closed.set()
 
     async def _serve(self, client: Connection) -> None:
         """Frames until the client leaves; its stream is left open on ``client`` (the caller

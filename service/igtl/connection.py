@@ -65,6 +65,8 @@ class Connection:
         #: set once it sends nothing more: it closed its side of the connection or lost it (what
         #: it sent before is still read, registered and answered), or its frames are over
         self.left = reader.ended if isinstance(reader, ConnectionReader) else asyncio.Event()
+        #: set once its teardown is over: its frames answered, its API stream and socket closed
+        self.closed = asyncio.Event()
         self.send_timeout = send_timeout
         self.send_min_rate = send_min_rate
         self.read_timeout = read_timeout

@@ -1,8 +1,8 @@
 """One client at a time, as docs/frontends.md says: a second client while the first is connected
 is refused (a 503 status, then closed) and the first goes on; a client that reconnects at once
-(Slicer's connector toggled off and on, a client that dropped with a frame in flight) is served
-while the bridge still closes its old connection, and that late teardown closes only the old
-session."""
+(Slicer's connector toggled off and on, a client that dropped with a frame in flight) takes the
+slot at once and is served once the old connection's frame is answered and its session closed:
+one API session at a time, however fast a client reconnects."""
 
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ import socket
 import threading
 import time
 
+import httpx
 import pytest
 
 from service.igtl import bridge as bridge_module
@@ -97,9 +98,8 @@ def test_a_connection_that_closes_at_once_evicts_no_silent_client(api_server, ru
 
 def test_a_client_that_reconnects_at_once_is_served(api_server, run_bridge, monkeypatch):
     """Closing a session here waits until the test lets it (as an API slow to answer the close
-    would): a client that closes and connects again at once is served meanwhile, over a new
-    session, and the old connection's late teardown closes the old session only; the new one
-    goes on."""
+    would): a client that closes and connects again at once takes the slot, not refused, and is
+    served over a new session once the old session is closed; the new one goes on."""
     api = api_server()
     mesh = get_mesh(api.url, "bar")
     n = len(mesh["surface_nodes"])
@@ -118,11 +118,14 @@ def test_a_client_that_reconnects_at_once_is_served(api_server, run_bridge, monk
         old_sid = registered(read_answer(old), n)["session"]
     with bridge.connect() as new:  # at once, while the old session is being closed
         new.sendall(frame)
-        new_sid = registered(read_answer(new), n)["session"]
-        assert new_sid != old_sid and is_open(api.url, old_sid)  # not waited for
+        new.settimeout(1.0)
+        with pytest.raises(TimeoutError):  # one session at a time: the old one's close first
+            new.recv(1)
+        assert bridge.bridge.busy and is_open(api.url, old_sid)
         release.set()
-        wait_closed(api.url, old_sid)  # the old teardown is over
-        assert is_open(api.url, new_sid)
+        new.settimeout(60)
+        new_sid = registered(read_answer(new), n)["session"]
+        assert new_sid != old_sid and not is_open(api.url, old_sid)
         new.sendall(frame)
         after = registered(read_answer(new), n)
         assert after["session"] == new_sid and after["frame_id"] == 1
@@ -175,3 +178,36 @@ def test_a_reconnect_is_served_while_the_old_connection_holds_unread_frames(api_
         new.sendall(small)
         sid = registered(read_answer(new), n)["session"]
     assert sid in bridge.bridge.sessions[1:]
+
+
+def test_a_storm_of_reconnects_holds_one_session_at_a_time(api_server, run_bridge):
+    """Connect, send a frame, close at once, again and again (the review's storm): each new
+    connection waits for the old one's frame and session close before its own session opens, so
+    the API holds one or two of the bridge's sessions at any time, not one per connection, and a
+    client that comes after is served."""
+    api = api_server()
+    mesh = get_mesh(api.url, "bar")
+    frame = point_frame(surface_cloud(mesh, n=2000))  # a frame that takes the solver a while
+    bridge = run_bridge(api.url)
+    peak, stop = [0], threading.Event()
+
+    def watch() -> None:  # the API's open sessions, as its /health counts them
+        with httpx.Client(timeout=10) as http:
+            while not stop.is_set():
+                peak[0] = max(peak[0], http.get(f"{api.url}/health").json()["sessions"]["open"])
+                time.sleep(0.01)
+
+    watcher = threading.Thread(target=watch, daemon=True)
+    watcher.start()
+    try:
+        for _ in range(20):
+            with bridge.connect() as sock:
+                sock.sendall(frame)
+                time.sleep(0.05)
+        with bridge.connect() as sock:
+            sock.sendall(frame)
+            registered(read_answer(sock), len(mesh["surface_nodes"]))
+    finally:
+        stop.set()
+        watcher.join()
+    assert peak[0] <= 2, f"{peak[0]} sessions open at once"
