@@ -73,9 +73,20 @@ class Connection:
         #: what its malformed messages are logged through (the bridge's: shared by its clients)
         self.throttle = throttle or Throttle(log)
         self._socket = writer.get_extra_info("socket")
-        #: since when it has sent nothing and had nothing answered (monotonic s; its connection at
-        #: first), None while one of its messages is read or answered
-        self.quiet_since: float | None = time.monotonic()
+        self._quiet_since: float | None = time.monotonic()  # see quiet_since
+        self._heard = 0  # bytes received when it fell quiet: past them it has spoken
+
+    @property
+    def quiet_since(self) -> float | None:
+        """Since when it has sent nothing and had nothing answered (monotonic s; its connection at
+        first); None while one of its messages is read or answered, or bytes it sent wait unread
+        (a cloud sent while its session opens is no silence)."""
+        if self._quiet_since is None or self._received() > self._heard:
+            return None
+        return self._quiet_since
+
+    def _received(self) -> int:
+        return self.reader.received if isinstance(self.reader, ConnectionReader) else 0
 
     def evict(self, why: str) -> None:
         """End a client that is waiting for its next message: its read raises Evicted(why), and
@@ -102,10 +113,11 @@ class Connection:
         """The next message; None (answered or logged) when it is malformed or not for us.
         A client may be quiet between messages as long as it likes; once a message began, the
         rest must come within read_timeout (ClientStalled past it)."""
-        if self.quiet_since is None:  # its last message answered (or ignored): silent from now
-            self.quiet_since = time.monotonic()
+        if self._quiet_since is None:  # its last message answered (or ignored): silent from now
+            # bytes already buffered are read at once, with no await in which to look at them
+            self._quiet_since, self._heard = time.monotonic(), self._received()
         first = await self.reader.readexactly(1)
-        self.quiet_since = None
+        self._quiet_since = None
         try:
             async with asyncio.timeout(self.read_timeout):
                 return await self._read_rest(first)
@@ -191,11 +203,17 @@ class Connection:
 
 class ConnectionReader(asyncio.StreamReader):
     """A StreamReader whose ``ended`` is set when its peer closes its side or the connection is
-    lost, even while bytes it sent before are unread (at_eof() waits for those)."""
+    lost, even while bytes it sent before are unread (at_eof() waits for those), and which
+    counts the bytes ``received`` (a peer that sent bytes not read yet is not silent)."""
 
     def __init__(self, *, loop: asyncio.AbstractEventLoop) -> None:
         super().__init__(loop=loop)
         self.ended = asyncio.Event()
+        self.received = 0  # bytes its peer has sent, read or not
+
+    def feed_data(self, data: bytes) -> None:  # type: ignore[override]  # a transport feeds bytes
+        self.received += len(data)
+        super().feed_data(data)
 
     def feed_eof(self) -> None:
         self.ended.set()

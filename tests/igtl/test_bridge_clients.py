@@ -7,15 +7,20 @@ one API session at a time, however fast a client reconnects."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import select
+import signal
 import socket
+import subprocess
+import sys
 import threading
 import time
 
 import httpx
 import pytest
 
+from service.api.server import free_port
 from service.igtl import bridge as bridge_module
 from service.igtl import protocol as p
 
@@ -211,3 +216,42 @@ def test_a_storm_of_reconnects_holds_one_session_at_a_time(api_server, run_bridg
         stop.set()
         watcher.join()
     assert peak[0] <= 2, f"{peak[0]} sessions open at once"
+
+
+def test_a_client_that_sent_its_cloud_while_its_session_opens_is_not_silent(bar_store, run_bridge, tmp_path):
+    """The API (its own process) is stopped (SIGSTOP), so client A's session is still opening
+    when A sends its cloud; B connects and stays silent. A has spoken: it keeps the slot and is
+    answered once the API goes on, and B is refused (503), as docs/frontends.md says of a holder
+    that sent a message first. A was evicted as "silent" (409) and its frame never answered."""
+    port = free_port()
+    cmd = [sys.executable, "-m", "service.cli", "serve", "--store", str(bar_store[0]), "--port", str(port)]
+    server = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=(tmp_path / "serve.log").open("w"))
+    try:
+        url = f"http://127.0.0.1:{port}"
+        deadline = time.monotonic() + 120
+        while True:
+            with contextlib.suppress(httpx.TransportError):
+                if httpx.get(f"{url}/health", timeout=5).status_code == 200:
+                    break
+            assert server.poll() is None and time.monotonic() < deadline, (tmp_path / "serve.log").read_text()
+            time.sleep(0.2)
+        mesh = get_mesh(url, "bar")
+        bridge = run_bridge(url, idle_timeout=1.0)
+        server.send_signal(signal.SIGSTOP)
+        try:
+            a = bridge.connect()
+            a.sendall(point_frame(surface_cloud(mesh)))
+            time.sleep(0.5)
+            with bridge.connect(timeout=10) as b:  # silent
+                msg = read_message(b)
+                assert json.loads(p.decode_string(msg.content))["error"]["code"] == 503
+                time.sleep(1.5)  # past A's idle timeout, had it been silent
+        finally:
+            server.send_signal(signal.SIGCONT)
+        with a:
+            status = registered(read_answer(a), len(mesh["surface_nodes"]))
+            assert status["frame_id"] == 0
+    finally:
+        server.send_signal(signal.SIGCONT)
+        server.terminate()
+        server.wait(30)
