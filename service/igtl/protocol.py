@@ -355,6 +355,9 @@ def decode_polydata(content: bytes | bytearray, *, reuse: bool = False) -> PolyD
 
 
 def _attributes(content: bytes | bytearray, at: int, count: int) -> dict[str, np.ndarray]:
+    left = len(content) - at
+    if 7 * count > left:  # a 6-byte head and a name of at least its NUL each, before any is read
+        raise ProtocolError(f"POLYDATA: {count} attributes cannot fit in the {left} bytes left of its body")
     try:
         heads = [struct.unpack_from(">BBI", content, at + 6 * i) for i in range(count)]
         at += 6 * count

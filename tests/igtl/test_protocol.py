@@ -237,3 +237,19 @@ def test_a_bytearray_body_is_the_content_and_its_points_are_decoded_in_place(sur
     np.testing.assert_array_equal(poly.points, points)
     np.testing.assert_array_equal(poly.triangles, tris)
     assert np.shares_memory(poly.points, np.frombuffer(body, np.uint8))  # no copy
+
+
+def test_an_attribute_count_the_body_cannot_hold_is_refused_before_reading_them():
+    """natt = 2**32-1 over 4 MiB of zeros: the attribute heads were read into a list (about 13
+    times the body, the review's +212 MiB for 16 MiB) before the body was found too short."""
+    body = p.POLY_HEADER.pack(0, 0, 0, 0, 0, 0, 0, 0, 0, 0xFFFFFFFF) + bytes(4 << 20)
+    tracemalloc.start()
+    try:
+        with pytest.raises(p.ProtocolError) as refused:
+            p.decode_polydata(body)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    size = len(body)
+    assert peak < size // 10, f"{peak / size:.1f}x the body"
+    assert refused.value.code == 400 and "4294967295 attributes cannot fit" in str(refused.value)
