@@ -134,7 +134,7 @@ class Connection:
             if size > p.MAX_BODY:  # cannot find the next message: the connection is lost
                 await self.malformed(exc, self.version)
                 raise ConnectionError(str(exc)) from None
-            await reader.readexactly(size)
+            await self._discard(size)
             await self.malformed(exc, self.version)
             return None
         self.version = min(version, 2)
@@ -146,18 +146,24 @@ class Connection:
             return None
 
     async def _read_body(self, size: int) -> bytearray:
-        """``size`` bytes in one buffer, moved into it as they come: readexactly held a large body
-        twice (its reader's buffer grown to the whole body, then the bytes copied out of it)."""
-        body = bytearray(size)
-        at = 0
-        with memoryview(body) as view:  # released before the caller trims the buffer in place
-            while at < size:
-                chunk = await self.reader.read(size - at)  # what is buffered, up to the reader's limit
-                if not chunk:
-                    raise asyncio.IncompleteReadError(b"", size)
-                view[at : at + len(chunk)] = chunk
-                at += len(chunk)
+        """``size`` bytes in one buffer, grown as they come: readexactly held a large body twice
+        (its reader's buffer grown to the whole body, then the bytes copied out of it), and a
+        buffer of ``size`` made at once let a 58-byte header announcing 256 MiB cost 256 MiB."""
+        body = bytearray()
+        while len(body) < size:  # a large buffer grows in place (realloc), about 1.1x its bytes
+            chunk = await self.reader.read(size - len(body))  # what is buffered, up to the reader's limit
+            if not chunk:
+                raise asyncio.IncompleteReadError(b"", size)
+            body += chunk
         return body
+
+    async def _discard(self, size: int) -> None:
+        """Skip ``size`` bytes as they come, holding none (a body whose header is refused)."""
+        while size > 0:
+            chunk = await self.reader.read(size)
+            if not chunk:
+                raise asyncio.IncompleteReadError(b"", size)
+            size -= len(chunk)
 
     # -- out ---------------------------------------------------------------------------------
 

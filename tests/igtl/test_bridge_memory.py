@@ -4,12 +4,19 @@ and a POLYDATA's points are decoded where they lie."""
 
 from __future__ import annotations
 
+import select
+import socket
+import subprocess
+import sys
+import threading
 import time
 import tracemalloc
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+from service.api.server import free_port
 from service.igtl import protocol as p
 
 from .conftest import point_frame, polydata_frame, read_answer
@@ -44,3 +51,49 @@ def test_a_large_cloud_costs_about_its_body_once(kind, n, version, api_server, r
         tracemalloc.stop()
     assert surface is None and status["error"]["code"] == 413, status
     assert peak < BOUND * body, f"peak {peak / 1e6:.1f} MB for a body of {body / 1e6:.1f} MB ({peak / body:.2f}x)"
+
+
+def rss_mib(pid: int) -> float:
+    """A process's resident memory now (VmRSS of /proc/PID/status), in MiB."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    raise AssertionError(f"no VmRSS for process {pid}")
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads /proc")
+def test_a_header_alone_costs_nothing_and_a_refused_body_is_not_held(api_server):
+    """The bridge in its own process (`elastreg igtl`), its RSS from /proc: a 58-byte header
+    announcing 256 MiB with nothing after made it allocate 256 MiB at once, held for up to
+    body_timeout_s; a version-3 header (refused) with a 64 MiB body behind it peaked at about
+    twice the body (read whole, then copied). Now the buffer grows with what comes, and a
+    refused body is skipped as it comes."""
+    api = api_server()
+    port = free_port()
+    cmd = [sys.executable, "-m", "service.cli", "igtl", "--model", "bar", "--server", api.url, "--port", str(port)]
+    bridge = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    try:
+        assert "OpenIGTLink on" in bridge.stdout.readline()
+        with socket.create_connection(("127.0.0.1", port), timeout=60) as sock:
+            time.sleep(0.5)  # its session opened
+            base = rss_mib(bridge.pid)
+            sock.sendall(p.HEADER.pack(1, b"POINT", b"cloud", 0, 0, p.MAX_BODY, 0))
+            time.sleep(1.0)
+            grown = rss_mib(bridge.pid) - base
+        assert grown < 32, f"+{grown:.0f} MiB for a header announcing {p.MAX_BODY >> 20} MiB"
+        body = bytes(64 << 20)
+        refused = p.HEADER.pack(3, b"POINT", b"cloud", 0, 0, len(body), 0) + body
+        with socket.create_connection(("127.0.0.1", port), timeout=60) as sock:
+            time.sleep(0.5)
+            base = peak = rss_mib(bridge.pid)
+            sender = threading.Thread(target=sock.sendall, args=(refused,))
+            sender.start()
+            while sender.is_alive() or not select.select([sock], [], [], 0)[0]:
+                peak = max(peak, rss_mib(bridge.pid))
+                time.sleep(0.005)
+            sender.join()
+            assert read_answer(sock)[1]["error"]["code"] == 400
+        assert peak - base < 32, f"+{peak - base:.0f} MiB for a refused body of {len(body) >> 20} MiB"
+    finally:
+        bridge.kill()
+        bridge.wait(30)
