@@ -27,6 +27,7 @@ import contextlib
 import functools
 import logging
 import os
+import socket
 import sys
 import time
 
@@ -256,6 +257,8 @@ async def serve(bridge: Bridge, host: str, port: int, ready=None) -> None:
 
     try:
         server = await loop.create_server(connection, host, port)
+    except socket.gaierror as exc:  # getaddrinfo's codes are not errno's: os.strerror(-2) is "Unknown error -2"
+        raise BridgeError(f"cannot listen on {host}:{port}: the host does not resolve ({exc.strerror})") from None
     except OSError as exc:
         why = os.strerror(exc.errno) if exc.errno else str(exc)  # not asyncio's whole sentence
         raise BridgeError(f"cannot listen on {host}:{port}: {why}") from None

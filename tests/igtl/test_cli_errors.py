@@ -49,6 +49,17 @@ def test_a_bridge_that_cannot_start_says_why_in_one_line(case, api_server):
     assert lines[0].startswith("error: ") and words in lines[0], lines
 
 
+@pytest.mark.parametrize("host", ["nosuch.invalid", "256.1.1.1"])
+def test_a_host_that_does_not_resolve_is_named_so_in_one_line(host, api_server):
+    """getaddrinfo's failure was told through os.strerror: "Unknown error -2"."""
+    port = free_port()
+    r = igtl("--model", "bar", "--server", api_server().url, "--port", str(port), "--host", host)
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 1 and len(lines) == 1, r.stderr
+    assert lines[0].startswith(f"error: cannot listen on {host}:{port}: the host does not resolve ("), lines
+    assert "Unknown error" not in lines[0], lines
+
+
 # (case, the file's content, words of the one line): each a --support the bridge cannot read
 UNREADABLE_SUPPORT = [
     ("not ids", "1 2 3.5\n", "cannot read node ids from {f}: invalid literal for int() with base 10: '3.5'"),
