@@ -312,7 +312,9 @@ def test_watchers_do_not_slow_the_session(live, http, support, clouds):
         f"server solve {med['alone']:.2f} vs {med['watched']:.2f} ms; "
         f"messages per watcher per block: {counts}"
     )
-    assert all(c >= 6 for block in counts for c in block)  # they were watching (hello + frames)
+    # they were watching: the hello and frames (a watcher that falls behind skips to the newest
+    # frame, API.md, so a loaded machine's watchers may see 3 of 8: at least 2 of them, not 5)
+    assert all(c >= 3 for block in counts for c in block), counts
     # generous: on 2 shared cores the watchers' process and the sends compete for CPU with the
     # solve (the server's own solve time shows it); a watcher that blocks the session would
     # show as a multiple of the solve time, not a fraction of it
