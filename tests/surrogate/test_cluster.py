@@ -120,15 +120,16 @@ def test_a_timed_build_on_a_dask_cluster_keeps_to_its_minutes(tmp_path, bar, clu
     scene_file = write_bar_scene(tmp_path / "scene", bar, samples=30_000)  # far too many
     t0 = time.perf_counter()
     r = subprocess.run(
-        [sys.executable, "-m", "service.cli", "train", str(scene_file), "--scheduler", cluster, "--minutes", "0.25",
+        [sys.executable, "-m", "service.cli", "train", str(scene_file), "--scheduler", cluster, "--minutes", "0.5",
          "--store", str(tmp_path / "store"), "--data", str(tmp_path / "data"), "--hidden", "32", "--rank", "8"],
         capture_output=True, text=True, timeout=600, cwd=ROOT,
     )  # fmt: skip
     wall = time.perf_counter() - t0
     assert r.returncode == 0, r.stderr[-3000:]
-    assert wall < 0.25 * 60 + 20  # the budget, plus the interpreter's start and a loaded machine
+    # 0.5, not less: the minutes count from the process's start (11 s of it under a load of 10)
+    assert wall < 0.5 * 60 + 20  # the budget, plus a loaded machine
     entry = load_entry(tmp_path / "store" / "bar")
-    assert entry.manifest["training"]["minutes"] == 0.25
+    assert entry.manifest["training"]["minutes"] == 0.5
     assert 2 <= entry.manifest["training"]["paths"] < 10_000
 
 

@@ -33,9 +33,10 @@ def train(scene: Path, tmp_path: Path, *flags: str, timeout: float = 300, env=No
 @pytest.mark.parametrize(
     ("listening", "flags", "env", "bound"),
     [
-        (True, ["--minutes", "0.1"], {}, 6),  # the build's deadline bounds the wait
+        # --minutes 0.3, not less: a cold process's start counts, and its warm-up comes first
+        (True, ["--minutes", "0.3"], {}, 11),  # the data share (10.8 s) bounds the wait
         (True, [], {"DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT": "3s"}, 3),  # untimed: Dask's connect timeout
-        (False, ["--minutes", "0.1"], {}, 6),  # a refused port was retried for Dask's 30 s
+        (False, ["--minutes", "0.3"], {}, 11),  # a refused port was retried for Dask's 30 s
     ],
     ids=["silent-timed", "silent-untimed", "refused-timed"],
 )
@@ -107,7 +108,8 @@ def test_a_scheduler_address_whose_server_speaks_first_is_no_scheduler(tmp_path,
 @pytest.mark.parametrize(
     ("flags", "env", "bound"),
     [
-        (["--minutes", "0.1"], {}, 3.6),  # the build's data share of its minutes bounds the wait
+        # 0.3, not less: a cold process's start counts (11 s of it under a load of 10)
+        (["--minutes", "0.3"], {}, 10.8),  # the build's data share of its minutes bounds the wait
         ([], {"DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT": "3s"}, 3),  # untimed: Dask's connect timeout
     ],
     ids=["timed", "untimed"],
