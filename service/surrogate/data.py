@@ -39,7 +39,7 @@ from .cluster import (
     _wait_for_workers,
     local_workers_pay,
 )
-from .pathfiles import done_indices, load_dataset, path_file, write_path, writing
+from .pathfiles import done_indices, intact_indices, load_dataset, path_file, write_path, writing
 
 # the data set's files are read through this module too (pathfiles.py holds them)
 __all__ = [
@@ -232,7 +232,9 @@ def _generate(
     deadline: float | None,
 ) -> Generator[dict, None, None]:
     """generate's work, in a folder held for writing."""
-    on_disk = frozenset(i for i in done_indices(data_dir) if i < n_paths)  # listed once, not once per path
+    listed = sorted(i for i in done_indices(data_dir) if i < n_paths)  # listed once, not once per path
+    # a damaged file (cut short by a power cut, a stray one) is set aside and its path solved again
+    on_disk = frozenset(intact_indices(data_dir, listed, len(spec.region), mesh.n_nodes, spec.steps))
     # lazy: a timed build's samples are a ceiling (millions of paths), its clock what ends it
     todo = (i for i in range(n_paths) if i not in on_disk)
     bar = _progress(n_paths, len(on_disk), progress)

@@ -2,7 +2,9 @@
 
 Per path file ``path_NNNNNN.npz``: ``forces`` (s, r, 3) float32 on the region nodes, ``u``
 (s, n, 3) float32 for all nodes, ``newton_iterations`` (s,), s <= steps. A generation writes
-them under `writing`, which removes the temporaries of writes killed mid-way first.
+them under `writing`, which removes the temporaries of writes killed mid-way first. A finished
+file that is not what write_path wrote (cut short, emptied, arrays of other shapes) is set aside
+as ``path_NNNNNN.npz.damaged`` with a warning, never deleted, and its path counts as not done.
 """
 
 from __future__ import annotations
@@ -12,6 +14,8 @@ import logging
 import os
 import re
 import tempfile
+import zipfile
+import zlib
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -26,6 +30,11 @@ Array = np.ndarray
 _PATH_NAME = re.compile(r"path_(\d{6})\.npz")
 #: write_path's temporary, .path_NNNNNN-XXXXXXXX.tmp.npz (XXXXXXXX: tempfile's 8 characters)
 _TEMPORARY = re.compile(rf"\.path_\d{{6}}-{RANDOM}\.tmp\.npz")
+#: a path file's arrays, in write_path's order
+_ARRAYS = ("forces", "u", "newton_iterations")
+#: what reading a file that is not write_path's raises (a cut-short zip, an empty file, a bad
+#: header, a missing array, a bad CRC); a PermissionError is the user's to fix, never set aside
+_DAMAGED = (zipfile.BadZipFile, EOFError, ValueError, KeyError, zlib.error, OSError)
 
 
 def path_file(data_dir: Path, index: int) -> Path:
@@ -46,7 +55,10 @@ def write_path(data_dir: Path, result: dict) -> None:
     try:
         with os.fdopen(fd, "wb") as f:
             np.savez(f, forces=result["forces"], u=result["u"], newton_iterations=result["newton_iterations"])
+            f.flush()
+            os.fsync(f.fileno())  # on disk before its name says finished: a power cut leaves no empty path file
         os.replace(tmp, final)
+        _sync_folder(final.parent)  # the rename itself on disk
     except BaseException as exc:
         tmp.unlink(missing_ok=True)
         if isinstance(exc, OSError) and exc.filename is None:  # written through the fd: it names no file
@@ -54,15 +66,108 @@ def write_path(data_dir: Path, result: dict) -> None:
         raise
 
 
-def load_dataset(data_dir: Path, indices: list[int] | None = None) -> tuple[Array, Array, Array]:
-    """All samples on disk: forces (N, r, 3), u (N, n, 3) float32, and each sample's path index."""
+def _sync_folder(folder: Path) -> None:
+    """fsync a folder, so the renames in it survive a power cut (where the system can: not Windows)."""
+    with contextlib.suppress(OSError):  # a folder that cannot be opened or synced: the rename stands
+        fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+def _wrong_shapes(shapes: dict, region: int | None, nodes: int | None, steps: int | None) -> str | None:
+    """Why arrays of these shapes are not a path's (forces (s, r, 3), u (s, n, 3), newton_iterations
+    (s,), s <= steps), or None; a count given as None is not checked."""
+    f, u, k = (tuple(shapes[name]) for name in _ARRAYS)
+    if len(f) != 3 or len(u) != 3 or len(k) != 1 or f[2] != 3 or u[2] != 3 or not f[0] == u[0] == k[0]:
+        return f"its arrays have shapes {f}, {u}, {k}, not (steps, region, 3), (steps, nodes, 3), (steps,)"
+    for what, have, want in (("region nodes", f[1], region), ("nodes", u[1], nodes), ("steps", f[0], steps)):
+        if want is not None and (have > want if what == "steps" else have != want):
+            return f"it holds {have} {what}, not {'at most ' if what == 'steps' else ''}{want}"
+    return None
+
+
+def _header_shapes(path: Path) -> dict:
+    """The shapes of a path file's arrays, from their headers alone (the data are not read)."""
+    shapes = {}
+    with zipfile.ZipFile(path) as z:
+        for name in _ARRAYS:
+            with z.open(f"{name}.npy") as f:
+                version = np.lib.format.read_magic(f)
+                read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+                shapes[name] = read(f)[0]
+    return shapes
+
+
+def _read_array(z: zipfile.ZipFile, name: str) -> Array:
+    """One array of an open path file, read whole (the zip checks its CRC; no pickles)."""
+    with z.open(f"{name}.npy") as f:
+        return np.lib.format.read_array(f, allow_pickle=False)
+
+
+def _set_aside(path: Path, why: str) -> None:
+    """Rename a damaged path file to *.damaged (the user's data: never deleted), with one warning."""
+    aside, n = path.with_name(f"{path.name}.damaged"), 1
+    while aside.exists():
+        aside, n = path.with_name(f"{path.name}.{n}.damaged"), n + 1
+    try:
+        os.rename(path, aside)
+    except FileNotFoundError:  # another build of this folder set it aside first
+        return
+    _sync_folder(path.parent)
+    log.warning("%s is damaged (%s): set aside as %s; its load path is solved again", path, why, aside.name)
+
+
+def _damage(error: BaseException) -> str:
+    return (str(error).splitlines() or [""])[0] or type(error).__name__
+
+
+def intact_indices(data_dir: Path, indices: list[int], region: int, nodes: int, steps: int) -> list[int]:
+    """The finished paths among `indices` whose files open and hold arrays of a path's shapes
+    (their headers: no data read); the others are set aside (_set_aside) to be solved again."""
+    kept = []
+    for i in indices:
+        path = path_file(data_dir, i)
+        try:
+            why = _wrong_shapes(_header_shapes(path), region, nodes, steps)
+        except PermissionError:
+            raise
+        except _DAMAGED as exc:
+            why = _damage(exc)
+        if why is None:
+            kept.append(i)
+        else:
+            _set_aside(path, why)
+    return kept
+
+
+def load_dataset(
+    data_dir: Path, indices: list[int] | None = None, region: int | None = None, nodes: int | None = None
+) -> tuple[Array, Array, Array]:
+    """All samples on disk: forces (N, r, 3), u (N, n, 3) float32, and each sample's path index.
+    A file that cannot be read whole, or whose shapes are not a path's (`region` and `nodes`
+    where given, else the first good file's), is set aside and left out: the next build solves
+    its path again."""
     idx = sorted(done_indices(data_dir)) if indices is None else sorted(indices)
     F, U, P = [], [], []
     for i in idx:
-        with np.load(path_file(data_dir, i)) as z:
-            F.append(z["forces"])
-            U.append(z["u"])
-            P.append(np.full(len(z["forces"]), i))
+        path = path_file(data_dir, i)
+        try:
+            with zipfile.ZipFile(path) as z:  # not np.load: a lone .npy under the name loads as an array
+                arrays = {name: _read_array(z, name) for name in _ARRAYS}
+            why = _wrong_shapes({k: a.shape for k, a in arrays.items()}, region, nodes, None)
+        except PermissionError:
+            raise
+        except _DAMAGED as exc:
+            why = _damage(exc)
+        if why is not None:
+            _set_aside(path, why)
+            continue
+        region, nodes = arrays["forces"].shape[1], arrays["u"].shape[1]  # the next files must agree
+        F.append(arrays["forces"])
+        U.append(arrays["u"])
+        P.append(np.full(len(arrays["forces"]), i))
     if not F:
         raise FileNotFoundError(f"no samples in {data_dir}")
     return np.concatenate(F), np.concatenate(U), np.concatenate(P)

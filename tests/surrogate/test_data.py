@@ -1,6 +1,7 @@
 """Training data: the load sampler, path solves, and resumable generation (in-process and Dask)."""
 
 import os
+import shutil
 import sys
 import tempfile
 from pathlib import Path
@@ -17,6 +18,7 @@ from service.surrogate.data import (
     path_file,
     sample_path_load,
     solve_path,
+    write_path,
 )
 from tests.conftest import small_disk
 
@@ -270,8 +272,9 @@ def test_resuming_lists_the_data_folder_twice_however_many_paths_it_holds(tmp_pa
     to find nothing to do, a fresh 6-million-path --samples 207 s)."""
     out = tmp_path / "data"
     out.mkdir()
-    for i in range(400):
-        path_file(out, i).touch()  # only the names matter to done_indices
+    write_path(out, {**solve_path(bar, MAT, spec, 0), "index": 0})
+    for i in range(1, 400):  # copies of one path: each opens as a path file, only the names differ
+        shutil.copyfile(path_file(out, 0), path_file(out, i))
     for i in missing:
         path_file(out, i).unlink()
     _LISTED[str(out)] = 0
@@ -281,3 +284,24 @@ def test_resuming_lists_the_data_folder_twice_however_many_paths_it_holds(tmp_pa
         listings = _LISTED.pop(str(out))
     assert redone == list(missing)
     assert listings == 2  # the finished paths, the temporaries: never once per path
+
+
+def test_a_path_file_damaged_in_its_data_is_set_aside_and_left_out(tmp_path, bar, spec, caplog):
+    """A file whose headers are sound but whose data are not (a flipped byte: the CRC) passes the
+    generation's look at the headers; loading it raised BadZipFile on every later build, and a
+    lone .npy under a path's name an AttributeError."""
+    out = tmp_path / "data"
+    list(generate(bar, MAT, spec, out, 3, workers=0, progress=False))
+    raw = bytearray(path_file(out, 1).read_bytes())
+    raw[len(raw) // 2] ^= 0xFF  # inside u's data
+    path_file(out, 1).write_bytes(bytes(raw))
+    with path_file(out, 2).open("wb") as f:  # a lone array under a path's name (np.load took it)
+        np.save(f, np.zeros(3))
+    F, U, P = load_dataset(out)
+    np.testing.assert_array_equal(np.unique(P), [0])
+    assert (out / "path_000001.npz.damaged").read_bytes() == bytes(raw)  # kept, not deleted
+    assert (out / "path_000002.npz.damaged").exists()
+    assert done_indices(out) == {0}
+    warnings = [r.getMessage() for r in caplog.records if r.name.endswith("pathfiles")]
+    assert len(warnings) == 2 and str(path_file(out, 1)) in warnings[0], warnings
+    assert "set aside as path_000001.npz.damaged" in warnings[0]

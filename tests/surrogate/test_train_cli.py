@@ -334,6 +334,47 @@ def test_ctrl_c_while_the_local_cluster_starts_stops_the_build_with_one_line(tmp
     assert _group_gone(p.pid)  # the workers went with it
 
 
+def _cut_short(path: Path) -> None:
+    path.write_bytes(path.read_bytes()[:100])
+
+
+def _other_shapes(path: Path) -> None:
+    import numpy as np
+
+    with path.open("wb") as f:
+        np.savez(f, forces=np.zeros((3, 5, 3), np.float32), u=np.zeros((3, 7, 3), np.float32),
+                 newton_iterations=np.zeros(3, np.int32))  # fmt: skip
+
+
+@pytest.mark.parametrize("damage", [_cut_short, lambda p: p.write_bytes(b""), _other_shapes],
+                         ids=["cut-short", "empty", "other-shapes"])  # fmt: skip
+def test_a_damaged_path_file_is_set_aside_and_solved_again(tmp_path, bar, capsys, caplog, damage):
+    """A finished path file cut short (a power cut after write_path's rename), emptied or of
+    other shapes made every later build on the folder fail: a BadZipFile or EOFError traceback,
+    or an error that did not name the file. Now it is set aside, named, and its path re-solved."""
+    import numpy as np
+
+    from service.cli import main
+
+    scene = write_bar_scene(tmp_path / "scene", bar, samples=30)
+    common = ["train", str(scene), "--store", str(tmp_path / "store"), "--data", str(tmp_path / "data"),
+              "--workers", "0", "--hidden", "16", "--rank", "8", "--epochs", "3"]  # fmt: skip
+    assert main(common) == 0
+    (folder,) = (tmp_path / "data").iterdir()
+    path = folder / "path_000003.npz"
+    damage(path)
+    damaged = path.read_bytes()
+    capsys.readouterr()
+    assert main(common) == 0
+    assert "Traceback" not in capsys.readouterr().err
+    (said,) = [r.getMessage() for r in caplog.records if r.name.endswith("pathfiles")]  # one warning
+    assert said.startswith(f"{path} is damaged (") and "set aside as path_000003.npz.damaged" in said, said
+    assert (folder / "path_000003.npz.damaged").read_bytes() == damaged  # the user's bytes, kept
+    with np.load(path) as z:  # solved again
+        assert z["u"].shape[1:] == (bar.n_nodes, 3) and len(z["forces"]) == len(z["newton_iterations"]) > 0
+    assert main(common) == 0  # and every later build goes on as before
+
+
 def test_a_much_worse_rebuild_keeps_the_installed_model_unless_replace_is_given(tmp_path, bar, capsys):
     """A rebuild replaced the store's entry whatever it scored: a build botched by a flag (here an
     untrained network on raw forces) silently took a good model's place."""
