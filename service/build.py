@@ -27,7 +27,7 @@ from .scene import Scene
 from .scene.model_id import check_model_id
 from .store import StoreError, load_entry, network_table, remove_stale_builds, write_entry
 from .surrogate.data import LoadSpec, done_indices, generate, load_dataset
-from .surrogate.train import TrainConfig, train
+from .surrogate.train import REPORT_MIN_PATHS, TrainConfig, train
 from .warmup import warm_up
 
 log = logging.getLogger(__name__)
@@ -65,7 +65,7 @@ REPLACE_CONFIDENCE = 0.99
 #: below 4 degrees the t quantile (3.75 there) leaps: 4.54, 6.96, 31.8. On the bar fixture an
 #: untrained build 26x worse than a 3-path entry had a bound of 1.5x; the least at 4 paths was
 #: 2.3x, at 5 3.6x. Refusing is the safe failure (the store kept, --replace installs)
-REPLACE_MIN_PATHS = 5
+REPLACE_MIN_PATHS = REPORT_MIN_PATHS  # train.py's: a split of the held-out paths keeps this many
 #: ... and never past this many times, whatever the bound: a build exact on four held-out paths
 #: and 400 % off on the fifth has a spread as large as its figure, and its bound (0.95x) excused
 #: it 40x worse. Good seeds of the bar's 5-path build land at most 2.63x apart (56 pairs), broken

@@ -228,6 +228,43 @@ def test_a_build_removes_the_folder_a_killed_build_left_and_keeps_a_live_ones(ba
     assert f"removed {dead_name}, the folder of a build whose process is gone" in caplog.text
 
 
+def test_a_builds_figures_come_from_held_out_paths_that_did_not_choose_its_epoch(tmp_path, bar):
+    """The manifest's validation figure came from the paths that chose the best epoch, and so
+    was biased low (3.45 % in the manifest, 5.61 % on 150 fresh paths). With 2 x REPORT_MIN_PATHS
+    held out, the figures come from paths disjoint from those that chose the epoch; the gate
+    still reads an entry built before (no such fields) as it did."""
+    from service.build import build, relative_error, worse_by
+    from service.scene import load_scene
+    from service.surrogate.train import REPORT_MIN_PATHS, TrainConfig
+
+    scene = load_scene(write_bar_scene(tmp_path / "scene", bar, samples=300))  # 100 paths, 10 held out
+    config = TrainConfig(hidden=(16,), rank=8, epochs=4)
+    store, common = tmp_path / "store", {"workers": 0, "data_root": tmp_path / "data", "progress": False}
+    report = build(scene, store, config=config, **common)
+    manifest = store / "bar" / "manifest.json"
+    val = json.loads(manifest.read_text())["training"]["validation"]
+    chose, told = set(val["selection_paths"]), set(val["report_paths"])
+    assert len(chose) >= REPORT_MIN_PATHS and len(told) >= REPORT_MIN_PATHS and not chose & told
+    assert val["chosen_on_report_paths"] is False
+    assert val["paths"] == len(told) and report.metrics["report_paths"] == val["report_paths"]  # the SE's paths
+    # an entry built before the split: none of its fields; the rebuild compares as it did
+    old = json.loads(manifest.read_text())
+    for key in ("selection_paths", "report_paths", "chosen_on_report_paths"):
+        del old["training"]["validation"][key]
+    manifest.write_text(json.dumps(old))
+    again = build(scene, store, config=config, **common)
+    assert worse_by(again.metrics, old["training"]["validation"]) == pytest.approx(1.0)  # the same build
+    assert relative_error(again.metrics) == pytest.approx(relative_error(val))
+    assert "report_paths" in json.loads(manifest.read_text())["training"]["validation"]
+
+
+def test_a_small_builds_manifest_says_its_figure_chose_the_epoch(bar_store):
+    """Under 2 x REPORT_MIN_PATHS held-out paths (the bar's 2) one part chooses and reports."""
+    val = load_entry(bar_store[0] / "bar").manifest["training"]["validation"]
+    assert val["chosen_on_report_paths"] is True and val["selection_paths"] == val["report_paths"]
+    assert len(val["report_paths"]) == val["paths"] == 2
+
+
 def test_a_timed_build_keeps_to_its_minutes_and_still_learns(tmp_path, bar):
     """--minutes: data until 60 % of the budget (fewer paths than asked), training in the
     rest, a loadable entry within the budget that beats u = 0."""
