@@ -25,7 +25,7 @@ from .fem.material import NeoHookean
 from .fem.newton import NewtonOptions
 from .scene import Scene
 from .scene.model_id import check_model_id
-from .store import StoreError, load_entry, network_table, remove_stale_builds, write_entry
+from .store import StoreError, check_entry_place, load_entry, network_table, remove_stale_builds, write_entry
 from .surrogate.data import LoadSpec, done_indices, generate, load_dataset
 from .surrogate.train import REPORT_MIN_PATHS, TrainConfig, train
 from .warmup import warm_up
@@ -331,6 +331,7 @@ def build(
     deadline = None if minutes is None else t_start + 60.0 * minutes
     data_root = Path(data_root or default_data_root())
     check_writable(Path(store), "the model store")
+    check_entry_place(Path(store), name or scene.name)  # a file under the id: refused before any data
     check_writable(data_root, "the data folder")
     remove_stale_builds(Path(store))  # the folders of builds killed mid-write (MBs of weights each)
     mesh, loaded = scene.build_mesh()

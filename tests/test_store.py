@@ -237,6 +237,38 @@ def test_an_entry_the_store_would_refuse_never_replaces_the_served_one(bar_store
     assert load_entry(root / "bar").manifest["created"]
 
 
+@pytest.mark.parametrize("kind", ["file", "link"])
+def test_a_file_or_link_under_the_entrys_id_is_refused_and_left_where_it_is(bar_store, tmp_path, kind, capsys):
+    """A file (or a symbolic link to an entry kept elsewhere) under the id was swapped out of the
+    way, failed to be removed (errors ignored) and left for ever as .bar-XXXXXXXX.build: the
+    user's file hidden, litter no clean-up takes. Now refused in one line, nothing moved."""
+    from service.cli import main
+
+    root = tmp_path / "store"
+    root.mkdir()
+    elsewhere = tmp_path / "elsewhere" / "bar"
+    shutil.copytree(bar_store[0] / "bar", elsewhere)
+    if kind == "file":
+        (root / "bar").write_text("my notes")
+    else:
+        (root / "bar").symlink_to(elsewhere)
+    with pytest.raises(ValueError, match=rf"^{re.escape(str(root / 'bar'))} is a (file|symbolic link), not an entry"):
+        _rewrite(load_entry(elsewhere), root)
+    assert [p.name for p in root.iterdir()] == ["bar"]  # nothing moved, no build folder left
+    assert (root / "bar").is_symlink() == (kind == "link")
+    assert kind == "link" or (root / "bar").read_text() == "my notes"
+    # the build refuses it before any data: one line, exit 2
+    scene = bar_store[0].parent / "scene" / "bar.toml"
+    argv = ["train", str(scene), "--store", str(root), "--data", str(tmp_path / "data"), "--workers", "0"]
+    capsys.readouterr()
+    assert main(argv) == 2
+    assert (
+        capsys.readouterr().err == f"error: {root / 'bar'} is a {'file' if kind == 'file' else 'symbolic link'}, "
+        "not an entry's folder: move it out of the store or build under another id\n"
+    )
+    assert [p.name for p in root.iterdir()] == ["bar"] and not (tmp_path / "data").exists()
+
+
 def test_a_failed_swap_puts_the_served_entry_back(bar_store, tmp_path, monkeypatch):
     """Between the two renames a failure (a full disk, a concurrent writer) must not leave the
     store without the entry it served."""

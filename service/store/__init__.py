@@ -39,7 +39,7 @@ from .builds import UNLOCKED_BUILD_AGE_S, _build_folder, remove_stale_builds
 from .files import FORMAT_VERSION, MANIFEST, MESH, WEIGHTS, StoreError, sha256
 from .load import Entry, check_store, load_entry, open_store
 from .network import network_from_manifest
-from .write import network_table, write_entry
+from .write import check_entry_place, network_table, write_entry
 
 __all__ = [
     "FORMAT_VERSION",
@@ -50,6 +50,7 @@ __all__ = [
     "Entry",
     "StoreError",
     "_build_folder",  # a test's second process starts a build with it, as write_entry does
+    "check_entry_place",
     "check_store",
     "load_entry",
     "network_from_manifest",

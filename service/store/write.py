@@ -8,6 +8,7 @@ import json
 import os
 import re
 import shutil
+import stat
 import tempfile
 import time
 from collections.abc import Iterator
@@ -53,6 +54,21 @@ def network_table(net: Any, layout: str, n_region: int, n_nodes: int) -> dict:
     }
 
 
+def check_entry_place(store: Path, entry_id: str) -> None:
+    """Refuse (ValueError, nothing moved) where `store`/`entry_id` exists and is not a folder: a
+    file or a symbolic link (even to an entry kept elsewhere) was swapped out of the way under a
+    build folder's name and never removed, the user's file hidden for ever."""
+    final = Path(store) / entry_id
+    try:
+        mode = os.lstat(final).st_mode
+    except FileNotFoundError:
+        return
+    if stat.S_ISDIR(mode):
+        return
+    kind = "a symbolic link" if stat.S_ISLNK(mode) else "a file" if stat.S_ISREG(mode) else "not a folder"
+    raise ValueError(f"{final} is {kind}, not an entry's folder: move it out of the store or build under another id")
+
+
 def write_entry(
     store: Path,
     entry_id: str,
@@ -74,6 +90,7 @@ def write_entry(
     check_model_id(entry_id)
     store = Path(store)
     store.mkdir(parents=True, exist_ok=True)
+    check_entry_place(store, entry_id)  # before the build folder: a refusal moves nothing
     final = store / entry_id
     tmp, lock = _build_folder(store, entry_id)
     try:
