@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import urllib.parse
 
 
 def whole_number(minimum: int, maximum: int | None = None):
@@ -62,3 +63,35 @@ MAX_MINUTES = 365 * 24 * 60
 
 #: a build's --minutes (train) or --build-minutes (bench)
 build_minutes = positive_number(MAX_MINUTES, " (a year)")
+
+
+#: the protocols of a Dask scheduler's address that name a host and a port (a bare HOST:PORT is tcp)
+DASK_HOST_PROTOCOLS = ("tcp", "tls", "ws", "wss", "ucx")
+
+
+def scheduler_address(text: str) -> str:
+    """An argparse type for a Dask scheduler's address, [PROTOCOL://]HOST:PORT: one that is no
+    address at all ('garbage', 'http://...', '') failed at once yet said that no scheduler
+    answered there within 30 s, and port 99999 waited the 30 s. inproc:// is passed on as it is."""
+    protocol, sep, rest = text.rpartition("://") if "://" in text else ("tcp", "", text)
+    if protocol == "inproc":
+        return text
+    if protocol not in DASK_HOST_PROTOCOLS:
+        raise argparse.ArgumentTypeError(
+            f"{protocol!r} is not a Dask protocol ({', '.join(DASK_HOST_PROTOCOLS)}, inproc), in {text!r}"
+        )
+    try:
+        parts = urllib.parse.urlsplit(f"//{rest}")
+        host, port = parts.hostname, parts.port  # port: a ValueError past 65535
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"{text!r} is no HOST:PORT address ({exc})") from None
+    wrong = (
+        "it has no host" if not host
+        else "it has no port" if port is None
+        else "port 0 is out of range 1..65535" if port == 0
+        else "it holds more than HOST:PORT" if parts.path or parts.query or parts.fragment or parts.username
+        else None
+    )  # fmt: skip
+    if wrong:
+        raise argparse.ArgumentTypeError(f"{text!r} is no Dask scheduler address, [tcp://]HOST:PORT: {wrong}")
+    return text

@@ -200,9 +200,16 @@ def _rounded_up(x: float) -> float:
     return math.ceil(x / step - 1e-9) * step  # 1e-9: 0.1 / 0.1 is 1.0000000000000002
 
 
+#: the least figure _plain writes; one below is "under" it (--minutes 1e-300 wrote 300 digits)
+PLAIN_FLOOR = 0.001
+
+
 def _plain(x: float) -> str:
     """A positive figure as a user types it, never in exponent form (:g wrote 1.8e+02): whole
-    from 10, else two significant figures (1.8, 0.19, 0.0036), trailing zeros dropped."""
+    from 10, else two significant figures (1.8, 0.19, 0.0036), trailing zeros dropped; under
+    PLAIN_FLOOR, "under 0.001"."""
+    if x < PLAIN_FLOOR:
+        return f"under {PLAIN_FLOOR:g}"
     if x >= 10:
         return f"{x:.0f}"
     decimals = max(1, 1 - math.floor(math.log10(x)))

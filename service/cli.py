@@ -12,7 +12,7 @@ import sys
 import time
 
 from . import commands
-from .argtypes import build_minutes, model_id, positive, whole_number
+from .argtypes import build_minutes, model_id, positive, scheduler_address, whole_number
 from .started import process_started
 
 _at_least_one = whole_number(1)
@@ -113,7 +113,12 @@ def parser() -> argparse.ArgumentParser:
         help="install the build even where it validates much worse than the model it replaces "
         "(without it the store keeps that one: exit status 3)",
     )
-    t.add_argument("--scheduler", default=None, help="address of an existing Dask scheduler for the data generation")
+    t.add_argument(
+        "--scheduler",
+        type=scheduler_address,
+        default=None,
+        help="address of an existing Dask scheduler for the data generation ([tcp://]HOST:PORT)",
+    )
     t.add_argument("--data", default=None, help="data folder root (default: $ELASTREG_DATA or ~/.cache/elastreg/data)")
     t.add_argument("--layout", choices=["reduced", "paper"], default="reduced")
     t.add_argument(

@@ -440,6 +440,9 @@ def test_a_refused_build_is_told_figures_it_can_type(tmp_path):
     assert message.endswith(f"the data get 2160000 s, 60 % of the minutes): give it more time, "
                             f"about --minutes {MAX_MINUTES} (the most it takes)")  # fmt: skip
     assert build_minutes(str(MAX_MINUTES)) == MAX_MINUTES
+    # a budget of nothing: its data's seconds have a floor (1e-300 wrote a 470-character line)
+    tiny = too_short(1e-300, 0, spent=0.5, took=[])
+    assert "the data get under 0.001 s, 60 % of the minutes" in tiny and len(tiny) < 200, tiny
 
 
 def test_a_timed_build_refuses_a_budget_out_of_range(tmp_path, bar):
@@ -488,6 +491,39 @@ def test_the_command_line_refuses_numbers_no_build_can_take(flags, message, caps
     with pytest.raises(SystemExit) as info:
         main(["train", "beam", *flags])
     assert info.value.code == 2 and message in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("address", "wrong"),
+    [
+        ("garbage", "it has no port"),
+        ("http://127.0.0.1:19112", "'http' is not a Dask protocol"),
+        ("", "it has no host"),
+        ("tcp://[::1", "Invalid IPv6 URL"),
+        ("tcp://127.0.0.1:99999", "Port out of range"),
+        ("tcp://127.0.0.1:0", "port 0 is out of range 1..65535"),
+    ],
+)
+def test_a_scheduler_address_that_is_no_address_is_refused_at_parse_time(address, wrong, tmp_path, capsys):
+    """--scheduler garbage (or http://..., '', tcp://[::1) failed at once yet said "no Dask
+    scheduler answers at X within 30 s"; port 99999 waited the 30 s. Now refused as it is parsed."""
+    import time
+
+    from service.cli import main
+
+    t0 = time.perf_counter()
+    with pytest.raises(SystemExit) as info:
+        main(["train", "beam", "--scheduler", address, "--store", str(tmp_path / "store")])
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and "--scheduler:" in err and wrong in err and "within" not in err, err
+    assert time.perf_counter() - t0 < 5 and not (tmp_path / "store").exists()
+
+
+def test_a_scheduler_address_dask_takes_passes_the_parse():
+    from service.argtypes import scheduler_address
+
+    for address in ("tcp://127.0.0.1:8786", "127.0.0.1:8786", "tcp://[::1]:8786", "tls://host.example:8786"):
+        assert scheduler_address(address) == address
 
 
 @pytest.mark.parametrize("name", ["-bar", "_bar", "x y", "../escaped", ".hidden"])
