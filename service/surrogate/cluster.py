@@ -82,6 +82,39 @@ def _quiet(name: str) -> Iterator[None]:
         logger.setLevel(level)
 
 
+def _distributed_loggers() -> list[logging.Logger]:
+    """distributed's loggers that hold a level of their own (its config sets some: "distributed",
+    "distributed.client"...); the others take theirs from these."""
+    found = [logging.getLogger(name) for name in list(logging.root.manager.loggerDict)]
+    return [lg for lg in found if lg.name.split(".")[0] == "distributed" and lg.level != logging.NOTSET]
+
+
+def _silence_distributed() -> None:
+    """distributed's loggers silent for good: run in each local worker after a Ctrl-C (its
+    cancelled paths each logged "Async instruction ... ended with CancelledError")."""
+    for logger in _distributed_loggers():
+        logger.setLevel(logging.CRITICAL + 1)
+
+
+@contextlib.contextmanager
+def _interrupted_quietly(client, local: bool) -> Iterator[None]:
+    """The shutdown after a Ctrl-C without distributed's log lines beside the one-line
+    "interrupted": in this process while the block runs, and in the `local` workers (this
+    build's own processes: a scheduler's workers are someone else's) for the rest of their life."""
+    loggers = _distributed_loggers()
+    levels = [logger.level for logger in loggers]
+    for logger in loggers:
+        logger.setLevel(logging.CRITICAL + 1)
+    try:
+        if local and client is not None:
+            with contextlib.suppress(Exception):  # workers already gone: nothing left to say anything
+                client.run(_silence_distributed)
+        yield
+    finally:
+        for logger, level in zip(loggers, levels, strict=True):
+            logger.setLevel(level)
+
+
 @contextlib.contextmanager
 def _sigint_held_from_children() -> Iterator[None]:
     """Ctrl-C held while the block starts worker processes, and raised once it is done (so the

@@ -11,6 +11,7 @@ The files on disk are pathfiles.py's, the Dask plumbing cluster.py's.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import itertools
 import logging
@@ -32,6 +33,7 @@ from .cluster import (
     SLOTS_CHECK_S,
     _connect_seconds,
     _from_dask,
+    _interrupted_quietly,
     _probe_scheduler,
     _quiet,
     _sigint_held_from_children,
@@ -267,6 +269,7 @@ def _generate(
     Client, LocalCluster, as_completed = distributed.Client, distributed.LocalCluster, distributed.as_completed
 
     cluster = client = None
+    interrupted = False  # a Ctrl-C: the shutdown without distributed's log lines
     try:
         if scheduler is None:
             one_thread = {k: "1" for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
@@ -341,18 +344,27 @@ def _generate(
             bar.set_postfix(samples=_count(bar, result))
             fut.release()
             yield result
+    except KeyboardInterrupt:
+        interrupted = True
+        raise
     finally:
         bar.close()
-        if client is not None:
-            with _quiet("distributed.client"):  # a lost scheduler: its reconnect, cancelled, logs a traceback
-                client.close()
-        if cluster is not None:
-            try:
-                cluster.close()
-            except Exception as exc:
-                # dask's close can race the nannies restarting killed workers (a KeyError, seen under
-                # load); the paths are on disk, and an error raised here would hide the one in flight
-                log.warning("closing the local Dask workers: %s: %s", type(exc).__name__, exc)
+        with _interrupted_quietly(client, cluster is not None) if interrupted else contextlib.nullcontext():
+            _close(client, cluster)
+
+
+def _close(client, cluster) -> None:
+    """Close a generation's client and its local cluster (either may be None)."""
+    if client is not None:
+        with _quiet("distributed.client"):  # a lost scheduler: its reconnect, cancelled, logs a traceback
+            client.close()
+    if cluster is not None:
+        try:
+            cluster.close()
+        except Exception as exc:
+            # dask's close can race the nannies restarting killed workers (a KeyError, seen under
+            # load); the paths are on disk, and an error raised here would hide the one in flight
+            log.warning("closing the local Dask workers: %s: %s", type(exc).__name__, exc)
 
 
 def path_fits(until: float | None, took: list[float], now: float | None = None) -> bool:

@@ -219,6 +219,42 @@ def test_ctrl_c_during_the_data_prints_one_line_and_keeps_the_paths(tmp_path, ba
     assert _group_gone(p.pid)  # the workers went with it
 
 
+def test_ctrl_c_to_the_build_alone_prints_no_dask_log_lines(tmp_path, bar):
+    """SIGINT to the build's process only (kill -INT, not the terminal's group): the local
+    workers' paths are cancelled as it closes them, and each executing one logged
+    "distributed.worker.state_machine - WARNING - Async instruction ... ended with CancelledError"
+    beside the one-line "interrupted" (2 of 3 runs of the review's script). Long paths keep both
+    workers solving when it lands; twice, as a quiet shutdown once may be luck."""
+    import signal
+
+    scene = write_bar_scene(tmp_path / "scene", bar, samples=30_000, load_steps=30)  # far more than it has time for
+    data = tmp_path / "data"
+    for _ in range(2):
+        p = subprocess.Popen(
+            [sys.executable, "-m", "service.cli", "train", str(scene), "--store", str(tmp_path / "store"),
+             "--data", str(data), "--workers", "2", "--hidden", "32", "--rank", "8", "--epochs", "5"],
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=ROOT, start_new_session=True,
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # as a shell's foreground job
+        )  # fmt: skip
+        try:
+            before = len(list(data.rglob("path_*.npz")))
+            deadline = time.monotonic() + 120
+            while len(list(data.rglob("path_*.npz"))) < before + 2:  # both workers are solving
+                assert p.poll() is None and time.monotonic() < deadline, "no path was written"
+                time.sleep(0.05)
+            os.kill(p.pid, signal.SIGINT)
+            out, _ = p.communicate(timeout=60)
+        finally:
+            if p.poll() is None:
+                os.killpg(p.pid, signal.SIGKILL)
+                p.wait()
+        assert p.returncode == 130, out[-3000:]
+        lines = [line for line in out.replace("\r", "\n").splitlines() if line.strip()]
+        assert not [line for line in lines if "distributed" in line or "Traceback" in line], out[-3000:]
+        assert "interrupted: " in lines[-1] and "the same command resumes" in lines[-1], out[-3000:]
+        assert _group_gone(p.pid)  # the workers went with it
+
+
 def _first_path_then(p: subprocess.Popen, data: Path) -> None:
     """Wait until the build `p` has written its first load path (its workers are solving)."""
     deadline = time.monotonic() + 120
