@@ -148,12 +148,14 @@ class WorseThanInstalled(RuntimeError):
         )
 
 
-def too_short(minutes: float, done: int, spent: float, took: list[float]) -> str:
+def too_short(minutes: float, done: int, spent: float, took: list[float], data_s: float | None = None) -> str:
     """The refusal of a timed build that finished `done` < 2 load paths after `spent` seconds
     (`took`: its paths' solve seconds), with about the minutes that finish two: the time spent
     plus the slowest path for each missing one, as the data's share, doubled for a loaded
     machine. With no path solved a path's cost is unknown: ten times the budget, at least
-    LEAST_MINUTES. Rounded up to one significant figure, and no more than the command lines take."""
+    LEAST_MINUTES. Rounded up to one significant figure, and no more than the command lines take.
+    `data_s`: the data's planned seconds where the start and the one-off loads took their share
+    first (else DATA_SHARE of the minutes)."""
     if took:
         need = 2.0 * (spent + (2 - done) * max(took)) / DATA_SHARE / 60.0
         what = f"a path took {max(took):.1f} s"
@@ -164,7 +166,8 @@ def too_short(minutes: float, done: int, spent: float, took: list[float]) -> str
     most = " (the most it takes)" if need > MAX_MINUTES else ""
     return (
         f"--minutes {minutes:g} finished {done} load path{'' if done == 1 else 's'}, and a build needs 2 "
-        f"({what}; the data get {_plain(DATA_SHARE * 60.0 * minutes)} s, {100 * DATA_SHARE:g} % of the minutes): "
+        f"({what}; the data get {_plain(DATA_SHARE * 60.0 * minutes if data_s is None else data_s)} s, "
+        f"{100 * DATA_SHARE:g} % of {'the minutes' if data_s is None else 'what the start and its loads left'}): "
         f"give it more time, about --minutes {_plain(min(need, MAX_MINUTES))}{most}"
         + ("; the rerun resumes from the finished paths" if done else "")
     )
@@ -373,7 +376,8 @@ def build(
         data_seconds = time.perf_counter() - t0
         done = sorted(i for i in done_indices(data_dir) if i < n_paths)
         if len(done) < 2:
-            raise ValueError(too_short(minutes, len(done), time.perf_counter() - t_start, took))
+            share = None if data_until is None else data_until - t0
+            raise ValueError(too_short(minutes, len(done), time.perf_counter() - t_start, took, share))
         F, U, P = load_dataset(data_dir, done)
         if np.unique(P).size < 2:  # paths whose first step failed hold no sample
             raise ValueError(

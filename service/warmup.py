@@ -11,7 +11,8 @@ what is left, and the write's reserve is this machine's write, measured.
 from __future__ import annotations
 
 import dataclasses
-import tempfile
+import os
+import shutil
 import time
 from pathlib import Path
 
@@ -20,7 +21,7 @@ import numpy as np
 from .fem.assembly import Assembler
 from .fem.material import NeoHookean
 from .mesh import TetMesh
-from .store import network_table, write_entry
+from .store import _build_folder, network_table, write_entry
 from .surrogate.data import LoadSpec, solve_path
 from .surrogate.train import TrainConfig, train
 
@@ -48,11 +49,18 @@ def warm_up(
     region = np.asarray(spec.region)
     result = train(F, U, P, Assembler(mesh, material), region, TINY, progress=False)
     t0 = time.perf_counter()
-    with tempfile.TemporaryDirectory(prefix=".warm-up-", dir=store) as scratch:  # hidden: never served
+    # a locked build folder (hidden: never served): one a killed build leaves is removed by the
+    # next scan of the store, as any stale build's (a TemporaryDirectory's stayed for good)
+    scratch, lock = _build_folder(store, "warm-up")
+    try:
         write_entry(
-            Path(scratch), "warm-up", mesh, region, result.model,
+            scratch, "warm-up", mesh, region, result.model,
             material=material, scene=scene, rebuild="",
             training={"load_distribution": {k: v for k, v in dataclasses.asdict(spec).items() if k != "region"}},
             network=network_table(result.model, TINY.layout, len(region), mesh.n_nodes),
         )  # fmt: skip
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+        if lock is not None:
+            os.close(lock)
     return time.perf_counter() - t0
