@@ -91,6 +91,31 @@ def test_the_phantom_estimate_covers_its_error_under_declared_noise(shipped, met
     assert (np.array(est) >= 0.5 * np.array(err)).all()
 
 
+@pytest.mark.parametrize("method", ["network", "fem"])
+def test_a_few_matched_triangles_far_from_the_tool_keep_the_estimate_honest(shipped, method):
+    """`matching` on the two surface triangles farthest from the tool, the cloud on them: they
+    barely move under the forces they leave open, and the spread, an RMS over the objective's
+    nodes, read a fifth of the error over the nodes (review s26 p4_matching.py: network 0.77 mm
+    on a true 3.54 mm, the Newton method 0.41 on 1.31). It reads the whole surface now."""
+    from service.synthetic import sample_surface, tool_patches
+
+    entry = shipped["phantom"]
+    mesh = entry.mesh
+    tool, support = tool_patches(mesh, entry.region, tool_nodes=12, support_nodes=36)
+    seq = make_sequence(mesh, entry.fem.material, tool, n_frames=3, peak_force=0.8, turn_deg=0, n_points=500, seed=1)
+    F = mesh.surface_faces
+    free = np.flatnonzero(mesh.free_mask[F].all(axis=1))
+    far = free[np.argsort(-np.linalg.norm(mesh.nodes[F[free]].mean(1) - mesh.nodes[tool].mean(0), axis=1))[:2]]
+    points = sample_surface(seq.positions[-1], F[far], 200, np.random.default_rng(3))[0]
+    model = entry.network if method == "network" else entry.fem
+    config = SessionConfig(method=method, support=tuple(support.tolist()), matching=tuple(map(tuple, F[far].tolist())))
+    r = Session(model, config).frame(points)
+    true = np.linalg.norm(r.outputs["displacement"] - seq.displacements[-1], axis=1).mean()
+    print(f"{method}: estimate {1e3 * r.error_estimate:.3f} mm, true {1e3 * true:.3f} mm")
+    assert r.converged and true > 1e-3  # the view determined little: millimetres off
+    assert r.error_estimate >= 0.5 * true
+
+
 def test_a_refused_support_leaves_the_session_as_it_was(shipped):
     """The Newton method with Levenberg-Marquardt forms 3 solves a support node: a frame asking
     for more nodes than that allows is a ValueError, and the session keeps its support, its

@@ -262,11 +262,7 @@ class FEMOperator:
             moving = read >= 0
 
             def forward(X: Array) -> Array:  # J X: unit forces on the support, read at the nodes
-                rhs = np.zeros((n_free, X.shape[1]))
-                rhs[cols] = X
-                out = np.zeros((read.size, X.shape[1]))
-                out[moving] = solve(rhs)[read[moving]]
-                return out
+                return self._rest_response(X, read)
 
             def back(Y: Array) -> Array:  # J^T Y: the rest stiffness is symmetric
                 rhs = np.zeros((n_free, Y.shape[1]))
@@ -276,6 +272,27 @@ class FEMOperator:
             U, C = leading_directions(forward, back, cols.size, ESTIMATE_RANK, OVERSAMPLE, POWER)
             self._rest_leading = LowRankJacobian(U, C)
         return self._rest_leading
+
+    def readout_at(self, nodes: Array) -> Array:
+        """The rows at other nodes (3q, its columns) of :meth:`estimate_jacobian`, the rest one:
+        the error estimate's spread reads the whole surface, not the objective's nodes alone.
+        3 solves per support node with the rest factor (past MAX_JACOBIAN_SUPPORT, one per
+        leading direction); the session keeps it per operator."""
+        read = self._free_rows(nodes)
+        if self.has_jacobian:
+            return self._support_response(self._rest_solver().solve_free, read=read)
+        return self._rest_response(self._rest_low_rank().C.T, read)
+
+    def _rest_response(self, X: Array, read: Array) -> Array:
+        """The rest compliance applied to forces X (3k, m) on the support, read at the free
+        system's rows `read` (-1: a fixed dof, zero). Shape: (read.size, m)."""
+        cols, _ = self._dof_maps
+        rhs = np.zeros((self.mesh.free_dofs.size, X.shape[1]))
+        rhs[cols] = X
+        out = np.zeros((read.size, X.shape[1]))
+        moving = read >= 0
+        out[moving] = self._rest_solver().solve_free(rhs)[read[moving]]
+        return out
 
     def _rest_dense(self) -> DenseJacobian:
         """du/dg at rest, formed in full once (3k solves with the rest factorisation)."""
@@ -308,22 +325,31 @@ class FEMOperator:
     def _dof_maps(self) -> tuple[Array, Array]:
         """Rows of the free system: the support's (3k,) and the operator's nodes' (3p,), -1 on
         fixed dofs (they never move)."""
+        return self._free_rows(self.support), self._free_rows(self.nodes)
+
+    def _free_rows(self, nodes: Array) -> Array:
+        """The free system's rows of these nodes' dofs (3q,), node-major, -1 on fixed dofs."""
         mesh = self.mesh
         pos = np.full(3 * mesh.n_nodes, -1, np.int64)
         pos[mesh.free_dofs] = np.arange(mesh.free_dofs.size)
-        cols = pos[(3 * self.support[:, None] + np.arange(3)).ravel()]
-        read = pos[(3 * self.nodes[:, None] + np.arange(3)).ravel()]
-        return cols, read
+        return pos[(3 * np.asarray(nodes, np.int64)[:, None] + np.arange(3)).ravel()]
 
     def _support_response(
-        self, solve, deadline: float | None = None, block: int = 256, at: Array | None = None
+        self,
+        solve,
+        deadline: float | None = None,
+        block: int = 256,
+        at: Array | None = None,
+        read: Array | None = None,
     ) -> Array:
         """K^-1 applied to each unit force on the support, read at the operator's nodes
         (response.support_response); past `deadline`, ForwardFailed between blocks (the rest
         responses, made once per operator, take none). `at`: the state u whose exact tangent
         `solve` holds; given, the last columns go to a spare core, which factorises that tangent
-        on a solver of its own. Shape: (3p, 3k)."""
-        cols, read = self._dof_maps
+        on a solver of its own. `read`: the free system's rows to read (:meth:`_free_rows`), else
+        the operator's nodes'. Shape: (3p, 3k)."""
+        cols, own = self._dof_maps
+        read = own if read is None else read
 
         def beside() -> Solve:
             helper = self._helper_solver()

@@ -18,8 +18,10 @@ the nodes (MISFIT_FACTOR).
 A fit can be exact and still wrong: the cloud may not determine the forces. The third term
 is what the inverse problem leaves open, linearised at the frame's answer with H = C^T A C +
 alpha I the Gauss-Newton Hessian (levenberg.py's notation), B = C H^-1 C^T = M (A M + alpha
-I)^-1, M = C C^T (r x r algebra at the frame's Jacobian), in quadrature, RMS over the
-objective's nodes (U's rows: the matched surface, which moves more than the interior):
+I)^-1, M = C C^T (r x r algebra at the frame's Jacobian), in quadrature, RMS over the whole
+surface, which moves more than the interior (not the objective's nodes, U's rows: a few matched
+triangles far from the tool barely move under the forces they leave open, and their RMS read a
+fifth of the error over the nodes):
 - the prior's pull: alpha (|g|^2's weight) pulls the forces towards zero by alpha H^-1 g, a bias
   the truth does not have. In a direction the cloud does not see (one point, a view away from
   the tool, a pull that slides the seen surface along itself), the answer keeps none of the
@@ -178,18 +180,20 @@ def inverse_spread(
     readout_gram: Array,
     Cg: Array,
     prior: Array | None = None,
+    readout_nodes: int | None = None,
 ) -> tuple[float, float]:
     """What the cloud leaves uncertain in the displacement (see the module): the declared
     `noise`'s spread, and the prior's pull alpha (C^T A C + alpha I)^-1 c towards zero force,
     which the truth does not have, on c = C g (the answer's: the pull it had) or, where larger,
     in mean square over the force `prior` (:func:`force_prior`'s L: where the cloud does not
     determine a direction, the answer keeps none of the truth's force in it); in quadrature,
-    RMS over the Jacobian's nodes; and the Gauss-Newton step left to the optimum. With noise,
+    RMS over the readout's nodes; and the Gauss-Newton step left to the optimum. With noise,
     gamma = tr((C^T A C + alpha I)^-1 C^T A C), the force directions the cloud determines
     (noise_prior's rule; NaN without: the r x r products it needs are skipped). `jac` a
     low-rank Jacobian with ``gram()`` at the frame's forces g, `Cg` its image C g (r,), `match`
-    the distance's at its positions, `readout_gram` U^T U (r, r) of jac.U, in float64. Returns
-    (spread, gamma)."""
+    the distance's at its positions, `readout_gram` (r, r) float64 the Gram of the readout
+    du/dc over `readout_nodes` nodes (jac.U's rows and the rest of the surface's; None: jac.U's
+    alone, U^T U). Returns (spread, gamma)."""
     Nw, A = distance_gram(jac.U, match, faces)  # in U's precision, as the LM model's
     w = np.asarray(match.weight, np.float64)
     # M A as the Gauss-Newton model forms it (no product with the Newton method's identity M);
@@ -212,7 +216,7 @@ def inverse_spread(
         lin * sol[:, 2 : 2 + L.shape[1]],
         sol[:, 2 + L.shape[1] :],
     )
-    p = jac.U.shape[0] // 3
+    p = jac.U.shape[0] // 3 if readout_nodes is None else int(readout_nodes)
     # the prior's columns come in threes, a tool force along each axis per window: the worst window
     per_window = np.sum(prior_pull * (readout_gram @ prior_pull), axis=0).reshape(-1, 3).sum(axis=1)
     bias2 = max(float(pull @ (readout_gram @ pull)), float(per_window.max(initial=0.0)), 0.0)

@@ -82,8 +82,11 @@ class Outputs:
         self._noise = noise
         self._max_force = max_force
         self.spreads = bool(noise or max_force)
+        # the spread reads the whole surface (confidence.py): the surface nodes the objective does not
+        self._unread = np.setdiff1d(self.mesh.surface_nodes, distance.nodes)
         # (jac.U, U^T U) for inverse_spread, the latest first: auto's frames read two operators'
         self._readout_grams: list[tuple[Array, Array]] = []
+        self._unread_grams: list[tuple[object, Array]] = []  # (op, the unread nodes' readout Gram)
         self._priors: list[tuple[object, Array]] = []  # (jac, force_prior), kept as the Grams
         self._early: tuple[Array, spare.Beside] | None = None  # (g, its field and forward error)
         # the estimate's rest factor and kernels' first use, made as the session opens: a first
@@ -110,26 +113,36 @@ class Outputs:
         if U is None and not hasattr(op, "at_rest"):  # the Newton method's
             U = self._rest_basis(op)
         if U is not None:
-            self._readout_gram(U)
+            self._readout_gram(op, U)
         if corrector_op is not None:  # auto's first correction would form them in its frame
             U = self._rest_basis(corrector_op)
             if U is not None:
-                self._readout_gram(U)
+                self._readout_gram(corrector_op, U)
 
     def _rest_basis(self, op: ForwardOperator) -> Array | None:
         """The basis U of an operator's estimate Jacobian at rest (None if it has none)."""
         jac = getattr(op, "estimate_jacobian", lambda g: None)(np.zeros((self.support.size, 3)))
         return None if jac is None else jac.U
 
-    def _readout_gram(self, U: Array) -> Array:
-        """U^T U (float64) of a Jacobian's basis U, kept for the session's last two (the
-        network's and, for method auto, its corrector's): constant per operator."""
+    def _readout_gram(self, op: ForwardOperator, U: Array) -> Array:
+        """The Gram (float64) of the readout over the whole surface in the coefficients of a
+        Jacobian of `op` with basis U: U^T U, plus the Gram of the surface nodes the objective
+        does not read (`op.readout_at`, at rest for the Newton method), each kept for the
+        session's last two operators (the network's and, for method auto, its corrector's)."""
 
         def gram() -> Array:
             U64 = np.asarray(U, np.float64)
             return U64.T @ U64
 
-        return _last_two(self._readout_grams, U, gram)
+        G = _last_two(self._readout_grams, U, gram)
+        if not self._unread.size:  # the objective reads the whole surface (no `matching`)
+            return G
+
+        def unread() -> Array:
+            V = np.asarray(op.readout_at(self._unread), np.float64)  # type: ignore[attr-defined]
+            return V.T @ V
+
+        return G + _last_two(self._unread_grams, op, unread)
 
     def _force_prior(self, jac) -> Array:
         """confidence.force_prior of a Jacobian, kept for the last two: the estimate Jacobians
@@ -224,7 +237,15 @@ class Outputs:
         Cg = jac.matvec(np.asarray(g, np.float64).ravel())
         prior = None if not self._max_force else self._force_prior(jac)
         spread, gamma = inverse_spread(
-            jac, match, self.distance.faces, alpha, self._noise or 0.0, self._readout_gram(jac.U), Cg, prior
+            jac,
+            match,
+            self.distance.faces,
+            alpha,
+            self._noise or 0.0,
+            self._readout_gram(op, jac.U),
+            Cg,
+            prior,
+            readout_nodes=self.distance.nodes.size + self._unread.size,
         )
         return spread, gamma if self._noise else None
 

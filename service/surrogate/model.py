@@ -295,6 +295,15 @@ class NetworkOperator:
         for the paper's layout (no basis)."""
         return self._readout
 
+    def readout_at(self, nodes: Array) -> Array | None:
+        """du/dc at other nodes (3q, r), in its Jacobians' coefficients (the readout is the same
+        at every g): the error estimate's spread reads the whole surface, not the objective's
+        nodes alone. None for the paper's layout (no basis)."""
+        if self._readout is None:
+            return None
+        r = self._basis_all.shape[1]
+        return self._basis_all.reshape(-1, 3, r)[np.asarray(nodes, np.int64)].reshape(-1, r)
+
     def low_rank_jacobian(self) -> tuple[Array, Array] | None:
         """du/dg at g = 0 as U Q^T, Q orthonormal: the reduced network answers in r basis
         coefficients, so its Jacobian has rank r << 3k (the Gauss-Newton preconditioner's

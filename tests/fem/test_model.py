@@ -142,6 +142,24 @@ def test_jacobian_products_are_the_jacobians_own(model):
         products.matvec(x)
 
 
+@pytest.mark.parametrize("dense", [True, False])
+def test_the_readout_at_other_nodes_is_the_rest_jacobians_there(model, monkeypatch, dense):
+    """readout_at (the error estimate's whole surface): the rows of the estimate Jacobian at
+    other nodes, in its own coefficients: the rest one's (3 solves a support node), or past
+    MAX_JACOBIAN_SUPPORT the rest one's there times its leading directions' C^T."""
+    import service.fem.model as fem_model
+
+    support, _ = support_and_load(model.mesh)
+    nodes, others = model.mesh.surface_nodes[:20], model.mesh.surface_nodes[20:27]
+    if not dense:
+        monkeypatch.setattr(fem_model, "MAX_JACOBIAN_SUPPORT", support.size - 1)
+    op = model.restrict(support, nodes)
+    there = model.restrict(support, others)._rest_dense().U
+    jac = op.estimate_jacobian(np.zeros((support.size, 3)))
+    want = there if dense else there @ jac.C.T
+    np.testing.assert_allclose(op.readout_at(others), want, rtol=1e-9, atol=1e-12 * np.abs(there).max())
+
+
 def test_with_stiffness_scales_the_response(model):
     support, g = support_and_load(model.mesh)
     stiff = model.with_stiffness(4 * model.material.E)

@@ -544,3 +544,16 @@ def test_the_rest_state_on_the_side_is_the_rest_state_and_records_nothing(bar):
     jac = op.jacobian(g)
     ref = jac.matvec(grad.ravel())
     np.testing.assert_allclose(jac.gradient_image(0.0), ref, rtol=1e-4, atol=1e-5 * np.abs(ref).max())
+
+
+def test_the_readout_at_other_nodes_is_their_operators_own(model):
+    """readout_at (the error estimate's whole surface): the rows another operator, restricted
+    to those nodes, reads through the same coefficients; None without a basis."""
+    support, nodes, _ = case(model)
+    others = np.setdiff1d(model.mesh.surface_nodes, nodes)[:7]
+    got = model.restrict(support, nodes).readout_at(others)
+    want = model.restrict(support, others).readout
+    if want is None:
+        assert got is None
+    else:
+        np.testing.assert_array_equal(got, want)
