@@ -39,10 +39,12 @@ DATA_SHARE = 0.6
 #: entry over the scene's own mesh) for writing its entry: the real weights are larger, and the
 #: write's load-back builds the real network
 WRITE_MARGIN = 2.0
-#: and this many seconds more: the last epoch runs past the training's clock, and the final
-#: evaluation, the real network's load-back and the process's exit follow (the bar's 15 s build
-#: ended 13 ms late with the write's margin alone, and 20 ms late with 1 s more, at a load of 10)
+#: and this many seconds more, at most END_SLACK_SHARE of the minutes: the last epoch runs past
+#: the training's clock, and the final evaluation, the real network's load-back and the exit
+#: follow (the bar's 15 s build ended 13 ms late with the write's margin alone, and 20 ms late
+#: with 1 s more, at a load of 10); the share leaves a 3 s build (the bar's) its training
 END_SLACK_S = 3.0
+END_SLACK_SHARE = 0.15
 #: the least --minutes a refused build is told to try where no path finished: 6 s, in which the
 #: tests' 81-node bar builds; a bigger mesh then finishes a path, and the refusal measures it
 LEAST_MINUTES = 0.1
@@ -183,7 +185,7 @@ def _warm_up(mesh, material: NeoHookean, spec: LoadSpec, scene: dict, store: Pat
     ahead = time.perf_counter() - t_start  # the start's cost: about the loads' to come
     if deadline - time.perf_counter() > ahead:
         write = warm_up(mesh, material, spec, scene, Path(store), TIMED_NEWTON_CAP)
-        keep = WRITE_MARGIN * write + END_SLACK_S
+        keep = WRITE_MARGIN * write + min(END_SLACK_S, END_SLACK_SHARE * 60.0 * minutes)
         if deadline - time.perf_counter() > keep:
             log.info("one-off loads paid %.1f s after the start; %.2f s kept for the write and the end",
                      time.perf_counter() - t_start, keep)  # fmt: skip
