@@ -55,8 +55,8 @@ class SessionConfig:
     method: Method = setting(
         "network",
         "forward model: the trained network, the FEM (Newton adjoint), or auto: the network, with "
-        "a frame whose error_estimate exceeds max_error registered again by the FEM, kept where it "
-        "estimates lower (method_used says which)",
+        "a frame whose error_estimate exceeds max_error registered again by the FEM (method_used "
+        "says which)",
     )
     max_error: float | None = setting(
         None, "auto only: the error estimate (m) past which the FEM corrects a frame", gt=0, le=1
