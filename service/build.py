@@ -175,6 +175,22 @@ def too_short(minutes: float, done: int, spent: float, took: list[float], data_s
     )
 
 
+def too_few_samples(done: int, loaded: int, aside: int) -> str:
+    """The refusal of a build whose `done` finished load paths left `loaded` < 2 with samples:
+    `aside` files were damaged (set aside by the load: the rerun solves them again), the rest
+    held none (their first steps did not converge)."""
+    why = []
+    if aside:
+        files, them = ("file was", "it") if aside == 1 else ("files were", "them")
+        why.append(f"{aside} {files} damaged and set aside as *.damaged: the rerun solves {them} again")
+    if done - aside > loaded:
+        why.append(
+            f"{done - aside - loaded} held none (their first steps did not converge): check the boundary conditions "
+            "and the load range, or give the build more time"
+        )
+    return f"{done} load paths finished but {loaded} hold a sample ({'; '.join(why)})"
+
+
 def _warm_up(mesh, material: NeoHookean, spec: LoadSpec, scene: dict, store: Path, minutes: float, t_start: float,
              deadline: float) -> float:  # fmt: skip
     """Pay the one-off loads (warmup.py) inside the budget, before it is planned; the seconds to
@@ -380,12 +396,15 @@ def build(
         if len(done) < 2:
             share = None if data_until is None else data_until - t0
             raise ValueError(too_short(minutes, len(done), time.perf_counter() - t_start, took, share))
-        F, U, P = load_dataset(data_dir, done)
-        if np.unique(P).size < 2:  # paths whose first step failed hold no sample
-            raise ValueError(
-                f"{len(done)} load paths finished but {np.unique(P).size} hold a sample (their first steps did not "
-                "converge): check the boundary conditions and the load range, or give the build more time"
-            )
+        try:
+            F, U, P = load_dataset(data_dir, done, len(region), mesh.n_nodes)
+        except FileNotFoundError:  # no file held a sample (load_dataset skips files gone meanwhile)
+            F = U = P = np.empty(0)
+        # a file damaged in its data is set aside by the load: the paths trained on are those loaded
+        n_loaded = int(np.unique(P).size)
+        if n_loaded < 2:
+            aside = len(set(done) - done_indices(data_dir))
+            raise ValueError(too_few_samples(len(done), n_loaded, aside))
         if deadline is not None:
             left = deadline - time.perf_counter() - reserve
             # the clock bounds training, not an epoch count: as many epochs as fit
@@ -396,7 +415,7 @@ def build(
         net = result.model
         training = {
             "samples": int(len(F)),
-            "paths": len(done),
+            "paths": n_loaded,
             "minutes": minutes,
             "data_seconds": round(data_seconds, 1),
             "validation": result.metrics,
@@ -433,4 +452,4 @@ def build(
     log.info(
         "wrote %s: validation mean %.3f mm, p95 %.3f mm", entry, result.metrics["mean_mm"], result.metrics["p95_mm"]
     )
-    return BuildReport(entry, len(F), len(done), data_seconds, result.metrics["train_seconds"], result.metrics)
+    return BuildReport(entry, len(F), n_loaded, data_seconds, result.metrics["train_seconds"], result.metrics)

@@ -106,8 +106,9 @@ def _read_array(z: zipfile.ZipFile, name: str) -> Array:
         return np.lib.format.read_array(f, allow_pickle=False)
 
 
-def _set_aside(path: Path, why: str) -> None:
-    """Rename a damaged path file to *.damaged (the user's data: never deleted), with one warning."""
+def _set_aside(path: Path, why: str, then: str) -> None:
+    """Rename a damaged path file to *.damaged (the user's data: never deleted), with one warning
+    that ends with `then`: when its path is solved again."""
     aside, n = path.with_name(f"{path.name}.damaged"), 1
     while aside.exists():
         aside, n = path.with_name(f"{path.name}.{n}.damaged"), n + 1
@@ -116,7 +117,7 @@ def _set_aside(path: Path, why: str) -> None:
     except FileNotFoundError:  # another build of this folder set it aside first
         return
     _sync_folder(path.parent)
-    log.warning("%s is damaged (%s): set aside as %s; its load path is solved again", path, why, aside.name)
+    log.warning("%s is damaged (%s): set aside as %s; %s", path, why, aside.name, then)
 
 
 def _damage(error: BaseException) -> str:
@@ -138,7 +139,7 @@ def intact_indices(data_dir: Path, indices: list[int], region: int, nodes: int, 
         if why is None:
             kept.append(i)
         else:
-            _set_aside(path, why)
+            _set_aside(path, why, "its load path counts as not done and is solved again")
     return kept
 
 
@@ -148,7 +149,7 @@ def load_dataset(
     """All samples on disk: forces (N, r, 3), u (N, n, 3) float32, and each sample's path index.
     A file that cannot be read whole, or whose shapes are not a path's (`region` and `nodes`
     where given, else the first good file's), is set aside and left out: the next build solves
-    its path again."""
+    its path again. A file gone since it was listed (another build set it aside) is skipped."""
     idx = sorted(done_indices(data_dir)) if indices is None else sorted(indices)
     F, U, P = [], [], []
     for i in idx:
@@ -157,12 +158,14 @@ def load_dataset(
             with zipfile.ZipFile(path) as z:  # not np.load: a lone .npy under the name loads as an array
                 arrays = {name: _read_array(z, name) for name in _ARRAYS}
             why = _wrong_shapes({k: a.shape for k, a in arrays.items()}, region, nodes, None)
+        except FileNotFoundError:  # another build of this folder set it aside since it was listed
+            continue
         except PermissionError:
             raise
         except _DAMAGED as exc:
             why = _damage(exc)
         if why is not None:
-            _set_aside(path, why)
+            _set_aside(path, why, "left out of this build: the next solves its load path again")
             continue
         region, nodes = arrays["forces"].shape[1], arrays["u"].shape[1]  # the next files must agree
         F.append(arrays["forces"])

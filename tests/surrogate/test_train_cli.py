@@ -413,6 +413,40 @@ def test_a_damaged_path_file_is_set_aside_and_solved_again(tmp_path, bar, capsys
     assert main(common) == 0  # and every later build goes on as before
 
 
+@pytest.mark.parametrize("samples", [60, 90], ids=["2-paths", "3-paths"])
+def test_a_path_file_damaged_in_its_data_is_counted_out_of_the_build(tmp_path, bar, capsys, caplog, samples):
+    """A file whose headers pass the generation's check but whose data do not (a flipped byte in
+    a 30-step path: the CRC) is set aside by the load, inside the build: the build counted it
+    anyway, refusing 2 paths as 'their first steps did not converge' and recording 3 paths
+    in the manifest from 2 paths' samples, and its warning said the path was solved again."""
+    from service.cli import main
+
+    scene = write_bar_scene(tmp_path / "scene", bar, samples=samples, load_steps=30)
+    common = ["train", str(scene), "--store", str(tmp_path / "store"), "--data", str(tmp_path / "data"),
+              "--workers", "0", "--hidden", "16", "--rank", "8", "--epochs", "3"]  # fmt: skip
+    assert main(common) == 0
+    (folder,) = (tmp_path / "data").iterdir()
+    path = folder / "path_000001.npz"
+    raw = bytearray(path.read_bytes())
+    raw[len(raw) // 2] ^= 0xFF  # inside u's data: the headers stay sound
+    path.write_bytes(bytes(raw))
+    capsys.readouterr()
+    caplog.clear()
+    code = main(common)
+    (said,) = [r.getMessage() for r in caplog.records if r.name.endswith("pathfiles")]
+    assert said.startswith(f"{path} is damaged (") and said.endswith("the next solves its load path again"), said
+    if samples == 60:  # one path left: refused, and the refusal says why
+        assert code == 2
+        err = capsys.readouterr().err
+        assert "1 file was damaged and set aside" in err and "the rerun solves it again" in err, err
+        assert "did not converge" not in err
+    else:
+        assert code == 0
+        assert load_entry(tmp_path / "store" / "bar").manifest["training"]["paths"] == 2
+    assert main(common) == 0  # the rerun solves it again
+    assert path.exists() and load_entry(tmp_path / "store" / "bar").manifest["training"]["paths"] == samples // 30
+
+
 def test_a_much_worse_rebuild_keeps_the_installed_model_unless_replace_is_given(tmp_path, bar, capsys):
     """A rebuild replaced the store's entry whatever it scored: a build botched by a flag (here an
     untrained network on raw forces) silently took a good model's place."""
