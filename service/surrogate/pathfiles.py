@@ -33,8 +33,9 @@ _TEMPORARY = re.compile(rf"\.path_\d{{6}}-{RANDOM}\.tmp\.npz")
 #: a path file's arrays, in write_path's order
 _ARRAYS = ("forces", "u", "newton_iterations")
 #: what reading a file that is not write_path's raises (a cut-short zip, an empty file, a bad
-#: header, a missing array, a bad CRC); a PermissionError is the user's to fix, never set aside
-_DAMAGED = (zipfile.BadZipFile, EOFError, ValueError, KeyError, zlib.error, OSError)
+#: header, a missing array, a bad CRC); an OSError (EMFILE, EIO, a permission) says nothing of the
+#: file's content, so it is never set aside for one: the error propagates
+_DAMAGED = (zipfile.BadZipFile, EOFError, ValueError, KeyError, zlib.error)
 
 
 def path_file(data_dir: Path, index: int) -> Path:
@@ -132,8 +133,6 @@ def intact_indices(data_dir: Path, indices: list[int], region: int, nodes: int, 
         path = path_file(data_dir, i)
         try:
             why = _wrong_shapes(_header_shapes(path), region, nodes, steps)
-        except PermissionError:
-            raise
         except _DAMAGED as exc:
             why = _damage(exc)
         if why is None:
@@ -160,8 +159,6 @@ def load_dataset(
             why = _wrong_shapes({k: a.shape for k, a in arrays.items()}, region, nodes, None)
         except FileNotFoundError:  # another build of this folder set it aside since it was listed
             continue
-        except PermissionError:
-            raise
         except _DAMAGED as exc:
             why = _damage(exc)
         if why is not None:

@@ -305,3 +305,37 @@ def test_a_path_file_damaged_in_its_data_is_set_aside_and_left_out(tmp_path, bar
     warnings = [r.getMessage() for r in caplog.records if r.name.endswith("pathfiles")]
     assert len(warnings) == 2 and str(path_file(out, 1)) in warnings[0], warnings
     assert "set aside as path_000001.npz.damaged" in warnings[0]
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="RLIMIT_NOFILE is POSIX's")
+@pytest.mark.parametrize("check", ["headers", "data"])
+def test_an_os_error_while_reading_a_path_file_is_raised_not_taken_for_damage(tmp_path, bar, spec, check):
+    """At the open-file limit (EMFILE; EIO and ENOMEM alike) every intact path file was renamed
+    *.damaged and its path solved again: an OS error says nothing of the file, so it propagates."""
+    import errno
+    import resource
+
+    from service.surrogate.pathfiles import intact_indices
+
+    out = tmp_path / "data"
+    list(generate(bar, MAT, spec, out, 3, workers=0, progress=False))
+    read = {
+        "headers": lambda: intact_indices(out, [0, 1, 2], len(spec.region), bar.n_nodes, spec.steps),
+        "data": lambda: load_dataset(out, [0, 1, 2]),
+    }[check]
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    held: list[int] = []
+    resource.setrlimit(resource.RLIMIT_NOFILE, (min(256, hard), hard))
+    try:
+        with pytest.raises(OSError) as raised:
+            while True:  # every descriptor taken: the next open fails with EMFILE
+                held.append(os.open(os.devnull, os.O_RDONLY))
+        assert raised.value.errno == errno.EMFILE
+        with pytest.raises(OSError) as raised:
+            read()
+    finally:
+        for fd in held:
+            os.close(fd)
+        resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
+    assert raised.value.errno == errno.EMFILE and str(path_file(out, 0)) in str(raised.value)
+    assert done_indices(out) == {0, 1, 2} and not list(out.glob("*.damaged"))  # nothing set aside
