@@ -198,12 +198,7 @@ def test_ctrl_c_during_the_data_prints_one_line_and_keeps_the_paths(tmp_path, ba
 
     scene = write_bar_scene(tmp_path / "scene", bar, samples=30_000)  # far more than it has time for
     data = tmp_path / "data"
-    p = subprocess.Popen(
-        [sys.executable, "-m", "service.cli", "train", str(scene), "--store", str(tmp_path / "store"),
-         "--data", str(data), "--workers", "1", "--hidden", "32", "--rank", "8", "--epochs", "5"],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=ROOT, start_new_session=True,
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # as a shell's foreground job
-    )  # fmt: skip
+    p = _foreground_train(scene, tmp_path / "store", data, workers=1)
     try:
         _first_path_then(p, data)
         os.killpg(p.pid, signal.SIGINT)
@@ -232,18 +227,10 @@ def test_ctrl_c_to_the_build_alone_prints_no_dask_log_lines(tmp_path, bar):
     scene = write_bar_scene(tmp_path / "scene", bar, samples=30_000, load_steps=30)  # far more than it has time for
     data = tmp_path / "data"
     for _ in range(2):
-        p = subprocess.Popen(
-            [sys.executable, "-m", "service.cli", "train", str(scene), "--store", str(tmp_path / "store"),
-             "--data", str(data), "--workers", "2", "--hidden", "32", "--rank", "8", "--epochs", "5"],
-            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=ROOT, start_new_session=True,
-            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # as a shell's foreground job
-        )  # fmt: skip
+        before = len(list(data.rglob("path_*.npz")))
+        p = _foreground_train(scene, tmp_path / "store", data, workers=2)
         try:
-            before = len(list(data.rglob("path_*.npz")))
-            deadline = time.monotonic() + 120
-            while len(list(data.rglob("path_*.npz"))) < before + 2:  # both workers are solving
-                assert p.poll() is None and time.monotonic() < deadline, "no path was written"
-                time.sleep(0.05)
+            _first_path_then(p, data, paths=before + 2)  # both workers are solving
             os.kill(p.pid, signal.SIGINT)
             out, _ = p.communicate(timeout=60)
         finally:
@@ -257,10 +244,23 @@ def test_ctrl_c_to_the_build_alone_prints_no_dask_log_lines(tmp_path, bar):
         assert _group_gone(p.pid)  # the workers went with it
 
 
-def _first_path_then(p: subprocess.Popen, data: Path) -> None:
-    """Wait until the build `p` has written its first load path (its workers are solving)."""
+def _foreground_train(scene: Path, store: Path, data: Path, workers: int) -> subprocess.Popen:
+    """`elastreg train` with local `workers`, in a process group of its own with SIGINT's default
+    handler, as a shell's foreground job (a background job ignores SIGINT)."""
+    import signal
+
+    return subprocess.Popen(
+        [sys.executable, "-m", "service.cli", "train", str(scene), "--store", str(store),
+         "--data", str(data), "--workers", str(workers), "--hidden", "32", "--rank", "8", "--epochs", "5"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=ROOT, start_new_session=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )  # fmt: skip
+
+
+def _first_path_then(p: subprocess.Popen, data: Path, paths: int = 1) -> None:
+    """Wait until the build `p` has written `paths` load paths in all (its workers are solving)."""
     deadline = time.monotonic() + 120
-    while not list(data.rglob("path_*.npz")):
+    while len(list(data.rglob("path_*.npz"))) < paths:
         assert p.poll() is None and time.monotonic() < deadline, "no path was written"
         time.sleep(0.05)
 
