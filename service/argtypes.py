@@ -65,20 +65,24 @@ MAX_MINUTES = 365 * 24 * 60
 build_minutes = positive_number(MAX_MINUTES, " (a year)")
 
 
-#: the protocols of a Dask scheduler's address that name a host and a port (a bare HOST:PORT is tcp)
+#: the protocols of a Dask scheduler's address that name a host and a port (a bare HOST:PORT is tcp);
+#: not inproc, whose scheduler lives inside one process that a command can never join
 DASK_HOST_PROTOCOLS = ("tcp", "tls", "ws", "wss", "ucx")
 
 
 def scheduler_address(text: str) -> str:
     """An argparse type for a Dask scheduler's address, [PROTOCOL://]HOST:PORT: one that is no
     address at all ('garbage', 'http://...', '') failed at once yet said that no scheduler
-    answered there within 30 s, and port 99999 waited the 30 s. inproc:// is passed on as it is."""
+    answered there within 30 s, and port 99999 waited the 30 s."""
     protocol, sep, rest = text.rpartition("://") if "://" in text else ("tcp", "", text)
     if protocol == "inproc":
-        return text
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is an in-process address, reachable only from the process that holds its scheduler: "
+            "give the scheduler's [tcp://]HOST:PORT"
+        )
     if protocol not in DASK_HOST_PROTOCOLS:
         raise argparse.ArgumentTypeError(
-            f"{protocol!r} is not a Dask protocol ({', '.join(DASK_HOST_PROTOCOLS)}, inproc), in {text!r}"
+            f"{protocol!r} is not a Dask protocol ({', '.join(DASK_HOST_PROTOCOLS)}), in {text!r}"
         )
     try:
         parts = urllib.parse.urlsplit(f"//{rest}")
@@ -89,7 +93,7 @@ def scheduler_address(text: str) -> str:
         "it has no host" if not host
         else "it has no port" if port is None
         else "port 0 is out of range 1..65535" if port == 0
-        else "it holds more than HOST:PORT" if parts.path or parts.query or parts.fragment or parts.username
+        else "it holds more than HOST:PORT" if parts.path or parts.query or parts.fragment or "@" in parts.netloc
         else None
     )  # fmt: skip
     if wrong:

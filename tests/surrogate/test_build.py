@@ -505,6 +505,9 @@ def test_the_command_line_refuses_numbers_no_build_can_take(flags, message, caps
         ("tcp://[::1", "Invalid IPv6 URL"),
         ("tcp://127.0.0.1:99999", "Port out of range"),
         ("tcp://127.0.0.1:0", "port 0 is out of range 1..65535"),
+        ("tcp://:pw@127.0.0.1:1", "it holds more than HOST:PORT"),  # was passed on, and Dask refused it later
+        ("tcp://user@127.0.0.1:1", "it holds more than HOST:PORT"),
+        ("inproc://10.0.0.1/1/1", "an in-process address"),
     ],
 )
 def test_a_scheduler_address_that_is_no_address_is_refused_at_parse_time(address, wrong, tmp_path, capsys):
