@@ -107,6 +107,7 @@ class FEMOperator:
         # a frame's best equilibrium (:meth:`pin`), past the list: its outputs are read there
         self._pinned: tuple[Array, Array] | None = None
         self._rest_jacobian: DenseJacobian | None = None
+        self._unread_rows: Array | None = None  # the rest solves' rows at _unread, until readout_at takes them
         self._rest_leading: LowRankJacobian | None = None  # a large support's, for the estimate
         self._helper: SparseSolver | None = None  # a second factor, for the Jacobian's other half
         self._last_jacobian: tuple[Array, DenseJacobian] | None = None  # (g, du/dg at g)
@@ -249,7 +250,13 @@ class FEMOperator:
         more than of the load, and the one Levenberg-Marquardt formed at the answer cost a
         Newton frame 7-27 % in a new Gram (docs/performance.md). Past MAX_JACOBIAN_SUPPORT
         support nodes, its leading ESTIMATE_RANK directions (:meth:`_rest_low_rank`)."""
-        return self._rest_dense() if self.has_jacobian else self._rest_low_rank()
+        return self._rest_dense(readout=True) if self.has_jacobian else self._rest_low_rank()
+
+    @cached_property
+    def _unread(self) -> Array:
+        """The surface nodes the objective does not read: where the estimate's spread reads the
+        rest of the surface (registration/outputs.py asks :meth:`readout_at` there)."""
+        return np.setdiff1d(self.mesh.surface_nodes, self.nodes)
 
     def _rest_low_rank(self) -> LowRankJacobian:
         """du/dg at rest, its leading ESTIMATE_RANK directions by rest.leading_directions (480
@@ -262,8 +269,7 @@ class FEMOperator:
             # the estimate reads the whole surface: directions chosen on the matched nodes alone
             # missed the forces that move the rest (two matched triangles: 1.9 mm at 501 support
             # nodes where the dense Jacobian read 16.6 mm at 500)
-            unread = np.setdiff1d(self.mesh.surface_nodes, self.nodes)
-            read = np.concatenate([own, self._free_rows(unread)])
+            read = np.concatenate([own, self._free_rows(self._unread)])
             solve, n_free = self._rest_solver().solve_free, self.mesh.free_dofs.size
             moving = read >= 0
 
@@ -282,12 +288,18 @@ class FEMOperator:
     def readout_at(self, nodes: Array) -> Array:
         """The rows at other nodes (3q, its columns) of :meth:`estimate_jacobian`, the rest one:
         the error estimate's spread reads the whole surface, not the objective's nodes alone.
-        3 solves per support node with the rest factor (past MAX_JACOBIAN_SUPPORT, one per
-        leading direction); the session keeps it per operator."""
-        read = self._free_rows(nodes)
-        if self.has_jacobian:
-            return self._support_response(self._rest_solver().solve_free, read=read)
-        return self._rest_response(self._rest_low_rank().C.T, read)
+        At the surface nodes the objective does not read (the session's ask), the rows the rest
+        Jacobian's own solves read, handed over once (the session keeps their Gram); at other
+        nodes 3 solves per support node with the rest factor. Past MAX_JACOBIAN_SUPPORT, one
+        solve per leading direction."""
+        if not self.has_jacobian:
+            return self._rest_response(self._rest_low_rank().C.T, self._free_rows(nodes))
+        if np.array_equal(nodes, self._unread):
+            self._rest_dense(readout=True)
+            rows, self._unread_rows = self._unread_rows, None
+            if rows is not None:
+                return rows
+        return self._support_response(self._rest_solver().solve_free, read=self._free_rows(nodes))
 
     def _rest_response(self, X: Array, read: Array) -> Array:
         """The rest compliance applied to forces X (3k, m) on the support, read at the free
@@ -300,10 +312,19 @@ class FEMOperator:
         out[moving] = self._rest_solver().solve_free(rhs)[read[moving]]
         return out
 
-    def _rest_dense(self) -> DenseJacobian:
-        """du/dg at rest, formed in full once (3k solves with the rest factorisation)."""
+    def _rest_dense(self, readout: bool = False) -> DenseJacobian:
+        """du/dg at rest, formed in full once (3k solves with the rest factorisation). `readout`
+        (the error estimate's): the same solves read at :attr:`_unread` too, kept for
+        :meth:`readout_at`: solving them again only to read other rows took a session open with
+        `matching` at 300 support nodes from 0.20 to 0.36 s (docs/performance.md)."""
         if self._rest_jacobian is None:
-            self._rest_jacobian = DenseJacobian(self._support_response(self._rest_solver().solve_free))
+            _, own = self._dof_maps
+            unread = self._unread if readout else self._unread[:0]
+            read = np.concatenate([own, self._free_rows(unread)])
+            J = self._support_response(self._rest_solver().solve_free, read=read)
+            # the objective's rows copied where there are others: not a view that holds them for good
+            self._rest_jacobian = DenseJacobian(J[: own.size].copy() if unread.size else J)
+            self._unread_rows = J[own.size :] if unread.size else None
         return self._rest_jacobian
 
     def jacobian_products(self, g: Array) -> JacobianProducts | None:

@@ -160,6 +160,38 @@ def test_the_readout_at_other_nodes_is_the_rest_jacobians_there(model, monkeypat
     np.testing.assert_allclose(op.readout_at(others), want, rtol=1e-9, atol=1e-12 * np.abs(there).max())
 
 
+@pytest.mark.parametrize("estimate_first", [True, False])
+def test_the_estimate_and_its_readout_share_one_set_of_rest_solves(model, monkeypatch, estimate_first):
+    """A session with `matching` asks the rest Jacobian (estimate_jacobian) and its readout at
+    the surface nodes the objective does not read (registration/outputs.py): 3k rest solve
+    columns between them, in either order, not 3k each; the values are each one's own pass's."""
+    support, _ = support_and_load(model.mesh)
+    nodes = model.mesh.surface_nodes[:20]
+    unread = np.setdiff1d(model.mesh.surface_nodes, nodes)  # as Outputs asks
+    want_jac = model.restrict(support, nodes)._rest_dense().U
+    want_readout = model.restrict(support, unread)._rest_dense().U
+    op = model.restrict(support, nodes)
+    rest = op._rest_solver()
+    columns = []
+
+    def counted(b):  # the real solver's solve, its right-hand sides counted
+        columns.append(1 if b.ndim == 1 else b.shape[1])
+        return solve_free(b)
+
+    solve_free = rest.solve_free
+    monkeypatch.setattr(rest, "solve_free", counted)
+    zero = np.zeros((support.size, 3))
+    if estimate_first:
+        jac, readout = op.estimate_jacobian(zero), op.readout_at(unread)
+    else:
+        readout, jac = op.readout_at(unread), op.estimate_jacobian(zero)
+    assert sum(columns) == 3 * support.size
+    np.testing.assert_allclose(jac.U, want_jac, rtol=1e-12, atol=1e-15 * np.abs(want_jac).max())
+    np.testing.assert_allclose(readout, want_readout, rtol=1e-12, atol=1e-15 * np.abs(want_readout).max())
+    assert op._unread_rows is None  # handed over: the operator keeps only the objective's rows
+    np.testing.assert_allclose(op.readout_at(unread), want_readout, rtol=1e-12, atol=1e-15 * np.abs(want_readout).max())
+
+
 def test_with_stiffness_scales_the_response(model):
     support, g = support_and_load(model.mesh)
     stiff = model.with_stiffness(4 * model.material.E)
