@@ -142,16 +142,24 @@ def occupied(pool, n: int = 1, timeout: float = 60.0):
     """``n`` jobs admitted to a server's solve pool as solves are, each holding a solver thread
     (or a queue place) until the block ends: a stand-in for long FEM frames."""
     release = threading.Event()
-    threads = [
-        threading.Thread(target=lambda: asyncio.run(pool.run(release.wait, timeout)), daemon=True) for _ in range(n)
-    ]
-    before = pool.in_flight
+    admitted = threading.Semaphore(0)
+
+    async def block() -> None:
+        job = asyncio.ensure_future(pool.run(release.wait, timeout))
+        await asyncio.sleep(0)  # the job's first step ran: admitted, or refused (done, Overloaded)
+        if not job.done():
+            admitted.release()
+        await job
+
+    # each blocker reports its own admission: the pool's in_flight also moves with other jobs
+    # (one left by an earlier test that ends meanwhile would hide a blocker's +1)
+    threads = [threading.Thread(target=lambda: asyncio.run(block()), daemon=True) for _ in range(n)]
     for t in threads:
         t.start()
     deadline = time.monotonic() + 10
-    while pool.in_flight < before + n and time.monotonic() < deadline:
-        time.sleep(0.01)
-    assert pool.in_flight >= before + n, "the blockers were not admitted"
+    assert all(admitted.acquire(timeout=max(0.0, deadline - time.monotonic())) for _ in threads), (
+        "the blockers were not admitted"
+    )
     try:
         yield release
     finally:
