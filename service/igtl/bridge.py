@@ -78,7 +78,7 @@ class Bridge(Relay):
         if not 0 < self.idle_timeout < float("inf"):
             raise ValueError(f"idle_timeout must be a positive finite number of seconds, got {idle_timeout!r}")
         self._client: Connection | None = None  # the client that holds the one slot
-        self._last: Connection | None = None  # the latest to take it: the next waits for its teardown
+        self._last: Connection | None = None  # the latest to take it, until its teardown is over
         self._ignored = Seen()  # (type, device) of messages ignored lately (an LRU: a peer may send any number)
         self._throttle = Throttle(log)  # the lines clients' messages cause, all clients together
 
@@ -184,6 +184,8 @@ class Bridge(Relay):
                 log.info("client %s disconnected", client.peer)
             finally:
                 client.closed.set()
+                if self._last is client:  # torn down: the next has nothing to wait for, and the
+                    self._last = None  # bridge holds no gone client (its buffers, its stream) till then
 
     async def _serve(self, client: Connection) -> None:
         """Frames until the client leaves; its stream is left open on ``client`` (the caller

@@ -4,6 +4,7 @@ and a POLYDATA's points are decoded where they lie."""
 
 from __future__ import annotations
 
+import gc
 import select
 import socket
 import subprocess
@@ -11,6 +12,7 @@ import sys
 import threading
 import time
 import tracemalloc
+import weakref
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +21,7 @@ import pytest
 from service.api.server import free_port
 from service.igtl import protocol as p
 
-from .conftest import point_frame, polydata_frame, read_answer
+from .conftest import get_mesh, point_frame, polydata_frame, read_answer, registered, surface_cloud, wait_closed
 
 #: the peak of the bridge's traced allocations for one message, over its body (2.0-2.2 before)
 BOUND = 1.6
@@ -97,3 +99,24 @@ def test_a_header_alone_costs_nothing_and_a_refused_body_is_not_held(api_server)
     finally:
         bridge.kill()
         bridge.wait(30)
+
+
+def test_a_client_that_left_is_not_held_by_the_bridge(api_server, run_bridge):
+    """The bridge kept the last client's connection (its reader's buffer, its API stream) until
+    the next client came, for the reconnect's wait: once its teardown is over it is freed."""
+    api = api_server()
+    mesh = get_mesh(api.url, "bar")
+    bridge = run_bridge(api.url)
+    with bridge.connect() as sock:
+        sock.sendall(point_frame(surface_cloud(mesh)))
+        sid = registered(read_answer(sock), len(mesh["surface_nodes"]))["session"]
+        held = bridge.bridge._client
+        assert held is not None
+        gone = weakref.ref(held)
+        del held
+    wait_closed(api.url, sid)
+    deadline = time.monotonic() + 10
+    while gone() is not None and time.monotonic() < deadline:  # its teardown ends just after the session's close
+        gc.collect()
+        time.sleep(0.05)
+    assert gone() is None, "the bridge still holds the connection of a client that left"
