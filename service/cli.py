@@ -182,7 +182,10 @@ def parser() -> argparse.ArgumentParser:
         type=positive,
         default=None,
         metavar="SECONDS",
-        help="a client silent this long gives the one slot up to a new connection (default: 10)",
+        help=(
+            "a client silent this long gives the one slot up to a new connection, and a new connection "
+            "waits at most this long for the previous one's session to close (default: 10)"
+        ),
     )
     g.set_defaults(func=commands.igtl)
 

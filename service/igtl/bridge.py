@@ -5,7 +5,8 @@ The bridge is a client of the HTTP/WebSocket API (:class:`clients.AsyncClient`),
 of the engine: each OpenIGTLink client gets one ``/stream`` session, which a viewer can watch
 (``/viewer?session=ID``). One client at a time: a second, while the first is connected, is told
 so and closed; one that comes as the first leaves (a reconnect) takes the slot at once, and its
-session opens once the first's frame in flight is answered and its session closed; one that
+session opens once the first's frame in flight is answered and its session closed (refused with
+a 503 if no such teardown ends for ``idle_timeout``: the API is not answering); one that
 comes while the first is silent (a Slicer that crashed or slept and left its connection
 half-open) takes the slot once the first has been silent for ``idle_timeout``, if it is still
 connected then (a TCP probe that closed evicts no one).
@@ -51,7 +52,8 @@ _THREAD_DECODE = 256 << 10
 _RECONNECT_GRACE = 1.0
 #: seconds a client may stay silent (no message sent, none being answered) and keep the slot
 #: from a new connection (`elastreg igtl --idle-timeout`): longer than a pause between clouds,
-#: shorter than a user who restarted Slicer will wait before giving up
+#: shorter than a user who restarted Slicer will wait before giving up; also how long a new
+#: connection waits for a previous one's session to close with no teardown ending (an API stopped)
 IDLE_TIMEOUT = 10.0
 #: seconds the connections' teardown may take when the bridge stops (Ctrl-C)
 _STOP_GRACE = 5.0
@@ -78,7 +80,8 @@ class Bridge(Relay):
         if not 0 < self.idle_timeout < float("inf"):
             raise ValueError(f"idle_timeout must be a positive finite number of seconds, got {idle_timeout!r}")
         self._client: Connection | None = None  # the client that holds the one slot
-        self._last: Connection | None = None  # the latest to take it, until its teardown is over
+        #: the clients that took the slot and whose teardown is not over: the next waits for them
+        self._tearing: set[Connection] = set()
         self._ignored = Seen()  # (type, device) of messages ignored lately (an LRU: a peer may send any number)
         self._throttle = Throttle(log)  # the lines clients' messages cause, all clients together
 
@@ -143,13 +146,14 @@ class Bridge(Relay):
             await client.close()
             return
         self._client = client
-        previous, self._last = self._last, client
+        earlier = list(self._tearing)
+        self._tearing.add(client)
         keepalive(writer.get_extra_info("socket"))
         log.info("client %s connected", client.peer)
         error: dict | str | None = None  # the last status, when the connection ends on an error
         try:
-            if previous is not None:  # its frame in flight and its session end first: a client that
-                await previous.closed.wait()  # reconnects in a loop holds one API session, not one each
+            if earlier:  # their frames in flight and sessions end first: a client that reconnects
+                await self._torn_down(earlier)  # in a loop holds one API session, not one each
             if client.reader.at_eof():  # left while it waited, having sent nothing: no session
                 return
             await self._serve(client)
@@ -184,8 +188,29 @@ class Bridge(Relay):
                 log.info("client %s disconnected", client.peer)
             finally:
                 client.closed.set()
-                if self._last is client:  # torn down: the next has nothing to wait for, and the
-                    self._last = None  # bridge holds no gone client (its buffers, its stream) till then
+                self._tearing.discard(client)  # the bridge holds no gone client (its buffers, its stream)
+
+    async def _torn_down(self, earlier: list[Connection]) -> None:
+        """Until the teardown of every connection in ``earlier`` is over; ApiRefused (503) once
+        idle_timeout passes with none of them over (the API does not answer their frames: a fixed
+        bound from arrival would refuse the last of a storm of reconnects that is progressing).
+        ``earlier`` is emptied: the client served holds none of them."""
+        try:
+            while pending := [c for c in earlier if not c.closed.is_set()]:
+                waits = [asyncio.ensure_future(c.closed.wait()) for c in pending]
+                try:
+                    done, _ = await asyncio.wait(waits, timeout=self.idle_timeout, return_when=asyncio.FIRST_COMPLETED)
+                finally:
+                    for w in waits:
+                        w.cancel()
+                if not done:
+                    raise ApiRefused(
+                        503,
+                        f"the previous client's session did not close within {self.idle_timeout:g} s (the bridge's "
+                        "idle timeout): the API is not answering; try again later",
+                    )
+        finally:
+            earlier.clear()
 
     async def _serve(self, client: Connection) -> None:
         """Frames until the client leaves; its stream is left open on ``client`` (the caller

@@ -5,8 +5,12 @@ raw OpenIGTLink over TCP."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
+import signal
 import socket
+import subprocess
+import sys
 import threading
 import time
 
@@ -14,6 +18,7 @@ import httpx
 import numpy as np
 import pytest
 
+from service.api.server import free_port
 from service.igtl import protocol as p
 from service.igtl.bridge import Bridge, serve
 from tests.api.conftest import start
@@ -107,6 +112,29 @@ def api_server(bar_store):
     yield make
     for s in servers:
         s.stop()
+
+
+@pytest.fixture
+def api_process(bar_store, tmp_path):
+    """An API server in its own process (`elastreg serve` over the bar store), to be stopped
+    (SIGSTOP) as a hung API is: (url, process), continued and ended after the test."""
+    port = free_port()
+    cmd = [sys.executable, "-m", "service.cli", "serve", "--store", str(bar_store[0]), "--port", str(port)]
+    server = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=(tmp_path / "serve.log").open("w"))
+    try:
+        url = f"http://127.0.0.1:{port}"
+        deadline = time.monotonic() + 120
+        while True:
+            with contextlib.suppress(httpx.TransportError):
+                if httpx.get(f"{url}/health", timeout=5).status_code == 200:
+                    break
+            assert server.poll() is None and time.monotonic() < deadline, (tmp_path / "serve.log").read_text()
+            time.sleep(0.2)
+        yield url, server
+    finally:
+        server.send_signal(signal.SIGCONT)
+        server.terminate()
+        server.wait(30)
 
 
 def exactly(sock: socket.socket, n: int) -> bytes:

@@ -7,20 +7,16 @@ one API session at a time, however fast a client reconnects."""
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
 import select
 import signal
 import socket
-import subprocess
-import sys
 import threading
 import time
 
 import httpx
 import pytest
 
-from service.api.server import free_port
 from service.igtl import bridge as bridge_module
 from service.igtl import protocol as p
 
@@ -218,40 +214,66 @@ def test_a_storm_of_reconnects_holds_one_session_at_a_time(api_server, run_bridg
     assert peak[0] <= 2, f"{peak[0]} sessions open at once"
 
 
-def test_a_client_that_sent_its_cloud_while_its_session_opens_is_not_silent(bar_store, run_bridge, tmp_path):
+def test_a_client_that_sent_its_cloud_while_its_session_opens_is_not_silent(api_process, run_bridge):
     """The API (its own process) is stopped (SIGSTOP), so client A's session is still opening
     when A sends its cloud; B connects and stays silent. A has spoken: it keeps the slot and is
     answered once the API goes on, and B is refused (503), as docs/frontends.md says of a holder
     that sent a message first. A was evicted as "silent" (409) and its frame never answered."""
-    port = free_port()
-    cmd = [sys.executable, "-m", "service.cli", "serve", "--store", str(bar_store[0]), "--port", str(port)]
-    server = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=(tmp_path / "serve.log").open("w"))
+    url, server = api_process
+    mesh = get_mesh(url, "bar")
+    bridge = run_bridge(url, idle_timeout=1.0)
+    server.send_signal(signal.SIGSTOP)
     try:
-        url = f"http://127.0.0.1:{port}"
-        deadline = time.monotonic() + 120
-        while True:
-            with contextlib.suppress(httpx.TransportError):
-                if httpx.get(f"{url}/health", timeout=5).status_code == 200:
-                    break
-            assert server.poll() is None and time.monotonic() < deadline, (tmp_path / "serve.log").read_text()
-            time.sleep(0.2)
-        mesh = get_mesh(url, "bar")
-        bridge = run_bridge(url, idle_timeout=1.0)
-        server.send_signal(signal.SIGSTOP)
-        try:
-            a = bridge.connect()
-            a.sendall(point_frame(surface_cloud(mesh)))
-            time.sleep(0.5)
-            with bridge.connect(timeout=10) as b:  # silent
-                msg = read_message(b)
-                assert json.loads(p.decode_string(msg.content))["error"]["code"] == 503
-                time.sleep(1.5)  # past A's idle timeout, had it been silent
-        finally:
-            server.send_signal(signal.SIGCONT)
-        with a:
-            status = registered(read_answer(a), len(mesh["surface_nodes"]))
-            assert status["frame_id"] == 0
+        a = bridge.connect()
+        a.sendall(point_frame(surface_cloud(mesh)))
+        time.sleep(0.5)
+        with bridge.connect(timeout=10) as b:  # silent
+            msg = read_message(b)
+            assert json.loads(p.decode_string(msg.content))["error"]["code"] == 503
+            time.sleep(1.5)  # past A's idle timeout, had it been silent
     finally:
         server.send_signal(signal.SIGCONT)
-        server.terminate()
-        server.wait(30)
+    with a:
+        status = registered(read_answer(a), len(mesh["surface_nodes"]))
+        assert status["frame_id"] == 0
+
+
+def test_a_reconnect_behind_a_frame_the_api_never_answers_is_refused_within_the_idle_timeout(api_process, run_bridge):
+    """The API is stopped (SIGSTOP) with A's frame in flight; A closes and B connects at once. B's
+    session waits for A's frame and session close, which a stopped API never gives: B waited with
+    no word (47 s measured). Now B gets a 503 within idle_timeout and is closed, and so does the
+    next (it waits for A too, not for B alone); once the API goes on, A's session closes and C is
+    served, the only session opened since A's."""
+    idle = 2.0
+    url, server = api_process
+    mesh = get_mesh(url, "bar")
+    n = len(mesh["surface_nodes"])
+    frame = point_frame(surface_cloud(mesh))
+    bridge = run_bridge(url, idle_timeout=idle)
+    with bridge.connect() as a:
+        a.sendall(frame)
+        a_sid = registered(read_answer(a), n)["session"]
+        server.send_signal(signal.SIGSTOP)
+        a.sendall(frame)  # in flight while the API is stopped
+        time.sleep(0.3)
+    try:
+        for _ in range(2):
+            bridge.wait_free()
+            t0 = time.monotonic()
+            with bridge.connect(timeout=idle + 10) as b:
+                b.sendall(frame)
+                msg = read_message(b)
+                waited = time.monotonic() - t0
+                error = json.loads(p.decode_string(msg.content))["error"]
+                assert error["code"] == 503 and "did not close within 2 s" in error["detail"], error
+                assert waited < idle + 5, f"refused {waited:.1f} s after it connected"
+                with pytest.raises(ConnectionError):
+                    read_message(b)  # closed
+    finally:
+        server.send_signal(signal.SIGCONT)
+    wait_closed(url, a_sid, timeout=60)
+    bridge.wait_free()
+    with bridge.connect() as c:
+        c.sendall(frame)
+        c_sid = registered(read_answer(c), n)["session"]
+    assert bridge.bridge.sessions == [a_sid, c_sid]
