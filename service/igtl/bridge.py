@@ -245,7 +245,12 @@ class Bridge(Relay):
             )
             return None
         # the body is the bridge's own buffer (Connection): a POLYDATA's points are decoded in it
-        decode = functools.partial(p.decode_polydata, reuse=True) if msg.type == "POLYDATA" else p.decode_point
+        # its attributes are checked, not read: the bridge uses none
+        decode = (
+            functools.partial(p.decode_polydata, reuse=True, attributes=False)
+            if msg.type == "POLYDATA"
+            else p.decode_point
+        )
         content, msg.content = msg.content, b""  # held here only: freed once its points are out
         try:
             if len(content) > _THREAD_DECODE:  # a large body's cells are read off the event loop

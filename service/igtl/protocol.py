@@ -321,10 +321,12 @@ _ATTR_COMPONENTS = {
 }  # scalar (its own count), vector, normal, tensor, RGBA
 
 
-def decode_polydata(content: bytes | bytearray, *, reuse: bool = False) -> PolyData:
+def decode_polydata(content: bytes | bytearray, *, reuse: bool = False, attributes: bool = True) -> PolyData:
     """A POLYDATA body (pyigtl does not decode these; this follows igtl_polydata.c). ``reuse``:
     the points are byte-swapped where they lie in ``content`` (a bytearray its caller gives up),
-    not copied: a cloud's points are nearly all of its body."""
+    not copied: a cloud's points are nearly all of its body. ``attributes=False``: they are
+    checked, not read (``attributes`` is empty): many tiny ones cost an array and a name each,
+    about 20 times their bytes, for a caller that uses none (the bridge)."""
     if len(content) < POLY_HEADER.size:
         raise ProtocolError(f"POLYDATA: {len(content)} bytes, shorter than its 40-byte header")
     npts, nv, sv, nl, sl, npoly, spoly, ns, sstrip, natt = POLY_HEADER.unpack_from(content)
@@ -350,14 +352,64 @@ def decode_polydata(content: bytes | bytearray, *, reuse: bool = False) -> PolyD
     ):
         sections.append(Cells.checked(body[at : at + size], count, npts, what))
         at += size
-    attributes = _attributes(content, at, natt)
-    return PolyData(points, *sections, attributes)
+    _check_attributes(content, at, natt)
+    return PolyData(points, *sections, _attributes(content, at, natt) if attributes else {})
 
 
-def _attributes(content: bytes | bytearray, at: int, count: int) -> dict[str, np.ndarray]:
+@numba.njit(cache=True)
+def _walk_attributes(raw, at, count):
+    """Walk ``count`` attributes from byte ``at`` of ``raw`` (6-byte heads, NUL-ended names padded
+    to an even length, then each one's data): (0, 0, 0) when they fit the body, (1, 0, 0) when a
+    name has no NUL in it, (2, start, end) the name of the first whose data runs past it."""
+    n = raw.size
+    heads = at
+    at += 6 * count
+    start = at
+    for _ in range(count):
+        while at < n and raw[at] != 0:
+            at += 1
+        if at >= n:
+            return 1, 0, 0
+        at += 1
+    at += (at - start) % 2
+    name = start
+    for i in range(count):
+        h = heads + 6 * i
+        kind = raw[h] & 0x0F
+        width = np.int64(raw[h + 1])  # a scalar's (kind 0) and an unknown kind's own count
+        if kind == 1 or kind == 2:  # vector, normal
+            width = 3
+        elif kind == 3:  # tensor
+            width = 9
+        elif kind == 4:  # RGBA
+            width = 4
+        items = (np.int64(raw[h + 2]) << 24) | (np.int64(raw[h + 3]) << 16) | (np.int64(raw[h + 4]) << 8) | raw[h + 5]
+        end = name
+        while raw[end] != 0:
+            end += 1
+        size = 4 * width * items
+        if at + size > n:
+            return 2, name, end
+        at += size
+        name = end + 1
+    return 0, 0, 0
+
+
+def _check_attributes(content: bytes | bytearray, at: int, count: int) -> None:
+    """ProtocolError unless the ``count`` attributes from byte ``at`` fit the body; none is read."""
     left = len(content) - at
     if 7 * count > left:  # a 6-byte head and a name of at least its NUL each, before any is read
         raise ProtocolError(f"POLYDATA: {count} attributes cannot fit in the {left} bytes left of its body")
+    fault, start, end = _walk_attributes(np.frombuffer(content, np.uint8), at, count)
+    if fault == 1:
+        raise ProtocolError("POLYDATA: malformed attributes (a name has no NUL before the body ends)")
+    if fault == 2:
+        name = bytes(content[start:end]).decode("utf-8", errors="replace")
+        raise ProtocolError(f"POLYDATA: attribute {quoted(name)} runs past the body")
+
+
+def _attributes(content: bytes | bytearray, at: int, count: int) -> dict[str, np.ndarray]:
+    """The attributes, as arrays by name (checked first: _check_attributes)."""
     try:
         heads = [struct.unpack_from(">BBI", content, at + 6 * i) for i in range(count)]
         at += 6 * count
@@ -397,7 +449,7 @@ def encode_polydata(points: np.ndarray, triangles: np.ndarray) -> bytes:
 
 def warm() -> None:
     """Compile (or load from numba's cache) the kernels a first message runs, the CRC and the
-    cell walk, so that a bridge's first frame does not pay for them (about 250 ms here)."""
+    cell and attribute walks, so that a bridge's first frame does not pay for them (about 250 ms here)."""
     body = encode_polydata(np.zeros((3, 3)), np.arange(3)[None])
     decode_polydata(body)
     crc64(body)
