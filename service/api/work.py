@@ -343,7 +343,7 @@ def simulate(entry, body: SimulateIn, kind: str, timing: dict, t_received: float
                 "converged": bool(res.converged),
                 "status": res.status,
                 "iterations": int(res.iterations),
-                "residual": float(res.residual),
+                "residual": res.residual,  # the returned field's, under the body's forces
             }
     except ValueError as exc:
         raise unprocessable(str(exc), "forces") from None

@@ -163,7 +163,8 @@ class FEMOperator:
         if res.status == "time_limit":
             raise ForwardFailed(res.status, f"time budget spent in a Newton solve, after {res.iterations} iterations")
         if not res.converged:
-            raise ForwardFailed(res.status, f"Newton residual {res.residual:.2e} after {res.iterations} iterations")
+            residual = "not finite" if res.residual is None else f"{res.residual:.2e}"
+            raise ForwardFailed(res.status, f"Newton residual {residual} after {res.iterations} iterations")
         self._kept = [(np.array(g, np.float64), res.u), *self._kept[: KEPT_EQUILIBRIA - 1]]
         return res
 

@@ -22,9 +22,11 @@ already in hand) starts each load step. Divergence is a result (``converged=Fals
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import time
 from collections import deque
+from collections.abc import Callable
 
 import numpy as np
 import scipy.sparse as sp
@@ -82,10 +84,19 @@ class NewtonResult:
     seconds: float
     solver: SparseSolver | None = None
     shifted: int = 0  # tangents that needed a diagonal shift (indefinite)
+    #: u's relative residual under the requested load, measured (None: not finite); only an
+    #: unconverged result has one, read at most once (an internal-force pass; none past a deadline)
+    measure: Callable[[], float | None] | None = dataclasses.field(default=None, repr=False)
 
-    @property
-    def residual(self) -> float:
-        return self.residuals[-1] if self.residuals else 0.0
+    @functools.cached_property
+    def residual(self) -> float | None:
+        """||f_int(u) - g|| / max(||g||, ||g - f_int(u0)||) over the free dofs: u's relative
+        residual under the requested load g, the norm rtol is on. A converged solve's is its
+        last Newton residual; an unconverged one's last was of a partial load step or of an
+        iterate it dropped, so u's is measured. None where u's internal forces are not finite."""
+        if self.converged:
+            return self.residuals[-1]
+        return None if self.measure is None else self.measure()
 
 
 class NewtonSolver:
@@ -224,6 +235,7 @@ class NewtonSolver:
         if not np.isfinite(asm.energy(u_start)):
             return self._result(x, False, "non_finite", 0, 0, [], t0)
         f0 = asm.pack(asm.internal_force(u_start))
+        measure = functools.partial(self.relative_residual, target=target, f0=f0)
         if not np.any(target - f0):
             return self._result(x, True, "converged", 0, 0, [0.0], t0)
         # relative to the load, not to the increment from a warm start (which can be tiny)
@@ -239,7 +251,7 @@ class NewtonSolver:
         if self._factor_x is not None and np.array_equal(self._factor_x, x):
             shifts = 0
         elif deadline is not None and time.perf_counter() > deadline:  # no factorisation past it (the liver's: ~1 s)
-            return self._result(x, False, "time_limit", 0, 0, [], t0)
+            return self._result(x, False, "time_limit", 0, 0, [], t0, measure)
         else:
             shifts = self._factor_tangent(asm.tangent(u_start), x)
         s, ds, iterations, steps = 0.0, 1.0, 0, 0
@@ -301,7 +313,7 @@ class NewtonSolver:
                 iterations,
                 residuals[-1] if residuals else np.nan,
             )
-        res = self._result(x, converged, status, iterations, steps, residuals, t0)
+        res = self._result(x, converged, status, iterations, steps, residuals, t0, None if converged else measure)
         res.solver = self.solver if have_factor else None
         res.shifted = shifts
         return res
@@ -383,7 +395,22 @@ class NewtonSolver:
         timed (a factorising one takes several times a conjugate-gradient one), 0 before any."""
         return max(self.iteration_seconds, default=0.0)
 
-    def _result(self, x, converged, status, iterations, steps, residuals, t0) -> NewtonResult:
+    def relative_residual(self, x: Array, target: Array, f0: Array) -> float | None:
+        """||f_int(x) - target|| / max(||target||, ||target - f0||) over free dofs x (the solve's
+        rtol norm, f0 its start's internal force); None where it is not finite. Every vector is
+        scaled by the largest entry first, so an absurd load's norms do not overflow."""
+        with np.errstate(over="ignore", invalid="ignore"):
+            r = self.asm.pack(self.asm.internal_force(self.asm.unpack(x))) - target
+            if not np.isfinite(r).all():
+                return None
+            scale = float(max(np.abs(r).max(), np.abs(target).max(), np.abs(target - f0).max()))
+            if scale == 0.0:
+                return 0.0
+            ref = max(np.linalg.norm(target / scale), np.linalg.norm((target - f0) / scale))
+            rel = float(np.linalg.norm(r / scale) / ref)
+        return rel if np.isfinite(rel) else None
+
+    def _result(self, x, converged, status, iterations, steps, residuals, t0, measure=None) -> NewtonResult:
         return NewtonResult(
             u=self.asm.unpack(x),
             converged=converged,
@@ -392,6 +419,7 @@ class NewtonSolver:
             load_steps=steps,
             residuals=residuals,
             seconds=time.perf_counter() - t0,
+            measure=None if measure is None else functools.partial(measure, x),
         )
 
 

@@ -149,6 +149,50 @@ def test_simulate_an_absurd_fem_load_answers_at_once(http, support):
     assert http.get("/health").json()["solves"]["running"] == 0
 
 
+def _measured_residual(entry, nodes, values, u) -> float:
+    """u's relative residual under the forces, over the free dofs: ||f_int(u) - g|| / ||g||."""
+    asm = entry.fem.assembler
+    g = np.zeros((entry.mesh.n_nodes, 3))
+    np.add.at(g, nodes, values)
+    target = asm.pack(g)
+    return float(np.linalg.norm(asm.pack(asm.internal_force(u)) - target) / np.linalg.norm(target))
+
+
+def _crushing(entry):
+    """3 kN pushing the free end's corner back along the bar: Newton runs out of iterations
+    part-way along the load (its last residual, of a partial step, was 0.036; the field's 0.93)."""
+    corner = int(np.argmin(np.linalg.norm(entry.mesh.nodes - [4.0, 1.0, 1.0], axis=1)))
+    return [corner], [[-3000.0, 0.0, 0.0]]
+
+
+@pytest.mark.parametrize(
+    "load, status",
+    [
+        (lambda entry, support: (support, np.tile([10.0 / support.size], (support.size, 3))), "converged"),
+        (lambda entry, support: (support, np.tile([0.0, 0.0, 1e12], (support.size, 1))), "load_step_too_small"),
+        (lambda entry, support: _crushing(entry), "max_iter"),
+    ],
+    ids=["converged", "absurd", "crushing"],
+)
+def test_simulate_fem_residual_is_the_returned_fields_under_the_body_forces(http, entry, support, load, status):
+    """Not the last partial load step's, nor 0.0 where Newton stopped before any iteration: an
+    absurd load's answer is the rest state, whose residual is the whole load (1)."""
+    nodes, values = load(entry, support)
+    body = {"method": "fem", "forces": {"nodes": np.asarray(nodes).tolist(), "values": np.asarray(values).tolist()}}
+    r = http.post("/models/bar/simulate", json=body)
+    assert r.status_code == 200, r.text
+    out = r.json()
+    assert out["status"] == status and out["converged"] == (status == "converged")
+    u = np.asarray(out["displacement"])
+    want = _measured_residual(entry, nodes, np.asarray(values, float), u)
+    if status == "converged":
+        assert out["residual"] <= entry.fem.options.rtol and want <= entry.fem.options.rtol
+    else:
+        assert out["residual"] == pytest.approx(want, rel=1e-9) and out["residual"] > 1e-3
+    if status == "load_step_too_small":
+        assert not np.any(u) and out["residual"] == pytest.approx(1.0)
+
+
 @pytest.mark.parametrize(
     "forces, words",
     [

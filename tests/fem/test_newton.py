@@ -254,3 +254,11 @@ def test_warm_solves_mostly_reuse_the_factor_and_agree_with_fresh_ones(bar):
         solver.factor_at(u)  # as a registration's adjoint does
     assert solver.n_cg > 0
     assert solver.n_factor < iterations
+
+
+def test_a_start_with_no_finite_state_has_no_residual(bar):
+    """A NaN start has no residual to report: null, not the 0.0 an empty history gave."""
+    res = NewtonSolver(Assembler(bar, NeoHookean(4500.0, 0.49))).solve(
+        tip_load(bar, [0.0, 0.0, -1.0]), u0=np.full((bar.n_nodes, 3), np.nan)
+    )
+    assert res.status == "non_finite" and res.residual is None

@@ -65,6 +65,8 @@ class SimulateOut(_Reply):
     converged: bool
     status: str
     iterations: int
-    residual: float | None = None
+    residual: float | None = Field(
+        None, description="the FEM's: |f_int(u) - g| / |g| of the returned field under the forces, converged or not"
+    )
     error_estimate: float | None = None  # m, the network's: null where infinite (the FEM has residual)
     timing_ms: dict[str, float]
