@@ -158,10 +158,7 @@ def solve_frame(
         if g_tol == 0.0:  # no force on the support moves what the points match (a cloud off a held face)
             if np.any(grad_rest):  # the tolerance underflowed: the test would pass anything
                 raise Stop("stalled", f"the rest gradient ({np.abs(grad_rest).max():.3g}) is below what gtol resolves")
-            raise Done(
-                f"no force on the support moves the surface the points match: the rest state stands "
-                f"({evaluate.rest_rms:.3g} m rms from the cloud)"
-            )
+            raise Done(_still_at_rest(evaluate, options.alpha))
         _check_alpha(options.alpha, v_rest, grad_rest, best.value)
         # the optimiser's trial points only: the starts' share the spare core with the rest state
         evaluate.prefetch = prefetch
@@ -230,6 +227,31 @@ def _judge(status: str, message: str, evaluate: Objective, rest_positions: Array
 
     far = answer_past_reach(box, rms, distances)
     return ("too_far", f"{far} ({message})") if far else (status, message)
+
+
+def _still_at_rest(evaluate: Objective, alpha: float) -> str:
+    """Why the rest gradient is exactly zero: no force on the support moves the matched surface
+    (a cloud off a held face), or the points' pull underflowed in it (a huber threshold of
+    1e-300 scales the loss's linear part, so alpha swamps it; the squared loss moved the
+    surface). Told apart by pulling back the pull scaled to its largest entry: one more rest
+    pullback, on this rare path alone."""
+    stands = f"the rest state stands ({evaluate.rest_rms:.3g} m rms from the cloud)"
+    distance, op = evaluate.distance, evaluate.op
+    u = evaluate.rest_u
+    _, pull = distance(evaluate.rest if u is None else evaluate.rest + u)
+    scale = float(np.abs(pull).max())
+    if scale > 0.0:
+        at_rest = getattr(op, "at_rest", None)  # the network's records nothing on the operator
+        _, pullback = at_rest() if at_rest is not None else op(np.zeros((len(op.support), 3)))
+        if np.any(pullback(pull / scale, rows=distance.gradient_nodes)):
+            why = "the loss's pull"
+            if distance.loss == "huber":
+                why = f"the huber loss's pull, which scales with its threshold loss_param {distance.delta:.3g} m"
+            return (
+                f"alpha {alpha:.3g} swamps {why}: its gradient at rest vanishes and no force can lower "
+                f"the objective measurably: {stands}"
+            )
+    return f"no force on the support moves the surface the points match: {stands}"
 
 
 def _check_alpha(alpha: float, v_rest: float, grad_rest: Array, v_best: float) -> None:

@@ -557,6 +557,20 @@ def test_messages_say_why_a_frame_stopped(entry, sequence):
     assert "0.02 m rms" in r.message
 
 
+def test_a_vanishing_huber_threshold_is_named_not_a_held_surface(entry, sequence):
+    """A huber threshold of 1e-300 scales the loss's linear part, the pull of every point past
+    it, to nothing: the rest state stands, but not because "no force on the support moves the
+    surface" (the squared loss moves it on the same cloud); the message names loss_param."""
+    tool, seq = sequence
+    support = _support(entry, tool)
+    moved = Session(entry.network, SessionConfig(support=support)).frame(seq.clouds[5])
+    assert moved.converged and np.abs(moved.outputs["forces"]).max() > 0
+    r = Session(entry.network, SessionConfig(support=support, loss="huber", loss_param=1e-300)).frame(seq.clouds[5])
+    assert r.iterations == 0 and not np.any(r.outputs["forces"])
+    assert "no force on the support moves" not in r.message
+    assert "swamps the huber loss's pull" in r.message and "loss_param 1e-300 m" in r.message, r.message
+
+
 def test_a_forward_model_that_answers_nan_gives_a_non_finite_frame(bar_store, sequence):
     """A network whose weights went NaN after it loaded (the store refuses such files, not a
     model changed in memory): its displacement reached the distance, whose check on the
