@@ -38,7 +38,7 @@ def config_body(model: str, config: dict) -> dict:
 
 def simulate_body(nodes, values, method: str, E: float | None) -> dict:
     return {
-        "forces": {"nodes": np.asarray(nodes, np.int64), "values": np.asarray(values, np.float64)},
+        "forces": {"nodes": _node_ids(nodes, "forces' nodes"), "values": np.asarray(values, np.float64)},
         "method": method,
         "E": E,
     }
