@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import re
 from urllib.parse import quote
 
 try:  # the [client] extra: httpx here, websockets at a stream's first use
@@ -37,9 +38,12 @@ if importlib.util.find_spec("websockets") is None:  # pragma: no cover
 
 from .bodies import config_body, frame_body, simulate_body
 from .encoding import JSON_MEDIA, MSGPACK_MEDIA, decode, encode
-from .errors import ApiError, retry_after
+from .errors import ApiError, redirected, retry_after
 from .errors import StreamError as StreamError  # importable from here, as it always was
-from .sockets import AsyncStream, AsyncWatch, Opening, Stream, Watch, handshake_refused
+from .sockets import AsyncStream, AsyncWatch, Opening, Stream, Watch, handshake_refused, refused_status
+
+#: the media types of the API's bodies: anything else answering 2xx is not the API
+_API_MEDIA = re.compile(r"^application/(json|msgpack)\b")
 
 
 def _ws_url(base_url: str, path: str = "/stream", query: str | None = None) -> str:
@@ -102,17 +106,25 @@ class _Base:
         return options
 
     def _result(self, r: httpx.Response):
-        kind = "msgpack" if "msgpack" in r.headers.get("content-type", "") else "json"
+        media = r.headers.get("content-type", "")
         if r.status_code == 204:
             return None
+        if r.is_redirect:  # a proxy's http -> https, say: the API itself never redirects
+            location = r.headers.get("location")
+            raise ApiError(r.status_code, redirected(str(r.url.join(location)) if location else None))
         try:
-            body = decode(r.content, kind) if r.content else None
+            body = decode(r.content, "msgpack" if "msgpack" in media else "json") if r.content else None
         except Exception:
-            body = {"detail": r.text}
+            body = None
         if r.status_code >= 400:
             detail = body.get("detail") if isinstance(body, dict) else body
+            if body is None and r.content:  # another server's error page, as it came
+                detail = r.text
             instance, retry = r.headers.get("x-elastreg-instance"), retry_after(r.headers.get("retry-after"))
             raise ApiError(r.status_code, detail, instance, retry)
+        if body is None or not _API_MEDIA.match(media):
+            # another server's page (a wrong port, a proxy's login page), never the API's result
+            raise ApiError(r.status_code, f"not an elastreg reply ({media or 'no content-type'}) from {r.url}")
         return body
 
 
@@ -163,13 +175,16 @@ class Client(_Base):
     def _connect(self, url: str, max_size: int | None):
         """A WebSocket to `url`; a handshake the server refuses (the socket limit's 503, with its
         Retry-After) raises :class:`StreamError`."""
-        from websockets.exceptions import InvalidStatus
+        from websockets.exceptions import WebSocketException
         from websockets.sync.client import connect
 
         try:
             return connect(url, open_timeout=self.timeout, **self._ws_options(max_size))
-        except InvalidStatus as exc:
-            raise handshake_refused(exc) from None
+        except WebSocketException as exc:
+            status = refused_status(exc)
+            if status is None:
+                raise
+            raise handshake_refused(status) from None
 
     def stream(self, model: str, *, max_size: int | None = 1 << 27, **config) -> Stream:
         """A WebSocket stream (``/stream``) whose session lives with the connection. A refusal
@@ -266,12 +281,15 @@ class AsyncClient(_Base):
     async def _connect(self, url: str, max_size: int | None):
         """See :meth:`Client._connect`."""
         from websockets import connect
-        from websockets.exceptions import InvalidStatus
+        from websockets.exceptions import WebSocketException
 
         try:
             return await connect(url, open_timeout=self.timeout, **self._ws_options(max_size))
-        except InvalidStatus as exc:
-            raise handshake_refused(exc) from None
+        except WebSocketException as exc:
+            status = refused_status(exc)
+            if status is None:
+                raise
+            raise handshake_refused(status) from None
 
     def stream(self, model: str, *, max_size: int | None = 1 << 27, **config) -> Opening[AsyncStream]:
         """A stream; see :meth:`Client.stream`. ``async with api.stream(...) as stream`` closes it

@@ -29,6 +29,14 @@ def retry_after(value: str | None) -> float | None:
         return None
 
 
+def redirected(location: str | None) -> str:
+    """The detail of a 3xx: the API never redirects, so a proxy in front of it does (http to
+    https, a moved host); the client follows none, as a redirected POST may lose its body."""
+    if location is None:
+        return "redirected with no Location: not an elastreg reply (the API itself never redirects)"
+    return f"redirected to {location}: give the client that URL (the API itself never redirects)"
+
+
 class StreamError(ApiError):
     """A stream's or a watch's error: an error message (``close_code`` None: the stream stays
     open), or a socket the server closed (``close_code`` set, and ``reason`` its words: a

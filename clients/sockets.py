@@ -12,7 +12,7 @@ from typing import Any, Generic, Self, TypeVar
 
 from .bodies import frame_body
 from .encoding import decode, encode
-from .errors import StreamError, retry_after, stream_error
+from .errors import StreamError, redirected, retry_after, stream_error
 
 _OUT_OF_STEP = (
     "a frame's reply never came (timed out, cancelled or interrupted), so this stream's replies no longer "
@@ -53,14 +53,27 @@ def _reply(message, wait_close=None) -> dict:
 # -- refusals and closes -------------------------------------------------------------------------
 
 
+def refused_status(exc: BaseException | None):
+    """The HTTP reply (websockets' InvalidStatus) behind a failed handshake: ``exc`` itself, or
+    the redirect that raised it, one websockets would not follow (to http(s)://, say); None if
+    no HTTP status came."""
+    from websockets.exceptions import InvalidStatus
+
+    while exc is not None and not isinstance(exc, InvalidStatus):
+        exc = exc.__cause__ or exc.__context__
+    return exc
+
+
 def handshake_refused(exc) -> StreamError:
     """The StreamError of a handshake the server answered with an HTTP status instead of a
-    socket (the socket limit's 503, with its Retry-After)."""
+    socket (the socket limit's 503, with its Retry-After; a proxy's redirect)."""
     r = exc.response
     try:
         detail = json.loads(r.body)["detail"]
     except Exception:
         detail = r.body.decode(errors="replace") if r.body else r.reason_phrase
+    if 300 <= r.status_code < 400:  # a proxy's redirect, as over HTTP
+        detail = redirected(r.headers.get("Location"))
     return StreamError(r.status_code, detail, retry_after=retry_after(r.headers.get("Retry-After")))
 
 
