@@ -113,12 +113,15 @@ def _closed_code(exc: Exception) -> int | None:
 
 def _closed_by_server(exc: Exception, what: str = "stream") -> StreamError:
     """The StreamError of a socket found closed (``exc``, websockets' ConnectionClosed): the
-    server's close code and reason (1006 where no close frame came), status 0."""
+    server's close code and reason (1006 where no close frame came; the handle's own close()
+    said so where it closed first), status 0."""
     rcvd = getattr(exc, "rcvd", None)
     code = _closed_code(exc) or _ABNORMAL_CLOSURE
     reason = getattr(rcvd, "reason", "") or ""
     if rcvd is None:  # no close frame: the connection dropped (the server gone, a network cut)
         detail = f"the {what}'s connection was lost without a close frame ({exc})"
+    elif getattr(exc, "rcvd_then_sent", None) is False:  # our close() came first, the server's echoed it
+        detail = reason or f"this {what} was closed by its close() ({rcvd})"
     else:
         detail = reason or f"the server closed the {what} ({rcvd})"
     return StreamError(0, detail, close_code=code, reason=reason)
@@ -241,8 +244,8 @@ class Stream(_SyncSocket):
             raise StreamError(0, _OUT_OF_STEP)
         message = _message(frame_body(points, support, frame_id), self.encoding)
         self._out_of_step = True  # until its reply (or its error) came, whatever ends the call
-        self._send(message)
         try:
+            self._send(message)
             reply = self.recv()
         except StreamError:  # the frame's error reply, or the socket closed: nothing pending
             self._out_of_step = False
@@ -326,8 +329,8 @@ class AsyncStream(_AsyncSocket):
             raise StreamError(0, _OUT_OF_STEP)
         message = _message(frame_body(points, support, frame_id), self.encoding)
         self._out_of_step = True  # until its reply (or its error) came, whatever ends the call
-        await self._send(message)
         try:
+            await self._send(message)
             reply = await self.recv()
         except StreamError:  # the frame's error reply, or the socket closed: nothing pending
             self._out_of_step = False

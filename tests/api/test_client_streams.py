@@ -1,0 +1,59 @@
+"""The client's streams (clients/sockets.py) once closed, and misused, against the real
+server: sync and async alike."""
+
+from __future__ import annotations
+
+import asyncio
+
+import pytest
+from websockets.exceptions import ConnectionClosed
+
+from clients import AsyncClient, Client, StreamError
+
+
+def test_a_closed_stream_keeps_raising_its_close_not_out_of_step(small, clouds):
+    """A stream closed by the server (idle past the 2 s ttl of `small`: 1000 "idle for ...")
+    raised that close at the next frame() only; the one after said "a frame's reply never came"
+    with close_code None, as if a reply were pending. Every frame() now raises the close, and a
+    stream closed by its own close() says so rather than "the server closed the stream"."""
+
+    def idle(err: StreamError) -> None:
+        assert err.close_code == 1000 and err.reason.startswith("idle for"), (err, err.close_code)
+        assert isinstance(err.__cause__, ConnectionClosed)
+
+    def own(err: StreamError) -> None:
+        assert err.close_code == 1000 and "closed by its close()" in err.detail, (err, err.close_code)
+        assert "server closed" not in err.detail
+
+    async def main() -> None:
+        async with AsyncClient(small.url) as aapi:
+            with Client(small.url) as api, api.stream("bar") as sync_stream:
+                sync_stream.frame(clouds[0])
+                async_stream = await aapi.stream("bar")
+                await async_stream.frame(clouds[0])
+                await asyncio.sleep(3.0)  # past the 2 s ttl, swept every 0.1 s
+                for _ in range(3):
+                    with pytest.raises(StreamError) as err:
+                        sync_stream.frame(clouds[1])
+                    idle(err.value)
+                    with pytest.raises(StreamError) as err:
+                        await async_stream.frame(clouds[1])
+                    idle(err.value)
+                await async_stream.close()
+            with Client(small.url) as api:
+                stream = api.stream("bar")
+                stream.frame(clouds[0])
+                stream.close()
+                for _ in range(2):
+                    with pytest.raises(StreamError) as err:
+                        stream.frame(clouds[1])
+                    own(err.value)
+            async_stream = await aapi.stream("bar")
+            await async_stream.frame(clouds[0])
+            await async_stream.close()
+            for _ in range(2):
+                with pytest.raises(StreamError) as err:
+                    await async_stream.frame(clouds[1])
+                own(err.value)
+
+    asyncio.run(main())
