@@ -19,6 +19,13 @@ _OUT_OF_STEP = (
     "match its frames: open a new stream"
 )
 
+
+def _pending_error(pending: int) -> StreamError:
+    """frame() refused while send()'s replies are still to come: it would return the first of
+    them as its own, and every frame() after would be one behind."""
+    return StreamError(0, f"{pending} frame(s) sent with send() have replies still to come: recv() them before frame()")
+
+
 # RFC 6455 7.1.5: the close code of a connection that ended without a close frame received
 _ABNORMAL_CLOSURE = 1006
 
@@ -197,16 +204,18 @@ class _AsyncSocket(_Socket):
 
 class Stream(_SyncSocket):
     """A WebSocket stream (sync): ``send`` frames (they may be pipelined), ``recv`` results in
-    order, or ``frame`` for both. A stream error raises :class:`StreamError` (a 503's with
-    ``retry_after``, the seconds to wait); the stream goes on. A stream the server closed (idle
-    past its ``session_ttl_s``, shutting down, a message over its size limit) raises
-    :class:`StreamError` too, with ``close_code`` and ``reason`` set: open a new stream."""
+    order, or ``frame`` for both (not while sent frames' results are still to be received). A
+    stream error raises :class:`StreamError` (a 503's with ``retry_after``, the seconds to
+    wait); the stream goes on. A stream the server closed (idle past its ``session_ttl_s``,
+    shutting down, a message over its size limit) raises :class:`StreamError` too, with
+    ``close_code`` and ``reason`` set: open a new stream."""
 
     def __init__(self, ws, encoding: str, config: dict, timeout: float | None = None) -> None:
         super().__init__(ws, encoding, timeout)
         from websockets.exceptions import ConnectionClosed
 
         self._out_of_step = False
+        self._pending = 0  # frames sent with send() whose replies recv() has not taken yet
         try:
             ws.send(_message(config, encoding))
             opened = _reply(ws.recv(timeout=timeout), lambda: _close_code(ws))
@@ -225,6 +234,7 @@ class Stream(_SyncSocket):
 
     def send(self, points, *, support=None, frame_id=None) -> None:
         self._send(_message(frame_body(points, support, frame_id), self.encoding))
+        self._pending += 1
 
     def _send(self, message: bytes | str) -> None:
         with _closes_as_stream_error():
@@ -233,15 +243,20 @@ class Stream(_SyncSocket):
     def recv(self, timeout: float | None = None) -> dict:
         with _closes_as_stream_error():
             message = self.ws.recv(timeout=timeout if timeout is not None else self.timeout)
+        self._pending = max(self._pending - 1, 0)  # a reply or an error, each a frame's
         return _reply(message)
 
     def frame(self, points, *, support=None, frame_id=None) -> dict:
         """Send one frame and return its result. A call left before its reply came (timed out,
         Ctrl-C) puts the stream out of step (that reply may still come, and would be taken for
         the next frame's): the next frame() raises a StreamError that says so, and a new stream
-        is needed. A frame refused before it was sent (bad points) leaves the stream in step."""
+        is needed. A frame refused before it was sent (bad points) leaves the stream in step.
+        While frames sent with send() have replies to come, frame() raises a StreamError (its
+        reply would be theirs): recv() them first; the stream goes on."""
         if self._out_of_step:
             raise StreamError(0, _OUT_OF_STEP)
+        if self._pending:
+            raise _pending_error(self._pending)
         message = _message(frame_body(points, support, frame_id), self.encoding)
         self._out_of_step = True  # until its reply (or its error) came, whatever ends the call
         try:
@@ -283,6 +298,7 @@ class AsyncStream(_AsyncSocket):
     def __init__(self, ws, encoding: str, timeout: float | None = None) -> None:
         super().__init__(ws, encoding, timeout)
         self._out_of_step = False
+        self._pending = 0  # as Stream's
 
     async def _open(self, config: dict) -> None:
         import asyncio
@@ -309,6 +325,7 @@ class AsyncStream(_AsyncSocket):
 
     async def send(self, points, *, support=None, frame_id=None) -> None:
         await self._send(_message(frame_body(points, support, frame_id), self.encoding))
+        self._pending += 1
 
     async def _send(self, message: bytes | str) -> None:
         with _closes_as_stream_error():
@@ -320,13 +337,17 @@ class AsyncStream(_AsyncSocket):
         wait = timeout if timeout is not None else self.timeout
         with _closes_as_stream_error():
             message = await asyncio.wait_for(self.ws.recv(), wait)
+        self._pending = max(self._pending - 1, 0)  # a reply or an error, each a frame's
         return _reply(message)
 
     async def frame(self, points, *, support=None, frame_id=None) -> dict:
         """As :meth:`Stream.frame`: after a call left before its reply came (timed out, or
-        cancelled: ``asyncio.wait_for``, ``task.cancel()``), a StreamError (out of step)."""
+        cancelled: ``asyncio.wait_for``, ``task.cancel()``), a StreamError (out of step); while
+        send()'s replies are to come, a StreamError (recv() them first)."""
         if self._out_of_step:
             raise StreamError(0, _OUT_OF_STEP)
+        if self._pending:
+            raise _pending_error(self._pending)
         message = _message(frame_body(points, support, frame_id), self.encoding)
         self._out_of_step = True  # until its reply (or its error) came, whatever ends the call
         try:

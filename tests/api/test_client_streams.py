@@ -57,3 +57,31 @@ def test_a_closed_stream_keeps_raising_its_close_not_out_of_step(small, clouds):
                 own(err.value)
 
     asyncio.run(main())
+
+
+def test_frame_after_send_refuses_until_the_sent_frames_replies_are_received(live, support, clouds):
+    """send() then frame(): frame() returned the sent frame's reply as its own (frame_id 1 for
+    2), and every frame() after was one behind. It raises a StreamError while send()'s replies
+    are to come; once recv() has taken them, frame() answers its own frame again."""
+    with Client(live.url) as api, api.stream("bar", support=support) as s:
+        s.send(clouds[0], frame_id="sent-1")
+        s.send(clouds[1], frame_id="sent-2")
+        with pytest.raises(StreamError, match=r"2 frame\(s\) sent with send\(\)") as err:
+            s.frame(clouds[2], frame_id="framed")
+        assert err.value.close_code is None
+        assert s.recv()["frame_id"] == "sent-1"
+        with pytest.raises(StreamError, match=r"1 frame\(s\) sent with send\(\)"):
+            s.frame(clouds[2], frame_id="framed")
+        assert s.recv()["frame_id"] == "sent-2"
+        assert s.frame(clouds[2], frame_id="framed")["frame_id"] == "framed"
+        assert s.frame(clouds[3], frame_id="next")["frame_id"] == "next"
+
+    async def main() -> None:
+        async with AsyncClient(live.url) as api, api.stream("bar", support=support) as s:
+            await s.send(clouds[0], frame_id="sent")
+            with pytest.raises(StreamError, match=r"1 frame\(s\) sent with send\(\)"):
+                await s.frame(clouds[1], frame_id="framed")
+            assert (await s.recv())["frame_id"] == "sent"
+            assert (await s.frame(clouds[1], frame_id="framed"))["frame_id"] == "framed"
+
+    asyncio.run(main())
