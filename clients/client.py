@@ -52,6 +52,15 @@ def _ws_url(base_url: str, path: str = "/stream", query: str | None = None) -> s
     return str(url.copy_with(scheme=scheme, path=url.path.rstrip("/") + path, query=query and query.encode()))
 
 
+def _model_path(model: str, tail: str = "") -> str:
+    """``/models/{model}{tail}``, the id quoted as one path segment: "bar?x" is no query. The
+    server decodes %2F before routing, so an id with "/" (or ".", "..") would reach another
+    path ("../health" the health check): no model's id holds one, and it is refused here."""
+    if not isinstance(model, str) or model in ("", ".", "..") or "/" in model:
+        raise ValueError(f"model id {model!r:.80} names no model: an id is one URL path segment, no '/', '.' or '..'")
+    return f"/models/{quote(model, safe='')}{tail}"
+
+
 def viewer_url(base_url: str, session_id: str) -> str:
     """The page that watches a session live (API.md, "Watching a session, and the viewer")."""
     return f"{base_url.rstrip('/')}/viewer?session={quote(session_id, safe='')}"
@@ -157,15 +166,15 @@ class Client(_Base):
         return self._call("GET", "/models")
 
     def model(self, model: str) -> dict:
-        return self._call("GET", f"/models/{model}")
+        return self._call("GET", _model_path(model))
 
     def mesh(self, model: str) -> dict:
         """nodes (n, 3), tets (t, 4), surface_faces (f, 3), surface_nodes, fixed_nodes, region_nodes."""
-        return self._call("GET", f"/models/{model}/mesh")
+        return self._call("GET", _model_path(model, "/mesh"))
 
     def simulate(self, model: str, nodes, values, *, method: str = "network", E: float | None = None) -> dict:
         """Displacement (n, 3) under forces ``values`` (k, 3) on ``nodes`` (k,)."""
-        return self._call("POST", f"/models/{model}/simulate", simulate_body(nodes, values, method, E))
+        return self._call("POST", _model_path(model, "/simulate"), simulate_body(nodes, values, method, E))
 
     def open_session(self, model: str, **config) -> SessionHandle:
         """An HTTP session (``POST /sessions``); config as in API.md (support, alpha, outputs...)."""
@@ -266,13 +275,13 @@ class AsyncClient(_Base):
         return await self._call("GET", "/models")
 
     async def model(self, model: str) -> dict:
-        return await self._call("GET", f"/models/{model}")
+        return await self._call("GET", _model_path(model))
 
     async def mesh(self, model: str) -> dict:
-        return await self._call("GET", f"/models/{model}/mesh")
+        return await self._call("GET", _model_path(model, "/mesh"))
 
     async def simulate(self, model: str, nodes, values, *, method: str = "network", E: float | None = None) -> dict:
-        return await self._call("POST", f"/models/{model}/simulate", simulate_body(nodes, values, method, E))
+        return await self._call("POST", _model_path(model, "/simulate"), simulate_body(nodes, values, method, E))
 
     async def open_session(self, model: str, **config) -> AsyncSessionHandle:
         r = await self._call("POST", "/sessions", config_body(model, config))

@@ -9,6 +9,7 @@ import http.server
 import threading
 from collections.abc import Iterator
 
+import numpy as np
 import pytest
 
 from clients import ApiError, AsyncClient, Client, StreamError
@@ -123,3 +124,42 @@ def test_the_api_s_own_replies_still_read(live):
     for encoding in ("msgpack", "json"):
         with Client(live.url, encoding=encoding) as api:
             assert api.health()["status"] == "ok" and api.models()[0]["id"] == "bar"
+
+
+def test_model_ids_are_one_path_segment_never_another_path(live, support):
+    """Model ids went into URL paths as they were: model("../health") returned /health,
+    mesh("bar/..") and simulate("nope/../bar") reached bar, model("bar?x") read "?x" as a query
+    and returned bar's summary. An id with "/", ".", ".." is refused before anything is sent
+    (no model's id holds one), and the rest is quoted: "bar?x" is an unknown model, a 404."""
+    g = np.tile([0.0, 0.0, 1.0 / support.size], (support.size, 1))
+    paths = ["../health", "bar/mesh", "nope/../bar", "..", ".", ""]
+
+    def calls(api):
+        for model in paths:
+            yield model, lambda m=model: api.model(m)
+            yield model, lambda m=model: api.mesh(m)
+            yield model, lambda m=model: api.simulate(m, support, g)
+
+    with Client(live.url) as api:
+        for model, call in calls(api):
+            with pytest.raises(ValueError, match="names no model: an id is one URL path segment") as err:
+                call()
+            assert str(err.value).startswith(f"model id {model!r}"), err.value
+        for model in ("bar?x", "bar#x", "bar%2Fmesh"):
+            with pytest.raises(ApiError) as err:
+                api.model(model)
+            assert err.value.status == 404, (model, err.value)
+        assert api.model("bar")["n_nodes"] == 81
+
+    async def main() -> None:
+        async with AsyncClient(live.url) as api:
+            for model, call in calls(api):
+                with pytest.raises(ValueError, match="names no model") as err:
+                    await call()
+                assert str(err.value).startswith(f"model id {model!r}"), err.value
+            with pytest.raises(ApiError) as err:
+                await api.model("bar?x")
+            assert err.value.status == 404
+            assert (await api.mesh("bar"))["nodes"].shape == (81, 3)
+
+    asyncio.run(main())
