@@ -15,12 +15,23 @@ def _node_ids(ids, what: str) -> np.ndarray:
         return a.astype(np.int64)
     if a.dtype.kind not in "iu":
         raise ValueError(f"{what} must be integer node ids, got dtype {a.dtype}")
+    if a.dtype.kind == "u" and a.max() > np.iinfo(np.int64).max:  # the cast would wrap 2**64-1 to -1
+        raise ValueError(f"{what}: node id {a.max()} is too large")
     return a.astype(np.int64, copy=False)
+
+
+def _reals(values, what: str) -> np.ndarray:
+    """Coordinates or forces as float64, refused here if complex (a cast would drop the
+    imaginary part) or bool (True is no coordinate; the server refuses JSON's true too)."""
+    a = np.asarray(values)
+    if a.dtype.kind in "cb":
+        raise ValueError(f"{what} must be real numbers, got dtype {a.dtype}")
+    return a.astype(np.float64, copy=False)
 
 
 def frame_body(points, support, frame_id) -> dict:
     return {
-        "points": np.asarray(points, dtype=np.float64),
+        "points": _reals(points, "points"),
         "support": None if support is None else _node_ids(support, "support"),
         "frame_id": frame_id,
     }
@@ -31,14 +42,16 @@ def config_body(model: str, config: dict) -> dict:
     for key in ("support", "matching"):
         if body.get(key) is not None:
             body[key] = _node_ids(body[key], key)
-    if body.get("outputs") is not None:
+    if isinstance(body.get("outputs"), str):  # one output's name, not its letters
+        body["outputs"] = [body["outputs"]]
+    elif body.get("outputs") is not None:
         body["outputs"] = list(body["outputs"])
     return body
 
 
 def simulate_body(nodes, values, method: str, E: float | None) -> dict:
     return {
-        "forces": {"nodes": _node_ids(nodes, "forces' nodes"), "values": np.asarray(values, np.float64)},
+        "forces": {"nodes": _node_ids(nodes, "forces' nodes"), "values": _reals(values, "force values")},
         "method": method,
         "E": E,
     }

@@ -4,6 +4,7 @@ on the way out and NumPy arrays again on the way in."""
 from __future__ import annotations
 
 import json
+import math
 
 import msgpack
 import numpy as np
@@ -53,9 +54,24 @@ def encode(obj, encoding: str) -> bytes:
     obj = _outgoing(obj, encoding)
     if encoding == "msgpack":
         return msgpack.packb(obj, use_bin_type=True)
-    if orjson is not None:
+    if orjson is not None and _finite(obj):
         return orjson.dumps(obj, default=_tolist, option=orjson.OPT_SERIALIZE_NUMPY)
-    return json.dumps(obj, separators=(",", ":"), allow_nan=False).encode()
+    # NaN and Infinity written as such (orjson writes null, which read "numbers only"): the
+    # server's 422 then names them, as it does a MessagePack body's
+    return json.dumps(obj, separators=(",", ":"), default=_tolist).encode()
+
+
+def _finite(obj) -> bool:
+    """Whether a body (arrays still arrays: orjson's) holds no NaN or infinity."""
+    if isinstance(obj, np.ndarray):
+        return obj.dtype.kind != "f" or bool(np.isfinite(obj).all())
+    if isinstance(obj, float):
+        return math.isfinite(obj)
+    if isinstance(obj, dict):
+        return all(_finite(v) for v in obj.values())
+    if isinstance(obj, list):
+        return all(_finite(v) for v in obj)
+    return True
 
 
 def _tolist(obj):

@@ -5,11 +5,12 @@ real server, sync and async."""
 from __future__ import annotations
 
 import asyncio
+import re
 
 import numpy as np
 import pytest
 
-from clients import AsyncClient, Client
+from clients import ApiError, AsyncClient, Client
 
 
 @pytest.mark.parametrize("encoding", ["msgpack", "json"])
@@ -32,5 +33,57 @@ def test_simulate_refuses_node_ids_that_are_not_integers(live, support, encoding
                 with pytest.raises(ValueError, match="forces' nodes must be integer node ids"):
                     await api.simulate("bar", nodes, g)
             assert (await api.simulate("bar", support, g))["displacement"].shape == (81, 3)
+
+    asyncio.run(main())
+
+
+@pytest.mark.parametrize("encoding", ["msgpack", "json"])
+def test_non_finite_complex_and_too_large_input_is_refused_saying_why(live, support, clouds, encoding):
+    """JSON sent NaN as null, so the server's 422 said "numbers only" where MessagePack's says
+    "NaN or infinite"; complex points lost their imaginary part and were registered; a uint64
+    id 2**64-1 wrapped to -1 ("must be non-negative"). NaN now reaches the server as NaN, whose
+    422 names it in both encodings; complex values and too-large ids are refused before sending."""
+    nan_points = np.where(np.arange(clouds[0].size).reshape(clouds[0].shape) == 5, np.nan, clouds[0])
+    g = np.tile([0.0, 0.0, 1.0 / support.size], (support.size, 1))
+    with Client(live.url, encoding=encoding) as api, api.open_session("bar", support=support) as s:
+        with api.stream("bar", support=support) as st:
+            for refused in (
+                lambda: s.frame(nan_points),
+                lambda: st.frame(nan_points),
+                lambda: api.simulate("bar", support, np.where(g > 0, np.inf, g)),
+                lambda: api.open_session("bar", alpha=float("nan")),
+            ):
+                with pytest.raises(ApiError) as err:
+                    refused()
+                assert err.value.status == 422 and re.search("NaN|finite", str(err.value.detail)), err.value
+                assert "numbers only" not in str(err.value.detail), err.value
+            for complex_ in (lambda: s.frame(clouds[0] + 1j), lambda: st.frame(clouds[0] + 0j)):
+                with pytest.raises(ValueError, match="points must be real numbers, got dtype complex128"):
+                    complex_()
+            with pytest.raises(ValueError, match="points must be real numbers, got dtype bool"):
+                s.frame(clouds[0] > 0)  # True is no coordinate
+            with pytest.raises(ValueError, match="force values must be real numbers"):
+                api.simulate("bar", support, g.astype(complex))
+            huge = np.array([2**64 - 1], np.uint64)
+            with pytest.raises(ValueError, match=f"support: node id {2**64 - 1} is too large"):
+                st.frame(clouds[0], support=huge)
+            with pytest.raises(ValueError, match="forces' nodes: node id .* is too large"):
+                api.simulate("bar", huge, g[:1])
+            assert st.frame(clouds[1], frame_id="after")["frame_id"] == "after"  # in step
+
+
+def test_outputs_given_as_one_name_is_that_output(live, support, clouds):
+    """outputs="forces" was split into its letters (a 422 "at most 4 items ..., not 6"): one
+    name is a list of that one output, in a session and a stream alike."""
+    with Client(live.url) as api:
+        with api.open_session("bar", support=support, outputs="forces") as s:
+            assert list(s.config["outputs"]) == ["forces"]
+            assert set(s.frame(clouds[0])) >= {"forces"} and "displacement" not in s.frame(clouds[0])
+        with api.stream("bar", support=support, outputs="forces") as st:
+            assert list(st.config["outputs"]) == ["forces"]
+
+    async def main() -> None:
+        async with AsyncClient(live.url) as api, api.stream("bar", support=support, outputs="forces") as st:
+            assert list(st.config["outputs"]) == ["forces"]
 
     asyncio.run(main())
