@@ -150,15 +150,29 @@ class WorseThanInstalled(RuntimeError):
         )
 
 
-def too_short(minutes: float, done: int, spent: float, took: list[float], data_s: float | None = None) -> str:
+def too_short(
+    minutes: float,
+    done: int,
+    spent: float,
+    took: list[float],
+    data_s: float | None = None,
+    cut: tuple[float, int, int] | None = None,
+) -> str:
     """The refusal of a timed build that finished `done` < 2 load paths after `spent` seconds
     (`took`: its paths' solve seconds), with about the minutes that finish two: the time spent
     plus the slowest path for each missing one, as the data's share, doubled for a loaded
     machine. With no path solved a path's cost is unknown: ten times the budget, at least
     LEAST_MINUTES. Rounded up to one significant figure, and no more than the command lines take.
     `data_s`: the data's planned seconds where the start and the one-off loads took their share
-    first (else DATA_SHARE of the minutes)."""
-    if took:
+    first (else DATA_SHARE of the minutes). `cut`: (seconds, steps done, steps) of the path the
+    data's end stopped, which the line names: a whole path costs its seconds per step done (at
+    least one) times the steps, where that is more than the slowest finished one."""
+    if cut is not None:
+        ran, steps_done, steps = cut
+        path_s = max(max(took, default=0.0), ran * steps / max(steps_done, 1))
+        need = 2.0 * (spent + (2 - done) * path_s) / DATA_SHARE / 60.0
+        what = f"a path ran {ran:.1f} s and was stopped at the data's end, {steps_done} of its {steps} steps done"
+    elif took:
         need = 2.0 * (spent + (2 - done) * max(took)) / DATA_SHARE / 60.0
         what = f"a path took {max(took):.1f} s"
     else:
@@ -343,7 +357,8 @@ def build(
     time.perf_counter() reading: the command's start, which the CLI gives; default now): first
     the one-off loads (warmup.py), then data until DATA_SHARE of what they leave (the paths
     finished by then, up to the scene's samples, each step's Newton work capped at
-    TIMED_NEWTON_CAP), training in the rest less WRITE_MARGIN times the write the warm-up
+    TIMED_NEWTON_CAP; one still running then stops there, in a worker too, and is not written),
+    training in the rest less WRITE_MARGIN times the write the warm-up
     measured. Minutes that the loads alone spend are refused (ValueError) before any data.
 
     An entry already in the store under the id is replaced, unless this build's relative
@@ -386,8 +401,12 @@ def build(
             deadline=deadline,
         )  # fmt: skip
         took = []  # this run's paths' solve seconds
+        cut = None  # (seconds, steps done, steps) of the path the data's end stopped, the longest
         for solved in paths:
-            took.append(solved["seconds"])
+            if not solved["cut"]:
+                took.append(solved["seconds"])
+            elif cut is None or solved["seconds"] > cut[0]:  # unwritten: a rerun solves it whole
+                cut = (solved["seconds"], len(solved["forces"]), spec.steps)
             if data_until is not None and time.perf_counter() > data_until:
                 paths.close()  # cancels the paths still running; those written stay for a rerun
                 break
@@ -395,7 +414,7 @@ def build(
         done = sorted(i for i in done_indices(data_dir) if i < n_paths)
         if len(done) < 2:
             share = None if data_until is None else data_until - t0
-            raise ValueError(too_short(minutes, len(done), time.perf_counter() - t_start, took, share))
+            raise ValueError(too_short(minutes, len(done), time.perf_counter() - t_start, took, share, cut))
         try:
             F, U, P = load_dataset(data_dir, done, len(region), mesh.n_nodes)
         except FileNotFoundError:  # no file held a sample (load_dataset skips files gone meanwhile)

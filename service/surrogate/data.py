@@ -31,6 +31,7 @@ from ..optional import need
 from .cluster import (
     LOCAL_RESTARTS,
     SLOTS_CHECK_S,
+    WORKER_STOP_EARLY_S,
     _connect_seconds,
     _from_dask,
     _interrupted_quietly,
@@ -144,24 +145,41 @@ def _solver(mesh: TetMesh, material: NeoHookean, rtol: float, max_newton: int | 
 
 
 def solve_path(
-    mesh: TetMesh, material: NeoHookean, spec: LoadSpec, index: int, rtol: float = 1e-7, max_newton: int | None = None
+    mesh: TetMesh,
+    material: NeoHookean,
+    spec: LoadSpec,
+    index: int,
+    rtol: float = 1e-7,
+    max_newton: int | None = None,
+    stop_at: float | None = None,
 ) -> dict:
     """Solve path `index` step by step; keeps the steps that converged (a pure function).
 
     `max_newton`: Newton iterations one step may take before the path stops there (default
-    NewtonOptions.max_iter).
+    NewtonOptions.max_iter). `stop_at` (a time.time() value: a wall clock, which a Dask worker
+    shares with the build, on another machine as far as their clocks agree): no Newton iteration
+    begins that would end past it (NewtonSolver.solve's deadline), and a path stopped there
+    comes back with `cut` true, holding its finished steps, for the caller to drop: it is no
+    pure function of its index, and its file would pass for a whole path on a resume.
     """
+    # this process's clock from here: the wall clock may step meanwhile, the solver's does not
+    deadline = None if stop_at is None else time.perf_counter() + (stop_at - time.time())
     rng = np.random.default_rng([spec.seed, index])
     g_region = sample_path_load(mesh, spec, rng)
     solver = _solver(mesh, material, rtol, max_newton)
     region = np.asarray(spec.region)
     forces, us, its = [], [], []
     u = None
+    cut = False
     t0 = time.perf_counter()
     for step in range(1, spec.steps + 1):
         g = np.zeros((mesh.n_nodes, 3))
         g[region] = g_region * (step / spec.steps)
-        res = solver.solve(g, u)
+        res = solver.solve(g, u, deadline)
+        if res.status == "time_limit":
+            log.info("path %d: stopped at the data's end, at step %d of %d", index, step, spec.steps)
+            cut = True
+            break
         if not res.converged:
             log.info("path %d: step %d did not converge (%s)", index, step, res.status)
             break
@@ -175,6 +193,7 @@ def solve_path(
         "u": np.asarray(us, np.float32).reshape(-1, mesh.n_nodes, 3),
         "newton_iterations": np.asarray(its, np.int32),
         "seconds": time.perf_counter() - t0,
+        "cut": cut,
     }
 
 
@@ -192,16 +211,19 @@ def generate(
     until: float | None = None,
     deadline: float | None = None,
 ) -> Generator[dict, None, None]:
-    """Solve paths 0..n_paths-1 that are not on disk yet, in parallel; yields each as written.
+    """Solve paths 0..n_paths-1 that are not on disk yet, in parallel; yields each as written
+    (and those that `until` stopped, unwritten, with `cut` true).
 
     With `scheduler` the work goes to that Dask cluster; otherwise a LocalCluster of `workers`
     single-threaded processes (one per core: the factorisation is the hot spot and threads
     would only fight over it). With workers=0 it runs in this process (tests, debugging).
     `max_newton` caps each step's Newton iterations (solve_path); a data folder should hold
     paths of one cap (build.data_key). `until` (a time.perf_counter() value): the generation
-    stops there, with workers even while paths are being solved (those still running are
-    dropped), in this process before a path that the slowest so far says would end past it
-    (path_fits); local workers start only where the time to
+    stops there, in this process before a path that the slowest so far says would end past it
+    (path_fits), and a path still being solved then, here or in a worker (WORKER_STOP_EARLY_S
+    before it), stops there too (solve_path's stop_at): it is yielded unwritten, with `cut` true (the generation's last
+    here; with workers, those already finished may still come), and the rest in flight are
+    dropped; local workers start only where the time to
     it pays for them (local_workers_pay), else the paths are solved in this process.
     Connecting to `scheduler`, and waiting for its first worker, each take at most Dask's connect
     timeout (distributed.comm.timeouts.connect), never past `until` where it is given, else
@@ -251,12 +273,17 @@ def _generate(
     ):
         log.info("%.1f s of data is too short for local workers to pay off: solved here", until - time.perf_counter())
         workers = 0
+    # the wall clock's reading of `until`: a worker's perf_counter is not this process's
+    stop_at = None if until is None else time.time() + (until - time.perf_counter())
     if workers == 0 and scheduler is None:
         took: list[float] = []  # the solve seconds of this run's paths: what the next may take
         for i in todo:
-            if not path_fits(until, took):  # a path is not cut: none starts that would end past it
+            if not path_fits(until, took):  # none starts that its predecessors say would end past it
                 break
-            result = solve_path(mesh, material, spec, i, max_newton=max_newton)
+            result = solve_path(mesh, material, spec, i, max_newton=max_newton, stop_at=stop_at)
+            if result["cut"]:  # the clock stopped it: unwritten, its seconds for the refusal
+                yield result
+                break
             took.append(result["seconds"])
             write_path(data_dir, result)
             bar.update(1)
@@ -291,13 +318,17 @@ def _generate(
             if scheduler is not None:
                 _wait_for_workers(client, scheduler, _connect_seconds(until if until is not None else deadline), bar)
             sent = client.scatter([mesh, material, spec], broadcast=True)
+            worker_stop = None if stop_at is None else stop_at - WORKER_STOP_EARLY_S
             pending: Iterator[int] = iter(todo)
             in_flight: dict = {}  # future -> its path's index, until written
 
             def submit(n: int) -> list:
                 """The next n paths, in index order."""
                 indices = list(itertools.islice(pending, n))
-                futures = [client.submit(solve_path, *sent, i, max_newton=max_newton, pure=False) for i in indices]
+                futures = [
+                    client.submit(solve_path, *sent, i, max_newton=max_newton, stop_at=worker_stop, pure=False)
+                    for i in indices
+                ]
                 in_flight.update(zip(futures, indices, strict=True))
                 return futures
 
@@ -337,11 +368,13 @@ def _generate(
                 if scheduler is not None and time.perf_counter() - checked > SLOTS_CHECK_S:  # workers may join
                     slots, wanted, checked = _slots(client), slots, time.perf_counter()
                     more += max(slots - wanted, 0)
-                done.update(submit(more))
+                if not result["cut"]:  # a cut path: the clock has run out, so no more are sent
+                    done.update(submit(more))
             in_flight.pop(fut, None)
-            write_path(data_dir, result)
-            bar.update(1)
-            bar.set_postfix(samples=_count(bar, result))
+            if not result["cut"]:  # a cut path is no whole one: never written
+                write_path(data_dir, result)
+                bar.update(1)
+                bar.set_postfix(samples=_count(bar, result))
             fut.release()
             yield result
     except KeyboardInterrupt:

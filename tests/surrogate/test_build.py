@@ -427,6 +427,25 @@ def test_a_refused_build_is_told_the_minutes_its_first_path_says(tmp_path, bar):
     assert "the data get 11 s, 60 % of what the start and its loads left)" in too_short(0.5, 0, 9.0, [], 10.6)
 
 
+def test_a_refused_build_whose_path_the_clock_stopped_is_told_the_minutes_the_whole_path_needs():
+    """(review s27) A path that outlasts the data share is stopped there, unwritten: the line names
+    how long it ran and its steps done, and reckons the whole path from them (at least one step)."""
+    from service.build import too_short
+
+    # 11 s for 5 of 50 steps: a path of 110 s; 2 (20 + 2 x 110) / 0.6 s: 13.3 minutes, rounded up
+    message = too_short(0.5, 0, spent=20.0, took=[], data_s=11.0, cut=(11.0, 5, 50))
+    assert message == (
+        "--minutes 0.5 finished 0 load paths, and a build needs 2 (a path ran 11.0 s and was stopped at the data's "
+        "end, 5 of its 50 steps done; the data get 11 s, 60 % of what the start and its loads left): give it more "
+        "time, about --minutes 20"
+    )
+    # no step done: its seconds for each step (a path of 30 s): 2 (20 + 2 x 30) / 0.6 s, 4.4 minutes
+    assert too_short(0.5, 0, spent=20.0, took=[], cut=(6.0, 0, 5)).endswith("about --minutes 5")
+    # a finished path slower than the stopped one's reckoning (30 s) sets it: 2 (20 + 40) / 0.6 s, 3.3
+    message = too_short(0.5, 1, spent=20.0, took=[40.0], cut=(6.0, 1, 5))
+    assert message.endswith("about --minutes 4; the rerun resumes from the finished paths"), message
+
+
 def test_a_refused_build_is_told_figures_it_can_type(tmp_path):
     """Seconds and minutes as a user types them (they were 1.8e+02 s and --minutes 2e+02), and
     no more minutes than the command line takes (--minutes 6e+05 was refused there)."""

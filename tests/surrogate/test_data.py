@@ -213,7 +213,8 @@ def test_a_timed_generation_of_very_many_paths_keeps_to_its_clock(tmp_path, bar,
                             progress=False, until=until))  # fmt: skip
         over = time.perf_counter() - until
     assert over < 6.0  # slack: a loaded machine
-    assert len(got) >= 1 and len(got) == len(done_indices(tmp_path / "d"))
+    whole = [r["index"] for r in got if not r["cut"]]  # those the clock stopped are yielded, never written
+    assert len(whole) >= 1 and set(whole) == done_indices(tmp_path / "d")
 
 
 def test_a_path_starts_only_where_the_slowest_so_far_says_it_ends_in_time(bar, spec):

@@ -153,9 +153,7 @@ def test_a_cold_timed_build_keeps_to_its_minutes_from_the_commands_start(tmp_pat
     (measured here too, as `python -c "import service.cli"`: a fresh process's fork, exec and
     exit, which no clock inside it can see). It builds a model, or, where the machine is so
     loaded that the start and the loads alone would spend the minutes, refuses in one line."""
-    t0 = time.perf_counter()
-    subprocess.run([sys.executable, "-c", "import service.cli"], check=True, cwd=ROOT, timeout=60)
-    allowance = time.perf_counter() - t0
+    allowance = _start_allowance()
     scene = write_bar_scene(tmp_path / "scene", bar, samples=30_000)  # far too many: the clock ends it
     minutes = 0.5
     t0 = time.perf_counter()
@@ -170,6 +168,102 @@ def test_a_cold_timed_build_keeps_to_its_minutes_from_the_commands_start(tmp_pat
     entry = load_entry(tmp_path / "store" / "bar")
     assert entry.manifest["training"]["minutes"] == minutes and entry.manifest["training"]["paths"] >= 2
     assert [p.name for p in (tmp_path / "store").iterdir()] == ["bar"]  # the warm-up's scratch entry is gone
+
+
+def _start_allowance() -> float:
+    """The start of an interpreter to our first line (`python -c "import service.cli"`: a fresh
+    process's fork, exec and exit, which no clock inside it can see), measured now."""
+    t0 = time.perf_counter()
+    subprocess.run([sys.executable, "-c", "import service.cli"], check=True, cwd=ROOT, timeout=60)
+    return time.perf_counter() - t0
+
+
+#: load steps of a path that no budget of the tests' finishes: 2 ms each on the bar (220 s a path
+#: on a loaded 2-core machine), the cheap stand-in for the review's 11,849-node grid (74 s a path)
+ENDLESS_STEPS = 100_000
+
+
+def _timed_train(scene: Path, tmp_path: Path, minutes: float, *flags: str) -> tuple[int | None, str, float]:
+    """`elastreg train --minutes` in a process group of its own: (exit status, output, wall s).
+    A build still running 30 s past its minutes (an overrun) is killed with its workers: None."""
+    import signal
+
+    p = subprocess.Popen(
+        [sys.executable, "-m", "service.cli", "train", str(scene), "--store", str(tmp_path / "store"),
+         "--data", str(tmp_path / "data"), "--minutes", str(minutes), "--hidden", "32", "--rank", "8", *flags],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=ROOT, start_new_session=True,
+    )  # fmt: skip
+    t0 = time.perf_counter()
+    try:
+        out, _ = p.communicate(timeout=60 * minutes + 30)
+    except subprocess.TimeoutExpired:
+        os.killpg(p.pid, signal.SIGKILL)
+        out, _ = p.communicate()
+        return None, out, time.perf_counter() - t0
+    wall = time.perf_counter() - t0
+    assert _group_gone(p.pid, 5.0), "the build's processes outlived it"  # a worker still solving
+    return p.returncode, out, wall
+
+
+def _refused_in_time(tmp_path: Path, minutes: float, status: int | None, out: str, wall: float, allowance: float):
+    """The build was refused inside its minutes, in the one line that names the path the data's
+    end stopped and the minutes to give, and wrote no file for that path (a resume would take it
+    for a whole one)."""
+    assert status is not None, f"still running {wall:.0f} s after a --minutes {minutes} start: {out[-3000:]}"
+    assert wall < 60 * minutes + allowance, (wall, allowance, out[-3000:])
+    assert status == 2, out[-3000:]
+    if f"error: --minutes {minutes:g} ({60 * minutes:g} s) is too short for the start" in out:
+        return  # the machine so loaded that the start and the one-off loads spent the minutes: said in time
+    said = re.search(
+        rf"error: --minutes {minutes:g} finished 0 load paths, and a build needs 2 \(a path ran ([0-9.]+) s and was "
+        rf"stopped at the data's end, \d+ of its {ENDLESS_STEPS} steps done; .*\): give it more time, about "
+        r"--minutes ([0-9.]+)\n",
+        out,
+    )
+    assert said and 0 < float(said[1]) < 60 * minutes and float(said[2]) > minutes, out[-3000:]
+    assert "Traceback" not in out and "distributed" not in out, out[-3000:]  # no worker's path cancelled mid-run
+    (folder,) = (tmp_path / "data").iterdir()
+    assert done_indices(folder) == set() and not list(folder.glob(".path_*")), sorted(folder.iterdir())
+
+
+def test_a_timed_build_stops_a_path_that_outlasts_its_data_share(tmp_path, bar):
+    """(review s27) A path was never cut: on an 11,849-node grid `--minutes 0.5 --workers 0` left
+    5.8 s of data, and its first path ran 74.3 s, the build 91.7 s, refused only after the fact.
+    Now the path stops at the data share's end and the build is refused inside its minutes."""
+    allowance = _start_allowance()
+    scene = write_bar_scene(tmp_path / "scene", bar, samples=30, load_steps=ENDLESS_STEPS)
+    status, out, wall = _timed_train(scene, tmp_path, 0.5, "--workers", "0")
+    _refused_in_time(tmp_path, 0.5, status, out, wall, allowance)
+
+
+def test_a_timed_build_stops_a_path_that_outlasts_its_data_share_in_a_clusters_worker(tmp_path, bar):
+    """The data share's end reaches a --scheduler's workers: the path stops there, not only the
+    build's wait for it (a cancelled path ran on in its worker thread, holding it for minutes)."""
+    from distributed import Client, LocalCluster
+
+    allowance = _start_allowance()
+    scene = write_bar_scene(tmp_path / "scene", bar, samples=30, load_steps=ENDLESS_STEPS)
+    env = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
+    with (
+        LocalCluster(n_workers=1, threads_per_worker=1, host="127.0.0.1", dashboard_address=":0", env=env) as cluster,
+        Client(cluster) as client,
+    ):
+        status, out, wall = _timed_train(scene, tmp_path, 0.5, "--scheduler", cluster.scheduler_address)
+        deadline = time.monotonic() + 3.0  # the path's last Newton iteration, and its result's trip
+        while any(client.run(lambda dask_worker: len(dask_worker.state.executing)).values()):
+            assert time.monotonic() < deadline, f"the path runs on in the worker past the build: {out[-3000:]}"
+            time.sleep(0.1)
+    _refused_in_time(tmp_path, 0.5, status, out, wall, allowance)
+
+
+@pytest.mark.slow
+def test_a_timed_build_stops_a_path_that_outlasts_its_data_share_in_local_workers(tmp_path, bar):
+    """As above with 2 local workers (--minutes 2: a share past the 40 s that they must pay off):
+    the build is refused inside its minutes and none of its processes outlives it."""
+    allowance = _start_allowance()
+    scene = write_bar_scene(tmp_path / "scene", bar, samples=30, load_steps=ENDLESS_STEPS)
+    status, out, wall = _timed_train(scene, tmp_path, 2, "--workers", "2")
+    _refused_in_time(tmp_path, 2, status, out, wall, allowance)
 
 
 @pytest.mark.parametrize("unwritable", ["store", "data"])
