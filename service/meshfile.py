@@ -281,23 +281,33 @@ def _read_gmsh1(path: Path) -> tuple[Array, Array]:
     try:
         i = next(k for k, line in enumerate(lines) if line.strip() == "$NOD")
         n = int(lines[i + 1])
-        node_rows = np.array([line.split() for line in lines[i + 2 : i + 2 + n]], np.float64)
+        node_text = np.array([line.split() for line in lines[i + 2 : i + 2 + n]])
+        labels, coords = node_text[:, 0].astype(np.int64), node_text[:, 1:4].astype(np.float64)
         j = next(k for k, line in enumerate(lines) if line.strip() == "$ELM")
         m = int(lines[j + 1])
         rows = [line.split() for line in lines[j + 2 : j + 2 + m]]
         tets = np.array([r[5:9] for r in rows if r[1] in GMSH1_TETS], np.int64)
-    except (ValueError, IndexError, StopIteration) as exc:
+    except (ValueError, IndexError, StopIteration, OverflowError) as exc:
         raise MeshError(f"{path}: not a readable gmsh v1 file ({exc})") from exc
     if len(tets) == 0:
         raise MeshError(f"{path}: no tetrahedra in this file")
-    ids = node_rows[:, 0].astype(np.int64)  # gmsh ids are arbitrary labels: map them to rows
-    lookup = np.full(ids.max() + 1, -1, np.int64)
-    lookup[ids] = np.arange(len(ids))
-    if tets.max() >= len(lookup) or (lookup[tets] < 0).any():
+    negative = np.unique(labels[labels < 0])
+    if negative.size:  # gmsh numbers nodes from 1: a negative label is a damaged file
+        raise MeshError(f"{path}: node labels must be >= 0 (gmsh numbers them from 1), got {_some(negative)}")
+    # gmsh labels are arbitrary: mapped to rows by search, never by an array as long as the largest
+    order = np.argsort(labels, kind="stable")
+    rows_of = order[np.minimum(np.searchsorted(labels, tets, sorter=order), len(labels) - 1)]
+    if not (labels[rows_of] == tets).all():
         raise MeshError(f"{path}: elements refer to undefined nodes")
     log.info("%s: legacy gmsh v1 file, %d tets (other elements ignored)", path.name, len(tets))
     _warn_dropped_volume(path, dict(Counter(GMSH1_VOLUME[r[1]] for r in rows if r[1] in GMSH1_VOLUME)))
-    return node_rows[:, 1:4], lookup[tets]
+    return coords, rows_of
+
+
+def _some(values: Array, shown: int = 5) -> str:
+    """At most `shown` values of an array for a message, with how many more there are."""
+    said = ", ".join(str(v) for v in values[:shown])
+    return said + (f" and {values.size - shown} more" if values.size > shown else "")
 
 
 def _warn_dropped_volume(path: Path, counts: dict[str, int]) -> None:

@@ -127,6 +127,43 @@ def test_a_legacy_gmsh_files_dropped_hexes_are_a_warning(tmp_path, box, caplog):
     assert "sofa.msh: dropped 1 hexahedron cells" in warning.getMessage()
 
 
+def _gmsh1(path, nodes: np.ndarray, tets: np.ndarray, labels: np.ndarray) -> None:
+    """A legacy gmsh v1 file of tets whose nodes carry `labels` (gmsh's own, any whole numbers)."""
+    rows = [f"{i + 1} 4 1 1 4 " + " ".join(str(labels[v]) for v in t) for i, t in enumerate(tets)]
+    text = ["$NOD", str(len(nodes))] + [
+        f"{lab} {x:.17g} {y:.17g} {z:.17g}" for lab, (x, y, z) in zip(labels, nodes, strict=True)
+    ]
+    path.write_text("\n".join([*text, "$ENDNOD", "$ELM", str(len(rows)), *rows, "$ENDELM", ""]))
+
+
+def test_a_legacy_gmsh_files_huge_labels_are_mapped_and_negative_ones_refused(tmp_path, box):
+    """Before: the labels were mapped through an array as long as the largest (a label of 1e11
+    asked for 745 GiB: a traceback), and a -5 wrapped round to another node, reported as a
+    tangled mesh. Now large labels load as any others and a negative one is named."""
+    nodes, tets = box
+    labels = np.arange(1, len(nodes) + 1)
+    labels[0], labels[5] = 10**11, 2**62  # far past any array this machine could hold
+    _gmsh1(tmp_path / "huge.msh", nodes, tets, labels)
+    m = load_mesh(tmp_path / "huge.msh")
+    np.testing.assert_array_equal(m.nodes, nodes)
+    np.testing.assert_array_equal(m.tets, tets)
+
+    labels[0], labels[3] = -5, -7
+    _gmsh1(tmp_path / "negative.msh", nodes, tets, labels)
+    with pytest.raises(MeshError) as exc:
+        load_mesh(tmp_path / "negative.msh")
+    assert (
+        str(exc.value)
+        == f"{tmp_path / 'negative.msh'}: node labels must be >= 0 (gmsh numbers them from 1), got -7, -5"
+    )
+
+    past = np.arange(1, len(nodes) + 1).astype(object)
+    past[3] = 2**64  # past int64: no label gmsh writes
+    _gmsh1(tmp_path / "overflow.msh", nodes, tets, past)
+    with pytest.raises(MeshError, match="not a readable gmsh v1 file"):
+        load_mesh(tmp_path / "overflow.msh")
+
+
 def _quadratic(nodes: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The corners, then one mid-edge node per tet edge (gmsh's ten-node order: corners first)."""
     edges = tets[:, [0, 1, 2, 0, 1, 2]], tets[:, [1, 2, 0, 3, 3, 3]]
