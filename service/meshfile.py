@@ -73,6 +73,28 @@ TETGEN_OPTIONS: Mapping[str, object] = MappingProxyType(
 #: A tet whose smallest dihedral angle is below this many degrees counts as a sliver.
 SLIVER_DEG = 5.0
 
+#: the span (bounding-box diagonal, m) a scaled mesh may have: a micron to 1,000 km, beyond any
+#: organ in any unit (past it a wrong scale gave inf coordinates or zero volumes, blamed on the file)
+SCALED_SPAN = (1e-6, 1e6)
+
+
+class ScaleError(MeshError):
+    """A scale that puts the mesh outside SCALED_SPAN: the scale's fault, not the file's."""
+
+
+def scaled(points: Array, scale: float, source: object) -> Array:
+    """`points` x `scale`, refused (ScaleError) where the scaled span is outside SCALED_SPAN."""
+    raw = float(np.linalg.norm(np.ptp(points, axis=0))) if len(points) else 0.0
+    span = raw * scale  # a Python float: inf past the largest, no warning
+    if np.isfinite(raw) and raw > 0 and not SCALED_SPAN[0] <= span <= SCALED_SPAN[1]:
+        raise ScaleError(
+            f"scale {scale:g} makes {source} span {span:.3g} m corner to corner ({raw:.3g} x {scale:g}), outside "
+            f"{SCALED_SPAN[0]:g}..{SCALED_SPAN[1]:g} m: the scale turns the file's unit into metres (millimetres: "
+            "0.001)"
+        )
+    return points * scale
+
+
 _EDGE_PAIRS = np.array([(i, j) for i in range(4) for j in range(i + 1, 4)])
 
 
@@ -378,7 +400,7 @@ def load_mesh(path: str | Path, scale: float = 1.0, *, max_volume: float | None 
     file_ids = None
     if surface:
         vertices, faces, file_ids = _read_surface(path)
-        vertices = vertices * scale
+        vertices = scaled(vertices, scale, path.name)
         try:
             nodes, tets = tetrahedralise(vertices, faces, max_volume=max_volume)
         except MeshError as exc:
@@ -392,7 +414,7 @@ def load_mesh(path: str | Path, scale: float = 1.0, *, max_volume: float | None 
         )
     else:
         nodes, tets = _read_tets(path)
-        nodes = nodes * scale
+        nodes = scaled(nodes, scale, path.name)
     try:
         mesh, kept = TetMesh.build(nodes, tets)
     except MeshError as exc:

@@ -433,3 +433,17 @@ def test_a_misspelt_registration_key_is_refused(folder):
     text = GOOD.format(boundary="fixed_nodes = [0, 1, 3]", training="") + "\n[registration]\nsuport = [5]\n"
     with pytest.raises(SceneError, match=r"\[registration\] suport"):
         load_scene(write(folder, text=text))
+
+
+@pytest.mark.parametrize("scale, span", [("1e308", "inf"), ("1e-300", "4.9e-299"), ("1e-9", "4.9e-08")])
+def test_a_scale_that_puts_the_mesh_past_any_size_blames_the_scale(folder, scale, span):
+    """Before: 1e308 made the coordinates inf ('[mesh] path: ... NaN or infinite coordinates') and
+    1e-300 every tet degenerate, both blaming the mesh file. Now the scale is named, with the
+    span it makes (the block spans 49 units)."""
+    msg = error_of(folder, text=edited("scale = 0.001", f"scale = {scale}"))
+    assert msg.startswith(
+        f"{folder / 'scene.toml'}: [mesh] scale: scale {float(scale):g} makes block.vtu span {span} m"
+    )
+    assert "\n" not in msg
+    text = edited("scale = 0.001", f"scale = {scale}").replace('path = "meshes/block.vtu"', 'generator = "phantom"')
+    assert "[mesh] scale: scale" in error_of(folder, text=text)

@@ -45,7 +45,7 @@ import numpy as np
 from pydantic import Field, PrivateAttr, ValidationError, model_validator
 
 from ..mesh import MeshError, TetMesh
-from ..meshfile import LoadedMesh, load_mesh, mesh_quality
+from ..meshfile import LoadedMesh, ScaleError, load_mesh, mesh_quality, scaled
 from . import ids as scene_ids
 from .errors import SceneError, describe, scene_error
 from .model_id import MODEL_ID
@@ -115,7 +115,10 @@ class Scene(Table):
             from .. import phantoms
 
             gen = getattr(phantoms, self.mesh.generator)()
-            nodes = gen.nodes * scale
+            try:
+                nodes = scaled(gen.nodes, scale, f"the {self.mesh.generator} generator's mesh")
+            except ScaleError as exc:
+                raise self._error("[mesh] scale", str(exc)) from exc
             loaded = LoadedMesh(
                 nodes=nodes,
                 tets=gen.tets,
@@ -128,6 +131,8 @@ class Scene(Table):
             return loaded, np.asarray(gen.fixed, np.int64)
         try:
             return load_mesh(self.mesh.path, scale), None
+        except ScaleError as exc:  # the key to change is scale, not path
+            raise self._error("[mesh] scale", str(exc)) from exc
         except MeshError as exc:
             raise self._error("[mesh] path", str(exc)) from exc
 
