@@ -110,6 +110,33 @@ def folded_faces(nodes: Array, tets: Array, table: FaceTable | None = None) -> t
     return folded, float(total / enclosed - 1.0) if enclosed > 0 else float("inf")
 
 
+#: nodes closer than this share of the mesh's bounding-box diagonal count as one point: far
+#: below any element (a 100k-tet organ's smallest edge is ~1e-3 of it), far above round-off
+COINCIDENT_TOL = 1e-9
+
+
+def coincident_nodes(nodes: Array, tets: Array) -> None:
+    """Refuse tets on nodes that coincide (a file whose shared nodes were not merged).
+
+    Why refuse, not merge: the copies cut the body along their faces (a slit whose faces become
+    surface, loads and all) or into parts, and merging would renumber the nodes a scene's ids
+    name. Nodes no tet uses are dropped later, coincident or not.
+    """
+    used = np.unique(tets)
+    points = nodes[used]
+    span = float(np.linalg.norm(np.ptp(points, axis=0))) or 1.0
+    cells = np.round((points - points.min(axis=0)) / (span * COINCIDENT_TOL))
+    _, first, counts = np.unique(cells, axis=0, return_index=True, return_counts=True)
+    extra = int(len(points) - len(first))
+    if extra:
+        at = points[first[np.argmax(counts > 1)]]
+        raise MeshError(
+            f"{extra} nodes used by tets coincide with another node (within {COINCIDENT_TOL:g} x the mesh's size; "
+            f"first at {at.tolist()}): the mesh's nodes were not merged, so it is cut along them; merge coincident "
+            "nodes (gmsh: Coherence Mesh; meshio/trimesh: merge_vertices) and load it again"
+        )
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class TetMesh:
     """A P1 tetrahedral mesh with its Dirichlet nodes.
@@ -142,9 +169,10 @@ class TetMesh:
         """Validate and repair raw arrays into a mesh.
 
         Inverted tets are re-oriented (logged): a mesh whose tets only mix their vertex orders;
-        a tangled one (re-oriented, some tets overlap: a node moved through a face), degenerate
-        tets, several components (by nodes, or by faces: parts touching at an edge or a point)
-        and bad indices are refused with a :class:`MeshError`; unused nodes are dropped, in which case
+        tets on coincident nodes (unmerged copies: :func:`coincident_nodes`), a tangled mesh
+        (re-oriented, some tets overlap: a node moved through a face), degenerate tets, several
+        components (by nodes, or by faces: parts touching at an edge or a point) and bad indices
+        are refused with a :class:`MeshError`; unused nodes are dropped, in which case
         the second value maps each kept node to its index in the input (else it is None).
         """
         nodes = np.asarray(nodes, np.float64)
@@ -162,6 +190,7 @@ class TetMesh:
             raise MeshError(f"tets refer to node ids outside 0..{len(nodes) - 1}")
         if (np.sort(tets, axis=1)[:, 1:] == np.sort(tets, axis=1)[:, :-1]).any():
             raise MeshError("some tets repeat a node")
+        coincident_nodes(nodes, tets)
 
         vol = signed_volumes(nodes, tets)
         scale = np.median(np.abs(vol))

@@ -162,3 +162,32 @@ def test_a_tangled_mesh_is_refused_where_one_of_mixed_vertex_order_is_reoriented
     assert (signed_volumes(tangled, tets) < 0).any()  # what the loader "repaired"
     with pytest.raises(MeshError, match=r"tangled: \d+ interior faces have both their tets on one side"):
         TetMesh.build(tangled, tets)
+
+
+def test_tets_on_coincident_nodes_are_refused_with_how_many(cube):
+    """Before: a copy of an interior node used by half its tets was accepted as a body cracked
+    along the slit (its faces became surface, loads and all), and a mesh whose every node was
+    copied was refused as '2 separate components ... one scene per body'. Now both say how many
+    nodes coincide and that they need merging."""
+    nodes, tets = cube.nodes, cube.tets.copy()
+    centre = int(np.flatnonzero((nodes == 0.5).all(axis=1))[0])
+    slit = np.vstack([nodes, nodes[centre]])  # the copy, last
+    half = np.flatnonzero((tets == centre).any(axis=1))[::2]
+    tets[half] = np.where(tets[half] == centre, len(nodes), tets[half])
+    with pytest.raises(MeshError) as exc:
+        TetMesh.build(slit, tets)
+    said = str(exc.value)
+    assert said.startswith("1 nodes used by tets coincide with another node") and "merge coincident nodes" in said
+    assert "[0.5, 0.5, 0.5]" in said and "\n" not in said
+
+    copied = np.vstack([nodes, nodes])  # every node twice, half the tets on the copies
+    split = cube.tets.copy()
+    split[::2] += len(nodes)
+    both = np.intersect1d(cube.tets[::2], cube.tets[1::2]).size  # the nodes of both halves: used twice
+    with pytest.raises(MeshError, match=rf"^{both} nodes used by tets coincide with another node"):
+        TetMesh.build(copied, split)
+
+    from service.mesh import coincident_nodes
+
+    near = np.vstack([nodes, nodes[centre] + 1e-6])  # 1e-6 of the size: a distinct node
+    coincident_nodes(near, tets)
