@@ -73,14 +73,27 @@ def _variant_ids(store: Path, liver_model: str) -> list[str]:
 
 
 def read_scenes(args: argparse.Namespace) -> list:
-    """The minutes part's scenes, read before any work (none to redraw the report from its rows)."""
-    from ..scene import SceneError, load_scene
+    """The minutes part's scenes, each read and checked whole (mesh, boundary, load region) before
+    any work, every fault of every scene in one line (none to redraw the report from its rows):
+    a scene that parses but whose mesh or clamp cannot be used failed an hour into the run."""
+    from ..build import load_spec
+    from ..scene import load_scene
 
-    try:
-        return [load_scene(s) for s in args.scenes] if args.build_minutes else []
-    except SceneError as exc:
-        why = "; ".join(str(exc).splitlines())  # a scene's every fault, one line
-        refuse(f"{why} (the default scenes are relative to the repository's root)")
+    if not args.build_minutes:
+        return []
+    scenes, faults = [], []
+    for path in args.scenes:
+        try:
+            scene = load_scene(path)
+            mesh, loaded = scene.build_mesh()
+            load_spec(scene, scene.region_nodes(mesh, loaded))
+        except ValueError as exc:  # a SceneError is one, each line a fault
+            faults += str(exc).splitlines()
+        else:
+            scenes.append(scene)
+    if faults:
+        refuse(f"{'; '.join(faults)} (the default scenes are relative to the repository's root)")
+    return scenes
 
 
 def resumed_rows(path: Path, out: Path | None) -> list[dict]:

@@ -2,6 +2,7 @@
 
 import json
 
+import numpy as np
 import pytest
 
 from service.bench.minutes import TEST_SEED, latest, merge
@@ -101,3 +102,31 @@ def test_a_stopped_runs_rows_are_merged_back_by_resume(bar, tmp_path, capsys):
     assert not (tmp_path / "test").exists()  # nor its scene's test set solved
     assert "| bar | 0.2 |" in (out / "report.md").read_text()
     assert json.loads((aside / "minutes_rows.json").read_text()) == [old, built]  # kept for the user to remove
+
+
+def test_scenes_that_parse_but_cannot_be_built_are_refused_in_one_line_before_any_work(bar, tmp_path, capsys):
+    """Before: a scene whose fixed_box selects no node, or whose mesh is tangled, parsed, and the
+    run failed in its first build with a SceneError traceback, exit status 1, the --out folder
+    made. Now every scene is checked whole first: all their faults in one line, exit status 2,
+    nothing written."""
+    import meshio
+
+    from service.phantoms import grid_tets
+
+    clamp = write_bar_scene(tmp_path / "clamp", bar)
+    clamp.write_text(clamp.read_text().replace("[[-0.01, -1, -1], [0.01, 2, 2]]", "[[5, 5, 5], [6, 6, 6]]"))
+    tangled = write_bar_scene(tmp_path / "tangled", bar, name="tangled")
+    nodes, tets = grid_tets((3, 3, 3), 1.0 / 3.0)
+    inner = int(np.flatnonzero((np.abs(nodes - 0.5) < 0.2).all(axis=1))[0])
+    t = int(np.flatnonzero((tets == inner).any(axis=1))[0])
+    face = nodes[tets[t][tets[t] != inner]].mean(axis=0)
+    nodes[inner] = face + 1.5 * (face - nodes[inner])  # through the opposite face (tests/test_mesh.py)
+    meshio.write(tangled.parent / "bar.vtu", meshio.Mesh(nodes, [("tetra", tets)]))
+    out = tmp_path / "report"
+    with pytest.raises(SystemExit) as exit_:
+        main(["bench", "minutes", "--scenes", str(clamp), str(tangled), "--test-data", str(tmp_path / "test"),
+              "--out", str(out), "--build-minutes", "0.2", "--workers", "0"])  # fmt: skip
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and err.count("\n") == 1, err
+    assert f"{clamp}: [boundary] fixed_box: " in err and f"{tangled}: [mesh] path: " in err and "is tangled" in err
+    assert not out.exists() and not (tmp_path / "test").exists()
