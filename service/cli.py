@@ -13,6 +13,7 @@ import time
 
 from . import commands
 from .argtypes import build_minutes, model_id, positive, scheduler_address, whole_number
+from .network_size import MAX_MEMBERS, MAX_WIDTH
 from .started import process_started
 
 _at_least_one = whole_number(1)
@@ -122,14 +123,18 @@ def parser() -> argparse.ArgumentParser:
     t.add_argument("--data", default=None, help="data folder root (default: $ELASTREG_DATA or ~/.cache/elastreg/data)")
     t.add_argument("--layout", choices=["reduced", "paper"], default="reduced")
     t.add_argument(
-        "--hidden", type=_at_least_one, nargs="+", default=[512, 512], help="hidden layer widths (reduced layout)"
+        "--hidden",
+        type=whole_number(1, MAX_WIDTH),
+        nargs="+",
+        default=[512, 512],
+        help=f"hidden layer widths, each at most {MAX_WIDTH} (reduced layout)",
     )
     t.add_argument("--rank", type=_at_least_one, default=128, help="POD modes (reduced layout)")
     t.add_argument(
         "--members",
-        type=_at_least_one,
+        type=whole_number(1, MAX_MEMBERS),
         default=None,
-        help="an ensemble of this many independently trained MLPs over one basis, averaged "
+        help=f"an ensemble of this many (at most {MAX_MEMBERS}) independently trained MLPs over one basis, averaged "
         "(reduced layout; default: the scene's [training] members, else 1)",
     )
     t.add_argument(

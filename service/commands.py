@@ -59,6 +59,16 @@ def train(args: argparse.Namespace) -> int:
     except OSError as exc:  # the disk: its message names the file
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except (MemoryError, RuntimeError) as exc:  # torch's allocator says so with a RuntimeError
+        if not out_of_memory(exc):
+            raise
+        said = " ".join(str(exc).split())[:200] or type(exc).__name__
+        print(
+            f"error: the build ran out of memory ({said}): train a smaller network (--hidden, --members, --rank); "
+            "the data made are kept for the rerun",
+            file=sys.stderr,
+        )
+        return 1
     m = report.metrics
     print(
         f"{args.name or scene.name}: {report.samples} samples ({report.data_seconds:.0f} s of FEM), "
@@ -68,6 +78,14 @@ def train(args: argparse.Namespace) -> int:
         + f") -> {report.entry}"
     )
     return 0
+
+
+def out_of_memory(exc: BaseException) -> bool:
+    """Whether `exc` is an allocation that failed: Python's MemoryError, or torch's (a
+    RuntimeError on the CPU, its OutOfMemoryError subclass on a GPU)."""
+    said = str(exc).lower()
+    words = ("can't allocate memory", "cannot allocate memory", "not enough memory", "out of memory")
+    return isinstance(exc, MemoryError) or any(w in said for w in words)
 
 
 def _build_from(build, scene, config, command: str, args: argparse.Namespace):

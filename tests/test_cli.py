@@ -37,6 +37,9 @@ from tests.conftest import write_bar_scene
         (["demo", "--viewer", "--model", ".."], "argument --model: model id"),
         (["igtl", "--model", "sub/phantom"], "argument --model: model id"),
         (["igtl", "--model", ""], "argument --model: model id"),
+        # the network's size (service/network_size.py): past it, an allocation's traceback after the data
+        (["train", "beam", "--hidden", "10000000", "10000000"], "--hidden: must be a whole number in 1..16384"),
+        (["train", "beam", "--members", "100000"], "--members: must be a whole number in 1..64"),
     ],
 )
 def test_impossible_values_are_refused_at_parse_time(argv, words, capsys):
@@ -54,6 +57,15 @@ def test_a_build_budget_past_a_year_is_refused_at_parse_time(minutes, capsys):
     assert exit_.value.code == 2 and f"--minutes: must be at most 525600 (a year), got '{minutes}'" in err, err
     assert "Traceback" not in err and err.strip().splitlines()[-1].startswith("elastreg train: error: argument")
     assert parser().parse_args(["train", "beam", "--minutes", "525600"]).minutes == 525600
+
+
+def test_the_network_size_caps_are_taken_and_the_number_of_layers_bounded(tmp_path, capsys):
+    args = parser().parse_args(["train", "beam", "--hidden", "16384", "16384", "--members", "64"])
+    assert args.hidden == [16384, 16384] and args.members == 64
+    assert main(["train", "beam", "--store", str(tmp_path / "s"), "--hidden", *["8"] * 65]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: hidden layers must be 1..64 widths in 1..16384") and "(65 layers)" in err, err
+    assert not (tmp_path / "s").exists()
 
 
 def test_good_values_parse():

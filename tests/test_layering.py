@@ -33,6 +33,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
             "service.folders",
             "service.sparse_libs",
             "service.material_range",
+            "service.network_size",
             "service.started",
         ),
     ),

@@ -351,6 +351,7 @@ def test_training_options(folder):
     msg = error_of(folder, training="region_sphere = {centre = [0, 0, 0], radius = 0}")
     assert "[training] region_sphere.radius: must be > 0.0, got 0" in msg
     assert "[training] members: must be >= 1, got 0" in error_of(folder, training="members = 0")
+    assert "[training] members: must be <= 64, got 100000" in error_of(folder, training="members = 100000")
     with pytest.raises(SceneError, match="builtins: beam, phantom"):
         resolve_scene("kidney")
 

@@ -11,6 +11,7 @@ from typing import Annotated, Literal
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
 from ..material_range import E_RANGE, NU_RANGE
+from ..network_size import MAX_MEMBERS
 
 # -- field types ------------------------------------------------------------------------------
 
@@ -133,7 +134,7 @@ class TrainingSpec(Table):
     normal_fraction: Fraction = 0.5
     pull_fraction: Fraction = 2.0 / 3.0
     twist_fraction: Fraction = 0.0
-    members: Count = 1
+    members: Annotated[int, Field(strict=True, ge=1, le=MAX_MEMBERS)] = 1
 
     @field_validator("patch_nodes")
     @classmethod

@@ -14,6 +14,7 @@ import torch
 
 from ..fem.assembly import Assembler
 from ..fem.rest import rest_compliance
+from ..network_size import MAX_LAYERS, MAX_MEMBERS, MAX_WIDTH
 from ..optional import need
 from .basis import pod_basis
 from .network import PaperSurrogate, ReducedSurrogate
@@ -62,15 +63,18 @@ class TrainConfig:
         # refused here, where the config is made, so a command line fails before any data
         if self.layout not in ("reduced", "paper"):
             raise ValueError(f"unknown layout {self.layout!r}: 'reduced' or 'paper'")
-        if self.members is not None and self.members < 1:
-            raise ValueError(f"members must be a whole number >= 1, got {self.members}")
+        if self.members is not None and not 1 <= self.members <= MAX_MEMBERS:
+            raise ValueError(f"members must be a whole number in 1..{MAX_MEMBERS}, got {self.members}")
         for key in ("rank", "features", "epochs"):
             if getattr(self, key) < 1:
                 raise ValueError(f"{key} must be a whole number >= 1, got {getattr(self, key)}")
         if not 0 <= self.seed <= SEED_MAX:  # else torch refused it after all the data
             raise ValueError(f"seed must be a whole number in 0..{SEED_MAX}, got {self.seed}")
-        if not self.hidden or min(self.hidden) < 1:
-            raise ValueError(f"hidden layer widths must be whole numbers >= 1, got {list(self.hidden)}")
+        if not 1 <= len(self.hidden) <= MAX_LAYERS or not 1 <= min(self.hidden) <= max(self.hidden) <= MAX_WIDTH:
+            raise ValueError(
+                f"hidden layers must be 1..{MAX_LAYERS} widths in 1..{MAX_WIDTH}, got {list(self.hidden)[:8]}"
+                + (f" ({len(self.hidden)} layers)" if len(self.hidden) > 8 else "")
+            )
         if self.layout != "reduced" and (self.members or 1) > 1:
             raise ValueError("members > 1 (an ensemble) needs the reduced layout: its members share one POD basis")
 

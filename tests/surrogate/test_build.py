@@ -159,7 +159,7 @@ def test_a_bad_ensemble_size_is_refused_before_any_work(capsys):
     with pytest.raises(SystemExit) as exit_:
         main(["train", "beam", "--members", "0"])
     assert exit_.value.code == 2
-    assert "--members: must be a whole number >= 1, got '0'" in capsys.readouterr().err
+    assert "--members: must be a whole number in 1..64, got '0'" in capsys.readouterr().err
     assert main(["train", "beam", "--layout", "paper", "--members", "2"]) == 2
     assert "members > 1 (an ensemble) needs the reduced layout" in capsys.readouterr().err
 
@@ -168,12 +168,15 @@ def test_a_bad_ensemble_size_is_refused_before_any_work(capsys):
     ("kwargs", "message"),
     [
         ({"layout": "paper", "members": 3}, "needs the reduced layout"),
-        ({"members": 0}, "members must be a whole number >= 1"),
+        ({"members": 0}, "members must be a whole number in 1..64"),
+        ({"members": 65}, "members must be a whole number in 1..64, got 65"),
         ({"layout": "dense"}, "unknown layout 'dense'"),
         ({"features": 0}, "features must be a whole number >= 1"),
         ({"rank": -4}, "rank must be a whole number >= 1"),
         ({"epochs": 0}, "epochs must be a whole number >= 1"),
-        ({"hidden": (512, 0)}, "hidden layer widths must be whole numbers >= 1"),
+        ({"hidden": (512, 0)}, r"hidden layers must be 1..64 widths in 1..16384, got \[512, 0\]"),
+        ({"hidden": (16385,)}, r"hidden layers must be 1..64 widths in 1..16384, got \[16385\]"),
+        ({"hidden": ()}, r"hidden layers must be 1..64 widths in 1..16384, got \[\]"),
         ({"seed": -1}, "seed must be a whole number in 0..18446744073709551615"),
         ({"seed": 2**64}, "seed must be a whole number in 0..18446744073709551615"),
     ],
@@ -501,7 +504,7 @@ def test_the_command_line_refuses_a_budget_that_is_not_positive():
         (["--samples", "0"], "--samples: must be a whole number >= 1"),
         (["--workers", "-1"], "--workers: must be a whole number >= 0"),
         (["--features", "0"], "--features: must be a whole number >= 1"),
-        (["--hidden", "512", "0"], "--hidden: must be a whole number >= 1"),
+        (["--hidden", "512", "0"], "--hidden: must be a whole number in 1..16384"),
         (["--rank", "-4"], "--rank: must be a whole number >= 1"),
         (["--epochs", "-3"], "--epochs: must be a whole number >= 1"),
     ],

@@ -676,3 +676,31 @@ def _group_gone(pgid: int, seconds: float = 10.0) -> bool:
             return False
         time.sleep(0.2)
     return True
+
+
+#: the process of `elastreg train` with its address space capped a little above what its imports
+#: took: the network's first wide layer (1 GiB) cannot be had, whatever the machine's memory
+_CAPPED = """
+import resource, sys
+import torch, service.build, service.cli  # the heavy imports, before the cap
+size = int(open("/proc/self/statm").read().split()[0]) * resource.getpagesize()
+resource.setrlimit(resource.RLIMIT_AS, (size + int(sys.argv[1]) * 2**20, resource.RLIM_INFINITY))
+sys.exit(service.cli.main(sys.argv[2:]))
+"""
+
+
+def test_a_network_past_the_memory_ends_the_build_in_one_line(tmp_path, bar):
+    """Before: torch's allocation failure in training was a traceback, exit status 1. Now one
+    line says the build ran out of memory and how to need less; the data are kept."""
+    scene = write_bar_scene(tmp_path / "scene", bar, samples=6)
+    r = subprocess.run(
+        [sys.executable, "-c", _CAPPED, "768", "train", str(scene), "--store", str(tmp_path / "store"),
+         "--data", str(tmp_path / "data"), "--workers", "0", "--hidden", "16384", "16384", "--members", "64",
+         "--rank", "4", "--features", "8", "--epochs", "2"],
+        capture_output=True, text=True, timeout=300, cwd=ROOT,
+        env={**os.environ, "MALLOC_ARENA_MAX": "2", "OMP_NUM_THREADS": "1"},
+    )  # fmt: skip
+    last = r.stderr.strip().splitlines()[-1]  # after the scene's warning and the data's progress
+    assert r.returncode == 1 and "Traceback" not in r.stderr and r.stderr.count("error:") == 1, r.stderr[-3000:]
+    assert last.startswith("error: the build ran out of memory (") and "--hidden, --members" in last, last
+    assert not (tmp_path / "store" / "bar").exists() and any(done_indices(d) for d in (tmp_path / "data").iterdir())
