@@ -149,7 +149,7 @@ def parser() -> argparse.ArgumentParser:
     )
     t.add_argument("--epochs", type=_at_least_one, default=200)
     t.add_argument("--seed", type=_seed, default=0)
-    t.set_defaults(func=commands.train)
+    t.set_defaults(func=commands.train, actions=t._actions)  # actions: the manifest's rebuild command
 
     g = command(
         "igtl",

@@ -32,7 +32,7 @@ def train(args: argparse.Namespace) -> int:
     except ValueError as exc:  # a SceneError is one
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    command = "elastreg " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    command = rebuild_command(args)
     try:
         report = _build_from(build, scene, config, command, args)
     except ValueError as exc:
@@ -78,6 +78,40 @@ def train(args: argparse.Namespace) -> int:
         + f") -> {report.entry}"
     )
     return 0
+
+
+#: train's arguments that name a file or folder: recorded absolute, so the rebuild runs from anywhere
+_PATHS = ("scene", "store", "data")
+
+
+def rebuild_command(args: argparse.Namespace) -> str:
+    """The manifest's command that rebuilds the entry: the scene and every flag given a value
+    other than its default, paths absolute (as typed, a relative one named another file, or
+    none, from another folder). A builtin scene's name stays a name."""
+    words = ["elastreg", "train"]
+    for action in args.actions:  # train's, in the order --help lists them
+        value = getattr(args, action.dest, None)
+        if action.dest == "help" or value == action.default:
+            continue
+        if action.dest in _PATHS and not (action.dest == "scene" and _builtin(value)):
+            value = os.path.abspath(os.path.expanduser(value))
+        if not action.option_strings:  # the scene, a positional
+            words.append(value)
+        elif isinstance(action, argparse.BooleanOptionalAction):
+            words.append(action.option_strings[0 if value else 1])
+        elif action.nargs == 0:  # --replace
+            words.append(action.option_strings[0])
+        else:
+            words += [action.option_strings[0], *(map(str, value) if isinstance(value, list) else [str(value)])]
+    return " ".join(shlex.quote(w) for w in words)
+
+
+def _builtin(scene: str) -> bool:
+    """Whether the scene argument names a builtin scene, as resolve_scene reads it."""
+    from .scene import BUILTIN_SCENES
+
+    path = Path(scene)
+    return not (path.is_file() or path.suffix == ".toml") and scene in BUILTIN_SCENES
 
 
 def out_of_memory(exc: BaseException) -> bool:

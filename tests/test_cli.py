@@ -7,6 +7,7 @@ import json
 import logging
 import os
 import re
+import shlex
 import shutil
 import socket
 import subprocess
@@ -401,3 +402,28 @@ def test_the_largest_seed_builds(tmp_path, bar):
     assert (
         json.loads((tmp_path / "store" / "bar" / "manifest.json").read_text())["training"]["config"]["seed"] == SEED_MAX
     )
+
+
+def test_the_manifests_rebuild_command_names_its_paths_absolute(tmp_path, bar, monkeypatch):
+    """Before: the rebuild command kept the paths as typed (relative to the folder it was typed
+    in: from another, no scene file) and, when main was called with its own argv, the calling
+    process's argv. Now it holds the scene, --store and --data absolute, and runs from anywhere."""
+    write_bar_scene(tmp_path / "work" / "scenes", bar, samples=6)
+    monkeypatch.chdir(tmp_path / "work")
+    flags = ["--workers", "0", "--hidden", "16", "--rank", "4", "--features", "8", "--epochs", "2"]
+    assert main(["train", "scenes/bar.toml", "--store", "store", "--data", "data", *flags]) == 0
+    rebuild = json.loads((tmp_path / "work" / "store" / "bar" / "manifest.json").read_text())["rebuild"]
+    work = tmp_path / "work"
+    assert rebuild == (
+        f"elastreg train {work / 'scenes' / 'bar.toml'} --store {work / 'store'} --workers 0 --data {work / 'data'} "
+        "--hidden 16 --rank 4 --features 8 --epochs 2"
+    )  # the flags given, in --help's order
+    argv = shlex.split(rebuild)[1:] + ["--name", "again"]
+    r = subprocess.run([sys.executable, "-m", "service.cli", *argv], capture_output=True, text=True, cwd=tmp_path,
+                       timeout=300)  # fmt: skip
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert (work / "store" / "again" / "manifest.json").is_file()
+    from service.commands import rebuild_command
+
+    builtin = parser().parse_args(["train", "beam", "--no-physics-skip", "--replace"])
+    assert rebuild_command(builtin) == "elastreg train beam --replace --no-physics-skip"  # a name stays a name
