@@ -12,7 +12,7 @@ import sys
 import time
 
 from . import commands
-from .argtypes import build_minutes, model_id, positive, scheduler_address, whole_number
+from .argtypes import build_minutes, model_id, positive, positive_number, scheduler_address, whole_number
 from .network_size import MAX_MEMBERS, MAX_WIDTH
 from .started import process_started
 
@@ -172,10 +172,11 @@ def parser() -> argparse.ArgumentParser:
         help="device name of the incoming clouds, at most 20 ASCII characters (default: cloud)",
     )
     g.add_argument("--method", choices=["network", "fem"], default=None)
-    g.add_argument("--alpha", type=float, default=None)
-    g.add_argument("--gtol", type=float, default=None)
-    g.add_argument("--max-iter", type=int, default=None)
-    g.add_argument("--force-bound", type=float, default=None)
+    # the session settings' bounds (registration/settings.py), checked as the line is read
+    g.add_argument("--alpha", type=positive, default=None, help="regularisation weight (> 0; default: the model's)")
+    g.add_argument("--gtol", type=positive_number(1), default=None, help="relative gradient tolerance, in (0, 1]")
+    g.add_argument("--max-iter", type=_at_least_one, default=None, help="iterations per frame (>= 1)")
+    g.add_argument("--force-bound", type=positive, default=None, help="bound on each force component, N (> 0)")
     g.add_argument(
         "--support",
         default=None,

@@ -38,6 +38,13 @@ from tests.conftest import write_bar_scene
         (["demo", "--viewer", "--model", ".."], "argument --model: model id"),
         (["igtl", "--model", "sub/phantom"], "argument --model: model id"),
         (["igtl", "--model", ""], "argument --model: model id"),
+        # the session settings' bounds: taken as floats, nan and inf reached the API (or a solve)
+        (["igtl", "--model", "phantom", "--alpha", "nan"], "--alpha: must be a positive finite number, got 'nan'"),
+        (["igtl", "--model", "phantom", "--alpha", "0"], "--alpha: must be a positive finite number"),
+        (["igtl", "--model", "phantom", "--gtol", "inf"], "--gtol: must be a positive finite number, got 'inf'"),
+        (["igtl", "--model", "phantom", "--gtol", "2"], "--gtol: must be at most 1, got '2'"),
+        (["igtl", "--model", "phantom", "--max-iter", "-5"], "--max-iter: must be a whole number >= 1, got '-5'"),
+        (["igtl", "--model", "phantom", "--force-bound", "-1"], "--force-bound: must be a positive finite number"),
         # the network's size (service/network_size.py): past it, an allocation's traceback after the data
         (["train", "beam", "--hidden", "10000000", "10000000"], "--hidden: must be a whole number in 1..16384"),
         (["train", "beam", "--members", "100000"], "--members: must be a whole number in 1..64"),

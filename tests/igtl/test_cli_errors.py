@@ -125,11 +125,12 @@ def test_an_idle_timeout_that_is_no_positive_time_is_refused_at_parse_time(value
     assert "argument --idle-timeout: must be a positive finite number" in r.stderr.strip().splitlines()[-1]
 
 
-@pytest.mark.parametrize("case", ["past the nodes", "a fixed node", "an alpha below zero"])
+@pytest.mark.parametrize("case", ["past the nodes", "a fixed node", "iterations past the server's cap"])
 def test_settings_the_model_refuses_are_one_line_and_exit_2_before_listening(case, api_server, tmp_path):
     """--support ids the model cannot take (past its node count, on a fixed node) were sent only
     when a client connected, and each client was refused in turn; the API's own check, made at
-    start, refuses them in one line naming the flag, exit 2, before the bridge listens."""
+    start, refuses them in one line naming the flag, exit 2, before the bridge listens (a
+    --max-iter past the server's cap, which only the server knows, too)."""
     api = api_server()
     mesh = get_mesh(api.url, "bar")
     n = len(mesh["nodes"])
@@ -144,9 +145,9 @@ def test_settings_the_model_refuses_are_one_line_and_exit_2_before_listening(cas
         ids.write_text(f"{free[0]} {mesh['fixed_nodes'][0]}\n")
         args += ["--support", str(ids)]
         words = "--support: support contains fixed nodes"
-    else:
-        args += ["--alpha", "-1"]
-        words = "--alpha: "
+    else:  # a whole number >= 1 passes the command line (an --alpha below zero no longer does)
+        args += ["--max-iter", "1000000"]
+        words = "--max-iter: "
     r = igtl(*args)
     lines = r.stderr.strip().splitlines()
     assert r.returncode == 2 and len(lines) == 1, r.stderr
