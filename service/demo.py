@@ -13,6 +13,7 @@ the client-side latency and the server's solve time, then a summary.
 
 from __future__ import annotations
 
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -75,7 +76,7 @@ def run(
         return 1
 
     store = Path(store) if store else default_store()
-    build = f"elastreg train {model}" + (f" --store {store}" if store != default_store() else "")
+    build = train_hint(model, store)
     # its own server: the session it opens before making the sequence (minutes on a big mesh)
     # must not expire as idle meanwhile, whatever ELASTREG_SESSION_TTL_S says
     own = _own_settings(model, store, port, build, session_ttl_s=MAX_SESSION_TTL_S)
@@ -90,7 +91,7 @@ def run(
         ids = [m["id"] for m in api.models()]
         if model not in ids:
             why = api.health()["skipped_models"].get(model, "not in the store")
-            return fail(f"error: model {model!r} could not be loaded: {why}\nRebuild it with:  {build}")
+            return fail(f"error: model {model!r} could not be loaded: {why}\nRebuild it {build}")
         summary = api.model(model)
         m = api.mesh(model)
         mesh = TetMesh(m["nodes"], m["tets"], m["fixed_nodes"])
@@ -124,12 +125,26 @@ def run(
             return score_stream(stream, seq.clouds, seq.positions, seq.net_forces, mesh.nodes, say=say)
 
 
+def train_hint(model: str, store: Path) -> str:
+    """How to build `model` into `store`, a command that works: a builtin scene's name builds
+    itself; another id needs its scene file, which no name can stand for."""
+    from .scene import BUILTIN_SCENES
+
+    where = f" --store {shlex.quote(str(store))}" if store != default_store() else ""
+    if model in BUILTIN_SCENES:
+        return f"with:  elastreg train {model}{where}"
+    return (
+        f"from its scene file (no builtin scene is named {model!r}; builtins: {', '.join(BUILTIN_SCENES)}; "
+        f"writing one: docs/scenes.md) with:  elastreg train SCENE.toml --name {model}{where}"
+    )
+
+
 def _own_settings(model: str, store: Path, port: int | None, build: str, **overrides) -> Settings | str:
     """The settings of a demo's own server over `store`, on loopback `port`; or, before anything
     starts, why it cannot run: no `model` in the store (`build` makes it), the port taken, or
     ELASTREG_* settings its server refuses (each setting and why, one line)."""
     if not (store / model / "manifest.json").exists():
-        return f"error: no model {model!r} in the store at {store}.\nBuild it first with:  {build}"
+        return f"error: no model {model!r} in the store at {store}.\nBuild it {build}"
     if port is not None and not _port_free(port):
         return _PORT_IN_USE.format(port=port)
     try:
@@ -165,7 +180,7 @@ def viewer(model: str = "phantom", store=None, port: int | None = None, *, out=N
     out = out or sys.stdout
     err = err or sys.stderr
     store = Path(store) if store else default_store()
-    own = _own_settings(model, store, port, f"elastreg train {model}")
+    own = _own_settings(model, store, port, train_hint(model, store))
     if isinstance(own, str):
         print(own, file=err)
         return 1

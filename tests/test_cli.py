@@ -434,3 +434,23 @@ def test_the_manifests_rebuild_command_names_its_paths_absolute(tmp_path, bar, m
 
     builtin = parser().parse_args(["train", "beam", "--no-physics-skip", "--replace"])
     assert rebuild_command(builtin) == "elastreg train beam --replace --no-physics-skip"  # a name stays a name
+
+
+@pytest.mark.parametrize(
+    "model, hint",
+    [
+        ("nope", "from its scene file (no builtin scene is named 'nope'; builtins: beam, phantom; writing one: "
+                 "docs/scenes.md) with:  elastreg train SCENE.toml --name nope --store {store}"),
+        ("beam", "with:  elastreg train beam --store {store}"),
+    ],
+)  # fmt: skip
+def test_the_demo_of_a_model_not_in_the_store_suggests_a_command_that_builds_it(tmp_path, model, hint):
+    """Before: `--model nope` suggested `elastreg train nope`, which no scene answers. Now a
+    builtin scene's name is the command, and another id is told it needs its scene file."""
+    r = subprocess.run([sys.executable, "-m", "service.cli", "demo", "--model", model, "--store", str(tmp_path)],
+                       capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert r.returncode == 1, r.stderr
+    assert r.stderr.splitlines() == [
+        f"error: no model {model!r} in the store at {tmp_path}.",
+        "Build it " + hint.format(store=tmp_path),
+    ]
