@@ -114,6 +114,22 @@ def test_fixed_nodes_file_text_and_npy(folder):
     assert scene.build_mesh()[0].fixed.tolist() == [3, 4, 6]
 
 
+def test_an_npy_id_past_int64_is_named_as_it_is_not_wrapped_round(folder):
+    """A uint64 2^64 - 1 was cast first and refused as 'got [-1]', an id the file does not hold."""
+    np.save(folder / "fixed.npy", np.array([0, 1, 2**64 - 1], np.uint64))
+    msg = error_of(folder, boundary='fixed_nodes_file = "fixed.npy"')
+    assert msg == (
+        f"{folder / 'scene.toml'}: [boundary] fixed_nodes_file: {folder / 'fixed.npy'} holds node ids past any "
+        "mesh's nodes (at most 2^63 - 1): [18446744073709551615]"
+    ), msg
+    np.save(folder / "fixed.npy", np.array([0, 1, 3], np.uint64))  # a uint64 file of real ids is read
+    assert load_scene(write(folder, boundary='fixed_nodes_file = "fixed.npy"')).build_mesh()[0].fixed.tolist() == [
+        0,
+        1,
+        3,
+    ]
+
+
 @pytest.mark.parametrize("content", ["", "# clamp: none yet\n"])
 @pytest.mark.parametrize("section, key", [("boundary", "fixed_nodes_file"), ("training", "region_file")])
 def test_an_id_file_with_no_id_is_one_error_naming_it(folder, section, key, content):

@@ -57,6 +57,9 @@ def read_node_ids(path: Path, *, several_a_line: bool = False) -> Array:
         raise ValueError(f"{path} holds rows of {ids.size // len(ids)} ids: node ids go one id a line")
     if ids.size == 0:
         raise ValueError(f"{path} holds no node id")
+    big = ids[ids > np.iinfo(np.int64).max] if ids.dtype == np.uint64 else ids[:0]
+    if big.size:  # checked before the cast, which wraps them round to negative ids ("got [-1]")
+        raise ValueError(f"{path} holds node ids past any mesh's nodes (at most 2^63 - 1): {big.tolist()[:10]}")
     return ids.ravel().astype(np.int64)
 
 
