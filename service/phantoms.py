@@ -1,8 +1,12 @@
 """Procedural default meshes (the shipped scenes' bodies), built in code so nothing is on disk.
 
-Both are deterministic: the same arrays on every call and machine (no randomness; the phantom's
-bumps are fixed constants and tetgen is deterministic for a given input), so a scene built on
-them hashes the same everywhere and a stored surrogate can be checked against its mesh.
+Both are deterministic on one machine: the same arrays on every call (no randomness; the
+phantom's bumps are fixed constants and tetgen is deterministic for a given input). The beam is
+the same on every machine; the phantom's interior is tetgen's, which depends on tetgen's build:
+1,620 nodes and 7,827 tets where the shipped entry was built, 1,636 and 7,931 on another machine
+with the same code. So the phantom's mesh hash may differ from machine to machine, and a stored
+model carries its own mesh (the shipped phantom's is the one it serves, whatever the generator
+gives here).
 """
 
 from __future__ import annotations
@@ -37,7 +41,7 @@ PHANTOM_BUMPS: tuple[tuple[tuple[float, float, float], float, float], ...] = (
 PHANTOM_AXES = (0.075, 0.05, 0.032)  # semi-axes, m: a 0.15 x 0.10 x 0.064 ellipsoid
 PHANTOM_WEDGE = 0.3  # relative change of thickness from the centre to either end
 PHANTOM_SUBDIVISIONS = 3  # icosphere level: 642 surface nodes
-PHANTOM_MAX_VOLUME = 2e-7  # m^3, tetgen's -a: 1,620 nodes in all
+PHANTOM_MAX_VOLUME = 2e-7  # m^3, tetgen's -a: about 1,600 nodes in all (tetgen's build decides)
 PHANTOM_HOLD_CENTRE = (0.0, 1.0, 0.0)  # direction of the hold's centre: the posterior face
 PHANTOM_HOLD_RADIUS = 0.03  # m: surface nodes this close to it are the default clamp
 
@@ -116,7 +120,9 @@ def phantom_surface(subdivisions: int = PHANTOM_SUBDIVISIONS, relax: int = 100) 
 def phantom() -> TetMesh:
     """An organ-like phantom: a lobed, wedged, flattened ellipsoid, 0.17 x 0.10 x 0.08 m.
 
-    Shape: 1,620 nodes (the first 642 are the surface), 7,827 tets, 50 fixed.
+    Shape: about 1,600 nodes (the first 642 are the surface), about 7,900 tets, 50 fixed: the
+    interior depends on tetgen's build (1,620 nodes and 7,827 tets for the shipped entry, 1,636
+    and 7,931 on another machine), the surface and the clamp do not.
     The default clamp is the surface nodes within 3 cm of the posterior pole (+y), about 8% of
     the surface: like a liver's ligaments, a hold on its back that leaves both lobes free to
     bend and the front to be pushed (1 N moves it by 2 to 6 cm).
