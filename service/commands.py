@@ -64,8 +64,13 @@ def train(args: argparse.Namespace) -> int:
             raise
         said = " ".join(str(exc).split())[:200] or type(exc).__name__
         print(
-            f"error: the build ran out of memory ({said}): train a smaller network (--hidden, --members, --rank); "
-            "the data made are kept for the rerun",
+            f"error: the build ran out of memory ({said}): "
+            + (
+                "train a smaller network (--hidden, --members, --rank, --features)"
+                if trained(exc)
+                else "the FEM data did (a smaller mesh, or fewer --workers, each holds one)"
+            )
+            + "; the data made are kept for the rerun",
             file=sys.stderr,
         )
         return 1
@@ -82,19 +87,26 @@ def train(args: argparse.Namespace) -> int:
 
 #: train's arguments that name a file or folder: recorded absolute, so the rebuild runs from anywhere
 _PATHS = ("scene", "store", "data")
+#: the flags that shape the network: recorded at any value, so a later default does not change a rebuild
+_SHAPING = ("layout", "hidden", "rank", "physics_skip", "features", "epochs", "seed")
 
 
 def rebuild_command(args: argparse.Namespace) -> str:
-    """The manifest's command that rebuilds the entry: the scene and every flag given a value
-    other than its default, paths absolute (as typed, a relative one named another file, or
-    none, from another folder). A builtin scene's name stays a name."""
+    """The manifest's command that rebuilds the entry: the scene, the store it went to, the
+    network's every setting and every other flag given a value other than its default; paths
+    resolved (as typed, a relative one named another file, or none, from another folder; links
+    resolved first, so `link/..` names what it did). A builtin scene's name stays a name."""
+    from .config import default_store
+
     words = ["elastreg", "train"]
     for action in args.actions:  # train's, in the order --help lists them
         value = getattr(args, action.dest, None)
-        if action.dest == "help" or value == action.default:
+        if action.dest == "store":  # '' or none: the default store, itself maybe relative ($ELASTREG_STORE)
+            value = value or str(default_store())
+        elif action.dest == "help" or value in (None, "") or (value == action.default and action.dest not in _SHAPING):
             continue
         if action.dest in _PATHS and not (action.dest == "scene" and _builtin(value)):
-            value = os.path.abspath(os.path.expanduser(value))
+            value = os.path.realpath(os.path.expanduser(value))
         if not action.option_strings:  # the scene, a positional
             words.append(value)
         elif isinstance(action, argparse.BooleanOptionalAction):
@@ -120,6 +132,17 @@ def out_of_memory(exc: BaseException) -> bool:
     said = str(exc).lower()
     words = ("can't allocate memory", "cannot allocate memory", "not enough memory", "out of memory")
     return isinstance(exc, MemoryError) or any(w in said for w in words)
+
+
+def trained(exc: BaseException) -> bool:
+    """Whether an allocation failed in the training (torch, the network's code), not the FEM
+    data: only there does a smaller network help."""
+    import traceback
+
+    files = [f.filename for f in traceback.extract_tb(exc.__traceback__)]
+    return any(
+        f"{os.sep}torch{os.sep}" in f or f.endswith(("surrogate/train.py", "surrogate/network.py")) for f in files
+    )
 
 
 def _build_from(build, scene, config, command: str, args: argparse.Namespace):

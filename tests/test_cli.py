@@ -420,11 +420,11 @@ def test_the_manifests_rebuild_command_names_its_paths_absolute(tmp_path, bar, m
     flags = ["--workers", "0", "--hidden", "16", "--rank", "4", "--features", "8", "--epochs", "2"]
     assert main(["train", "scenes/bar.toml", "--store", "store", "--data", "data", *flags]) == 0
     rebuild = json.loads((tmp_path / "work" / "store" / "bar" / "manifest.json").read_text())["rebuild"]
-    work = tmp_path / "work"
+    work = (tmp_path / "work").resolve()  # the paths are recorded with links resolved
     assert rebuild == (
         f"elastreg train {work / 'scenes' / 'bar.toml'} --store {work / 'store'} --workers 0 --data {work / 'data'} "
-        "--hidden 16 --rank 4 --features 8 --epochs 2"
-    )  # the flags given, in --help's order
+        "--layout reduced --hidden 16 --rank 4 --physics-skip --features 8 --epochs 2 --seed 0"
+    )  # the flags given and the network's every setting, in --help's order
     argv = shlex.split(rebuild)[1:] + ["--name", "again"]
     r = subprocess.run([sys.executable, "-m", "service.cli", *argv], capture_output=True, text=True, cwd=tmp_path,
                        timeout=300)  # fmt: skip
@@ -432,8 +432,34 @@ def test_the_manifests_rebuild_command_names_its_paths_absolute(tmp_path, bar, m
     assert (work / "store" / "again" / "manifest.json").is_file()
     from service.commands import rebuild_command
 
-    builtin = parser().parse_args(["train", "beam", "--no-physics-skip", "--replace"])
-    assert rebuild_command(builtin) == "elastreg train beam --replace --no-physics-skip"  # a name stays a name
+    monkeypatch.setenv("ELASTREG_STORE", "relative-store")  # the default store, resolved where it was
+    builtin = parser().parse_args(["train", "beam", "--no-physics-skip", "--replace", "--store", "", "--data", ""])
+    assert rebuild_command(builtin) == (  # a name stays a name; '' is the default, not the folder
+        f"elastreg train beam --store {work / 'relative-store'} --replace --layout reduced --hidden 512 512 "
+        "--rank 128 --no-physics-skip --features 256 --epochs 200 --seed 0"
+    )
+    (work / "real").mkdir()
+    (work / "real" / "s.toml").write_text("")
+    (work / "real" / "inner").mkdir()
+    (work / "inner-link").symlink_to(work / "real" / "inner")
+    given = parser().parse_args(["train", "inner-link/../s.toml", "--epochs", "200"])  # at its default: kept
+    assert rebuild_command(given).startswith(f"elastreg train {work / 'real' / 's.toml'} --store ")
+
+
+def test_out_of_memory_advice_names_the_part_of_the_build_that_ran_out():
+    """An allocation that failed in the FEM data was told to train a smaller network."""
+    from service.commands import trained
+
+    def raised_in(filename: str) -> BaseException:
+        try:
+            exec(compile("raise MemoryError('Unable to allocate 1.40 MiB')", filename, "exec"), {})
+        except MemoryError as exc:
+            return exc
+        raise AssertionError("nothing raised")
+
+    assert trained(raised_in(os.path.join("x", "service", "surrogate", "train.py")))
+    assert not trained(raised_in(os.path.join("x", "service", "surrogate", "data.py")))
+    assert not trained(raised_in(os.path.join("x", "service", "fem", "newton.py")))
 
 
 @pytest.mark.parametrize(

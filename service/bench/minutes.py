@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import shlex
 import tempfile
 import time
 from pathlib import Path
@@ -41,6 +42,13 @@ _LAYOUT = {True: "physics", False: "raw"}
 
 def layout_of(row: dict) -> str:
     return row.get("layout") or ("basis-skip" if row.get("physics_skip") else "raw")
+
+
+def scene_argument(scene: Scene) -> str:
+    """What `elastreg train` takes for this scene: its file, resolved, or a builtin's name (a
+    kept entry's rebuild command named `NAME.toml`, a file there seldom was)."""
+    origin = scene.origin
+    return origin.removeprefix("builtin:") if origin.startswith("builtin:") else os.path.realpath(origin)
 
 
 def test_set(scene: Scene, paths: int, root: Path, workers: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -93,9 +101,10 @@ def timed_build(
         t0 = time.perf_counter()
         load0 = os.getloadavg()[0]
         store = keep if keep is not None else Path(tmp) / "store"
+        command = f"elastreg train {shlex.quote(scene_argument(scene))} --minutes {minutes:g}"
         report = build(scene, store, workers=workers, data_root=Path(tmp) / "data", progress=False,
                        minutes=minutes, config=TrainConfig(physics_skip=physics_skip), replace=True,
-                       command=f"elastreg train {scene.name}.toml --minutes {minutes:g}")  # fmt: skip
+                       command=command)  # fmt: skip
         wall = time.perf_counter() - t0
         tested = score(store / scene.name, *test)
     m = report.metrics

@@ -130,3 +130,16 @@ def test_scenes_that_parse_but_cannot_be_built_are_refused_in_one_line_before_an
     assert exit_.value.code == 2 and err.count("\n") == 1, err
     assert f"{clamp}: [boundary] fixed_box: " in err and f"{tangled}: [mesh] path: " in err and "is tangled" in err
     assert not out.exists() and not (tmp_path / "test").exists()
+
+
+def test_a_kept_builds_rebuild_command_names_a_scene_train_takes(bar, tmp_path, monkeypatch):
+    """It said `elastreg train NAME.toml`: a file seldom in the folder the command is run from."""
+    import os
+
+    from service.bench.minutes import scene_argument
+    from service.scene import builtin_scene, load_scene
+
+    assert scene_argument(builtin_scene("beam")) == "beam"
+    path = write_bar_scene(tmp_path / "scenes", bar, samples=6)
+    monkeypatch.chdir(tmp_path)
+    assert scene_argument(load_scene(path.relative_to(tmp_path))) == os.path.realpath(path)
