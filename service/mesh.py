@@ -15,6 +15,7 @@ from functools import cached_property
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse import csgraph
+from scipy.spatial import cKDTree
 
 log = logging.getLogger(__name__)
 
@@ -122,14 +123,14 @@ def coincident_nodes(nodes: Array, tets: Array) -> None:
     surface, loads and all) or into parts, and merging would renumber the nodes a scene's ids
     name. Nodes no tet uses are dropped later, coincident or not.
     """
-    used = np.unique(tets)
-    points = nodes[used]
+    points = nodes[np.unique(tets)]
     span = float(np.linalg.norm(np.ptp(points, axis=0))) or 1.0
-    cells = np.round((points - points.min(axis=0)) / (span * COINCIDENT_TOL))
-    _, first, counts = np.unique(cells, axis=0, return_index=True, return_counts=True)
-    extra = int(len(points) - len(first))
+    # pairs within the distance, not cells of a rounded grid: two copies astride a cell's edge
+    # fell in different cells and passed
+    pairs = cKDTree(points).query_pairs(span * COINCIDENT_TOL, output_type="ndarray")
+    extra = int(np.unique(pairs.max(axis=1)).size) if len(pairs) else 0
     if extra:
-        at = points[first[np.argmax(counts > 1)]]
+        at = points[pairs[0, 0]]
         raise MeshError(
             f"{extra} nodes used by tets coincide with another node (within {COINCIDENT_TOL:g} x the mesh's size; "
             f"first at {at.tolist()}): the mesh's nodes were not merged, so it is cut along them; merge coincident "

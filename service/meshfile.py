@@ -82,9 +82,12 @@ class ScaleError(MeshError):
     """A scale that puts the mesh outside SCALED_SPAN: the scale's fault, not the file's."""
 
 
-def scaled(points: Array, scale: float, source: object) -> Array:
-    """`points` x `scale`, refused (ScaleError) where the scaled span is outside SCALED_SPAN."""
-    raw = float(np.linalg.norm(np.ptp(points, axis=0))) if len(points) else 0.0
+def scaled(points: Array, scale: float, source: object, cells: Array) -> Array:
+    """`points` x `scale`, refused (ScaleError) where the scaled span of the points `cells` use
+    is outside SCALED_SPAN (a stray node no cell uses is dropped later: it judges no scale)."""
+    used = np.unique(np.asarray(cells, np.int64))
+    used = used[(used >= 0) & (used < len(points))]  # bad ids are the mesh check's to name
+    raw = float(np.linalg.norm(np.ptp(points[used], axis=0))) if used.size else 0.0
     span = raw * scale  # a Python float: inf past the largest, no warning
     if np.isfinite(raw) and raw > 0 and not SCALED_SPAN[0] <= span <= SCALED_SPAN[1]:
         raise ScaleError(
@@ -400,7 +403,7 @@ def load_mesh(path: str | Path, scale: float = 1.0, *, max_volume: float | None 
     file_ids = None
     if surface:
         vertices, faces, file_ids = _read_surface(path)
-        vertices = scaled(vertices, scale, path.name)
+        vertices = scaled(vertices, scale, path.name, faces)
         try:
             nodes, tets = tetrahedralise(vertices, faces, max_volume=max_volume)
         except MeshError as exc:
@@ -414,7 +417,7 @@ def load_mesh(path: str | Path, scale: float = 1.0, *, max_volume: float | None 
         )
     else:
         nodes, tets = _read_tets(path)
-        nodes = scaled(nodes, scale, path.name)
+        nodes = scaled(nodes, scale, path.name, tets)
     try:
         mesh, kept = TetMesh.build(nodes, tets)
     except MeshError as exc:

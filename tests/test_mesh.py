@@ -191,3 +191,25 @@ def test_tets_on_coincident_nodes_are_refused_with_how_many(cube):
 
     near = np.vstack([nodes, nodes[centre] + 1e-6])  # 1e-6 of the size: a distinct node
     coincident_nodes(near, tets)
+
+
+def test_a_copy_astride_the_tolerance_grid_is_found_and_a_stray_node_judges_no_scale(cube):
+    """Review of 7eaf269: a copy 2e-13 x the size away, astride a cell of the rounding grid, passed
+    (then refused as 'parts that touch along an edge'); and the scale check measured nodes no tet
+    uses, so one stray node 2e9 units out refused a good file's scale."""
+    from service.mesh import coincident_nodes
+    from service.meshfile import scaled
+
+    nodes, tets = cube.nodes.copy(), cube.tets.copy()
+    centre = int(np.flatnonzero((nodes == 0.5).all(axis=1))[0])
+    span = float(np.linalg.norm(np.ptp(nodes, axis=0)))
+    edge = (np.floor(0.5 / (span * 1e-9)) + 0.5) * span * 1e-9  # a rounding cell's edge, along x
+    nodes[centre, 0] = edge - 1e-13 * span
+    slit = np.vstack([nodes, nodes[centre] + [2e-13 * span, 0, 0]])
+    half = np.flatnonzero((tets == centre).any(axis=1))[::2]
+    tets[half] = np.where(tets[half] == centre, len(nodes), tets[half])
+    with pytest.raises(MeshError, match=r"^1 nodes used by tets coincide with another node"):
+        coincident_nodes(slit, tets)
+
+    stray = np.vstack([cube.nodes, [2e9, 0, 0]])  # used by no tet: dropped later
+    assert np.array_equal(scaled(stray, 0.001, "stray.vtu", cube.tets), stray * 0.001)

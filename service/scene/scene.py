@@ -116,7 +116,7 @@ class Scene(Table):
 
             gen = getattr(phantoms, self.mesh.generator)()
             try:
-                nodes = scaled(gen.nodes, scale, f"the {self.mesh.generator} generator's mesh")
+                nodes = scaled(gen.nodes, scale, f"the {self.mesh.generator} generator's mesh", gen.tets)
             except ScaleError as exc:
                 raise self._error("[mesh] scale", str(exc)) from exc
             loaded = LoadedMesh(
