@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
 import os
 import platform
 import subprocess
@@ -27,19 +29,31 @@ def _cpu_model() -> str:
     return f"{name} ({'; '.join(facts)})" if facts else name
 
 
-def _commit() -> str:
-    root = Path(__file__).resolve().parents[2]
+#: the checkout this code runs from, whose commit a report names
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _git(root: Path, *args: str) -> bytes:
+    return subprocess.run(["git", "-C", str(root), *args], capture_output=True, timeout=10, check=True).stdout
+
+
+def _commit(root: Path = ROOT) -> str:
+    """HEAD's short hash, and where the tree differs from it "+local changes" with a short hash
+    of the changes (the diff against HEAD and the untracked files, not ignored ones, with their
+    contents): untracked code ran unseen, and two different dirty trees stamped alike, so
+    ``--resume`` took rows of one for the other."""
     try:
-        sha = subprocess.run(
-            ["git", "-C", str(root), "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=5
-        ).stdout.strip()
-        dirty = subprocess.run(
-            ["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
-            capture_output=True,
-            text=True,
-            timeout=5,
-        ).stdout.strip()
-        return sha + ("+local changes" if dirty else "") if sha else "unknown"
+        sha = _git(root, "rev-parse", "--short", "HEAD").decode().strip()
+        if not sha:
+            return "unknown"
+        digest = hashlib.sha256(_git(root, "diff", "HEAD", "--binary", "--no-ext-diff"))
+        untracked = [n for n in _git(root, "ls-files", "--others", "--exclude-standard", "-z").split(b"\0") if n]
+        for name in sorted(untracked):
+            digest.update(b"\0" + name + b"\0")
+            with contextlib.suppress(OSError):  # gone or unreadable: its name alone
+                digest.update((root / os.fsdecode(name)).read_bytes())
+        dirty = digest.hexdigest() != hashlib.sha256(b"").hexdigest()
+        return f"{sha}+local changes {digest.hexdigest()[:8]}" if dirty else sha
     except (OSError, subprocess.SubprocessError):
         return "unknown"
 
