@@ -255,11 +255,14 @@ def rest_baseline(case: Case) -> list[FrameRecord]:
 
 def summarise(records: list[FrameRecord], skip_first: bool = True, passes: list[float] | None = None) -> dict:
     """Medians and means over frames; time over warm frames (the first is a cold start).
-    `passes`: each pass's median time (run_passes), kept as ``ms_median_passes``."""
+    `passes`: each pass's median time (run_passes), kept as ``ms_median_passes``. A failed frame
+    (a NaN or infinity in its answer) has no error to average: the means and medians are over
+    the others, ``failed_frames`` counts it and the worst frame's TRE is infinite."""
     if not records:
         return {}
     tre = np.array([r.tre_mm for r in records])
     fe = np.array([r.force_error_pct for r in records])
+    failed = sum(not r.finite or not np.isfinite(r.tre_mm) for r in records)
     warm = records[1:] if skip_first and len(records) > 1 else records
     ms = np.array([r.ms for r in warm])
     return {
@@ -268,7 +271,8 @@ def summarise(records: list[FrameRecord], skip_first: bool = True, passes: list[
         "frames": len(records),
         "tre_mean_mm": float(np.nanmean(tre)),
         "tre_median_mm": float(np.nanmedian(tre)),
-        "tre_max_mm": float(np.nanmax(tre)),
+        "tre_max_mm": float("inf") if failed else float(np.max(tre)),
+        "failed_frames": failed,
         "force_error_mean_pct": float(np.nanmean(fe)),
         "force_error_median_pct": float(np.nanmedian(fe)),
         "ms_median": float(np.median(ms)),

@@ -65,7 +65,7 @@ def write_report(results: dict, out: Path) -> None:
         L = parts["liver"]
         md.append("\n## Registration (the paper's liver experiment)\n")
         md.append(table(L["summaries"], [("case", "case"), ("method", "method"), ("frames", "frames"), ("tre_mean_mm", "mean TRE (mm)"),
-                                          ("tre_max_mm", "worst frame TRE (mm)"), ("force_error_mean_pct", "force error (%)"),
+                                          ("tre_max_mm", "worst frame TRE (mm)"), ("failed_frames", "failed frames"), ("force_error_mean_pct", "force error (%)"),
                                           ("ms_median", "ms / frame"), ("ms_median_passes", "each pass (ms)"), ("ms_p90", "p90 ms"),
                                           ("iterations_mean", "iterations"), ("converged_fraction", "converged")]))  # fmt: skip
         md.append(
@@ -98,7 +98,7 @@ def write_report(results: dict, out: Path) -> None:
             )
         )
         md.append(table(A["summaries"], [("case", "case"), ("method", "method"), ("frames", "frames"),
-                                          ("tre_mean_mm", "mean TRE (mm)"), ("force_error_median_pct", "force error, median (%)"),
+                                          ("tre_mean_mm", "mean TRE (mm)"), ("failed_frames", "failed frames"), ("force_error_median_pct", "force error, median (%)"),
                                           ("ms_median", "ms / frame"), ("ms_median_passes", "each pass (ms)"),
                                           ("fem_share", "frames by the FEM"), ("converged_fraction", "converged")]))  # fmt: skip
         md.append(
@@ -189,7 +189,7 @@ def write_report(results: dict, out: Path) -> None:
         )
         md.append(table(rows, [("method", "method"), ("knob", "knob"), ("value", "value"), ("tre_mm", "mean TRE (mm)"),
                                 ("force_error_pct", "force error (%)"), ("ms", "ms / frame"), ("ms_passes", "each pass (ms)"),
-                                ("iterations", "iterations"), ("converged", "converged")]))  # fmt: skip
+                                ("iterations", "iterations"), ("converged", "converged"), ("failed_frames", "failed frames")]))  # fmt: skip
         for method in dict.fromkeys(r["method"] for r in rows if not r["method"].startswith("fem")):
             front = pareto_front([r for r in rows if r["method"] == method])
             md.append(f"\nPareto front (TRE), {method}: "
@@ -200,7 +200,7 @@ def write_report(results: dict, out: Path) -> None:
         md.append("\n## Stability on stiff and extreme cases\n")
         md.append(table(rows, [("case", "case"), ("method", "method"), ("frames_made", "frames"), ("converged_fraction", "converged"),
                                 ("tre_mean_mm", "mean TRE (mm)"), ("force_error_mean_pct", "force error (%)"), ("ms_median", "ms / frame"),
-                                ("all_finite", "no NaN"), ("crashed", "crashed"), ("statuses", "statuses")]))  # fmt: skip
+                                ("all_finite", "no NaN"), ("failed_frames", "failed frames"), ("crashed", "crashed"), ("statuses", "statuses")]))  # fmt: skip
         short = [r for r in rows if not r.get("crashed") and r.get("converged_fraction", 1.0) < 1.0]
         if short:
             md.append("\nNot converged on every frame (the fraction that did, and why the others stopped; "

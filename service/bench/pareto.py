@@ -135,7 +135,7 @@ def pareto_part(
         s = summarise(records)
         return {"tre_mm": s["tre_mean_mm"], "force_error_pct": s["force_error_mean_pct"], "ms": s["ms_median"],
                 "iterations": s["iterations_mean"], "converged": s["converged_fraction"],
-                "ms_passes": each}  # fmt: skip
+                "ms_passes": each, "failed_frames": s["failed_frames"]}  # fmt: skip
 
     return sweep(score, entry.network, entry.fem, NETWORK, FEM, gtols=gtols, caps=caps, points=points,
                  max_points=min(len(c) for c in case.clouds), fem_gtols=fem_gtols, alphas=alphas, variants=variants,
@@ -143,8 +143,9 @@ def pareto_part(
 
 
 def pareto_front(rows: list[dict], error: str = "tre_mm") -> list[dict]:
-    """The points no other point beats on both time and error, fastest first."""
-    pts = sorted(rows, key=lambda r: (r["ms"], r[error]))
+    """The points no other point beats on both time and error, fastest first; none with a
+    failed frame (its error is over the frames that did not fail: it cannot be ranked)."""
+    pts = sorted((r for r in rows if not r.get("failed_frames")), key=lambda r: (r["ms"], r[error]))
     front, best = [], np.inf
     for r in pts:
         if r[error] < best:
@@ -172,6 +173,7 @@ def plot(rows: list[dict], path, title: str) -> None:
     ):
         for r in rows:
             marker = "*" if str(r["knob"]).startswith("surrogate @") else markers.get(r["knob"], "o")
+            marker = "x" if r.get("failed_frames") else marker  # off the front: some frames failed
             ax.scatter(r["ms"], r[key], marker=marker, color=colours.get(r["method"], "k"), alpha=0.75)
         for method in colours:
             front = pareto_front([r for r in rows if r["method"] == method], key)
@@ -190,6 +192,8 @@ def plot(rows: list[dict], path, title: str) -> None:
         ax.grid(True, which="both", alpha=0.3)
     for knob, m in markers.items():
         axes[0].scatter([], [], marker=m, color="grey", label=f"knob: {knob}")
+    if any(r.get("failed_frames") for r in rows):
+        axes[0].scatter([], [], marker="x", color="grey", label="failed frames (error over the rest)")
     if any(str(r["knob"]).startswith("surrogate @") for r in rows):
         axes[0].scatter([], [], marker="*", color="grey", label="knob: surrogate, tuned")
     axes[0].legend(fontsize=7, loc="upper right")
