@@ -47,8 +47,13 @@ def write_report(results: dict, out: Path) -> None:
     runs = {(v["started"], v["commit"]) for v in results.get("made_by", {}).values()}
     if len(runs) > 1:
         md.append("Parts come from more than one run (and machine: compare times within a part, not across "
-                  "machines): " + "; ".join(f"{part} ({v['started']}, {v['commit']}, {v.get('cpu') or 'CPU not recorded'})"
+                  "machines): " + "; ".join(f"{part} ({v['started']}, {v['commit']}, {v.get('cpu') or 'CPU not recorded'}"
+                                           f"{', --quick' if v.get('quick') else ''})"
                                            for part, v in results["made_by"].items()) + ".\n")  # fmt: skip
+    quick = [part for part, v in results.get("made_by", {}).items() if v.get("quick")]
+    if quick and not results.get("smoke"):  # a smoke run is quick throughout, and says so above
+        md.append(f"Run with --quick (fewer frames and sweep points than a full run, their figures not a full run's): "
+                  f"{', '.join(quick)}.\n")  # fmt: skip
     if "fem" in parts:
         f = parts["fem"]
         md.append("## FEM (Newton) on the liver\n")

@@ -50,6 +50,7 @@ def run_parts(
         "machine": {**machine.describe(), "blas_threads": blas_threads, "spare_threads": spare.threads()},
         "started": time.strftime("%Y-%m-%d %H:%M:%S"),
         "smoke": args.smoke,  # the tiny model of a --smoke run: its report merges with no full run's
+        "quick": args.quick,  # fewer frames and sweep points: each part's stamp says so (merge_previous)
         "parts": {},
     }
     quick = args.quick or args.smoke is not None

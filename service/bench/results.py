@@ -76,18 +76,21 @@ def read_minutes_rows(path: Path) -> list[dict]:
 def merge_previous(results: dict, out: Path | None) -> dict:
     """Keep the parts of the report already in `out` that this run did not redo, so that
     ``elastreg bench beam`` refreshes one part without rerunning the hour-long rest (none where
-    `out` is None: ``--replace``). Each part
-    remembers the run that made it. Only a report of the same kind is kept from: a smoke run's
-    tiny-model figures never sit beside a full run's (``results["smoke"]``: the smoke model)."""
+    `out` is None: ``--replace``). Each part remembers the run that made it, and whether that
+    was a --quick one (None: not recorded). Only a report of the same kind is kept from: a smoke
+    run's tiny-model figures never sit beside a full run's (``results["smoke"]``: the smoke
+    model)."""
     from .cases import FrameRecord
 
-    stamp = {"started": results["started"], "commit": results["machine"]["commit"], "cpu": results["machine"]["cpu"]}
+    stamp = {"started": results["started"], "commit": results["machine"]["commit"], "cpu": results["machine"]["cpu"],
+             "quick": bool(results.get("quick"))}  # fmt: skip
     results["made_by"] = {part: stamp for part in results["parts"]}
     prior = None if out is None else prior_run(out)
     if prior is None or prior.get("smoke") != results.get("smoke"):
         return results
     machine = prior.get("machine", {})
-    old_stamp = {"started": prior.get("started"), "commit": machine.get("commit"), "cpu": machine.get("cpu")}
+    old_stamp = {"started": prior.get("started"), "commit": machine.get("commit"), "cpu": machine.get("cpu"),
+                 "quick": prior.get("quick")}  # fmt: skip
     for part, value in prior.get("parts", {}).items():
         if part in results["parts"] or part not in PARTS:
             continue

@@ -219,9 +219,37 @@ def test_merged_parts_say_which_machine_made_them(tmp_path):
     (tmp_path / "results.json").write_text(json.dumps(prior))
     now = {"started": "now", "machine": {"commit": "def", "cpu": "Intel Xeon"}, "parts": {"beam": {}}}
     merged = merge_previous(now, tmp_path)
-    assert merged["made_by"]["beam"] == {"started": "now", "commit": "def", "cpu": "Intel Xeon"}
+    assert merged["made_by"]["beam"] == {"started": "now", "commit": "def", "cpu": "Intel Xeon", "quick": False}
     assert merged["made_by"]["fem"] == {"started": "then", "commit": "abc", "cpu": "AMD EPYC"}
     assert merged["made_by"]["pareto"]["cpu"] == "AMD EPYC"  # no stamp at all: the run's own
+
+
+def test_a_quick_part_merged_into_a_full_report_says_so(bar_store, tmp_path):
+    """`bench beam --quick` into a report of full runs merged its 15 cases over the full run's 60
+    unmarked: results.json had no trace of --quick, nor report.md. A run now records it, each
+    part's stamp carries it, and the report names the parts run with --quick."""
+    from service.bench.markdown import write_report
+    from service.bench.results import merge_previous
+
+    out = tmp_path / "smoke"
+    assert main(["bench", "fem", "--smoke", "bar", "--store", str(bar_store[0]), "--out", str(out), "--quick"]) == 0
+    results = json.loads((out / "results.json").read_text())
+    assert results["quick"] is True and results["made_by"]["fem"]["quick"] is True
+    full = json.loads((LATEST / "results.json").read_text())
+    folder = tmp_path / "latest"
+    (folder / "figures").mkdir(parents=True)
+    (folder / "results.json").write_text(json.dumps(full))
+    now = {"started": "now", "quick": True, "machine": {**full["machine"], "commit": "def"}, "seconds": 1.0,
+           "parts": {"beam": full["parts"]["beam"]}}  # fmt: skip
+    merged = merge_previous(now, folder)
+    assert merged["made_by"]["beam"]["quick"] is True and not merged["made_by"]["liver"].get("quick")
+    write_report(merged, folder)
+    report = (folder / "report.md").read_text()
+    assert (
+        "Run with --quick (fewer frames and sweep points than a full run, their figures not a full run's): beam."
+        in report
+    )
+    assert "beam (now, def, " in report and ", --quick)" in report
 
 
 def test_the_cpu_is_named_with_its_generation():
