@@ -26,6 +26,13 @@ def fmt(v, digits: int = 3) -> str:
     return str(v)
 
 
+def _test_set(row: dict) -> str:
+    """A minutes row's test set: its samples and its loads' hash, where recorded."""
+    if row.get("test_samples") is None:
+        return "not recorded"
+    return f"{row['test_samples']}, {row.get('test_loads') or 'loads not recorded'}"
+
+
 def table(rows: list[dict], cols: list[tuple[str, str]]) -> str:
     head = "| " + " | ".join(label for _, label in cols) + " |\n|" + "---|" * len(cols) + "\n"
     return head + "".join("| " + " | ".join(fmt(r.get(k, "")) for k, _ in cols) + " |\n" for r in rows)
@@ -117,9 +124,10 @@ def write_report(results: dict, out: Path) -> None:
         md.append("\n![estimate against true error](figures/anysite_estimates.png)\n")
         write_csv(out / "anysite_frames.csv", A["records"])
     if "minutes" in parts:
-        from .minutes import latest  # here: the minutes part imports the whole build
+        from .minutes import latest, left_out  # here: the minutes part imports the whole build
 
-        rows = latest(parts["minutes"]["rows"])
+        rows = [{**r, "test_set": _test_set(r)} for r in latest(parts["minutes"]["rows"])]
+        apart = left_out(parts["minutes"]["rows"])
         write_minutes_rows(out, parts["minutes"]["rows"])
         md.append("\n## Validation error against build minutes\n")
         md.append(
@@ -133,7 +141,12 @@ def write_report(results: dict, out: Path) -> None:
                                 ("test_mean_mm", "test mean (mm)"), ("test_relative", "relative, mean"),
                                 ("test_relative_median", "relative, median"), ("test_linear_relative", "linear alone, mean"),
                                 ("test_linear_relative_median", "linear alone, median"), ("test_zero_mean_mm", "u = 0 (mm)"),
-                                ("load_before", "load average"), ("cpu", "machine"), ("commit", "commit")]))  # fmt: skip
+                                ("load_before", "load average"), ("cpu", "machine"), ("commit", "commit"),
+                                ("test_set", "test set (samples, loads' hash)")]))  # fmt: skip
+        if apart:  # a curve is one machine's builds on one test set: the scene's newest row's
+            md.append("\nLeft out of the table and the figure, built on another machine or scored on another test set "
+                      "than their scene's newest row: " + "; ".join(f"{r['scene']} at {fmt(r['minutes'])} minutes "
+                      f"({r.get('cpu') or 'CPU not recorded'}, test set {_test_set(r)})" for r in apart) + ".\n")  # fmt: skip
         md.append("\n![relative error against build minutes](figures/build_minutes.png)\n")
     if "beam" in parts:
         b = parts["beam"]["summary"]

@@ -7,12 +7,14 @@ what its budget bought, so they differ from build to build (a few dozen samples 
 mesh): every build is also scored on one test set per scene, the same for every budget, drawn
 from the scene's load distribution with a seed no build uses (TEST_SEED) and kept on disk. Rows
 accumulate over runs (a rerun of a pair at the same commit replaces its row; rows of other
-commits stay as history), each stamped with its machine, commit and load average.
+commits stay as history), each stamped with its machine, commit, load average and test set (its
+size and a hash of its loads); a curve shows only rows of one machine and one test set.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import os
 import shlex
 import tempfile
@@ -65,6 +67,12 @@ def test_set(scene: Scene, paths: int, root: Path, workers: int) -> tuple[np.nda
     return F, U, region
 
 
+def loads_hash(F: np.ndarray) -> str:
+    """A short hash of a test set's loads: rows scored on other loads (another --test-paths, a
+    test set solved anew) are not points of one curve."""
+    return hashlib.sha256(np.ascontiguousarray(F, np.float64).tobytes()).hexdigest()[:12]
+
+
 def score(entry_dir: Path, F: np.ndarray, U: np.ndarray, region: np.ndarray) -> dict:
     """Mean and p95 nodal error (mm), mean and median relative error of an entry on a test set,
     with linear physics alone on the same loads beside them."""
@@ -79,6 +87,7 @@ def score(entry_dir: Path, F: np.ndarray, U: np.ndarray, region: np.ndarray) -> 
     return {
         "test_samples": len(F),
         "test_seed": TEST_SEED,
+        "test_loads": loads_hash(F),
         "test_mean_mm": float(e.mean() * 1e3),
         "test_p95_mm": float(np.percentile(e, 95) * 1e3),
         "test_relative": float(rel.mean()),
@@ -170,7 +179,13 @@ def minutes_part(
     return {"rows": rows}
 
 
-def latest(rows: list[dict]) -> list[dict]:
+def comparable(row: dict) -> tuple:
+    """What a curve's points share: the machine and the test set (its size and its loads' hash;
+    None in rows from before they were recorded, comparable with none but their own kind)."""
+    return row.get("cpu"), row.get("test_samples"), row.get("test_loads")
+
+
+def _newest(rows: list[dict]) -> dict[tuple, dict]:
     """The newest row of each scene and budget, in the physics layout and scored on the test set."""
     best: dict[tuple, dict] = {}
     for r in rows:
@@ -178,7 +193,27 @@ def latest(rows: list[dict]) -> list[dict]:
             k = (r["scene"], r["minutes"])
             if k not in best or r["started"] > best[k]["started"]:
                 best[k] = r
-    return sorted(best.values(), key=lambda r: (r["scene"], r["minutes"]))
+    return best
+
+
+def latest(rows: list[dict]) -> list[dict]:
+    """The newest row of each scene and budget (physics layout, scored on the test set) that was
+    built on the machine and scored on the test set of its scene's newest row: one curve, one
+    machine and the same loads for every budget (the others are :func:`left_out`)."""
+    best = _newest(rows)
+    newest: dict[str, dict] = {}
+    for r in best.values():
+        if r["scene"] not in newest or r["started"] > newest[r["scene"]]["started"]:
+            newest[r["scene"]] = r
+    kept = [r for r in best.values() if comparable(r) == comparable(newest[r["scene"]])]
+    return sorted(kept, key=lambda r: (r["scene"], r["minutes"]))
+
+
+def left_out(rows: list[dict]) -> list[dict]:
+    """The newest rows of a scene and budget that :func:`latest` leaves out: built on another
+    machine or scored on another test set than their scene's newest row."""
+    shown = latest(rows)
+    return sorted((r for r in _newest(rows).values() if r not in shown), key=lambda r: (r["scene"], r["minutes"]))
 
 
 def plot(rows: list[dict], path: Path) -> None:

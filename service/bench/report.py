@@ -26,7 +26,7 @@ from .command import refuse
 from .inputs import part_models, read_scenes, resumed_rows
 from .markdown import write_report
 from .parts import run_parts
-from .results import MINUTES_ROWS, merge_previous, prior_run
+from .results import MINUTES_ROWS, merge_previous, prior_part, prior_problem, prior_run
 from .swap import Busy, carry_over, hold, keep_unplaced, put_in_place, recover, release, scratch_folder, set_aside
 
 
@@ -94,7 +94,14 @@ def _write(
             f"{out} holds a report of full runs, which a --smoke run's figures would mix with: give another --out, "
             "or --replace to replace it"
         )
+    if prior is not None and (problem := prior_problem(out, parts, args.smoke)):
+        refuse(f"{out / 'results.json'} is not a report this run can keep: {problem}; give another --out, or "
+               "--replace to replace it")  # fmt: skip
     resumed = resumed_rows(Path(args.resume), None if args.replace else out) if args.resume is not None else []
+    kept_rows = (prior_part(out, "minutes") or {}).get("rows") if prior is not None else None
+    if "minutes" in parts and not args.build_minutes and not resumed and not kept_rows:
+        refuse(f"--build-minutes with no values redraws the report from its rows, and {out} holds none (nor "
+               "--resume): name the budgets to build")  # fmt: skip
     models, variants = part_models(args, store, parts)
     scenes = read_scenes(args) if "minutes" in parts else []
     try:  # only now: a refused command leaves nothing behind

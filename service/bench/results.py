@@ -7,6 +7,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +16,8 @@ import numpy as np
 PARTS = ("fem", "liver", "beam", "pareto", "stability", "anysite", "minutes")
 #: the minutes part's rows, written into a run's scratch folder after each build (hours each)
 MINUTES_ROWS = "minutes_rows.json"
+#: what every minutes row holds: what merge(), latest() and --resume read
+MINUTES_KEYS = ("scene", "minutes", "commit", "cpu", "started")
 
 
 def jsonable(x):
@@ -55,9 +58,21 @@ def write_minutes_rows(folder: Path, rows: list[dict]) -> None:
     (folder / MINUTES_ROWS).write_text(json.dumps(rows, indent=1, default=jsonable))
 
 
+def minutes_row_problem(row, keys: tuple[str, ...] = MINUTES_KEYS) -> str | None:
+    """What keeps `row` from being a minutes part's row (one line), or None: its `keys` (a
+    report's oldest rows lack the stamps a resumed row is checked by), and its budget a finite
+    positive number (a NaN, negative or true one crashed the plot)."""
+    if not isinstance(row, dict) or not all(k in row for k in keys):
+        return f"a row lacks one of {', '.join(keys)}"
+    m = row["minutes"]
+    if isinstance(m, bool) or not isinstance(m, (int, float)) or not math.isfinite(m) or m <= 0:
+        return f"its row for {row['scene']} has minutes {m!r}, not a positive finite number"
+    return None
+
+
 def read_minutes_rows(path: Path) -> list[dict]:
     """The minutes rows a stopped run set aside: `path` its folder (``NAME.interrupted-TIME``) or
-    its minutes_rows.json; ValueError, one line, where it holds none."""
+    its minutes_rows.json; ValueError, one line, where it holds none or a row is not one."""
     file = path / MINUTES_ROWS if path.is_dir() else path
     try:
         rows = json.loads(file.read_text())
@@ -65,11 +80,11 @@ def read_minutes_rows(path: Path) -> list[dict]:
         raise ValueError(f"cannot read {file}: {exc.strerror or exc}") from None
     except ValueError as exc:
         raise ValueError(f"{file} is not JSON ({exc})") from None
-    keys = ("scene", "minutes", "commit", "cpu", "started")
-    if not isinstance(rows, list) or not all(
-        isinstance(r, dict) and all(k in r for k in keys) and isinstance(r["minutes"], (int, float)) for r in rows
-    ):
-        raise ValueError(f"{file} holds no minutes part's rows (a list of rows, each with {', '.join(keys)})")
+    if not isinstance(rows, list):
+        raise ValueError(f"{file} holds no minutes part's rows (a list of rows, each with {', '.join(MINUTES_KEYS)})")
+    for r in rows:
+        if problem := minutes_row_problem(r):
+            raise ValueError(f"{file} holds no minutes part's rows: {problem}")
     return rows
 
 
@@ -100,6 +115,51 @@ def merge_previous(results: dict, out: Path | None) -> dict:
         # a stamp from before stamps named the CPU: taken to be the prior run's machine
         results["made_by"][part] = {"cpu": machine.get("cpu"), **prior.get("made_by", {}).get(part, old_stamp)}
     return results
+
+
+#: a stand-in machine for drawing a kept part on its own (prior_problem)
+_NO_MACHINE = dict.fromkeys(("cpu", "cores", "gpu", "commit", "sparse_solver", "torch", "numpy", "scipy"), "-")
+
+
+def prior_problem(out: Path, redone: list[str], smoke: str | None) -> str | None:
+    """Why the report in `out` cannot be merged with a run of the parts `redone` (one line), or
+    None: each part the run would keep (the minutes part's rows, which it extends, too) is
+    merged and drawn on its own into a throwaway folder before any work; a results.json of the
+    wrong shape crashed only once every part had run, and the new report was lost."""
+    import tempfile
+
+    from .markdown import write_report
+
+    prior = prior_run(out)
+    if prior is None or prior.get("smoke") != smoke:
+        return None  # nothing kept from it: the run replaces it whole
+    if not isinstance(prior.get("parts", {}), dict):
+        return "its parts are not a mapping of part names to their results"
+    kept = [p for p in prior.get("parts", {}) if p in PARTS and (p not in redone or p == "minutes")]
+    minutes = prior["parts"].get("minutes") if "minutes" in kept else {"rows": []}
+    if not isinstance(minutes, dict) or not isinstance(minutes.get("rows"), list):
+        return "its minutes part holds no list of rows"
+    for r in minutes["rows"]:
+        if problem := minutes_row_problem(r, ("scene", "minutes")):
+            return f"its minutes part: {problem}"
+    stub = {"started": "-", "smoke": smoke, "seconds": 0.0, "machine": _NO_MACHINE, "parts": {}}
+    try:
+        merged = merge_previous(dict(stub), out)
+    except (KeyError, TypeError, ValueError, AttributeError, IndexError) as exc:
+        return f"it cannot be merged ({_one_line(exc)})"
+    for part in kept:
+        alone = {**merged, "parts": {part: merged["parts"][part]}, "made_by": {}}
+        with tempfile.TemporaryDirectory() as tmp:
+            (Path(tmp) / "figures").mkdir()
+            try:
+                write_report(alone, Path(tmp))
+            except (KeyError, TypeError, ValueError, AttributeError, IndexError) as exc:
+                return f"its {part} part cannot be drawn ({_one_line(exc)})"
+    return None
+
+
+def _one_line(exc: Exception) -> str:
+    return f"{type(exc).__name__}: " + " ".join(str(exc).split())
 
 
 def prior_run(out: Path) -> dict | None:

@@ -25,6 +25,7 @@ def test_minutes_part_builds_on_the_clock_and_keeps_its_rows(bar, tmp_path):
     assert row["scene"] == "bar" and row["minutes"] == 0.2 and row["test_seed"] == TEST_SEED
     assert row["wall_s"] <= 0.2 * 60 + 10  # the whole build on the clock (scoring is outside it)
     assert row["test_samples"] > 0 and row["samples"] > 0
+    assert len(row["test_loads"]) == 12  # the test set's identity: its loads' hash
     # the build is never worse than linear physics on its own paths, and both beat no deformation
     assert 0 < row["test_relative"] < 1 and 0 < row["test_linear_relative"] < 1
     assert row["test_relative_median"] <= row["test_relative"] * 3
@@ -143,3 +144,63 @@ def test_a_kept_builds_rebuild_command_names_a_scene_train_takes(bar, tmp_path, 
     path = write_bar_scene(tmp_path / "scenes", bar, samples=6)
     monkeypatch.chdir(tmp_path)
     assert scene_argument(load_scene(path.relative_to(tmp_path))) == os.path.realpath(path)
+
+
+@pytest.mark.parametrize("minutes", [float("nan"), -5.0, 0, True, "10"])
+def test_resumed_rows_with_an_impossible_budget_are_refused(minutes, tmp_path, capsys):
+    """--resume took a row whose minutes were NaN, negative or a bool and crashed in the plot
+    (a traceback after the merge): such a row is refused, one line, exit status 2."""
+    from service.bench import machine
+
+    here = machine.describe()
+    aside = tmp_path / "report.interrupted-20261201-100000"
+    aside.mkdir()
+    row = {"scene": "bar", "minutes": minutes, "layout": "physics", "commit": here["commit"], "cpu": here["cpu"],
+           "started": "2026-12-01 10:00:00", "test_relative": 0.2, "test_linear_relative": 0.5}  # fmt: skip
+    (aside / "minutes_rows.json").write_text(json.dumps([row]))
+    out = tmp_path / "report"
+    with pytest.raises(SystemExit) as exit_:
+        main(["bench", "minutes", "--resume", str(aside), "--build-minutes", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and err.count("\n") == 1 and "Traceback" not in err, err
+    assert f"holds no minutes part's rows: its row for bar has minutes {minutes!r}, not a positive finite" in err
+    assert not out.exists()
+
+
+def test_a_redraw_with_no_rows_is_refused(tmp_path, capsys):
+    """`bench minutes --build-minutes` (no budgets: redraw from the rows kept) into a folder with
+    no rows wrote an empty report and exit status 0: now one line, exit status 2, nothing made."""
+    out = tmp_path / "report"
+    with pytest.raises(SystemExit) as exit_:
+        main(["bench", "minutes", "--build-minutes", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and err == (
+        f"error: --build-minutes with no values redraws the report from its rows, and {out} holds none (nor "
+        "--resume): name the budgets to build\n"
+    ), err
+    assert not out.exists()
+
+
+def test_a_curve_holds_one_machine_and_one_test_set(tmp_path):
+    """latest() took the newest row of each budget whatever its machine or test set (the
+    committed curve's liver_deepphysx rows had 177 and 175 test samples), under a report that
+    says "the same loads for every budget": now a scene's curve holds the rows of its newest
+    row's machine and test set, the others listed apart in the report."""
+    from service.bench.markdown import write_report
+    from service.bench.minutes import left_out
+
+    def row(minutes, started, cpu="A", loads="aaaa", samples=177):
+        return {"scene": "s", "minutes": minutes, "layout": "physics", "commit": "c", "started": started, "cpu": cpu,
+                "test_samples": samples, "test_loads": loads, "test_relative": 0.1}  # fmt: skip
+
+    rows = [row(5.0, "1"), row(10.0, "2", samples=175, loads="bbbb"), row(30.0, "3", cpu="B"), row(60.0, "4")]
+    assert [r["minutes"] for r in latest(rows)] == [5.0, 60.0]
+    assert [r["minutes"] for r in left_out(rows)] == [10.0, 30.0]
+    out = tmp_path / "report"
+    (out / "figures").mkdir(parents=True)
+    machine = dict.fromkeys(("cpu", "cores", "gpu", "commit", "sparse_solver", "torch", "numpy", "scipy"), "-")
+    write_report({"started": "-", "seconds": 0.0, "machine": machine, "parts": {"minutes": {"rows": rows}}}, out)
+    report = (out / "report.md").read_text()
+    assert "| s | 5 |" in report and "| s | 60 |" in report and "| s | 10 |" not in report
+    assert "177, aaaa |" in report
+    assert "s at 10 minutes (A, test set 175, bbbb); s at 30 minutes (B, test set 177, aaaa)." in report

@@ -2,6 +2,7 @@
 at parse time, before the report folder, a test set or a build is touched."""
 
 import argparse
+import json
 import re
 import shutil
 from pathlib import Path
@@ -262,3 +263,29 @@ def test_a_missing_liver_model_points_at_the_recipe_in_usage_md(tmp_path, capsys
     section = re.search(r'docs/usage\.md, "([^"]+)"', message)
     usage = (Path(__file__).resolve().parents[2] / "docs" / "usage.md").read_text()
     assert section and f"\n## {section[1]}" in usage, message
+
+
+@pytest.mark.parametrize(
+    "prior, why",
+    [
+        ({"parts": {"anysite": {"summaries": []}}}, "its anysite part cannot be drawn (KeyError: 'model')"),
+        ({"parts": {"liver": {"records": [{"case": "x"}], "summaries": []}}}, "it cannot be merged (TypeError: "),
+        ({"parts": ["beam"]}, "its parts are not a mapping of part names to their results"),
+        ({"machine": [], "parts": {"pareto": []}}, "it cannot be merged (AttributeError: "),
+    ],
+)
+def test_a_report_of_the_wrong_shape_in_out_is_refused_before_any_work(prior, why, bar_store, tmp_path, capsys):
+    """A results.json in --out that is JSON of the wrong shape was read only after every part had
+    run: a traceback in the merge or the report, the new report lost. Each part the run would
+    keep is now merged and drawn before any work: one line, exit status 2, nothing changed."""
+    out = tmp_path / "report"
+    out.mkdir()
+    (out / "results.json").write_text(json.dumps({"smoke": "bar", **prior}))
+    with pytest.raises(SystemExit) as exit_:
+        main(["bench", "fem", "--smoke", "bar", "--store", str(bar_store[0]), "--out", str(out)])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and err.count("\n") == 1 and "Traceback" not in err, err
+    assert err.startswith(f"error: {out / 'results.json'} is not a report this run can keep: {why}"), err
+    assert err.endswith("; give another --out, or --replace to replace it\n"), err
+    assert sorted(p.name for p in out.iterdir()) == ["results.json"] and not list(tmp_path.glob(".bench-*"))
+    assert main(["bench", "fem", "--smoke", "bar", "--store", str(bar_store[0]), "--out", str(out), "--replace"]) == 0
