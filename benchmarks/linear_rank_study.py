@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 import service.surrogate.physics as physics
-from service.bench.anysite import CALIBRATION_SEED, NETWORK, spread_sites, tool_size
+from service.bench.anysite import CALIBRATION_SEED, NETWORK, site_patches, site_region
 from service.bench.cases import Case, run_case, summarise
 from service.bench.machine import describe
 from service.store import load_entry
@@ -33,13 +33,10 @@ def main() -> int:
     entry = load_entry(Path(args.entry))
     mesh = entry.mesh
     rng = np.random.default_rng(CALIBRATION_SEED)
-    region = np.intersect1d(entry.region, mesh.free_surface_nodes)
-    k = tool_size(mesh)
+    region = site_region(mesh, entry.region, CALIBRATION_SEED)  # off the reported sites' supports
     max_force = float(entry.manifest["training"]["load_distribution"]["max_force"])
     cases = []
-    for i, site in enumerate(spread_sites(mesh, region, args.sites, rng)):
-        patch = mesh.surface_patch(int(site), 12 * k)
-        tool, support = np.sort(patch[:k]), np.sort(patch[: 3 * k])
+    for i, (site, tool, support) in enumerate(site_patches(mesh, region, args.sites, rng)):
         peak = float(rng.uniform(0.4, 0.9)) * max_force
         seq = make_sequence(
             mesh,

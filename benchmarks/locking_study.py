@@ -32,7 +32,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from service.bench.anysite import CALIBRATION_SEED, NETWORK_LM, SITE_SEED, anysite_cases, spread_sites, tool_size
+from service.bench.anysite import CALIBRATION_SEED, NETWORK_LM, SITE_SEED, anysite_cases, site_patches, site_region
 from service.bench.machine import describe
 from service.bench.truth import fine_patch, subdivide
 from service.config import limit_threads
@@ -45,18 +45,8 @@ from service.store import load_entry
 
 def tools(entry, sites: int, seed: int) -> list:
     """The anysite generator's tool patches for `seed` (its draws, in its order)."""
-    mesh = entry.mesh
-    rng = np.random.default_rng(seed)
-    region = np.intersect1d(entry.region, mesh.free_surface_nodes)
-    inside = np.zeros(mesh.n_nodes, bool)
-    inside[region] = True
-    k = tool_size(mesh)
-    out = []
-    for site in spread_sites(mesh, region, sites, rng):
-        patch = mesh.surface_patch(int(site), 12 * k)
-        out.append((int(site), np.sort(patch[inside[patch]][:k])))
-        rng.uniform(0.4, 0.9), rng.uniform(15.0, 45.0)  # the generator's peak and turn
-    return out
+    region = site_region(entry.mesh, entry.region, seed)  # calibration sites keep off the reported ones
+    return [(site, tool) for site, tool, _ in site_patches(entry.mesh, region, sites, np.random.default_rng(seed))]
 
 
 def scene_entry(path: str, nu: float) -> SimpleNamespace:

@@ -96,15 +96,21 @@ def write_report(results: dict, out: Path) -> None:
         md.append("\n![per-frame TRE and time](figures/liver_frames.png)\n")
     if "anysite" in parts:
         A = parts["anysite"]
-        md.append(f"\n## Any tool site ({A['model']}): sites the build never aimed at, truth from a finer mesh\n")
         md.append(
-            f"Tool patches of {A['tool_nodes']} nodes, supports three times that, sites spread over the whole "
-            f"load region; truth: {_TRUTH_TEXT[A.get('truth', 'subdivided')]}"
+            f"\n## Any tool site ({A['model']}): sites spread over the surface, loads held out, truth from a finer mesh\n"
+        )
+        built = A.get("model_entry")  # which build: reports before it named the id alone
+        md.append(
+            (f"The build of {built['created']} (weights sha256 {str(built['weights_sha256'])[:12]}). " if built else "")
+            + f"Tool patches of {A['tool_nodes']} nodes, supports three times that, sites spread over the whole "
+            "load region, so inside the region the build was trained on (the loads and the truth are held out, not "
+            f"the sites); truth: {_TRUTH_TEXT[A.get('truth', 'subdivided')]}"
             + (
                 f"; method auto corrects frames whose estimate exceeds {A['max_error_mm']:.3g} mm (twice the "
                 "build's validation error) with the Newton method; auto runs the network as its "
                 "Levenberg-Marquardt row does where the layout has a Jacobian, and the Newton method, in its "
-                "own rows and in auto's corrections, Levenberg-Marquardt (both chosen on calibration sites).\n\n"
+                "own rows and in auto's corrections, Levenberg-Marquardt (both chosen on the liver's calibration sites, "
+                "which overlapped its reported ones: docs/performance.md).\n\n"
                 if any(s.get("method") == "auto" for s in A["summaries"])
                 else " (network only: run with --no-fem).\n\n"
             )

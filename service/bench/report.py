@@ -3,8 +3,8 @@ Markdown, CSV/JSON, PNG).
 
 Parts: ``fem`` (Newton and sparse solvers on the liver), ``liver`` (the paper's liver experiment,
 both methods), ``beam`` (the paper's beam experiment), ``pareto`` (error against run time),
-``stability`` (stiff and extreme cases), ``anysite`` (tool sites the build never aimed at, truth
-from a finer mesh, the error estimates' honesty), and, asked for by name since it takes hours,
+``stability`` (stiff and extreme cases), ``anysite`` (tool sites spread over the load region,
+loads held out, truth from a finer mesh, the error estimates' honesty), and, asked for by name since it takes hours,
 ``minutes`` (validation error against build minutes, :mod:`.minutes`). ``--smoke`` runs every
 code path on a tiny model in seconds (the default tests do), so the report cannot rot; a smoke
 report never mixes with full runs'.

@@ -80,6 +80,9 @@ def test_bench_smoke_writes_the_whole_report(bar_store, tmp_path):
     assert len(timed["network"]) == 1 and len(timed[lm]) == 1  # the smoke run's one pass, recorded
     assert timed["fem"] is None and timed["auto"] is None  # one pass of seconds-long frames: not listed
     assert (out / "figures" / "anysite_estimates.png").stat().st_size > 1000
+    manifest = json.loads((store / "bar" / "manifest.json").read_text())  # which build ran, not only its id
+    assert anysite["model_entry"]["weights_sha256"] == manifest["files"]["weights.safetensors"]
+    assert anysite["model_entry"]["created"] == manifest["created"]
 
 
 def test_a_smoke_run_never_replaces_a_report_of_full_runs(bar_store, tmp_path, capsys):
