@@ -15,7 +15,7 @@ K0^-1 g lies outside the network, added by the forward model over any support (f
 and the network reads that response's coefficients in its own POD basis (the features), not
 the raw forces: its output is the nonlinear remainder, in a POD basis of remainders. A local
 load's response is a field the features describe at any site, so what is learnt at some sites
-carries to others; raw forces at unseen sites are inputs the network never saw (on the paper's
+carries to others; raw forces at a site few paths loaded are inputs it has barely seen (on the paper's
 liver, whole surface, 3,220 samples: linear alone 0.78 mm, the network on raw forces 1.15-1.46
 mm, on features 0.49 mm; docs/performance.md).
 

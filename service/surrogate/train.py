@@ -43,7 +43,7 @@ class TrainConfig:
     # layout); None: the scene's [training] members when built from a scene, else 1
     physics_skip: bool = True  # the physics layout: the exact small-strain response outside the
     # network, which reads its features and learns the remainder (network.py; measured better
-    # than raw forces at unseen sites, docs/performance.md)
+    # than raw forces on held-out loads, docs/performance.md)
     features: int = 256  # POD modes of the linear response the physics layout's network reads
     epochs: int = 200
     batch: int = 128
