@@ -150,6 +150,16 @@ def _refusal(exc: Exception, late) -> StreamError | None:
     return None
 
 
+def _raise_if_closed(ws) -> None:
+    """Raise a closed socket's close as StreamError: the replies a frame() would wait for will
+    never come, so its close, not "recv() them first", is what the caller must hear."""
+    from websockets.protocol import State
+
+    if ws.state is State.CLOSED:
+        exc = ws.protocol.close_exc
+        raise _closed_by_server(exc) from exc
+
+
 @contextlib.contextmanager
 def _closes_as_stream_error(what: str = "stream"):
     """Raise a socket found closed as :class:`StreamError` (websockets' exception its cause)."""
@@ -241,8 +251,12 @@ class Stream(_SyncSocket):
             self.ws.send(message)
 
     def recv(self, timeout: float | None = None) -> dict:
-        with _closes_as_stream_error():
-            message = self.ws.recv(timeout=timeout if timeout is not None else self.timeout)
+        try:
+            with _closes_as_stream_error():
+                message = self.ws.recv(timeout=timeout if timeout is not None else self.timeout)
+        except StreamError:  # closed: no reply is to come any more
+            self._pending = 0
+            raise
         self._pending = max(self._pending - 1, 0)  # a reply or an error, each a frame's
         return _reply(message)
 
@@ -252,10 +266,12 @@ class Stream(_SyncSocket):
         the next frame's): the next frame() raises a StreamError that says so, and a new stream
         is needed. A frame refused before it was sent (bad points) leaves the stream in step.
         While frames sent with send() have replies to come, frame() raises a StreamError (its
-        reply would be theirs): recv() them first; the stream goes on."""
+        reply would be theirs): recv() them first; the stream goes on. A closed stream raises
+        its close instead, at every call."""
         if self._out_of_step:
             raise StreamError(0, _OUT_OF_STEP)
         if self._pending:
+            _raise_if_closed(self.ws)
             raise _pending_error(self._pending)
         message = _message(frame_body(points, support, frame_id), self.encoding)
         self._out_of_step = True  # until its reply (or its error) came, whatever ends the call
@@ -335,8 +351,12 @@ class AsyncStream(_AsyncSocket):
         import asyncio
 
         wait = timeout if timeout is not None else self.timeout
-        with _closes_as_stream_error():
-            message = await asyncio.wait_for(self.ws.recv(), wait)
+        try:
+            with _closes_as_stream_error():
+                message = await asyncio.wait_for(self.ws.recv(), wait)
+        except StreamError:  # closed: no reply is to come any more
+            self._pending = 0
+            raise
         self._pending = max(self._pending - 1, 0)  # a reply or an error, each a frame's
         return _reply(message)
 
@@ -347,6 +367,7 @@ class AsyncStream(_AsyncSocket):
         if self._out_of_step:
             raise StreamError(0, _OUT_OF_STEP)
         if self._pending:
+            _raise_if_closed(self.ws)
             raise _pending_error(self._pending)
         message = _message(frame_body(points, support, frame_id), self.encoding)
         self._out_of_step = True  # until its reply (or its error) came, whatever ends the call

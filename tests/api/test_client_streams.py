@@ -4,6 +4,7 @@ server: sync and async alike."""
 from __future__ import annotations
 
 import asyncio
+import time
 
 import pytest
 from websockets.exceptions import ConnectionClosed
@@ -83,5 +84,53 @@ def test_frame_after_send_refuses_until_the_sent_frames_replies_are_received(liv
                 await s.frame(clouds[1], frame_id="framed")
             assert (await s.recv())["frame_id"] == "sent"
             assert (await s.frame(clouds[1], frame_id="framed"))["frame_id"] == "framed"
+
+    asyncio.run(main())
+
+
+def test_a_closed_stream_with_sent_frames_pending_raises_its_close(small, clouds):
+    """send() then close() (or the server's close): frame() said "recv() them before frame()"
+    with close_code None, recv() raised the close but left the count pending, and every frame()
+    after said "recv() them" again, never the close. Every call now raises the close."""
+
+    def own(err: StreamError) -> None:
+        assert err.close_code == 1000 and "closed by its close()" in err.detail, (err, err.close_code)
+
+    def idle(err: StreamError) -> None:
+        assert err.close_code == 1000 and err.reason.startswith("idle for"), (err, err.close_code)
+
+    with Client(small.url) as api:
+        stream = api.stream("bar")
+        stream.send(clouds[0])
+        stream.close()
+        for call in (lambda: stream.frame(clouds[1]), stream.recv, lambda: stream.frame(clouds[1])):
+            with pytest.raises(StreamError) as err:
+                call()
+            own(err.value)
+        with api.stream("bar") as stream:
+            stream.send(clouds[0])
+            time.sleep(3.5)  # its reply, then idle past the 2 s ttl: the server closes it
+            for _ in range(2):
+                with pytest.raises(StreamError) as err:
+                    stream.frame(clouds[1])
+                idle(err.value)
+
+    async def main() -> None:
+        async with AsyncClient(small.url) as api:
+            stream = await api.stream("bar")
+            await stream.send(clouds[0])
+            await stream.close()
+            for call in (lambda: stream.frame(clouds[1]), stream.recv, lambda: stream.frame(clouds[1])):
+                with pytest.raises(StreamError) as err:
+                    await call()
+                own(err.value)
+            stream = await api.stream("bar")
+            await stream.send(clouds[0])
+            await asyncio.sleep(3.5)
+            for _ in range(2):
+                with pytest.raises(StreamError) as err:
+                    await stream.frame(clouds[1])
+                idle(err.value)
+            await stream.close()
 
     asyncio.run(main())
