@@ -15,9 +15,28 @@ def _node_ids(ids, what: str) -> np.ndarray:
         return a.astype(np.int64)
     if a.dtype.kind not in "iu":
         raise ValueError(f"{what} must be integer node ids, got dtype {a.dtype}")
+    if _holds_bool(ids):
+        raise ValueError(f"{what} must be integer node ids, got a bool among them (True is not node 1)")
     if a.dtype.kind == "u" and a.max() > np.iinfo(np.int64).max:  # the cast would wrap 2**64-1 to -1
         raise ValueError(f"{what}: node id {a.max()} is too large")
     return a.astype(np.int64, copy=False)
+
+
+def _holds_bool(ids) -> bool:
+    """Whether ids given as a list hold a bool, which numpy reads as an int among ints ([True, 2]
+    is [1, 2]); an array's dtype already says (a bool array is refused by its kind)."""
+    if isinstance(ids, np.ndarray):
+        return False
+    kinds = set(map(type, np.asarray(ids, dtype=object).ravel()))  # iterated in C, not in Python
+    return not kinds.isdisjoint({bool, np.bool_})
+
+
+def _real(value, what: str):
+    """A number sent as it is (E, alpha, a config's other numbers), refused here if complex:
+    the encoder cannot write one, and its imaginary part means nothing to the server."""
+    if isinstance(value, (complex, np.complexfloating)):
+        raise ValueError(f"{what} must be a real number, got {value!r}")
+    return value
 
 
 def _reals(values, what: str) -> np.ndarray:
@@ -38,7 +57,7 @@ def frame_body(points, support, frame_id) -> dict:
 
 
 def config_body(model: str, config: dict) -> dict:
-    body = {"model": model, **config}
+    body = {"model": model, **{key: _real(value, key) for key, value in config.items()}}
     for key in ("support", "matching"):
         if body.get(key) is not None:
             body[key] = _node_ids(body[key], key)
@@ -53,5 +72,5 @@ def simulate_body(nodes, values, method: str, E: float | None) -> dict:
     return {
         "forces": {"nodes": _node_ids(nodes, "forces' nodes"), "values": _reals(values, "force values")},
         "method": method,
-        "E": E,
+        "E": _real(E, "E"),
     }

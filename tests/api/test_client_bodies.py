@@ -87,3 +87,39 @@ def test_outputs_given_as_one_name_is_that_output(live, support, clouds):
             assert list(st.config["outputs"]) == ["forces"]
 
     asyncio.run(main())
+
+
+def test_bool_node_ids_among_ints_and_complex_numbers_are_refused_before_sending(live, support, clouds):
+    """[True, 2] went as the node ids [1, 2] (numpy reads a bool among ints as an int), where
+    [True] alone was refused; a complex E or alpha reached the encoder, a TypeError "not JSON
+    serializable". Both are refused with a ValueError before anything is sent, sync and async."""
+    ids = [True, *support.tolist()[1:]]
+    g = np.tile([0.0, 0.0, 1.0 / support.size], (support.size, 1))
+    bools = "support must be integer node ids, got a bool among them"
+
+    with Client(live.url) as api, api.stream("bar", support=support) as st:
+        with pytest.raises(ValueError, match=bools):
+            st.frame(clouds[0], support=ids)
+        with pytest.raises(ValueError, match=bools):
+            api.open_session("bar", support=ids)
+        with pytest.raises(ValueError, match="forces' nodes must be integer node ids, got a bool"):
+            api.simulate("bar", ids, g)
+        with pytest.raises(ValueError, match=r"E must be a real number, got \(5000\+0j\)"):
+            api.simulate("bar", support, g, E=5e3 + 0j)
+        with pytest.raises(ValueError, match=r"alpha must be a real number, got 0\.001j"):
+            api.open_session("bar", alpha=1e-3j)
+        with pytest.raises(ValueError, match="alpha must be a real number"):
+            api.stream("bar", alpha=np.complex128(1e-3))
+        assert st.frame(clouds[1], frame_id="after")["frame_id"] == "after"  # in step
+
+    async def main() -> None:
+        async with AsyncClient(live.url) as api:
+            with pytest.raises(ValueError, match=bools):
+                await api.stream("bar", support=ids)
+            with pytest.raises(ValueError, match="E must be a real number"):
+                await api.simulate("bar", support, g, E=5e3 + 0j)
+            with pytest.raises(ValueError, match="alpha must be a real number"):
+                await api.open_session("bar", alpha=1e-3j)
+
+    asyncio.run(main())
+
