@@ -198,9 +198,10 @@ class Client(_Base):
     def stream(self, model: str, *, max_size: int | None = 1 << 27, **config) -> Stream:
         """A WebSocket stream (``/stream``) whose session lives with the connection. A refusal
         (at the session or socket limit: a 503 with ``retry_after``) raises :class:`StreamError`."""
+        body = config_body(model, config)  # bad input refused before a socket is opened, not left open
         ws = self._connect(_ws_url(self.base_url), max_size)
         ws.__enter__()  # the Stream owns the connection (and closes it): websockets >= 17 asks for this
-        return Stream(ws, self.encoding, config_body(model, config), self.timeout)
+        return Stream(ws, self.encoding, body, self.timeout)
 
     def watch(self, session_id: str, *, max_size: int | None = 1 << 27) -> Watch:
         """Watch a session (``WS /sessions/{id}/watch``): its frames as they are solved."""
@@ -306,9 +307,10 @@ class AsyncClient(_Base):
         return Opening(self._stream(model, max_size, config))
 
     async def _stream(self, model: str, max_size: int | None, config: dict) -> AsyncStream:
+        body = config_body(model, config)  # as Client.stream's: refused before a socket is opened
         ws = await self._connect(_ws_url(self.base_url), max_size)
         stream = AsyncStream(ws, self.encoding, self.timeout)
-        await stream._open(config_body(model, config))
+        await stream._open(body)
         return stream
 
     def watch(self, session_id: str, *, max_size: int | None = 1 << 27) -> Opening[AsyncWatch]:

@@ -12,6 +12,8 @@ import pytest
 
 from clients import ApiError, AsyncClient, Client
 
+from .conftest import start
+
 
 @pytest.mark.parametrize("encoding", ["msgpack", "json"])
 def test_simulate_refuses_node_ids_that_are_not_integers(live, support, encoding):
@@ -123,3 +125,27 @@ def test_bool_node_ids_among_ints_and_complex_numbers_are_refused_before_sending
 
     asyncio.run(main())
 
+
+def test_a_stream_config_refused_before_sending_opens_no_socket(bar_store, support, clouds):
+    """api.stream() with a config the client refuses (a bool among its support's ids) opened
+    the socket first and left it open, counted against the server's max_sockets: on a server
+    of one socket, the next stream was refused (503). The config is refused before connecting."""
+    server = start(bar_store[0], instance_id="one_socket", max_sockets=1)
+    ids = [True, *support.tolist()[1:]]
+    try:
+        with Client(server.url) as api:
+            with pytest.raises(ValueError, match="support must be integer node ids"):
+                api.stream("bar", support=ids)
+            with api.stream("bar", support=support) as st:
+                assert st.frame(clouds[0], frame_id="sync")["frame_id"] == "sync"
+
+        async def main() -> None:
+            async with AsyncClient(server.url) as api:
+                with pytest.raises(ValueError, match="support must be integer node ids"):
+                    await api.stream("bar", support=ids)
+                async with api.stream("bar", support=support) as st:
+                    assert (await st.frame(clouds[0], frame_id="async"))["frame_id"] == "async"
+
+        asyncio.run(main())
+    finally:
+        server.stop()
