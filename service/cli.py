@@ -190,7 +190,8 @@ def parser() -> argparse.ArgumentParser:
         metavar="SECONDS",
         help=(
             "a client silent this long gives the one slot up to a new connection, and a new connection "
-            "waits at most this long for the previous one's session to close (default: 10)"
+            "waits at most this long past the API's frame cap (its max_time_budget_ms) for the previous "
+            "one's session to close (default: 10)"
         ),
     )
     g.set_defaults(func=commands.igtl)

@@ -6,7 +6,8 @@ of the engine: each OpenIGTLink client gets one ``/stream`` session, which a vie
 (``/viewer?session=ID``). One client at a time: a second, while the first is connected, is told
 so and closed; one that comes as the first leaves (a reconnect) takes the slot at once, and its
 session opens once the first's frame in flight is answered and its session closed (refused with
-a 503 if no such teardown ends for ``idle_timeout``: the API is not answering); one that
+a 503 if no such teardown ends for the API's frame cap plus ``idle_timeout``: the API is not
+answering); one that
 comes while the first is silent (a Slicer that crashed or slept and left its connection
 half-open) takes the slot once the first has been silent for ``idle_timeout``, if it is still
 connected then (a TCP probe that closed evicts no one).
@@ -52,8 +53,8 @@ _THREAD_DECODE = 256 << 10
 _RECONNECT_GRACE = 1.0
 #: seconds a client may stay silent (no message sent, none being answered) and keep the slot
 #: from a new connection (`elastreg igtl --idle-timeout`): longer than a pause between clouds,
-#: shorter than a user who restarted Slicer will wait before giving up; also how long a new
-#: connection waits for a previous one's session to close with no teardown ending (an API stopped)
+#: shorter than a user who restarted Slicer will wait before giving up; also the margin past the
+#: API's frame cap a new connection waits for a previous one's session to close (Bridge.teardown_bound)
 IDLE_TIMEOUT = 10.0
 #: seconds the connections' teardown may take when the bridge stops (Ctrl-C)
 _STOP_GRACE = 5.0
@@ -190,24 +191,33 @@ class Bridge(Relay):
                 client.closed.set()
                 self._tearing.discard(client)  # the bridge holds no gone client (its buffers, its stream)
 
+    @property
+    def teardown_bound(self) -> float:
+        """Seconds a new connection waits with no earlier teardown ending: the API's frame cap
+        (an answering API may take that long over the frame in flight) plus idle_timeout (its
+        outputs past the cap, the session's close)."""
+        return self.frame_cap + self.idle_timeout
+
     async def _torn_down(self, earlier: list[Connection]) -> None:
         """Until the teardown of every connection in ``earlier`` is over; ApiRefused (503) once
-        idle_timeout passes with none of them over (the API does not answer their frames: a fixed
-        bound from arrival would refuse the last of a storm of reconnects that is progressing).
-        ``earlier`` is emptied: the client served holds none of them."""
+        teardown_bound passes with none of them over (the API does not answer their frames: a
+        fixed bound from arrival would refuse the last of a storm of reconnects that is
+        progressing). ``earlier`` is emptied: the client served holds none of them."""
+        bound = self.teardown_bound
         try:
             while pending := [c for c in earlier if not c.closed.is_set()]:
                 waits = [asyncio.ensure_future(c.closed.wait()) for c in pending]
                 try:
-                    done, _ = await asyncio.wait(waits, timeout=self.idle_timeout, return_when=asyncio.FIRST_COMPLETED)
+                    done, _ = await asyncio.wait(waits, timeout=bound, return_when=asyncio.FIRST_COMPLETED)
                 finally:
                     for w in waits:
                         w.cancel()
                 if not done:
                     raise ApiRefused(
                         503,
-                        f"the previous client's session did not close within {self.idle_timeout:g} s (the bridge's "
-                        "idle timeout): the API is not answering; try again later",
+                        f"the previous client's session did not close within {bound:g} s (the API's frame cap of "
+                        f"{self.frame_cap:g} s plus the bridge's idle timeout of {self.idle_timeout:g} s): the API "
+                        "is not answering; try again later",
                     )
         finally:
             earlier.clear()

@@ -96,7 +96,8 @@ class Relay:
         self.encoding = encoding
         self.surface: Surface | None = None
         #: the API's limits (its /health), read at prepare(): max_points, max_message_bytes,
-        #: body_timeout_s (also how long the rest of a message may take once its header began)
+        #: body_timeout_s (also how long the rest of a message may take once its header began),
+        #: max_time_budget_ms (how long a frame in flight may take: frame_cap)
         self.limits: dict = {}
         self.sessions: list[str] = []  # ids of the sessions opened so far (for logs and tests)
         self.announce: Callable[[str], None] = (
@@ -156,6 +157,15 @@ class Relay:
         from ..config import Settings
 
         return float(self.limits.get("send_min_bytes_per_s") or Settings.model_fields["send_min_bytes_per_s"].default)
+
+    @property
+    def frame_cap(self) -> float:
+        """Seconds the API may spend on one frame (its max_time_budget_ms; its default where an
+        older API lists none): an answering API ends a frame in flight within about this long."""
+        from ..config import Settings
+
+        cap = self.limits.get("max_time_budget_ms") or Settings.model_fields["max_time_budget_ms"].default
+        return float(cap) / 1e3
 
     @property
     def read_timeout(self) -> float:

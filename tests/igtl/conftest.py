@@ -7,6 +7,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import os
 import signal
 import socket
 import subprocess
@@ -115,12 +116,16 @@ def api_server(bar_store):
 
 
 @pytest.fixture
-def api_process(bar_store, tmp_path):
+def api_process(bar_store, tmp_path, request):
     """An API server in its own process (`elastreg serve` over the bar store), to be stopped
-    (SIGSTOP) as a hung API is: (url, process), continued and ended after the test."""
+    (SIGSTOP) as a hung API is: (url, process), continued and ended after the test. Parametrized
+    indirectly with a dict, it serves that dict's ``store`` (default: the bar store) with its
+    ``ELASTREG_*`` variables as settings."""
+    env = {**os.environ, **getattr(request, "param", {})}
     port = free_port()
-    cmd = [sys.executable, "-m", "service.cli", "serve", "--store", str(bar_store[0]), "--port", str(port)]
-    server = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=(tmp_path / "serve.log").open("w"))
+    store = str(env.pop("store", bar_store[0]))
+    cmd = [sys.executable, "-m", "service.cli", "serve", "--store", store, "--port", str(port)]
+    server = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=(tmp_path / "serve.log").open("w"), env=env)
     try:
         url = f"http://127.0.0.1:{port}"
         deadline = time.monotonic() + 120
