@@ -162,9 +162,10 @@ class FEMOperator:
         self.last = res
         if res.status == "time_limit":
             raise ForwardFailed(res.status, f"time budget spent in a Newton solve, after {res.iterations} iterations")
-        if not res.converged:
-            residual = "not finite" if res.residual is None else f"{res.residual:.2e}"
-            raise ForwardFailed(res.status, f"Newton residual {residual} after {res.iterations} iterations")
+        if not res.converged:  # res.residual unread: an internal-force pass per failed trial, for words
+            raise ForwardFailed(
+                res.status, f"no equilibrium after {res.iterations} iterations ({res.load_steps} load steps completed)"
+            )
         self._kept = [(np.array(g, np.float64), res.u), *self._kept[: KEPT_EQUILIBRIA - 1]]
         return res
 

@@ -85,7 +85,8 @@ class NewtonResult:
     solver: SparseSolver | None = None
     shifted: int = 0  # tangents that needed a diagonal shift (indefinite)
     #: u's relative residual under the requested load, measured (None: not finite); only an
-    #: unconverged result has one, read at most once (an internal-force pass; none past a deadline)
+    #: unconverged result stopped before its deadline has one, read at most once (an internal-force
+    #: pass: a time_limit result has none, as it would be paid past the deadline)
     measure: Callable[[], float | None] | None = dataclasses.field(default=None, repr=False)
 
     @functools.cached_property
@@ -93,7 +94,9 @@ class NewtonResult:
         """||f_int(u) - g|| / max(||g||, ||g - f_int(u0)||) over the free dofs: u's relative
         residual under the requested load g, the norm rtol is on. A converged solve's is its
         last Newton residual; an unconverged one's last was of a partial load step or of an
-        iterate it dropped, so u's is measured. None where u's internal forces are not finite."""
+        iterate it dropped, so u's is measured (an internal-force pass, when first read). None
+        where u's internal forces are not finite, and for a time_limit result (not measured past
+        its deadline)."""
         if self.converged:
             return self.residuals[-1]
         return None if self.measure is None else self.measure()
@@ -251,7 +254,7 @@ class NewtonSolver:
         if self._factor_x is not None and np.array_equal(self._factor_x, x):
             shifts = 0
         elif deadline is not None and time.perf_counter() > deadline:  # no factorisation past it (the liver's: ~1 s)
-            return self._result(x, False, "time_limit", 0, 0, [], t0, measure)
+            return self._result(x, False, "time_limit", 0, 0, [], t0)
         else:
             shifts = self._factor_tangent(asm.tangent(u_start), x)
         s, ds, iterations, steps = 0.0, 1.0, 0, 0
@@ -313,7 +316,8 @@ class NewtonSolver:
                 iterations,
                 residuals[-1] if residuals else np.nan,
             )
-        res = self._result(x, converged, status, iterations, steps, residuals, t0, None if converged else measure)
+        unmeasured = converged or status == "time_limit"  # a time_limit's pass would overrun its deadline
+        res = self._result(x, converged, status, iterations, steps, residuals, t0, None if unmeasured else measure)
         res.solver = self.solver if have_factor else None
         res.shifted = shifts
         return res

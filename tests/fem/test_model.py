@@ -207,6 +207,20 @@ def test_failed_solve_raises_forward_failed(bar):
     assert info.value.status == "max_iter" and "after 1 iterations" in str(info.value)
 
 
+def test_a_failed_trial_measures_no_residual_for_its_message(bar):
+    """A trial point whose solve fails (a frame's line search may try many) paid an internal-force
+    pass to put the field's residual in ForwardFailed's words: the residual is left unmeasured
+    (residual is a cached property: its value lands in the result's __dict__ once read), and
+    reading it after still gives simulate's measured residual."""
+    model = FEMModel(bar, NeoHookean(4500.0, 0.49), NewtonOptions(max_iter=1))
+    support, g = support_and_load(bar)
+    op = model.restrict(support)
+    with pytest.raises(ForwardFailed, match="no equilibrium after 1 iterations"):
+        op(10 * g)
+    assert "residual" not in vars(op.last)
+    assert op.last.residual is not None and op.last.residual > 1e-6
+
+
 def test_an_operator_past_its_deadline_fails_with_time_limit_and_keeps_its_state(model):
     """Past the deadline a solve raises ForwardFailed('time_limit') without a Newton iteration;
     the warm start it keeps is the last equilibrium, so the next solve without a deadline

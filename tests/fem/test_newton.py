@@ -185,6 +185,22 @@ def test_a_solve_begins_no_iteration_it_predicts_would_end_past_its_deadline(bar
     assert full.converged and full.iterations > 0
 
 
+def test_a_time_limit_result_measures_no_residual_past_its_deadline(bar):
+    """Both time_limit paths (a deadline past before the start's factorisation; one nearer than
+    an iteration, the factor held) carry no measure: reading the residual ran an internal-force
+    pass past the deadline. An unconverged solve stopped for another reason still measures u's."""
+    solver = NewtonSolver(Assembler(bar, NeoHookean(4500.0, 0.49)))
+    g = tip_load(bar, [0.0, 0.0, -80.0])
+    before = solver.solve(g, deadline=time.perf_counter())
+    u1 = solver.solve(tip_load(bar, [0.0, 0.0, -60.0])).u
+    assert solver.factor_at(u1)
+    inside = solver.solve(g, u1, deadline=time.perf_counter() + 0.5 * solver.iteration_estimate())
+    for cut in (before, inside):
+        assert cut.status == "time_limit" and cut.measure is None and cut.residual is None
+    capped = NewtonSolver(Assembler(bar, NeoHookean(4500.0, 0.49)), NewtonOptions(max_iter=2)).solve(g)
+    assert capped.status == "max_iter" and capped.measure is not None and capped.residual > 1e-6
+
+
 def test_one_stalled_iteration_does_not_refuse_every_later_solve(bar):
     """A single stall inside one iteration (a GC pause, the process descheduled: here 0.5 s of
     sleep before the real tangent) is the longest time the solver holds; a later budget under it

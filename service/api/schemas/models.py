@@ -66,7 +66,9 @@ class SimulateOut(_Reply):
     status: str
     iterations: int
     residual: float | None = Field(
-        None, description="the FEM's: |f_int(u) - g| / |g| of the returned field under the forces, converged or not"
+        None,
+        description="the FEM's: |f_int(u) - g| / |g| of the returned field under the forces, converged or not "
+        "(null: not finite, or status time_limit: not measured past the time cap)",
     )
     error_estimate: float | None = None  # m, the network's: null where infinite (the FEM has residual)
     timing_ms: dict[str, float]
