@@ -5,6 +5,7 @@ a socket's first use."""
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import json
 from collections.abc import Coroutine, Generator
@@ -160,6 +161,14 @@ def _raise_if_closed(ws) -> None:
         raise _closed_by_server(exc) from exc
 
 
+def _unanswered(exc: BaseException, ws) -> None:
+    """A socket whose opening went unanswered (timed out, or cancelled while waiting) closes
+    without waiting for the closing handshake (websockets' close_timeout, 10 s): a server that
+    did not answer its config (frozen, hung) will not answer its close either."""
+    if isinstance(exc, (TimeoutError, asyncio.CancelledError)):
+        ws.close_timeout = 0
+
+
 @contextlib.contextmanager
 def _closes_as_stream_error(what: str = "stream"):
     """Raise a socket found closed as :class:`StreamError` (websockets' exception its cause)."""
@@ -238,7 +247,8 @@ class Stream(_SyncSocket):
             if refused is not None:
                 raise refused from None
             raise _closed_by_server(exc) from exc
-        except BaseException:
+        except BaseException as exc:
+            _unanswered(exc, ws)
             ws.close()
             raise
 
@@ -335,7 +345,8 @@ class AsyncStream(_AsyncSocket):
             if refused is not None:
                 raise refused from None
             raise _closed_by_server(exc) from exc
-        except BaseException:
+        except BaseException as exc:
+            _unanswered(exc, self.ws)
             await self.ws.close()
             raise
 

@@ -7,9 +7,11 @@ A server with tokens needs one: ``--token T``, or ``$ELASTREG_TOKEN``. ``--metho
 
 The figures go to stdout, also when the run ends early: Ctrl-C (then ``interrupted`` on stderr,
 exit status 130), a stream the server closed, a server that stopped answering (one line on
-stderr each, exit status 1). A run that measured no frame is a failure (exit status 1); so is
-one with errors or unanswered frames. Frames refused at capacity (503) are a figure of their
-own, not a failure: each stream waits the server's ``retry_after`` before its next try.
+stderr each, exit status 1; frozen before measuring began, it ends --seconds and REPLY_GRACE_S
+after making the frames or opening the streams began). A run that measured no frame is a
+failure (exit status 1); so is one with errors or unanswered frames. Frames refused at capacity
+(503) are a figure of their own, not a failure: each stream waits the server's ``retry_after``
+before its next try.
 
 The frames need the model's geometry (a surface patch to pull, its normals, clouds sampled on
 the deformed surface), so they are made here; the streams themselves are an ordinary client's
@@ -60,8 +62,12 @@ async def make_frames(
 
 async def _run(args: argparse.Namespace, tally: Tally) -> LoadReport:
     token = args.token or os.environ.get("ELASTREG_TOKEN")  # as `elastreg igtl --token` reads it
+    bound = args.seconds + REPLY_GRACE_S  # a server frozen before measuring ends the run in this too
     async with AsyncClient(args.url, encoding=args.encoding, token=token) as api:
-        frames, support = await make_frames(api, args.model, n_points=args.points)
+        try:
+            frames, support = await asyncio.wait_for(make_frames(api, args.model, n_points=args.points), bound)
+        except TimeoutError:
+            raise TimeoutError(f"the frames to replay were not made within {bound:g} s (--seconds and grace)") from None
     return await run_load(
         args.url,
         args.model,
@@ -146,11 +152,15 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: the server at {args.url} broke a stream: {exc}", file=sys.stderr)
         _measured(tally)
         return 1
+    except TimeoutError as exc:  # frozen before measuring began: making frames, or opening a stream
+        print(f"error: the server at {args.url} stopped answering: {exc}", file=sys.stderr)
+        return 1
     except (httpx.ConnectError, OSError) as exc:
         print(f"error: cannot reach a server at {args.url} ({exc or type(exc).__name__})", file=sys.stderr)
         return 1
     except httpx.HTTPError as exc:  # reached, then a timeout or a broken reply
-        print(f"error: a request to {args.url} failed ({type(exc).__name__}: {exc})", file=sys.stderr)
+        why = str(exc) or ("no reply in time" if isinstance(exc, httpx.TimeoutException) else "no detail given")
+        print(f"error: a request to {args.url} failed ({type(exc).__name__}: {why})", file=sys.stderr)
         return 1
     print(report.text())
     if report.frames == 0:  # no figure to read: a failure, not a run

@@ -7,15 +7,19 @@ import asyncio
 import contextlib
 import dataclasses
 import json
+import subprocess
+import sys
 import threading
 import time
+from collections.abc import Iterator
+from pathlib import Path
 
 import httpx
 import msgpack
 import numpy as np
 import pytest
 
-from service.api.server import BackgroundServer
+from service.api.server import BackgroundServer, free_port
 from service.config import Settings
 from service.synthetic import sample_surface
 
@@ -166,6 +170,31 @@ def occupied(pool, n: int = 1, timeout: float = 60.0):
         release.set()
         for t in threads:
             t.join(timeout=30)
+
+
+@contextlib.contextmanager
+def server_process(store) -> Iterator[tuple[subprocess.Popen, str]]:
+    """``elastreg serve`` in a process of its own (one a test can freeze with SIGSTOP), up, and
+    its URL; killed at the block's end."""
+    port = free_port()
+    url = f"http://127.0.0.1:{port}"
+    argv = [sys.executable, "-m", "service.cli", "serve", "--store", str(store), "--port", str(port)]
+    root = Path(__file__).resolve().parents[2]
+    server = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=root)
+    try:
+
+        def up() -> bool:
+            assert server.poll() is None, "the server exited"
+            try:
+                return httpx.get(url + "/health", timeout=2).status_code == 200
+            except httpx.HTTPError:
+                return False
+
+        assert wait_for(up, 120), "the server did not start"
+        yield server, url
+    finally:
+        server.kill()
+        server.wait(30)
 
 
 def wait_for(predicate, timeout: float = 10.0) -> bool:

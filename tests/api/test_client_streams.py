@@ -4,12 +4,17 @@ server: sync and async alike."""
 from __future__ import annotations
 
 import asyncio
+import signal
 import time
 
 import pytest
 from websockets.exceptions import ConnectionClosed
 
 from clients import AsyncClient, Client, StreamError
+from clients.bodies import config_body
+from clients.sockets import AsyncStream, Stream
+
+from .conftest import server_process
 
 
 def test_a_closed_stream_keeps_raising_its_close_not_out_of_step(small, clouds):
@@ -134,3 +139,34 @@ def test_a_closed_stream_with_sent_frames_pending_raises_its_close(small, clouds
             await stream.close()
 
     asyncio.run(main())
+
+
+def test_a_stream_whose_opening_goes_unanswered_closes_without_waiting(bar_store):
+    """A server frozen (SIGSTOP) after the handshake, before it answered the stream's config:
+    the opening timed out, then its close waited websockets' close_timeout (10 s) more for a
+    closing handshake that server would not answer. It closes at once now, sync and async."""
+    from websockets.asyncio.client import connect as aconnect
+    from websockets.sync.client import connect
+
+    config = config_body("bar", {})
+    with server_process(bar_store[0]) as (server, url):
+        ws_url = url.replace("http://", "ws://") + "/stream"
+        with connect(ws_url, compression=None) as ws:
+            server.send_signal(signal.SIGSTOP)
+            started = time.monotonic()
+            with pytest.raises(TimeoutError):
+                Stream(ws, "msgpack", config, timeout=1.0)
+            took = time.monotonic() - started
+        assert took < 3.0, f"took {took:.1f} s"
+        server.send_signal(signal.SIGCONT)
+
+        async def main() -> float:
+            ws = await aconnect(ws_url, compression=None)
+            server.send_signal(signal.SIGSTOP)
+            started = time.monotonic()
+            with pytest.raises(TimeoutError):
+                await AsyncStream(ws, "msgpack", timeout=1.0)._open(config)
+            return time.monotonic() - started
+
+        took = asyncio.run(main())
+        assert took < 3.0, f"took {took:.1f} s"

@@ -13,14 +13,12 @@ import threading
 import time
 from pathlib import Path
 
-import httpx
 import pytest
 
 from clients.loadtest import REPLY_GRACE_S, run_load
-from service.api.server import free_port
 from service.loadtest import main as loadtest_main
 
-from .conftest import occupied, start, wait_for
+from .conftest import occupied, server_process, start
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -131,34 +129,42 @@ def test_a_frozen_server_ends_the_run_within_its_grace_and_says_so(bar_store):
     client's own keepalive ping timed out, and then blamed the server for closing the stream.
     Now it ends REPLY_GRACE_S past its seconds at most, with the figures and the frames left
     unanswered."""
-    port = free_port()
-    url = f"http://127.0.0.1:{port}"
-    argv = [sys.executable, "-m", "service.cli", "serve", "--store", str(bar_store[0]), "--port", str(port)]
-    server = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=ROOT)
     seconds = 3.0
-    try:
-
-        def up() -> bool:
-            assert server.poll() is None, "the server exited"
-            try:
-                return httpx.get(url + "/health", timeout=2).status_code == 200
-            except httpx.HTTPError:
-                return False
-
-        assert wait_for(up, 120), "the server did not start"
+    with server_process(bar_store[0]) as (server, url):
         run = LoadTest(url, "--streams", "2", "--seconds", str(seconds))
         run.measure_a_while()
         server.send_signal(signal.SIGSTOP)
         status, out, err, ended = run.finish()
-    finally:
-        server.kill()
-        server.wait(30)
     assert status == 1 and len(err) == 2 and "closed" not in err[1], err
     assert err[1] == f"error: the server at {url} left 2 frame(s) unanswered {REPLY_GRACE_S:g} s past the run's end " \
         "(frozen, or frames that slow)", err  # fmt: skip
     assert "unanswered 2" in figures(out, 2)
     took = ended - run.measuring_at
     assert took < seconds + REPLY_GRACE_S + 2, f"the run took {took:.1f} s"
+
+
+def test_a_server_frozen_before_measuring_ends_the_run_within_seconds_and_grace(bar_store, support, clouds):
+    """A server frozen (SIGSTOP) before the clock started: making the frames waited httpx's 60 s
+    and said "failed (ReadTimeout: )", no reason; opening a stream waited websockets' 60 s and
+    more. Both are bounded by --seconds and REPLY_GRACE_S now, and say the server stopped
+    answering."""
+    seconds = 2.0
+    with server_process(bar_store[0]) as (server, url):
+        server.send_signal(signal.SIGSTOP)
+        started = time.monotonic()
+        run = LoadTest(url, "--streams", "2", "--seconds", str(seconds))
+        status, out, err, ended = run.finish()
+        assert status == 1 and out == "", (status, out, err)
+        assert err == [f"error: the server at {url} stopped answering: the frames to replay were not made within "
+                       f"{seconds + REPLY_GRACE_S:g} s (--seconds and grace)"], err  # fmt: skip
+        # the process's own start (imports) apart, at most a second or two
+        assert ended - started < seconds + REPLY_GRACE_S + 4, f"the run took {ended - started:.1f} s"
+
+        started = time.monotonic()
+        with pytest.raises(TimeoutError, match=f"no stream opened within {seconds + REPLY_GRACE_S:g} s"):
+            asyncio.run(run_load(url, "bar", frames=clouds, support=support, streams=2, seconds=seconds))
+        took = time.monotonic() - started
+        assert took < seconds + REPLY_GRACE_S + 1, f"the run took {took:.1f} s"
 
 
 def test_method_auto_takes_max_error_and_is_refused_without_it(live, capsys):
