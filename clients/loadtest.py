@@ -276,6 +276,9 @@ async def run_load(
             tally.unanswered = fit.count(False)
             t_end = time.perf_counter() + seconds
             await asyncio.gather(*(one(i, s, t_end) for i, s in enumerate(opened) if fit[i]))
+        except BaseException as exc:
+            _quit(exc, opened)
+            raise
         finally:
             tally.stop()
             await asyncio.gather(*(s.close() for s in opened), return_exceptions=True)

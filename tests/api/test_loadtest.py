@@ -143,6 +143,23 @@ def test_a_frozen_server_ends_the_run_within_its_grace_and_says_so(bar_store):
     assert took < seconds + REPLY_GRACE_S + 2, f"the run took {took:.1f} s"
 
 
+def test_ctrl_c_against_a_frozen_server_exits_at_once_with_the_figures(bar_store):
+    """Ctrl-C in a run whose server was frozen (SIGSTOP) took 10 s to exit: each stream's close
+    waited websockets' close_timeout for a closing handshake the server would not answer. An
+    interrupted run closes its streams the quick way, as one past its grace does."""
+    with server_process(bar_store[0]) as (server, url):
+        run = LoadTest(url, "--streams", "2", "--seconds", "120")
+        run.measure_a_while()
+        server.send_signal(signal.SIGSTOP)
+        time.sleep(0.5)
+        interrupted = time.monotonic()
+        run.proc.send_signal(signal.SIGINT)
+        status, out, err, ended = run.finish()
+    assert status == 130 and err[1:] == ["interrupted"], err
+    figures(out, 2)
+    assert ended - interrupted < 3.0, f"it exited {ended - interrupted:.1f} s after Ctrl-C"
+
+
 def test_a_server_frozen_before_measuring_ends_the_run_within_seconds_and_grace(bar_store, support, clouds):
     """A server frozen (SIGSTOP) before the clock started: making the frames waited httpx's 60 s
     and said "failed (ReadTimeout: )", no reason; opening a stream waited websockets' 60 s and
