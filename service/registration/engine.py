@@ -159,7 +159,7 @@ def solve_frame(
             if np.any(grad_rest):  # the tolerance underflowed: the test would pass anything
                 raise Stop("stalled", f"the rest gradient ({np.abs(grad_rest).max():.3g}) is below what gtol resolves")
             raise Done(_still_at_rest(evaluate, options.alpha))
-        _check_alpha(options.alpha, v_rest, grad_rest, best.value)
+        _check_alpha(options.alpha, v_rest, grad_rest, best.value, distance, evaluate.rest_rms)
         # the optimiser's trial points only: the starts' share the spare core with the rest state
         evaluate.prefetch = prefetch
         # the optimiser's own evaluations: the rest state's and the starts' pay for no line search
@@ -254,18 +254,40 @@ def _still_at_rest(evaluate: Objective, alpha: float) -> str:
     return f"no force on the support moves the surface the points match: {stands}"
 
 
-def _check_alpha(alpha: float, v_rest: float, grad_rest: Array, v_best: float) -> None:
+def _check_alpha(
+    alpha: float, v_rest: float, grad_rest: Array, v_best: float, distance: PointToSurface, rest_rms: float
+) -> None:
     """Ends the frame (Done) where alpha is so large that no force lowers the objective by what
     the optimiser resolves: Phi(g) >= Phi(0) + grad.g + alpha/2 |g|^2 (J's curvature is no
     less than 0 near g = 0, and alpha's swamps it), whose least value is |grad|^2 / (2 alpha)
     below the rest state's; the regularised answer, |grad| / alpha in force, is the rest state.
-    L-BFGS-B would stall at it ("relative reduction"), saying nothing of alpha."""
+    L-BFGS-B would stall at it ("relative reduction"), saying nothing of alpha. The message
+    names a huber threshold too where it is what shrank the pull (_threshold_swamped)."""
     gain = roundoff_gain(alpha, grad_rest, v_rest)
     if gain is not None and v_best >= v_rest - gain:
+        by = f"by {gain:.3g} m^2 at most, from {v_rest:.3g} m^2 at rest"
+        if _threshold_swamped(alpha, grad_rest, distance, rest_rms):
+            raise Done(
+                f"alpha {alpha:.3g} swamps the huber loss's pull, which scales with its threshold loss_param "
+                f"{distance.delta:.3g} m (the cloud is {rest_rms:.3g} m rms from rest): no force can lower the "
+                f"objective measurably ({by}): the rest state stands"
+            )
         raise Done(
-            f"alpha {alpha:.3g} is so large that no force can lower the objective measurably (by "
-            f"{gain:.3g} m^2 at most, from {v_rest:.3g} m^2 at rest): the rest state stands"
+            f"alpha {alpha:.3g} is so large that no force can lower the objective measurably ({by}): "
+            "the rest state stands"
         )
+
+
+def _threshold_swamped(alpha: float, grad_rest: Array, distance: PointToSurface, rest_rms: float) -> bool:
+    """Whether a huber threshold under the cloud's distance is what makes its pull too small to
+    lower the objective: a point past it pulls delta / d of the squared loss's, so with the
+    threshold at the points' distance (rms / delta more pull, J at rms^2 / 2) some force would
+    (roundoff_gain). An estimate, on this rare path only; scaled first, as 1e-300's pull underflows."""
+    if distance.loss != "huber" or distance.delta is None or not distance.delta < rest_rms:
+        return False
+    with np.errstate(over="ignore", invalid="ignore"):
+        grad = grad_rest * (rest_rms / distance.delta)
+    return not np.isfinite(grad).all() or roundoff_gain(alpha, grad, 0.5 * rest_rms**2) is None
 
 
 def _best_start(evaluate: Objective, candidates: tuple[Array, ...], options: SolveOptions) -> Start | None:

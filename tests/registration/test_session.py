@@ -557,18 +557,32 @@ def test_messages_say_why_a_frame_stopped(entry, sequence):
     assert "0.02 m rms" in r.message
 
 
-def test_a_vanishing_huber_threshold_is_named_not_a_held_surface(entry, sequence):
+@pytest.mark.parametrize("method", ["network", "fem"])
+def test_a_vanishing_huber_threshold_is_named_not_a_held_surface(entry, sequence, method):
     """A huber threshold of 1e-300 scales the loss's linear part, the pull of every point past
     it, to nothing: the rest state stands, but not because "no force on the support moves the
-    surface" (the squared loss moves it on the same cloud); the message names loss_param."""
+    surface" (the squared loss moves it on the same cloud); the message names loss_param. The
+    FEM's rest gradient is not exactly zero, so its frame ended at alpha's check, whose message
+    blamed alpha alone ("alpha 1e-07 is so large ...")."""
     tool, seq = sequence
     support = _support(entry, tool)
-    moved = Session(entry.network, SessionConfig(support=support)).frame(seq.clouds[5])
-    assert moved.converged and np.abs(moved.outputs["forces"]).max() > 0
-    r = Session(entry.network, SessionConfig(support=support, loss="huber", loss_param=1e-300)).frame(seq.clouds[5])
+    model = getattr(entry, method)
+    moved = Session(model, SessionConfig(support=support)).frame(seq.clouds[5])
+    assert np.abs(moved.outputs["forces"]).max() > 0
+    r = Session(model, SessionConfig(support=support, loss="huber", loss_param=1e-300)).frame(seq.clouds[5])
     assert r.iterations == 0 and not np.any(r.outputs["forces"])
     assert "no force on the support moves" not in r.message
     assert "swamps the huber loss's pull" in r.message and "loss_param 1e-300 m" in r.message, r.message
+
+
+def test_a_large_alpha_under_a_fair_huber_threshold_blames_alpha_alone(entry, sequence):
+    """A threshold near the cloud's distance is not what swamps the pull: alpha 1e20 is, and
+    the message names alpha only (the FEM's rest gradient, not zero, meets alpha's check)."""
+    tool, seq = sequence
+    config = SessionConfig(support=_support(entry, tool), loss="huber", loss_param=1e-3, alpha=1e20)
+    r = Session(entry.fem, config).frame(seq.clouds[5])
+    assert r.iterations == 0 and not np.any(r.outputs["forces"])
+    assert "is so large that no force can lower the objective" in r.message and "loss_param" not in r.message
 
 
 def test_a_forward_model_that_answers_nan_gives_a_non_finite_frame(bar_store, sequence):
