@@ -27,6 +27,23 @@ from .conftest import get_mesh, point_frame, polydata_frame, read_answer, regist
 BOUND = 1.6
 
 
+def traced_answer(bridge, message: bytes) -> tuple:
+    """Send `message` on a new connection once its session is open: the answer (surface, status)
+    and the bridge's traced peak over what it held before the message."""
+    tracemalloc.start()
+    try:
+        with bridge.connect() as sock:
+            bridge.wait_sessions(1)
+            time.sleep(0.2)  # the session's own allocations settle before the message's are counted
+            base = tracemalloc.get_traced_memory()[0]
+            tracemalloc.reset_peak()
+            sock.sendall(message)
+            surface, status = read_answer(sock)
+            return surface, status, tracemalloc.get_traced_memory()[1] - base
+    finally:
+        tracemalloc.stop()
+
+
 @pytest.mark.parametrize("kind, n", [("POLYDATA", 1_000_000), ("POINT", 100_000)])
 @pytest.mark.parametrize("version", [1, 2])
 def test_a_large_cloud_costs_about_its_body_once(kind, n, version, api_server, run_bridge):
@@ -39,18 +56,7 @@ def test_a_large_cloud_costs_about_its_body_once(kind, n, version, api_server, r
         message = p.pack(kind, "cloud", message[p.HEADER_SIZE :], version=2, metadata={"unit": "m"})
     body = len(message) - p.HEADER_SIZE
     bridge = run_bridge(api.url)
-    tracemalloc.start()
-    try:
-        with bridge.connect() as sock:
-            bridge.wait_sessions(1)
-            time.sleep(0.2)  # the session's own allocations settle before the message's are counted
-            base = tracemalloc.get_traced_memory()[0]
-            tracemalloc.reset_peak()
-            sock.sendall(message)
-            surface, status = read_answer(sock)
-            peak = tracemalloc.get_traced_memory()[1] - base
-    finally:
-        tracemalloc.stop()
+    surface, status, peak = traced_answer(bridge, message)
     assert surface is None and status["error"]["code"] == 413, status
     assert peak < BOUND * body, f"peak {peak / 1e6:.1f} MB for a body of {body / 1e6:.1f} MB ({peak / body:.2f}x)"
 
@@ -71,18 +77,7 @@ def test_many_tiny_attributes_cost_about_their_body_once(api_server, run_bridge)
     message = p.pack("POLYDATA", "cloud", bytes(body) + heads.tobytes() + names)
     size = len(message) - p.HEADER_SIZE
     bridge = run_bridge(api.url)
-    tracemalloc.start()
-    try:
-        with bridge.connect() as sock:
-            bridge.wait_sessions(1)
-            time.sleep(0.2)  # the session's own allocations settle before the message's are counted
-            base = tracemalloc.get_traced_memory()[0]
-            tracemalloc.reset_peak()
-            sock.sendall(message)
-            surface, status = read_answer(sock)
-            peak = tracemalloc.get_traced_memory()[1] - base
-    finally:
-        tracemalloc.stop()
+    surface, status, peak = traced_answer(bridge, message)
     assert surface is None and status["error"]["code"] == 413, status
     assert peak < BOUND * size, f"peak {peak / 1e6:.1f} MB for a body of {size / 1e6:.1f} MB ({peak / size:.2f}x)"
 

@@ -293,14 +293,7 @@ def test_ctrl_c_during_the_data_prints_one_line_and_keeps_the_paths(tmp_path, ba
     scene = write_bar_scene(tmp_path / "scene", bar, samples=30_000)  # far more than it has time for
     data = tmp_path / "data"
     p = _foreground_train(scene, tmp_path / "store", data, workers=1)
-    try:
-        _first_path_then(p, data)
-        os.killpg(p.pid, signal.SIGINT)
-        out, _ = p.communicate(timeout=60)
-    finally:
-        if p.poll() is None:
-            os.killpg(p.pid, signal.SIGKILL)
-            p.wait()
+    out = _interrupted(p, data, 1, lambda: os.killpg(p.pid, signal.SIGINT))  # the terminal's whole group
     assert p.returncode == 130, out[-3000:]
     assert "Traceback" not in out, out[-3000:]
     (folder,) = data.iterdir()
@@ -323,14 +316,7 @@ def test_ctrl_c_to_the_build_alone_prints_no_dask_log_lines(tmp_path, bar):
     for _ in range(2):
         before = len(list(data.rglob("path_*.npz")))
         p = _foreground_train(scene, tmp_path / "store", data, workers=2)
-        try:
-            _first_path_then(p, data, paths=before + 2)  # both workers are solving
-            os.kill(p.pid, signal.SIGINT)
-            out, _ = p.communicate(timeout=60)
-        finally:
-            if p.poll() is None:
-                os.killpg(p.pid, signal.SIGKILL)
-                p.wait()
+        out = _interrupted(p, data, before + 2, lambda p=p: os.kill(p.pid, signal.SIGINT))  # both workers solving
         assert p.returncode == 130, out[-3000:]
         lines = [line for line in out.replace("\r", "\n").splitlines() if line.strip()]
         assert not [line for line in lines if "distributed" in line or "Traceback" in line], out[-3000:]
@@ -349,6 +335,21 @@ def _foreground_train(scene: Path, store: Path, data: Path, workers: int) -> sub
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=ROOT, start_new_session=True,
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )  # fmt: skip
+
+
+def _interrupted(p: subprocess.Popen, data: Path, paths: int, interrupt) -> str:
+    """Once the build `p` has written `paths` load paths, `interrupt()` it: its output (its
+    group killed if it is not over within 60 s)."""
+    import signal
+
+    try:
+        _first_path_then(p, data, paths=paths)
+        interrupt()
+        return p.communicate(timeout=60)[0]
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
 
 
 def _first_path_then(p: subprocess.Popen, data: Path, paths: int = 1) -> None:
