@@ -319,6 +319,8 @@ _ATTR_COMPONENTS = {
     3: 9,
     4: 4,
 }  # scalar (its own count), vector, normal, tensor, RGBA
+#: the same table by the type's low nibble, for the numba walk: 0 where the head's own count holds
+_ATTR_WIDTHS = np.array([_ATTR_COMPONENTS.get(k) or 0 for k in range(16)], np.int64)
 
 
 def decode_polydata(content: bytes | bytearray, *, reuse: bool = False, attributes: bool = True) -> PolyData:
@@ -357,10 +359,10 @@ def decode_polydata(content: bytes | bytearray, *, reuse: bool = False, attribut
 
 
 @numba.njit(cache=True)
-def _walk_attributes(raw, at, count):
+def _walk_attributes(raw, at, count, widths):
     """Walk ``count`` attributes from byte ``at`` of ``raw`` (6-byte heads, NUL-ended names padded
-    to an even length, then each one's data): (0, 0, 0) when they fit the body, (1, 0, 0) when a
-    name has no NUL in it, (2, start, end) the name of the first whose data runs past it."""
+    to an even length, then each one's data; ``widths``: _ATTR_WIDTHS): (0, 0, 0) when they fit
+    the body, (1, 0, 0) when a name has no NUL in it, (2, start, end) the name of the first whose data runs past it."""
     n = raw.size
     heads = at
     at += 6 * count
@@ -375,14 +377,9 @@ def _walk_attributes(raw, at, count):
     name = start
     for i in range(count):
         h = heads + 6 * i
-        kind = raw[h] & 0x0F
-        width = np.int64(raw[h + 1])  # a scalar's (kind 0) and an unknown kind's own count
-        if kind == 1 or kind == 2:  # vector, normal
-            width = 3
-        elif kind == 3:  # tensor
-            width = 9
-        elif kind == 4:  # RGBA
-            width = 4
+        width = widths[raw[h] & 0x0F]
+        if width == 0:  # a scalar's (kind 0) and an unknown kind's own count
+            width = np.int64(raw[h + 1])
         items = (np.int64(raw[h + 2]) << 24) | (np.int64(raw[h + 3]) << 16) | (np.int64(raw[h + 4]) << 8) | raw[h + 5]
         end = name
         while raw[end] != 0:
@@ -400,7 +397,7 @@ def _check_attributes(content: bytes | bytearray, at: int, count: int) -> None:
     left = len(content) - at
     if 7 * count > left:  # a 6-byte head and a name of at least its NUL each, before any is read
         raise ProtocolError(f"POLYDATA: {count} attributes cannot fit in the {left} bytes left of its body")
-    fault, start, end = _walk_attributes(np.frombuffer(content, np.uint8), at, count)
+    fault, start, end = _walk_attributes(np.frombuffer(content, np.uint8), at, count, _ATTR_WIDTHS)
     if fault == 1:
         raise ProtocolError("POLYDATA: malformed attributes (a name has no NUL before the body ends)")
     if fault == 2:
