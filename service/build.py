@@ -75,26 +75,32 @@ REPLACE_MIN_PATHS = REPORT_MIN_PATHS  # train.py's: a split of the held-out path
 REPLACE_EXCUSE_CEILING = 4.0
 
 
-def load_spec(scene: Scene, region: np.ndarray) -> LoadSpec:
+def load_spec(scene: Scene, region: np.ndarray, keep_off: np.ndarray | None = None) -> LoadSpec:
+    """The scene's load distribution over `region`, none touching `keep_off` (Scene.keep_off_nodes)."""
     t = scene.training
+    kept = () if keep_off is None else tuple(int(i) for i in np.intersect1d(keep_off, region))
     return LoadSpec(
         region=tuple(int(i) for i in region),
         max_force=float(t.max_force),
-        # a patch cannot outgrow its region (Scene refuses one whose smallest does): the range the
-        # loads really take, which the manifest records and the estimate reads as the tool's size
-        patch_nodes=(int(t.patch_nodes[0]), min(int(t.patch_nodes[1]), len(region))),
+        # a patch cannot outgrow what its region leaves (Scene refuses one whose smallest does): the
+        # range the loads really take, which the manifest records and the estimate reads as the tool's size
+        patch_nodes=(int(t.patch_nodes[0]), min(int(t.patch_nodes[1]), len(region) - len(kept))),
         steps=int(t.load_steps),
         multi_patch=float(t.multi_patch),
         normal_fraction=float(t.normal_fraction),
         pull_fraction=float(t.pull_fraction),
         twist_fraction=float(t.twist_fraction),
         seed=int(t.seed),
+        keep_off=kept,
     )
 
 
 def data_key(mesh_hash: str, material: NeoHookean, spec: LoadSpec, max_newton: int | None = None) -> str:
     """The data folder's key; a Newton cap keeps a folder of its own (it changes which steps exist)."""
-    parts: list = [mesh_hash, material.E, material.nu, dataclasses.asdict(spec)]
+    loads = dataclasses.asdict(spec)
+    if not spec.keep_off:  # the key of a spec from before the field: its data folders stay found
+        del loads["keep_off"]
+    parts: list = [mesh_hash, material.E, material.nu, loads]
     if max_newton is not None:
         parts.append({"max_newton": max_newton})
     blob = json.dumps(parts, sort_keys=True)
@@ -380,7 +386,7 @@ def build(
     mesh, loaded = scene.build_mesh()
     region = scene.region_nodes(mesh, loaded)
     material = NeoHookean.of(scene.material)
-    spec = load_spec(scene, region)
+    spec = load_spec(scene, region, scene.keep_off_nodes(mesh, loaded))
     n_samples = int(samples or scene.training.samples)
     n_paths = max(2, math.ceil(n_samples / spec.steps))
     max_newton = None if minutes is None else TIMED_NEWTON_CAP

@@ -16,6 +16,17 @@ _TRUTH_TEXT = {
 }
 
 
+def _held_out_text(held: int, sites: int) -> str:
+    """Where the sites lie against the build's training loads: `held` of `sites` had their
+    supports kept off every training load (the case name says which)."""
+    if held == 0:
+        return "load region, so inside the region the build was trained on (the loads and the truth are held out, not the sites)"
+    return (
+        f"load region; {held} of the {sites} sites held out of the build (no training load touched their supports: "
+        "[training] keep_off), the loads and the truth held out at every site"
+    )
+
+
 def fmt(v, digits: int = 3) -> str:
     if isinstance(v, (list, tuple)):  # a cell of several figures (each pass's time, statuses)
         return ", ".join(fmt(x, digits) for x in v)
@@ -96,15 +107,16 @@ def write_report(results: dict, out: Path) -> None:
         md.append("\n![per-frame TRE and time](figures/liver_frames.png)\n")
     if "anysite" in parts:
         A = parts["anysite"]
+        held = "sites and loads" if A.get("held_out_sites") else "loads"
         md.append(
-            f"\n## Any tool site ({A['model']}): sites spread over the surface, loads held out, truth from a finer mesh\n"
+            f"\n## Any tool site ({A['model']}): sites spread over the surface, {held} held out, truth from a finer mesh\n"
         )
         built = A.get("model_entry")  # which build: reports before it named the id alone
         md.append(
             (f"The build of {built['created']} (weights sha256 {str(built['weights_sha256'])[:12]}). " if built else "")
             + f"Tool patches of {A['tool_nodes']} nodes, supports three times that, sites spread over the whole "
-            "load region, so inside the region the build was trained on (the loads and the truth are held out, not "
-            f"the sites); truth: {_TRUTH_TEXT[A.get('truth', 'subdivided')]}"
+            + _held_out_text(A.get("held_out_sites", 0), len({s["case"] for s in A["summaries"]}))
+            + f"; truth: {_TRUTH_TEXT[A.get('truth', 'subdivided')]}"
             + (
                 f"; method auto corrects frames whose estimate exceeds {A['max_error_mm']:.3g} mm (twice the "
                 "build's validation error) with the Newton method; auto runs the network as its "

@@ -162,6 +162,35 @@ def region_nodes(t: TrainingSpec, mesh: TetMesh, loaded: LoadedMesh | None, orig
     return _check_patch(t, np.asarray(ids, np.int64), origin)
 
 
+def keep_off_nodes(t: TrainingSpec, mesh: TetMesh, loaded: LoadedMesh | None, origin: str) -> Array:
+    """[training] keep_off: the load region's nodes no training load may touch (none by default).
+    Listed ids must be free surface nodes; those outside the region are dropped (no load reaches
+    them anyway). What is left of the region must still hold the smallest patch. Shape: (k,)."""
+    if t.keep_off is None and t.keep_off_file is None:
+        return np.zeros(0, np.int64)
+    key = "[training] keep_off" if t.keep_off is not None else "[training] keep_off_file"
+    raw = t.keep_off if t.keep_off is not None else read_ids(t.keep_off_file, key, origin)
+    ids = np.unique(map_ids(raw, key, loaded, origin))
+    bad = np.setdiff1d(ids, mesh.free_surface_nodes)
+    if bad.size:
+        raise scene_error(
+            origin,
+            key,
+            f"{bad.size} nodes are not free surface nodes (interior or fixed): "
+            f"{bad.tolist()[:10]}{' ...' if bad.size > 10 else ''}",
+        )
+    region = region_nodes(t, mesh, loaded, origin)
+    kept = np.intersect1d(ids, region)
+    if region.size - kept.size < int(t.patch_nodes[0]):
+        raise scene_error(
+            origin,
+            key,
+            f"leaves {region.size - kept.size} of the load region's {region.size} nodes, fewer than the smallest "
+            f"load patch ({int(t.patch_nodes[0])}): keep fewer nodes off or widen the region",
+        )
+    return kept
+
+
 def _check_patch(t: TrainingSpec, region: Array, origin: str) -> Array:
     """Refuses a region smaller than the smallest load patch: every sampled load would cover
     fewer nodes than the scene says, and the served model's estimate would take the scene's

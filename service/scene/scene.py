@@ -19,6 +19,9 @@ Keys beyond SCENES.md (all optional):
   ``twist_fraction`` (0: how often a patch carries a torque instead of a single direction),
   ``members`` (1: the surrogate's ensemble size, see :mod:`service.surrogate.network`;
   ``elastreg train --members`` overrides it).
+- ``[training] keep_off`` or ``keep_off_file``: free surface nodes no training load may touch
+  (no patch centres on one or spreads over one); the network still accepts forces there. A test
+  at sites held out of the build keeps their supports off (benchmarks/held_out_sites.py).
 - ``[registration]``: read by the benchmark and the trainer: ``support`` or ``support_file``
   (node ids where registration may put forces), ``matching_file`` (a .npy (f, 3) array of the
   boundary triangles point clouds lie on).
@@ -172,6 +175,11 @@ class Scene(Table):
         Listed ids must be free surface nodes; box and sphere keep the free surface nodes inside.
         """
         return scene_ids.region_nodes(self.training, mesh, self._loaded_for(mesh, loaded), self._origin)
+
+    def keep_off_nodes(self, mesh: TetMesh, loaded: LoadedMesh | None = None) -> Array:
+        """[training] keep_off nodes of the load region (none by default): no training load
+        touches them. Shape: (k,) sorted mesh ids."""
+        return scene_ids.keep_off_nodes(self.training, mesh, self._loaded_for(mesh, loaded), self._origin)
 
     def support_nodes(self, mesh: TetMesh, loaded: LoadedMesh | None = None) -> Array | None:
         """[registration] support nodes in mesh ids, or None when the scene names none.

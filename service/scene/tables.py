@@ -135,6 +135,8 @@ class TrainingSpec(Table):
     pull_fraction: Fraction = 2.0 / 3.0
     twist_fraction: Fraction = 0.0
     members: Annotated[int, Field(strict=True, ge=1, le=MAX_MEMBERS)] = 1
+    keep_off: list[NodeId] | None = None
+    keep_off_file: ScenePath | None = None
 
     @field_validator("patch_nodes")
     @classmethod
@@ -148,6 +150,8 @@ class TrainingSpec(Table):
         given = given_keys(self, REGION_KEYS)
         if len(given) > 1:
             raise ValueError(f"give at most one of {', '.join(REGION_KEYS)} (got {', '.join(given)})")
+        if self.keep_off is not None and self.keep_off_file is not None:
+            raise ValueError("give at most one of keep_off, keep_off_file")
         return self
 
 

@@ -75,6 +75,7 @@ class LoadSpec:
     pull_fraction: float = 2.0 / 3.0  # outward pulls (a grasper retracting) vs pushes
     twist_fraction: float = 0.0  # patches loaded by a torque (tangential, turning about the centre)
     seed: int = 0
+    keep_off: tuple[int, ...] = ()  # region nodes no load touches (sites held out of the build)
 
 
 def _unit(v: Array) -> Array:
@@ -85,7 +86,8 @@ def sample_path_load(mesh: TetMesh, spec: LoadSpec, rng: np.random.Generator) ->
     """The final (largest) load of one path, on the region nodes. Shape: (r, 3).
 
     A patch is the k region nodes nearest (along the surface) to a random region node, with k
-    uniform in patch_nodes. Its direction mixes the outward normal and a random tangent: the
+    uniform in patch_nodes, both outside `keep_off` (without one, the draws are those of a spec
+    without the field). Its direction mixes the outward normal and a random tangent: the
     normal share a ~ Beta(2 nf, 2 (1 - nf)) has mean nf = `normal_fraction`, and the normal
     part points outwards (a pull) with probability `pull_fraction`. The total force spreads evenly or as a
     smooth bump over the patch. With probability `twist_fraction` a patch instead carries a torque:
@@ -96,6 +98,8 @@ def sample_path_load(mesh: TetMesh, spec: LoadSpec, rng: np.random.Generator) ->
     region = np.asarray(spec.region)
     in_region = np.zeros(mesh.n_nodes, bool)
     in_region[region] = True
+    in_region[list(spec.keep_off)] = False
+    centres = region[in_region[region]]
     pos = np.full(mesh.n_nodes, -1)
     pos[region] = np.arange(region.size)
     g = np.zeros((region.size, 3))
@@ -104,7 +108,7 @@ def sample_path_load(mesh: TetMesh, spec: LoadSpec, rng: np.random.Generator) ->
     shares = rng.dirichlet(np.ones(n_patches)) if n_patches > 1 else np.ones(1)
     lo, hi = spec.patch_nodes
     for share in shares:
-        centre = int(rng.choice(region))
+        centre = int(rng.choice(centres))
         k = int(rng.integers(lo, hi + 1))
         patch = _region_patch(mesh, centre, k, in_region)
         normal = mesh.patch_normal(patch)

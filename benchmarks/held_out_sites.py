@@ -1,0 +1,46 @@
+"""The nodes a build keeps its training loads off so that the any-site part's reported sites
+are held out of it: the union of the supports of the SITES sites the part draws (SITE_SEED,
+over the scene's load region) and of the scene's own [registration] support (the recorded
+sequence's), written in the mesh file's node ids for `[training] keep_off_file`.
+
+    python benchmarks/held_out_sites.py --scene benchmarks/scenes/liver_paper.toml \
+        --out benchmarks/scenes/liver_paper_held_out.npy
+
+The held-out scene (liver_paper_held_out.toml) is liver_paper.toml with that key and its own
+name; `elastreg bench anysite` on its build marks each site whose support no training load
+touched ("held out"), read from the build's manifest, not from this script.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+from service.bench.anysite import SITE_SEED, SITES, site_patches, site_region
+from service.scene import Scene, load_scene
+
+
+def held_out_nodes(scene: Scene) -> np.ndarray:
+    """The reported sites' supports and the scene's support, in the mesh file's ids. Shape: (k,)."""
+    mesh, loaded = scene.build_mesh()
+    region = scene.region_nodes(mesh, loaded)
+    sites = site_patches(mesh, site_region(mesh, region, SITE_SEED), SITES, np.random.default_rng(SITE_SEED))
+    support = scene.support_nodes(mesh, loaded)
+    nodes = np.unique(np.concatenate([s for _, _, s in sites] + ([] if support is None else [support])))
+    return nodes if loaded.kept is None else np.sort(loaded.kept[nodes])
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--scene", default="benchmarks/scenes/liver_paper.toml")
+    p.add_argument("--out", required=True, help="the .npy file to write")
+    args = p.parse_args()
+    scene = load_scene(args.scene)
+    nodes = held_out_nodes(scene)
+    np.save(args.out, nodes.astype(np.int64))
+    print(f"{scene.name}: {nodes.size} nodes kept off (the supports of {SITES} reported sites and the scene's own)")
+
+
+if __name__ == "__main__":
+    main()
