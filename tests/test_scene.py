@@ -464,3 +464,32 @@ def test_a_scale_that_puts_the_mesh_past_any_size_blames_the_scale(folder, scale
     assert "\n" not in msg
     text = edited("scale = 0.001", f"scale = {scale}").replace('path = "meshes/block.vtu"', 'generator = "phantom"')
     assert "[mesh] scale: scale" in error_of(folder, text=text)
+
+
+def test_kept_off_nodes_are_read_and_checked(folder):
+    """[training] keep_off / keep_off_file: free surface nodes no training load touches; an
+    interior node, both keys, or a region left smaller than a patch are refused by name."""
+    from service.build import load_spec
+
+    scene = load_scene(write(folder))
+    mesh, _ = scene.build_mesh()
+    region = scene.region_nodes(mesh)
+    kept = region[:5].tolist()
+    scene = load_scene(write(folder, training=f"keep_off = {kept}"))
+    np.testing.assert_array_equal(scene.keep_off_nodes(mesh), kept)
+    np.save(folder / "off.npy", np.asarray(kept))
+    from_file = load_scene(write(folder, training='keep_off_file = "off.npy"'))
+    np.testing.assert_array_equal(from_file.keep_off_nodes(mesh), kept)
+    spec = load_spec(scene, region, scene.keep_off_nodes(mesh))
+    assert spec.keep_off == tuple(kept) and spec.region == tuple(region.tolist())  # the network's region stays
+    assert load_scene(write(folder)).keep_off_nodes(mesh).size == 0
+    interior = int(np.setdiff1d(np.arange(mesh.n_nodes), mesh.surface_nodes)[0])
+    with pytest.raises(SceneError, match=r"\[training\] keep_off: 1 nodes are not free surface nodes"):
+        load_scene(write(folder, training=f"keep_off = [{interior}]")).keep_off_nodes(mesh)
+    msg = error_of(folder, training=f'keep_off = {kept}\nkeep_off_file = "off.npy"')
+    assert "give at most one of keep_off, keep_off_file" in msg
+    few = load_scene(write(folder, training=f"keep_off = {region[1:].tolist()}"))
+    with pytest.raises(SceneError, match=r"\[training\] keep_off: leaves 1 of the load region's"):
+        few.keep_off_nodes(mesh)
+    room = load_scene(write(folder, training=f"keep_off = {region[4:].tolist()}"))
+    assert load_spec(room, region, room.keep_off_nodes(mesh)).patch_nodes == (2, 4)  # what is left to load

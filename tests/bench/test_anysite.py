@@ -81,3 +81,43 @@ def test_the_anysite_results_name_the_build_that_ran(tmp_path):
         "validation_mean_mm": manifest["training"]["validation"]["mean_mm"],
     }
     assert manifest["files"]["weights.safetensors"][:12] in (out / "report.md").read_text()
+
+
+@needs_liver()
+def test_the_held_out_liver_keeps_every_reported_site_and_the_recorded_support_off(tmp_path):
+    """liver_paper_held_out.toml's keep_off file is what benchmarks/held_out_sites.py writes
+    today, it holds the supports of all six reported sites and the recorded sequence's, and the
+    scene is liver_paper.toml otherwise (its name and that key aside)."""
+    import subprocess
+    import sys
+    import tomllib
+
+    from service.scene import load_scene
+
+    scenes = ROOT / "benchmarks" / "scenes"
+    out = tmp_path / "held_out.npy"
+    subprocess.run(
+        [
+            sys.executable,
+            "benchmarks/held_out_sites.py",
+            "--scene",
+            str(scenes / "liver_paper.toml"),
+            "--out",
+            str(out),
+        ],
+        cwd=ROOT,
+        check=True,
+        capture_output=True,
+    )
+    np.testing.assert_array_equal(np.load(out), np.load(scenes / "liver_paper_held_out.npy"))
+    scene = load_scene(scenes / "liver_paper_held_out.toml")
+    mesh, loaded = scene.build_mesh()
+    region, kept = scene.region_nodes(mesh, loaded), scene.keep_off_nodes(mesh, loaded)
+    reported, _ = draws(mesh, region)
+    for _, _, support in reported:
+        assert np.isin(support, kept).all()
+    assert np.isin(scene.support_nodes(mesh, loaded), kept).all()
+    plain, held = (tomllib.loads((scenes / f).read_text()) for f in ("liver_paper.toml", "liver_paper_held_out.toml"))
+    assert held.pop("name") == "liver_paper_held_out" and held["training"].pop("keep_off_file")
+    del plain["name"]
+    assert plain == held

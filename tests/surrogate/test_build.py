@@ -714,3 +714,32 @@ def test_more_local_workers_pay_off_sooner():
     assert local_workers_pay(35.0, 8) and not local_workers_pay(35.0, 2)
     assert local_workers_pay(2.01 * LOCAL_CLUSTER_COST_S, 2) and not local_workers_pay(1.99 * LOCAL_CLUSTER_COST_S, 2)
     assert not local_workers_pay(1e6, 1)
+
+
+def test_a_build_keeps_its_loads_off_kept_off_nodes_and_the_bench_calls_those_sites_held_out(tmp_path, bar):
+    """A build with [training] keep_off never loads those nodes (its data say so, and its
+    manifest records them), and the any-site part marks a site held out only where the build
+    kept its whole support off."""
+    from service.bench.anysite import SITE_SEED, anysite_cases, site_patches, site_region
+    from service.build import build
+    from service.scene import load_scene
+    from service.surrogate.data import done_indices, load_dataset
+    from service.surrogate.train import TrainConfig
+
+    path = write_bar_scene(tmp_path / "scene", bar, samples=60)
+    region = load_scene(path).region_nodes(bar)
+    sites = site_patches(bar, site_region(bar, region, SITE_SEED), 2, np.random.default_rng(SITE_SEED))
+    kept = sites[0][2]  # the first site's support; the bar's file ids are its mesh ids
+    path.write_text(path.read_text() + f"keep_off = {kept.tolist()}\n")
+    store, data = tmp_path / "store", tmp_path / "data"
+    config = TrainConfig(hidden=(16,), rank=8, epochs=4)
+    build(load_scene(path), store, workers=0, data_root=data, config=config, progress=False)
+    entry = load_entry(store / "bar")
+    assert entry.manifest["training"]["load_distribution"]["keep_off"] == kept.tolist()
+    np.testing.assert_array_equal(entry.region, region)  # forces are still taken there
+    (folder,) = data.iterdir()
+    F, _, _ = load_dataset(folder, sorted(done_indices(folder)))
+    on_kept = np.isin(region, kept)
+    assert len(F) >= 50 and not np.abs(F[:, on_kept]).any() and np.abs(F[:, ~on_kept]).any()
+    names = [case.name for case in anysite_cases(entry, sites=2, frames=2)]
+    assert len(names) == 2 and names[0].endswith(", held out)") and not names[1].endswith("held out)")

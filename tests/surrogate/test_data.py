@@ -356,3 +356,38 @@ def test_an_os_error_while_reading_a_path_file_is_raised_not_taken_for_damage(tm
         resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
     assert raised.value.errno == errno.EMFILE and str(path_file(out, 0)) in str(raised.value)
     assert done_indices(out) == {0, 1, 2} and not list(out.glob("*.damaged"))  # nothing set aside
+
+
+def test_kept_off_nodes_carry_no_training_load_and_the_rest_still_do(bar, spec):
+    """[training] keep_off: no patch centres on or spreads over a kept-off node, and loads still
+    reach the nodes left (the sites a held-out test scores were never loaded in training)."""
+    from dataclasses import replace
+
+    region = np.asarray(spec.region)
+    kept = region[region.size // 2 :]
+    off = replace(spec, keep_off=tuple(kept.tolist()))
+    on_kept = np.isin(region, kept)
+    reached = np.zeros(region.size, bool)
+    for i in range(60):
+        g = sample_path_load(bar, off, np.random.default_rng([0, i]))
+        loaded = np.abs(g).sum(axis=1) > 0
+        assert not loaded[on_kept].any()
+        assert 3 <= loaded.sum() <= 12
+        reached |= loaded
+    assert reached[~on_kept].mean() > 0.8
+    # without kept-off nodes the draws are those of a spec from before the field
+    plain = [sample_path_load(bar, spec, np.random.default_rng([0, i])) for i in range(5)]
+    empty = [sample_path_load(bar, replace(spec, keep_off=()), np.random.default_rng([0, i])) for i in range(5)]
+    np.testing.assert_array_equal(plain, empty)
+
+
+def test_a_spec_without_kept_off_nodes_keeps_its_data_folders_key():
+    """The data folder's key of a spec with no keep_off is the one the field's absence gave, so
+    the data of builds made before it stay found; kept-off nodes make a folder of their own."""
+    from dataclasses import replace
+
+    from service.build import data_key
+
+    spec = LoadSpec(region=(1, 2, 3), max_force=2.0, patch_nodes=(2, 3), seed=4)
+    assert data_key("abc", MAT, spec) == "767a69887666"  # computed by the code before keep_off
+    assert data_key("abc", MAT, replace(spec, keep_off=(2,))) != "767a69887666"
