@@ -244,9 +244,7 @@ def _still_at_rest(evaluate: Objective, alpha: float) -> str:
         at_rest = getattr(op, "at_rest", None)  # the network's records nothing on the operator
         _, pullback = at_rest() if at_rest is not None else op(np.zeros((len(op.support), 3)))
         if np.any(pullback(pull / scale, rows=distance.gradient_nodes)):
-            why = "the loss's pull"
-            if distance.loss == "huber":
-                why = f"the huber loss's pull, which scales with its threshold loss_param {distance.delta:.3g} m"
+            why = _huber_pull(distance) if distance.loss == "huber" else "the loss's pull"
             return (
                 f"alpha {alpha:.3g} swamps {why}: its gradient at rest vanishes and no force can lower "
                 f"the objective measurably: {stands}"
@@ -268,14 +266,17 @@ def _check_alpha(
         by = f"by {gain:.3g} m^2 at most, from {v_rest:.3g} m^2 at rest"
         if _threshold_swamped(alpha, grad_rest, distance, rest_rms):
             raise Done(
-                f"alpha {alpha:.3g} swamps the huber loss's pull, which scales with its threshold loss_param "
-                f"{distance.delta:.3g} m (the cloud is {rest_rms:.3g} m rms from rest): no force can lower the "
-                f"objective measurably ({by}): the rest state stands"
+                f"alpha {alpha:.3g} swamps {_huber_pull(distance)} (the cloud is {rest_rms:.3g} m rms from rest): "
+                f"no force can lower the objective measurably ({by}): the rest state stands"
             )
         raise Done(
             f"alpha {alpha:.3g} is so large that no force can lower the objective measurably ({by}): "
             "the rest state stands"
         )
+
+
+def _huber_pull(distance: PointToSurface) -> str:
+    return f"the huber loss's pull, which scales with its threshold loss_param {distance.delta:.3g} m"
 
 
 def _threshold_swamped(alpha: float, grad_rest: Array, distance: PointToSurface, rest_rms: float) -> bool:
