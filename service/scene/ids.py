@@ -133,15 +133,7 @@ def region_nodes(t: TrainingSpec, mesh: TetMesh, loaded: LoadedMesh | None, orig
     if t.region is not None or t.region_file is not None:
         key = "[training] region" if t.region is not None else "[training] region_file"
         raw = t.region if t.region is not None else read_ids(t.region_file, key, origin)
-        ids = np.unique(map_ids(raw, key, loaded, origin))
-        bad = np.setdiff1d(ids, free_surface)
-        if bad.size:
-            raise scene_error(
-                origin,
-                key,
-                f"{bad.size} nodes are not free surface nodes (interior or fixed): "
-                f"{bad.tolist()[:10]}{' ...' if bad.size > 10 else ''}",
-            )
+        ids = _free_surface_ids(raw, key, mesh, loaded, origin)
         if ids.size == 0:
             raise scene_error(origin, key, "lists no node: the load region holds no free surface node")
         return _check_patch(t, ids, origin)
@@ -170,15 +162,7 @@ def keep_off_nodes(t: TrainingSpec, mesh: TetMesh, loaded: LoadedMesh | None, or
         return np.zeros(0, np.int64)
     key = "[training] keep_off" if t.keep_off is not None else "[training] keep_off_file"
     raw = t.keep_off if t.keep_off is not None else read_ids(t.keep_off_file, key, origin)
-    ids = np.unique(map_ids(raw, key, loaded, origin))
-    bad = np.setdiff1d(ids, mesh.free_surface_nodes)
-    if bad.size:
-        raise scene_error(
-            origin,
-            key,
-            f"{bad.size} nodes are not free surface nodes (interior or fixed): "
-            f"{bad.tolist()[:10]}{' ...' if bad.size > 10 else ''}",
-        )
+    ids = _free_surface_ids(raw, key, mesh, loaded, origin)
     region = region_nodes(t, mesh, loaded, origin)
     kept = np.intersect1d(ids, region)
     if region.size - kept.size < int(t.patch_nodes[0]):
@@ -189,6 +173,20 @@ def keep_off_nodes(t: TrainingSpec, mesh: TetMesh, loaded: LoadedMesh | None, or
             f"load patch ({int(t.patch_nodes[0])}): keep fewer nodes off or widen the region",
         )
     return kept
+
+
+def _free_surface_ids(raw: Any, key: str, mesh: TetMesh, loaded: LoadedMesh | None, origin: str) -> Array:
+    """A key's listed ids in mesh ids, sorted and unique, refused unless every one is a free surface node."""
+    ids = np.unique(map_ids(raw, key, loaded, origin))
+    bad = np.setdiff1d(ids, mesh.free_surface_nodes)
+    if bad.size:
+        raise scene_error(
+            origin,
+            key,
+            f"{bad.size} nodes are not free surface nodes (interior or fixed): "
+            f"{bad.tolist()[:10]}{' ...' if bad.size > 10 else ''}",
+        )
+    return ids
 
 
 def _check_patch(t: TrainingSpec, region: Array, origin: str) -> Array:
