@@ -5,9 +5,10 @@ sequence's), written in the mesh file's node ids for `[training] keep_off_file`.
 
     python benchmarks/held_out_sites.py --scene benchmarks/scenes/liver_paper.toml \
         --out benchmarks/scenes/liver_paper_held_out.npy
+    python benchmarks/held_out_sites.py --scene phantom --out benchmarks/scenes/phantom_held_out.npy
 
-The held-out scene (liver_paper_held_out.toml) is liver_paper.toml with that key and its own
-name; `elastreg bench anysite` on its build marks each site whose support no training load
+The held-out scenes (liver_paper_held_out.toml, phantom_held_out.toml) are their recipes with
+that key and their own names; `elastreg bench anysite` on its build marks each site whose support no training load
 touched ("held out"), read from the build's manifest, not from this script.
 """
 
@@ -18,28 +19,30 @@ import argparse
 import numpy as np
 
 from service.bench.anysite import SITE_SEED, SITES, site_patches, site_region
-from service.scene import Scene, load_scene
+from service.scene import Scene, resolve_scene
 
 
-def held_out_nodes(scene: Scene) -> np.ndarray:
-    """The reported sites' supports and the scene's support, in the mesh file's ids. Shape: (k,)."""
+def held_out_nodes(scene: Scene) -> tuple[np.ndarray, bool]:
+    """The reported sites' supports and the scene's support (if it names one: the second value),
+    in the mesh file's ids. Shape: (k,)."""
     mesh, loaded = scene.build_mesh()
     region = scene.region_nodes(mesh, loaded)
     sites = site_patches(mesh, site_region(mesh, region, SITE_SEED), SITES, np.random.default_rng(SITE_SEED))
     support = scene.support_nodes(mesh, loaded)
     nodes = np.unique(np.concatenate([s for _, _, s in sites] + ([] if support is None else [support])))
-    return nodes if loaded.kept is None else np.sort(loaded.kept[nodes])
+    return (nodes if loaded.kept is None else np.sort(loaded.kept[nodes])), support is not None
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--scene", default="benchmarks/scenes/liver_paper.toml")
+    p.add_argument("--scene", default="benchmarks/scenes/liver_paper.toml", help="a .toml file or a builtin scene")
     p.add_argument("--out", required=True, help="the .npy file to write")
     args = p.parse_args()
-    scene = load_scene(args.scene)
-    nodes = held_out_nodes(scene)
+    scene = resolve_scene(args.scene)
+    nodes, own = held_out_nodes(scene)
     np.save(args.out, nodes.astype(np.int64))
-    print(f"{scene.name}: {nodes.size} nodes kept off (the supports of {SITES} reported sites and the scene's own)")
+    also = " and the scene's own" if own else ""
+    print(f"{scene.name}: {nodes.size} nodes kept off (the supports of {SITES} reported sites{also})")
 
 
 if __name__ == "__main__":

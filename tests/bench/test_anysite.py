@@ -83,41 +83,44 @@ def test_the_anysite_results_name_the_build_that_ran(tmp_path):
     assert manifest["files"]["weights.safetensors"][:12] in (out / "report.md").read_text()
 
 
-@needs_liver()
-def test_the_held_out_liver_keeps_every_reported_site_and_the_recorded_support_off(tmp_path):
-    """liver_paper_held_out.toml's keep_off file is what benchmarks/held_out_sites.py writes
-    today, it holds the supports of all six reported sites and the recorded sequence's, and the
-    scene is liver_paper.toml otherwise (its name and that key aside)."""
+SCENES = ROOT / "benchmarks" / "scenes"
+SHIPPED = ROOT / "service" / "scene" / "shipped"
+
+
+def check_held_out_scene(name: str, scene_arg: str, recipe: Path, tmp_path: Path) -> None:
+    """NAME_held_out.toml's keep_off file is what benchmarks/held_out_sites.py writes today from
+    `scene_arg`, it holds the supports of all six reported sites and the scene's own (the
+    liver's recorded sequence), and the scene is its `recipe` otherwise (its name and that key
+    aside)."""
     import subprocess
     import sys
     import tomllib
 
-    from service.scene import load_scene
+    from service.scene import load_scene, resolve_scene
 
-    scenes = ROOT / "benchmarks" / "scenes"
     out = tmp_path / "held_out.npy"
-    subprocess.run(
-        [
-            sys.executable,
-            "benchmarks/held_out_sites.py",
-            "--scene",
-            str(scenes / "liver_paper.toml"),
-            "--out",
-            str(out),
-        ],
-        cwd=ROOT,
-        check=True,
-        capture_output=True,
-    )
-    np.testing.assert_array_equal(np.load(out), np.load(scenes / "liver_paper_held_out.npy"))
-    scene = load_scene(scenes / "liver_paper_held_out.toml")
+    script = [sys.executable, "benchmarks/held_out_sites.py", "--scene", scene_arg, "--out", str(out)]
+    subprocess.run(script, cwd=ROOT, check=True, capture_output=True)
+    np.testing.assert_array_equal(np.load(out), np.load(SCENES / f"{name}_held_out.npy"))
+    scene = load_scene(SCENES / f"{name}_held_out.toml")
     mesh, loaded = scene.build_mesh()
     region, kept = scene.region_nodes(mesh, loaded), scene.keep_off_nodes(mesh, loaded)
     reported, _ = draws(mesh, region)
     for _, _, support in reported:
         assert np.isin(support, kept).all()
-    assert np.isin(scene.support_nodes(mesh, loaded), kept).all()
-    plain, held = (tomllib.loads((scenes / f).read_text()) for f in ("liver_paper.toml", "liver_paper_held_out.toml"))
-    assert held.pop("name") == "liver_paper_held_out" and held["training"].pop("keep_off_file")
+    own = resolve_scene(scene_arg).support_nodes(mesh, loaded)
+    assert own is None or np.isin(own, kept).all()
+    plain, held = tomllib.loads(recipe.read_text()), tomllib.loads((SCENES / f"{name}_held_out.toml").read_text())
+    assert held.pop("name") == f"{name}_held_out" and held["training"].pop("keep_off_file")
     del plain["name"]
     assert plain == held
+
+
+@needs_liver()
+def test_the_held_out_liver_keeps_its_reported_sites_and_recorded_support_off(tmp_path):
+    recipe = SCENES / "liver_paper.toml"
+    check_held_out_scene("liver_paper", str(recipe), recipe, tmp_path)
+
+
+def test_the_held_out_phantom_keeps_its_reported_sites_off(tmp_path):
+    check_held_out_scene("phantom", "phantom", SHIPPED / "phantom.toml", tmp_path)
