@@ -38,7 +38,7 @@ if importlib.util.find_spec("websockets") is None:  # pragma: no cover
 
 from .bodies import config_body, frame_body, simulate_body
 from .encoding import JSON_MEDIA, MSGPACK_MEDIA, decode, encode
-from .errors import ApiError, redirected, retry_after
+from .errors import ApiError, foreign_page, redirected, retry_after
 from .errors import StreamError as StreamError  # importable from here, as it always was
 from .sockets import AsyncStream, AsyncWatch, Opening, Stream, Watch, handshake_refused, refused_status
 
@@ -127,8 +127,8 @@ class _Base:
             body = None
         if r.status_code >= 400:
             detail = body.get("detail") if isinstance(body, dict) else body
-            if body is None and r.content:  # another server's error page, as it came
-                detail = r.text
+            if body is None and r.content:  # another server's error page: said to be one, and its start
+                detail = foreign_page(media, r.url, r.text)
             instance, retry = r.headers.get("x-elastreg-instance"), retry_after(r.headers.get("retry-after"))
             raise ApiError(r.status_code, detail, instance, retry)
         if body is None or not _API_MEDIA.match(media):

@@ -37,6 +37,19 @@ def redirected(location: str | None) -> str:
     return f"redirected to {location}: give the client that URL (the API itself never redirects)"
 
 
+#: how much of another server's error page an ApiError's detail keeps
+PAGE_START = 200
+
+
+def foreign_page(media: str, url, text: str) -> str:
+    """The detail of an error reply whose body is no API reply (a proxy's 502 page, a wrong
+    port's 404): what it is, from where, and its first PAGE_START characters, not a whole page
+    of HTML in every log line that prints the error."""
+    text = " ".join(text.split())
+    more = " ..." if len(text) > PAGE_START else ""
+    return f"not an elastreg reply ({media or 'no content-type'}) from {url}: {text[:PAGE_START]}{more}"
+
+
 class StreamError(ApiError):
     """A stream's or a watch's error: an error message (``close_code`` None: the stream stays
     open), or a socket the server closed (``close_code`` set, and ``reason`` its words: a

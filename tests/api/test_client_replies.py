@@ -163,3 +163,22 @@ def test_model_ids_are_one_path_segment_never_another_path(live, support):
             assert (await api.mesh("bar"))["nodes"].shape == (81, 3)
 
     asyncio.run(main())
+
+
+class _ErrorPage(_Answer):
+    """A proxy's 502 page in front of a stopped API: 40 KB of HTML."""
+
+    status = 502
+    headers_out = {"Content-Type": "text/html"}
+    body = b"<html>\n<head><title>502 Bad Gateway</title></head>\n<body>" + b"<p>padding</p>" * 3000 + b"</body></html>"
+
+
+def test_another_servers_error_page_is_named_and_cut_short():
+    """A proxy's 502 page became the ApiError's detail whole (40 KB of HTML in every log line
+    that printed the error). Now the detail says it is no API reply, from where, and keeps the
+    page's first 200 characters, its whitespace folded."""
+    _check(_ErrorPage, 502, "not an elastreg reply (text/html) from http://127.0.0.1:")
+    with serving(_ErrorPage) as url, Client(url) as api, pytest.raises(ApiError) as err:
+        api.health()
+    assert "<html> <head><title>502 Bad Gateway</title></head>" in err.value.detail
+    assert len(err.value.detail) < 300 and err.value.detail.endswith(" ...")
