@@ -419,7 +419,8 @@ class Watch(_SyncSocket):
         except ConnectionClosed as exc:
             ws.close()
             raise _closed_by_server(exc, "watch") from exc
-        except BaseException:
+        except BaseException as exc:
+            _unanswered(exc, ws)
             ws.close()
             raise
 
@@ -470,7 +471,8 @@ class AsyncWatch(_AsyncSocket):
         except ConnectionClosed as exc:
             await self.ws.close()
             raise _closed_by_server(exc, "watch") from exc
-        except BaseException:
+        except BaseException as exc:
+            _unanswered(exc, self.ws)
             await self.ws.close()
             raise
 

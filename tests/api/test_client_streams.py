@@ -12,7 +12,7 @@ from websockets.exceptions import ConnectionClosed
 
 from clients import AsyncClient, Client, StreamError
 from clients.bodies import config_body
-from clients.sockets import AsyncStream, Stream
+from clients.sockets import AsyncStream, AsyncWatch, Stream, Watch
 
 from .conftest import server_process
 
@@ -173,4 +173,35 @@ def test_a_stream_whose_opening_goes_unanswered_closes_without_waiting(bar_store
             return time.monotonic() - started
 
         took = asyncio.run(main())
+        assert took < 3.0, f"took {took:.1f} s"
+
+
+def test_a_watch_whose_opening_goes_unanswered_closes_without_waiting(bar_store):
+    """As a stream's: a server frozen after a watch's handshake, before its first message, left
+    the watch's close waiting websockets' close_timeout (10 s) after its own timeout. It closes
+    at once now, sync and async."""
+    from websockets.asyncio.client import connect as aconnect
+    from websockets.sync.client import connect
+
+    with server_process(bar_store[0]) as (server, url):
+        ws_url = url.replace("http://", "ws://") + "/sessions/s-none/watch?encoding=msgpack"
+        with connect(ws_url, compression=None) as ws:
+            server.send_signal(signal.SIGSTOP)
+            started = time.monotonic()
+            with pytest.raises(TimeoutError):
+                Watch(ws, "msgpack", timeout=1.0)
+            took = time.monotonic() - started
+        assert took < 3.0, f"took {took:.1f} s"
+        server.send_signal(signal.SIGCONT)
+
+        async def main() -> float:
+            ws = await aconnect(ws_url, compression=None)
+            server.send_signal(signal.SIGSTOP)
+            started = time.monotonic()
+            with pytest.raises(TimeoutError):
+                await AsyncWatch(ws, "msgpack", timeout=1.0)._open()
+            return time.monotonic() - started
+
+        took = asyncio.run(main())
+        server.send_signal(signal.SIGCONT)
         assert took < 3.0, f"took {took:.1f} s"
