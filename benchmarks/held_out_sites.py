@@ -30,7 +30,7 @@ def held_out_nodes(scene: Scene) -> tuple[np.ndarray, bool]:
     sites = site_patches(mesh, site_region(mesh, region, SITE_SEED), SITES, np.random.default_rng(SITE_SEED))
     support = scene.support_nodes(mesh, loaded)
     nodes = np.unique(np.concatenate([s for _, _, s in sites] + ([] if support is None else [support])))
-    return (nodes if loaded.kept is None else np.sort(loaded.kept[nodes])), support is not None
+    return np.sort(loaded.mesh_to_source()[nodes]), support is not None  # surface nodes: each has a file id
 
 
 def main() -> None:

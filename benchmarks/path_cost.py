@@ -39,9 +39,8 @@ def main() -> int:
     for path in args.scenes:
         scene = load_scene(path)
         mesh, loaded = scene.build_mesh()
-        region = scene.region_nodes(mesh, loaded)
         material = NeoHookean.of(scene.material)
-        spec = load_spec(scene, region)
+        spec = load_spec(scene, mesh, loaded)
         solve_path(mesh, material, spec, args.paths + 1, max_newton=args.max_newton)  # compile and warm, not counted
         rows = []
         for i in range(args.paths):

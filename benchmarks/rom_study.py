@@ -144,7 +144,7 @@ def training_data(scene, seconds: float, root: Path) -> Path:
     """A timed build's training paths (seed 0, Newton capped) for `seconds` of 2 workers, kept."""
     mesh, loaded = scene.build_mesh()
     material = NeoHookean.of(scene.material)
-    spec = load_spec(scene, scene.region_nodes(mesh, loaded))
+    spec = load_spec(scene, mesh, loaded)
     folder = root / f"{scene.name}-train-{data_key(mesh.hash, material, spec, TIMED_NEWTON_CAP)}"
     if not done_indices(folder):
         until = time.perf_counter() + seconds

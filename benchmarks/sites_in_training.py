@@ -1,8 +1,9 @@
 """How often a whole-surface build's training paths load the any-site part's reported sites:
 replays the trainer's own load sampler (surrogate/data.py sample_path_load, each path's rng
-[seed, index]) over a scene's first PATHS paths and counts, per reported site (SITE_SEED), the
-paths that load at least half its tool patch and those that load its centre node. The part
-holds out loads and truth, not sites: this says how far.
+[seed, index], the scene's keep_off included) over a scene's first PATHS paths and counts, per
+reported site (SITE_SEED), the paths that load at least half its tool patch and those that load
+its centre node. A build without keep_off holds out loads and truth, not sites: this says how
+far; on a held-out scene (liver_paper_held_out.toml) every count is 0.
 
     python benchmarks/sites_in_training.py [--scene benchmarks/scenes/liver_paper.toml] [--paths 3481]
 
@@ -29,7 +30,7 @@ def main() -> None:
     scene = load_scene(args.scene)
     mesh, loaded = scene.build_mesh()
     region = scene.region_nodes(mesh, loaded)
-    spec = load_spec(scene, region)
+    spec = load_spec(scene, mesh, loaded)
     sites = site_patches(mesh, site_region(mesh, region, SITE_SEED), SITES, np.random.default_rng(SITE_SEED))
     nodes = np.asarray(spec.region)
     hits = np.zeros((len(sites), 2), int)  # half the tool patch, the centre node

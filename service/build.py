@@ -23,6 +23,8 @@ from .argtypes import MAX_MINUTES  # the command lines take no more
 from .fem.assembly import Assembler
 from .fem.material import NeoHookean
 from .fem.newton import NewtonOptions
+from .mesh import TetMesh
+from .meshfile import LoadedMesh
 from .scene import Scene
 from .scene.model_id import check_model_id
 from .store import StoreError, check_entry_place, load_entry, network_table, remove_stale_builds, write_entry
@@ -75,10 +77,12 @@ REPLACE_MIN_PATHS = REPORT_MIN_PATHS  # train.py's: a split of the held-out path
 REPLACE_EXCUSE_CEILING = 4.0
 
 
-def load_spec(scene: Scene, region: np.ndarray, keep_off: np.ndarray | None = None) -> LoadSpec:
-    """The scene's load distribution over `region`, none touching `keep_off` (Scene.keep_off_nodes)."""
+def load_spec(scene: Scene, mesh: TetMesh, loaded: LoadedMesh | None = None) -> LoadSpec:
+    """The scene's load distribution on `mesh` (`loaded` as Scene.region_nodes takes it): over
+    its load region, none touching its keep_off nodes."""
     t = scene.training
-    kept = () if keep_off is None else tuple(int(i) for i in np.intersect1d(keep_off, region))
+    region = scene.region_nodes(mesh, loaded)
+    kept = tuple(int(i) for i in scene.keep_off_nodes(mesh, loaded))
     return LoadSpec(
         region=tuple(int(i) for i in region),
         max_force=float(t.max_force),
@@ -100,6 +104,8 @@ def data_key(mesh_hash: str, material: NeoHookean, spec: LoadSpec, max_newton: i
     loads = dataclasses.asdict(spec)
     if not spec.keep_off:  # the key of a spec from before the field: its data folders stay found
         del loads["keep_off"]
+    else:  # kept-off loads are spread around the kept-off nodes (data.load_surface): not as first made
+        loads["sampler"] = "pieces"
     parts: list = [mesh_hash, material.E, material.nu, loads]
     if max_newton is not None:
         parts.append({"max_newton": max_newton})
@@ -384,9 +390,9 @@ def build(
     check_writable(data_root, "the data folder")
     remove_stale_builds(Path(store))  # the folders of builds killed mid-write (MBs of weights each)
     mesh, loaded = scene.build_mesh()
-    region = scene.region_nodes(mesh, loaded)
+    spec = load_spec(scene, mesh, loaded)
+    region = np.asarray(spec.region)
     material = NeoHookean.of(scene.material)
-    spec = load_spec(scene, region, scene.keep_off_nodes(mesh, loaded))
     n_samples = int(samples or scene.training.samples)
     n_paths = max(2, math.ceil(n_samples / spec.steps))
     max_newton = None if minutes is None else TIMED_NEWTON_CAP

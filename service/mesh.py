@@ -383,6 +383,18 @@ class TetMesh:
         g = g.maximum(g.T)  # each edge once in each direction, its length (not a sum)
         return g
 
+    def surface_pieces(self, nodes: Array) -> tuple[sp.csr_matrix, Array]:
+        """The surface graph with only the edges between two of `nodes` (surface node ids), and
+        the piece of each of them: the connected parts they form along the surface. Shape: (n, n),
+        (k,) labels 0.. in the order of `nodes`."""
+        keep = np.zeros(self.n_nodes, bool)
+        keep[nodes] = True
+        mask = sp.diags(keep.astype(np.float64))
+        graph = (mask @ self.surface_graph @ mask).tocsr()
+        graph.eliminate_zeros()
+        _, labels = csgraph.connected_components(graph[nodes][:, nodes], directed=False)
+        return graph, labels
+
     def surface_patch(self, centre: int, size: int) -> Array:
         """The `size` free surface nodes nearest to `centre` along the surface (geodesic).
 

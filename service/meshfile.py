@@ -146,6 +146,15 @@ class LoadedMesh:
         new_id[self.kept] = np.arange(self.kept.size)
         return new_id
 
+    def mesh_to_source(self) -> Array:
+        """Map from mesh ids to the file's node ids (-1 for a node the file has none for: one a
+        surface's tetrahedralisation added). Shape: (n,)."""
+        forward = self.source_to_mesh()
+        back = np.full(len(self.nodes), -1, np.int64)
+        has = forward >= 0
+        back[forward[has]] = np.flatnonzero(has)
+        return back
+
     def to_mesh(self, fixed: Array | None = None) -> TetMesh:
         """The TetMesh with these Dirichlet nodes (mesh ids; the arrays are already validated)."""
         return TetMesh(self.nodes, self.tets, np.zeros(0, np.int64) if fixed is None else fixed)

@@ -298,3 +298,8 @@ def test_a_surfaces_node_ids_are_its_files_vertex_ids(tmp_path):
     assert loaded.n_source_nodes == 10 and ids[0] == -1
     np.testing.assert_allclose(loaded.nodes[ids[1:]], verts[1:])
     assert ids[3] == ids[9]  # the copy is the same node
+    # and back: each mesh node's file id names that node again (held_out_sites.py writes them;
+    # before, it wrote mesh ids, and a scene read them as file ids one vertex off)
+    back = loaded.mesh_to_source()
+    assert back.shape == (len(loaded.nodes),) and (back[ids[1:]] >= 1).all()
+    np.testing.assert_array_equal(ids[back[ids[1:]]], ids[1:])

@@ -442,7 +442,7 @@ def test_a_region_smaller_than_its_patches(folder):
     assert "[training] patch_nodes: a load spreads over at least 2 nodes, but the load region holds 1" in msg
     scene = load_scene(write(folder, training=f"region = {few}"))
     mesh, _ = scene.build_mesh()
-    spec = load_spec(scene, scene.region_nodes(mesh))
+    spec = load_spec(scene, mesh)
     assert spec.patch_nodes == (2, 3)  # what the loads really take, not the scene's 6
 
 
@@ -480,7 +480,7 @@ def test_kept_off_nodes_are_read_and_checked(folder):
     np.save(folder / "off.npy", np.asarray(kept))
     from_file = load_scene(write(folder, training='keep_off_file = "off.npy"'))
     np.testing.assert_array_equal(from_file.keep_off_nodes(mesh), kept)
-    spec = load_spec(scene, region, scene.keep_off_nodes(mesh))
+    spec = load_spec(scene, mesh)
     assert spec.keep_off == tuple(kept) and spec.region == tuple(region.tolist())  # the network's region stays
     assert load_scene(write(folder)).keep_off_nodes(mesh).size == 0
     interior = int(np.setdiff1d(np.arange(mesh.n_nodes), mesh.surface_nodes)[0])
@@ -492,4 +492,11 @@ def test_kept_off_nodes_are_read_and_checked(folder):
     with pytest.raises(SceneError, match=r"\[training\] keep_off: leaves 1 of the load region's"):
         few.keep_off_nodes(mesh)
     room = load_scene(write(folder, training=f"keep_off = {region[4:].tolist()}"))
-    assert load_spec(room, region, room.keep_off_nodes(mesh)).patch_nodes == (2, 4)  # what is left to load
+    assert load_spec(room, mesh).patch_nodes == (2, 4)  # what is left to load
+    # what is left must hold the smallest patch in one piece: loads spread along the surface
+    far = [int(region[np.argmin(mesh.nodes[region, 0])]), int(region[np.argmax(mesh.nodes[region, 0])])]
+    scattered = load_scene(write(folder, training=f"keep_off = {np.setdiff1d(region, far).tolist()}"))
+    with pytest.raises(
+        SceneError, match="leaves 2 of the load region's .* the largest connected piece of them 1 nodes"
+    ):
+        scattered.keep_off_nodes(mesh)

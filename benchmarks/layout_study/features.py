@@ -24,7 +24,7 @@ def main():
     mesh, loaded = scene.build_mesh()
     region = scene.region_nodes(mesh, loaded)
     mat = NeoHookean.of(scene.material)
-    spec = load_spec(scene, region)
+    spec = load_spec(scene, mesh, loaded)
     data_dir = default_data_root() / f"{scene.name}-{data_key(mesh.hash, mat, spec)}"
     F, U, P = load_dataset(data_dir, sorted(done_indices(data_dir)))
     asm = Assembler(mesh, mat)

@@ -24,7 +24,7 @@ def main():
     mesh, loaded = scene.build_mesh()
     region = scene.region_nodes(mesh, loaded)
     mat = NeoHookean.of(scene.material)
-    spec = load_spec(scene, region)
+    spec = load_spec(scene, mesh, loaded)
     data_dir = default_data_root() / f"{scene.name}-{data_key(mesh.hash, mat, spec)}"
     print("nodes", mesh.n_nodes, "region", len(region), data_dir, flush=True)
     t0 = time.perf_counter()

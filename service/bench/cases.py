@@ -131,6 +131,17 @@ def liver_paper_case() -> Case:
     )
 
 
+def held_out(entry, support: Array) -> str:
+    """How much of a case's `support` the entry's build kept every training load off ([training]
+    keep_off, read from its manifest): "held out" for all of it, "N of M support nodes held
+    out" for part, "" for none (a build without keep_off: its sites lie inside what it learnt)."""
+    kept = entry.manifest.get("training", {}).get("load_distribution", {}).get("keep_off", [])
+    n = int(np.isin(support, np.asarray(kept, np.int64)).sum())
+    if n == 0:
+        return ""
+    return "held out" if n == len(support) else f"{n} of {len(support)} support nodes held out"
+
+
 def synthetic_case(
     name: str,
     mesh: TetMesh,

@@ -86,7 +86,7 @@ def read_scenes(args: argparse.Namespace) -> list:
         try:
             scene = load_scene(path)
             mesh, loaded = scene.build_mesh()
-            load_spec(scene, scene.region_nodes(mesh, loaded), scene.keep_off_nodes(mesh, loaded))
+            load_spec(scene, mesh, loaded)
         except ValueError as exc:  # a SceneError is one, each line a fault
             faults += str(exc).splitlines()
         else:

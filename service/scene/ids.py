@@ -157,7 +157,8 @@ def region_nodes(t: TrainingSpec, mesh: TetMesh, loaded: LoadedMesh | None, orig
 def keep_off_nodes(t: TrainingSpec, mesh: TetMesh, loaded: LoadedMesh | None, origin: str) -> Array:
     """[training] keep_off: the load region's nodes no training load may touch (none by default).
     Listed ids must be free surface nodes; those outside the region are dropped (no load reaches
-    them anyway). What is left of the region must still hold the smallest patch. Shape: (k,)."""
+    them anyway). What is left of the region must hold the smallest patch in one connected piece
+    (loads spread along the surface between nodes left: surrogate/data.py). Shape: (k,)."""
     if t.keep_off is None and t.keep_off_file is None:
         return np.zeros(0, np.int64)
     key = "[training] keep_off" if t.keep_off is not None else "[training] keep_off_file"
@@ -165,12 +166,16 @@ def keep_off_nodes(t: TrainingSpec, mesh: TetMesh, loaded: LoadedMesh | None, or
     ids = _free_surface_ids(raw, key, mesh, loaded, origin)
     region = region_nodes(t, mesh, loaded, origin)
     kept = np.intersect1d(ids, region)
-    if region.size - kept.size < int(t.patch_nodes[0]):
+    left = np.setdiff1d(region, kept)
+    _, pieces = mesh.surface_pieces(left)
+    largest = int(np.bincount(pieces).max()) if left.size else 0
+    if largest < int(t.patch_nodes[0]):  # loads are spread along the surface between nodes left
         raise scene_error(
             origin,
             key,
-            f"leaves {region.size - kept.size} of the load region's {region.size} nodes, fewer than the smallest "
-            f"load patch ({int(t.patch_nodes[0])}): keep fewer nodes off or widen the region",
+            f"leaves {left.size} of the load region's {region.size} nodes, the largest connected piece of them "
+            f"{largest} nodes, fewer than the smallest load patch ({int(t.patch_nodes[0])}): keep fewer nodes off "
+            "or widen the region",
         )
     return kept
 

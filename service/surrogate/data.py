@@ -86,8 +86,9 @@ def sample_path_load(mesh: TetMesh, spec: LoadSpec, rng: np.random.Generator) ->
     """The final (largest) load of one path, on the region nodes. Shape: (r, 3).
 
     A patch is the k region nodes nearest (along the surface) to a random region node, with k
-    uniform in patch_nodes, both outside `keep_off` (without one, the draws are those of a spec
-    without the field). Its direction mixes the outward normal and a random tangent: the
+    uniform in patch_nodes. With `keep_off`, both avoid the kept-off nodes and the surface is
+    walked around them, not across (load_surface): a patch stays on one side of a held-out area.
+    Its direction mixes the outward normal and a random tangent: the
     normal share a ~ Beta(2 nf, 2 (1 - nf)) has mean nf = `normal_fraction`, and the normal
     part points outwards (a pull) with probability `pull_fraction`. The total force spreads evenly or as a
     smooth bump over the patch. With probability `twist_fraction` a patch instead carries a torque:
@@ -96,10 +97,7 @@ def sample_path_load(mesh: TetMesh, spec: LoadSpec, rng: np.random.Generator) ->
     that with the path's equal steps the samples cover magnitudes roughly uniformly.
     """
     region = np.asarray(spec.region)
-    in_region = np.zeros(mesh.n_nodes, bool)
-    in_region[region] = True
-    in_region[list(spec.keep_off)] = False
-    centres = region[in_region[region]]
+    graph, in_region, centres = load_surface(mesh, spec)
     pos = np.full(mesh.n_nodes, -1)
     pos[region] = np.arange(region.size)
     g = np.zeros((region.size, 3))
@@ -110,7 +108,7 @@ def sample_path_load(mesh: TetMesh, spec: LoadSpec, rng: np.random.Generator) ->
     for share in shares:
         centre = int(rng.choice(centres))
         k = int(rng.integers(lo, hi + 1))
-        patch = _region_patch(mesh, centre, k, in_region)
+        patch = _region_patch(graph, centre, k, in_region)
         normal = mesh.patch_normal(patch)
         tangent = _unit(np.cross(normal, _unit(rng.normal(size=3))))
         nf = min(max(spec.normal_fraction, 1e-3), 1 - 1e-3)
@@ -132,11 +130,30 @@ def sample_path_load(mesh: TetMesh, spec: LoadSpec, rng: np.random.Generator) ->
     return g
 
 
-def _region_patch(mesh: TetMesh, centre: int, k: int, in_region: Array) -> Array:
-    """The k region nodes nearest to `centre` along the surface."""
+@lru_cache(maxsize=4)
+def load_surface(mesh: TetMesh, spec: LoadSpec) -> tuple:
+    """Where `spec`'s loads go: the surface graph they are spread along, the mask of nodes they
+    may take, and the patch centres (mesh ids). Without keep_off: the whole surface graph, the
+    region, every region node (the draws of a spec from before the field). With it: the graph
+    without the kept-off nodes' edges, the region less them, and the nodes of its pieces that
+    hold the smallest patch (a piece cut off between held-out areas may hold fewer)."""
+    region = np.asarray(spec.region)
+    allowed = np.zeros(mesh.n_nodes, bool)
+    allowed[region] = True
+    if not spec.keep_off:
+        return mesh.surface_graph, allowed, region
+    allowed[list(spec.keep_off)] = False
+    nodes = np.flatnonzero(allowed)
+    graph, pieces = mesh.surface_pieces(nodes)
+    sizes = np.bincount(pieces)
+    return graph, allowed, nodes[sizes[pieces] >= spec.patch_nodes[0]]
+
+
+def _region_patch(graph, centre: int, k: int, in_region: Array) -> Array:
+    """The k region nodes nearest to `centre` along the surface (`graph`'s edges)."""
     from scipy.sparse import csgraph
 
-    dist = csgraph.dijkstra(mesh.surface_graph, indices=centre)
+    dist = csgraph.dijkstra(graph, indices=centre)
     cand = np.flatnonzero(in_region & np.isfinite(dist))
     return cand[np.argsort(dist[cand], kind="stable")[:k]]
 

@@ -280,7 +280,7 @@ def test_a_timed_build_keeps_to_its_minutes_and_still_learns(tmp_path, bar):
 
     scene = load_scene(write_bar_scene(tmp_path / "scene", bar, samples=30_000))  # far too many
     mesh, loaded = scene.build_mesh()
-    key = (mesh.hash, NeoHookean.of(scene.material), load_spec(scene, scene.region_nodes(mesh, loaded)))
+    key = (mesh.hash, NeoHookean.of(scene.material), load_spec(scene, mesh, loaded))
     minutes = 0.25
     config = TrainConfig(hidden=(64, 64), rank=24, epochs=100_000, batch=32, lr=3e-3, physics_skip=True)
     # a small untimed build first pays this process's one-off loads (MKL's solver, numba, torch's
@@ -718,9 +718,10 @@ def test_more_local_workers_pay_off_sooner():
 
 def test_a_build_keeps_its_loads_off_kept_off_nodes_and_the_bench_calls_those_sites_held_out(tmp_path, bar):
     """A build with [training] keep_off never loads those nodes (its data say so, and its
-    manifest records them), and the any-site part marks a site held out only where the build
-    kept its whole support off."""
+    manifest records them), and the bench marks a site held out only where the build kept its
+    whole support off, and says how much of a support it kept off where it kept part."""
     from service.bench.anysite import SITE_SEED, anysite_cases, site_patches, site_region
+    from service.bench.cases import held_out
     from service.build import build
     from service.scene import load_scene
     from service.surrogate.data import done_indices, load_dataset
@@ -742,4 +743,10 @@ def test_a_build_keeps_its_loads_off_kept_off_nodes_and_the_bench_calls_those_si
     on_kept = np.isin(region, kept)
     assert len(F) >= 50 and not np.abs(F[:, on_kept]).any() and np.abs(F[:, ~on_kept]).any()
     names = [case.name for case in anysite_cases(entry, sites=2, frames=2)]
-    assert len(names) == 2 and names[0].endswith(", held out)") and not names[1].endswith("held out)")
+    second = held_out(entry, sites[1][2])  # its support may share nodes with the first's
+    assert len(names) == 2 and names[0].endswith(", held out)")
+    assert second != "held out" and names[1].endswith(f", {second})" if second else " mm)")
+    assert (
+        held_out(entry, np.concatenate([kept[:3], np.setdiff1d(region, kept)[:2]])) == "3 of 5 support nodes held out"
+    )
+    assert held_out(entry, np.setdiff1d(region, kept)[:5]) == ""

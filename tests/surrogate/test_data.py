@@ -391,3 +391,23 @@ def test_a_spec_without_kept_off_nodes_keeps_its_data_folders_key():
     spec = LoadSpec(region=(1, 2, 3), max_force=2.0, patch_nodes=(2, 3), seed=4)
     assert data_key("abc", MAT, spec) == "767a69887666"  # computed by the code before keep_off
     assert data_key("abc", MAT, replace(spec, keep_off=(2,))) != "767a69887666"
+
+
+def test_a_patch_stays_on_one_side_of_kept_off_nodes(bar):
+    """The k nodes nearest a centre were measured along the surface through kept-off nodes, so a
+    patch beside a held-out band wrapped round it and loaded both sides (36 of 964 phantom
+    patches): a load no grasper makes. Now the surface is walked around kept-off nodes only."""
+    from dataclasses import replace
+
+    x = bar.nodes[:, 0]
+    region = bar.free_surface_nodes[x[bar.free_surface_nodes] > 1.0]
+    band = region[(x[region] >= 2.0) & (x[region] <= 2.5)]  # two rings: the piece x = 1.5 is one ring
+    spec = LoadSpec(region=tuple(region.tolist()), max_force=60.0, patch_nodes=(3, 20), multi_patch=0.0)
+    off = replace(spec, keep_off=tuple(band.tolist()))
+    sides = set()
+    for i in range(80):
+        g = sample_path_load(bar, off, np.random.default_rng([0, i]))
+        at = x[region[np.abs(g).sum(axis=1) > 0]]
+        assert (at < 2.0).all() or (at > 2.5).all(), f"path {i} loads both sides of the band: {sorted(set(at))}"
+        sides.add(bool((at < 2.0).all()))
+    assert sides == {True, False}  # both pieces are loaded
