@@ -3,7 +3,8 @@
 Tool sites are spread over the model's whole load region by farthest-point sampling from a seed
 no build uses. What is held out is the loads (their seed) and the finer mesh's truth; the sites
 are held out only where the build kept its training loads off their supports ([training]
-keep_off, benchmarks/held_out_sites.py: the case's name then says "held out"). Otherwise they
+keep_off, benchmarks/held_out_sites.py: the case's name then says "held out", or how much of
+its support was). Otherwise they
 lie inside what the build was trained on: a whole-surface trainer loads every site's patch in
 dozens of paths. Each site gets a tool patch (about 2 % of the surface, 8-35 nodes), a support
 three times its size around it, a load that grows and turns, and a camera looking at the tool's
@@ -29,7 +30,7 @@ from ..registration.settings import SessionConfig
 from ..store import WEIGHTS
 from ..surrogate.network import ReducedSurrogate
 from ..synthetic import make_sequence
-from .cases import Case, FrameRecord, rest_baseline, run_case, run_passes, summarise
+from .cases import Case, FrameRecord, held_out, rest_baseline, run_case, run_passes, summarise
 from .truth import TRUTHS, fine_patch, quadratic_truth, subdivide, traction_shares
 
 log = logging.getLogger(__name__)
@@ -158,9 +159,7 @@ def anysite_cases(
     quadratic = quadratic_truth(mesh, fine, material) if truth == "quadratic" else None
     compliance = RestCompliance(fine, material)  # the loads' reach; one factorisation, not kept
     rng = np.random.default_rng(seed)
-    loads = entry.manifest.get("training", {}).get("load_distribution", {})
-    max_force = float(loads.get("max_force", 1.0))
-    kept_off = np.asarray(loads.get("keep_off", []), np.int64)  # the build's held-out nodes
+    max_force = float(entry.manifest.get("training", {}).get("load_distribution", {}).get("max_force", 1.0))
     cases = []
     for i, (site, tool, support) in enumerate(site_patches(mesh, site_region(mesh, entry.region, seed), sites, rng)):
         fine_tool = fine_patch(mesh, fine, tool)
@@ -185,10 +184,10 @@ def anysite_cases(
         n = mesh.n_nodes
         # the name says how far the tool moves the organ: the issue's loads move it 3-7 cm
         reach = 1e3 * float(np.linalg.norm(seq.positions[:, :n] - mesh.nodes, axis=2).max())
-        held = ", held out" if np.isin(support, kept_off).all() else ""  # no training load touched its support
+        held = held_out(entry, support)  # no training load touched its support, or part of it
         cases.append(
             Case(
-                f"site {i + 1} (node {site}, {peak:.2g} N, {reach:.0f} mm{held})",
+                f"site {i + 1} (node {site}, {peak:.2g} N, {reach:.0f} mm{', ' + held if held else ''})",
                 mesh,
                 support,
                 None,

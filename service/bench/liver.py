@@ -16,6 +16,7 @@ from ..registration.session import SessionConfig
 from .anysite import NETWORK_LM as WHOLE_SURFACE_LM
 from .cases import (
     Case,
+    held_out,
     liver_paper_case,
     rest_baseline,
     run_case,
@@ -83,6 +84,10 @@ def liver_part(entry, *, frames: int | None = None, own_frames: int = 20, fem: b
         paper = dataclasses.replace(paper, clouds=paper.clouds[:frames], positions=paper.positions[:frames],
                                     net_forces=paper.net_forces[:frames])  # fmt: skip
     cases = [paper] + own_sequences(paper, entry.region, entry.fem.material, own_frames)
+    # a build that kept its training loads off a case's support (a held-out scene) says so by name
+    cases = [
+        dataclasses.replace(c, name=f"{c.name} ({held})") if (held := held_out(entry, c.support)) else c for c in cases
+    ]
     records, summaries = [], []
     for case in cases:
         runs = [

@@ -16,12 +16,16 @@ _TRUTH_TEXT = {
 }
 
 
-def _held_out_text(held: int, sites: int) -> str:
-    """Where the sites lie against the build's training loads: `held` of `sites` had their
-    supports kept off every training load (the case name says which)."""
+def held_out_words(held: int, sites: int) -> tuple[str, str]:
+    """The any-site heading's words and its body's for `held` of `sites` sites whose supports
+    the build kept every training load off (the case names say which)."""
     if held == 0:
-        return "load region, so inside the region the build was trained on (the loads and the truth are held out, not the sites)"
-    return (
+        return "loads", (
+            "load region, so inside the region the build was trained on (the loads and the truth are held out, "
+            "not the sites)"
+        )
+    heading = "sites and loads" if held == sites else f"{held} of {sites} sites, and loads,"
+    return heading, (
         f"load region; {held} of the {sites} sites held out of the build (no training load touched their supports: "
         "[training] keep_off), the loads and the truth held out at every site"
     )
@@ -107,7 +111,7 @@ def write_report(results: dict, out: Path) -> None:
         md.append("\n![per-frame TRE and time](figures/liver_frames.png)\n")
     if "anysite" in parts:
         A = parts["anysite"]
-        held = "sites and loads" if A.get("held_out_sites") else "loads"
+        held, where = held_out_words(A.get("held_out_sites", 0), len({s["case"] for s in A["summaries"]}))
         md.append(
             f"\n## Any tool site ({A['model']}): sites spread over the surface, {held} held out, truth from a finer mesh\n"
         )
@@ -115,7 +119,7 @@ def write_report(results: dict, out: Path) -> None:
         md.append(
             (f"The build of {built['created']} (weights sha256 {str(built['weights_sha256'])[:12]}). " if built else "")
             + f"Tool patches of {A['tool_nodes']} nodes, supports three times that, sites spread over the whole "
-            + _held_out_text(A.get("held_out_sites", 0), len({s["case"] for s in A["summaries"]}))
+            + where
             + f"; truth: {_TRUTH_TEXT[A.get('truth', 'subdivided')]}"
             + (
                 f"; method auto corrects frames whose estimate exceeds {A['max_error_mm']:.3g} mm (twice the "

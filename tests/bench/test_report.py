@@ -289,3 +289,15 @@ def test_a_report_of_the_wrong_shape_in_out_is_refused_before_any_work(prior, wh
     assert err.endswith("; give another --out, or --replace to replace it\n"), err
     assert sorted(p.name for p in out.iterdir()) == ["results.json"] and not list(tmp_path.glob(".bench-*"))
     assert main(["bench", "fem", "--smoke", "bar", "--store", str(bar_store[0]), "--out", str(out), "--replace"]) == 0
+
+
+def test_the_anysite_heading_says_how_many_sites_the_build_held_out():
+    """With one of six sites held out the heading said "sites and loads held out"; it says how
+    many now, and a build that held none out keeps its words (loads and truth held out, not sites)."""
+    from service.bench.markdown import held_out_words
+
+    assert held_out_words(6, 6)[0] == "sites and loads"
+    heading, body = held_out_words(1, 6)
+    assert heading == "1 of 6 sites, and loads," and "1 of the 6 sites held out of the build" in body
+    heading, body = held_out_words(0, 6)
+    assert heading == "loads" and "not the sites" in body
