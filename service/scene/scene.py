@@ -154,7 +154,7 @@ class Scene(Table):
             raise self._error(key, f"fixes {what} ({fixed.size} of {mesh.n_nodes} nodes): nothing is left free to load")
         self._loaded[mesh.hash] = loaded
         log.info("%s: %d nodes, %d tets, %d fixed", self._origin, mesh.n_nodes, mesh.n_tets, mesh.fixed.size)
-        size = float(np.linalg.norm(np.ptp(mesh.nodes, axis=0)))
+        size = mesh.size
         if not ORGAN_SIZE[0] <= size <= ORGAN_SIZE[1]:  # SCENES.md: metres; a file in mm needs scale 0.001
             log.warning(
                 "%s: the mesh spans %.3g m corner to corner, not an organ's %g-%g m: is [mesh] scale right "
