@@ -145,21 +145,20 @@ def test_a_closed_stream_with_sent_frames_pending_raises_its_close(small, clouds
     asyncio.run(main())
 
 
-def test_a_stream_whose_opening_goes_unanswered_closes_without_waiting(bar_store):
-    """A server frozen (SIGSTOP) after the handshake, before it answered the stream's config:
-    the opening timed out, then its close waited websockets' close_timeout (10 s) more for a
-    closing handshake that server would not answer. It closes at once now, sync and async."""
+def assert_unanswered_opening_closes_at_once(store, path: str, open_sync, open_async) -> None:
+    """A server frozen (SIGSTOP) after the handshake to `path`, before its first answer: the
+    opening, `open_sync(ws)` or `await open_async(ws)`, times out in its 1 s and closes at once,
+    not after websockets' close_timeout (10 s) more for a closing handshake that will not come."""
     from websockets.asyncio.client import connect as aconnect
     from websockets.sync.client import connect
 
-    config = config_body("bar", {})
-    with server_process(bar_store[0]) as (server, url):
-        ws_url = url.replace("http://", "ws://") + "/stream"
+    with server_process(store) as (server, url):
+        ws_url = url.replace("http://", "ws://") + path
         with connect(ws_url, compression=None) as ws:
             server.send_signal(signal.SIGSTOP)
             started = time.monotonic()
             with pytest.raises(TimeoutError):
-                Stream(ws, "msgpack", config, timeout=1.0)
+                open_sync(ws)
             took = time.monotonic() - started
         assert took < 3.0, f"took {took:.1f} s"
         server.send_signal(signal.SIGCONT)
@@ -169,39 +168,31 @@ def test_a_stream_whose_opening_goes_unanswered_closes_without_waiting(bar_store
             server.send_signal(signal.SIGSTOP)
             started = time.monotonic()
             with pytest.raises(TimeoutError):
-                await AsyncStream(ws, "msgpack", timeout=1.0)._open(config)
+                await open_async(ws)
             return time.monotonic() - started
 
         took = asyncio.run(main())
+        server.send_signal(signal.SIGCONT)
         assert took < 3.0, f"took {took:.1f} s"
+
+
+def test_a_stream_whose_opening_goes_unanswered_closes_without_waiting(bar_store):
+    """The stream's config unanswered: its close waited 10 s more. It closes at once now, sync and async."""
+    config = config_body("bar", {})
+    assert_unanswered_opening_closes_at_once(
+        bar_store[0],
+        "/stream",
+        lambda ws: Stream(ws, "msgpack", config, timeout=1.0),
+        lambda ws: AsyncStream(ws, "msgpack", timeout=1.0)._open(config),
+    )
 
 
 def test_a_watch_whose_opening_goes_unanswered_closes_without_waiting(bar_store):
-    """As a stream's: a server frozen after a watch's handshake, before its first message, left
-    the watch's close waiting websockets' close_timeout (10 s) after its own timeout. It closes
-    at once now, sync and async."""
-    from websockets.asyncio.client import connect as aconnect
-    from websockets.sync.client import connect
-
-    with server_process(bar_store[0]) as (server, url):
-        ws_url = url.replace("http://", "ws://") + "/sessions/s-none/watch?encoding=msgpack"
-        with connect(ws_url, compression=None) as ws:
-            server.send_signal(signal.SIGSTOP)
-            started = time.monotonic()
-            with pytest.raises(TimeoutError):
-                Watch(ws, "msgpack", timeout=1.0)
-            took = time.monotonic() - started
-        assert took < 3.0, f"took {took:.1f} s"
-        server.send_signal(signal.SIGCONT)
-
-        async def main() -> float:
-            ws = await aconnect(ws_url, compression=None)
-            server.send_signal(signal.SIGSTOP)
-            started = time.monotonic()
-            with pytest.raises(TimeoutError):
-                await AsyncWatch(ws, "msgpack", timeout=1.0)._open()
-            return time.monotonic() - started
-
-        took = asyncio.run(main())
-        server.send_signal(signal.SIGCONT)
-        assert took < 3.0, f"took {took:.1f} s"
+    """As a stream's: a watch's first message unanswered left its close waiting 10 s after its
+    own timeout. It closes at once now, sync and async."""
+    assert_unanswered_opening_closes_at_once(
+        bar_store[0],
+        "/sessions/s-none/watch?encoding=msgpack",
+        lambda ws: Watch(ws, "msgpack", timeout=1.0),
+        lambda ws: AsyncWatch(ws, "msgpack", timeout=1.0)._open(),
+    )
