@@ -246,7 +246,7 @@ def anysite_part(
         "honesty": honesty(records),
         "max_error_mm": 1e3 * max_error,
         "tool_nodes": tool_size(entry.mesh),
-        "held_out_sites": sum(c.name.endswith(", held out)") for c in cases),
+        "held_out_sites": sum(held_out(entry, c.support) == "held out" for c in cases),
         "truth": truth,
         "model_entry": entry_identity(entry),
     }
