@@ -4,8 +4,15 @@ server: sync and async alike."""
 from __future__ import annotations
 
 import asyncio
+import base64
+import contextlib
+import hashlib
+import re
 import signal
+import socket
+import threading
 import time
+from collections.abc import Callable, Iterator
 
 import pytest
 from websockets.exceptions import ConnectionClosed
@@ -145,54 +152,102 @@ def test_a_closed_stream_with_sent_frames_pending_raises_its_close(small, clouds
     asyncio.run(main())
 
 
-def assert_unanswered_opening_closes_at_once(store, path: str, open_sync, open_async) -> None:
-    """A server frozen (SIGSTOP) after the handshake to `path`, before its first answer: the
-    opening, `open_sync(ws)` or `await open_async(ws)`, times out in its 1 s and closes at once,
-    not after websockets' close_timeout (10 s) more for a closing handshake that will not come."""
+@contextlib.contextmanager
+def frozen_api(store, path: str) -> Iterator[tuple[str, Callable[[], None], Callable[[], None]]]:
+    """The real server: the URL of `path` on it, and how to freeze (SIGSTOP) and thaw it."""
+    with server_process(store) as (server, url):
+        yield (
+            url.replace("http://", "ws://") + path,
+            lambda: server.send_signal(signal.SIGSTOP),
+            lambda: server.send_signal(signal.SIGCONT),
+        )
+
+
+@contextlib.contextmanager
+def silent_peer() -> Iterator[tuple[str, Callable[[], None], Callable[[], None]]]:
+    """A peer that completes a WebSocket handshake and then neither sends nor reads: the API
+    frozen the moment it accepted. (The API's watch sends its first message at once, so a
+    SIGSTOP after the handshake races it: under load the refusal came first.)"""
+    listener = socket.create_server(("127.0.0.1", 0))
+    held: list[socket.socket] = []
+
+    def accept() -> None:
+        while True:
+            try:
+                conn, _ = listener.accept()
+            except OSError:  # closed: the test is over
+                return
+            held.append(conn)
+            request = b""
+            while b"\r\n\r\n" not in request:
+                request += conn.recv(4096)
+            key = re.search(rb"(?i)sec-websocket-key: *(\S+)", request).group(1)  # type: ignore[union-attr]
+            proof = base64.b64encode(hashlib.sha1(key + b"258EAFA5-E914-47DA-95CA-C5AB0DC85B11").digest())
+            conn.sendall(
+                b"HTTP/1.1 101 Switching Protocols\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+                b"Sec-WebSocket-Accept: " + proof + b"\r\n\r\n"
+            )
+
+    threading.Thread(target=accept, daemon=True).start()
+    try:
+        yield f"ws://127.0.0.1:{listener.getsockname()[1]}/sessions/s-1/watch?encoding=msgpack", _nothing, _nothing
+    finally:
+        listener.close()
+        for conn in held:
+            conn.close()
+
+
+def _nothing() -> None:
+    pass
+
+
+def assert_unanswered_opening_closes_at_once(peer, open_sync, open_async) -> None:
+    """A peer that stops answering after the handshake (`peer`: its URL, how to freeze and thaw
+    it): the opening, `open_sync(ws)` or `await open_async(ws)`, times out in its 1 s and closes
+    at once, not after websockets' close_timeout (10 s) more for a closing handshake that will not
+    come."""
     from websockets.asyncio.client import connect as aconnect
     from websockets.sync.client import connect
 
-    with server_process(store) as (server, url):
-        ws_url = url.replace("http://", "ws://") + path
+    with peer as (ws_url, freeze, thaw):
         with connect(ws_url, compression=None) as ws:
-            server.send_signal(signal.SIGSTOP)
+            freeze()
             started = time.monotonic()
             with pytest.raises(TimeoutError):
                 open_sync(ws)
             took = time.monotonic() - started
         assert took < 3.0, f"took {took:.1f} s"
-        server.send_signal(signal.SIGCONT)
+        thaw()
 
         async def main() -> float:
             ws = await aconnect(ws_url, compression=None)
-            server.send_signal(signal.SIGSTOP)
+            freeze()
             started = time.monotonic()
             with pytest.raises(TimeoutError):
                 await open_async(ws)
             return time.monotonic() - started
 
         took = asyncio.run(main())
-        server.send_signal(signal.SIGCONT)
+        thaw()
         assert took < 3.0, f"took {took:.1f} s"
 
 
 def test_a_stream_whose_opening_goes_unanswered_closes_without_waiting(bar_store):
-    """The stream's config unanswered: its close waited 10 s more. It closes at once now, sync and async."""
+    """A server frozen (SIGSTOP) after the handshake, before it answered the stream's config: its
+    close waited 10 s more. It closes at once now, sync and async."""
     config = config_body("bar", {})
     assert_unanswered_opening_closes_at_once(
-        bar_store[0],
-        "/stream",
+        frozen_api(bar_store[0], "/stream"),
         lambda ws: Stream(ws, "msgpack", config, timeout=1.0),
         lambda ws: AsyncStream(ws, "msgpack", timeout=1.0)._open(config),
     )
 
 
-def test_a_watch_whose_opening_goes_unanswered_closes_without_waiting(bar_store):
+def test_a_watch_whose_opening_goes_unanswered_closes_without_waiting():
     """As a stream's: a watch's first message unanswered left its close waiting 10 s after its
     own timeout. It closes at once now, sync and async."""
     assert_unanswered_opening_closes_at_once(
-        bar_store[0],
-        "/sessions/s-none/watch?encoding=msgpack",
+        silent_peer(),
         lambda ws: Watch(ws, "msgpack", timeout=1.0),
         lambda ws: AsyncWatch(ws, "msgpack", timeout=1.0)._open(),
     )
