@@ -37,16 +37,18 @@ def parser(
     p = argparse.ArgumentParser(description=doc.splitlines()[0])
     p.add_argument("--model", required=True, help=model_help)
     p.add_argument("--sites", type=int, default=4)
+    p.add_argument("--seed", type=int, default=CALIBRATION_SEED, help="the sites' draw (default: the calibration draw)")
     if out is not None:
         p.add_argument("--out", default=str(ROOT / "reports" / out))
     return p
 
 
 def cases(args: argparse.Namespace) -> tuple[Entry, list[Case]]:
-    """One BLAS thread; the entry at --model and its --sites calibration sequences of 8 frames."""
+    """One BLAS thread; the entry at --model and its --sites sequences of 8 frames from the --seed
+    draw (the calibration sites unless told)."""
     limit_threads(1)
     entry = load_entry(Path(args.model))
-    return entry, anysite_cases(entry, sites=args.sites, frames=8, seed=CALIBRATION_SEED)
+    return entry, anysite_cases(entry, sites=args.sites, frames=8, seed=getattr(args, "seed", CALIBRATION_SEED))
 
 
 def row(variant: str, case: Case, recs: list) -> dict:

@@ -57,6 +57,21 @@ def model_id(text: str) -> str:
 positive = positive_number()
 
 
+def non_negative_number(maximum: float, unit: str = ""):
+    """An argparse type for finite numbers in 0..`maximum` (`unit` names what it is)."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not 0 <= value <= maximum:  # NaN too
+            raise argparse.ArgumentTypeError(f"must be a number in 0..{maximum:g}{unit}, got {text!r}")
+        return value
+
+    return parse
+
+
 #: the longest build budget, in minutes: a year, far past any build and far from 60 * minutes
 #: overflowing a float (past 3e306 the deadline was inf and the build a traceback)
 MAX_MINUTES = 365 * 24 * 60

@@ -12,8 +12,16 @@ import sys
 import time
 
 from . import commands
-from .argtypes import build_minutes, model_id, positive, positive_number, scheduler_address, whole_number
-from .network_size import MAX_MEMBERS, MAX_WIDTH
+from .argtypes import (
+    build_minutes,
+    model_id,
+    non_negative_number,
+    positive,
+    positive_number,
+    scheduler_address,
+    whole_number,
+)
+from .network_size import FEATURES, MAX_MEMBERS, MAX_WEIGHT_DECAY, MAX_WIDTH, WEIGHT_DECAY
 from .started import process_started
 
 _at_least_one = whole_number(1)
@@ -145,7 +153,13 @@ def parser() -> argparse.ArgumentParser:
         "reads its features and learns the remainder (default: on; --no-physics-skip trains on raw forces)",
     )
     t.add_argument(
-        "--features", type=_at_least_one, default=256, help="linear-response POD modes the physics layout reads"
+        "--features", type=_at_least_one, default=FEATURES, help="linear-response POD modes the physics layout reads"
+    )
+    t.add_argument(
+        "--weight-decay",
+        type=non_negative_number(MAX_WEIGHT_DECAY),
+        default=WEIGHT_DECAY,
+        help=f"L2 weight decay of the training (default: {WEIGHT_DECAY:g}; 0: none)",
     )
     t.add_argument("--epochs", type=_at_least_one, default=200)
     t.add_argument("--seed", type=_seed, default=0)

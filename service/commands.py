@@ -23,6 +23,7 @@ def train(args: argparse.Namespace) -> int:
             hidden=tuple(args.hidden),
             rank=args.rank,
             features=args.features,
+            weight_decay=args.weight_decay,
             members=args.members,
             physics_skip=args.physics_skip,
             epochs=args.epochs,
@@ -88,7 +89,7 @@ def train(args: argparse.Namespace) -> int:
 #: train's arguments that name a file or folder: recorded absolute, so the rebuild runs from anywhere
 _PATHS = ("scene", "store", "data")
 #: the flags that shape the network: recorded at any value, so a later default does not change a rebuild
-_SHAPING = ("layout", "hidden", "rank", "physics_skip", "features", "epochs", "seed")
+_SHAPING = ("layout", "hidden", "rank", "physics_skip", "features", "weight_decay", "epochs", "seed")
 
 
 def rebuild_command(args: argparse.Namespace) -> str:

@@ -13,3 +13,11 @@ MAX_WIDTH = 16384
 MAX_LAYERS = 64
 #: largest ensemble: each member is a whole network trained on its own, so the build's time grows with them
 MAX_MEMBERS = 64
+
+
+#: the physics layout's input: POD modes of the linear response its network reads (--features)
+FEATURES = 64
+#: Adam's L2 weight decay on the network's weights (--weight-decay)
+WEIGHT_DECAY = 1e-4
+#: largest weight decay: past 1 the weights are held at zero, whatever the data
+MAX_WEIGHT_DECAY = 1.0

@@ -417,13 +417,16 @@ def test_the_manifests_rebuild_command_names_its_paths_absolute(tmp_path, bar, m
     process's argv. Now it holds the scene, --store and --data absolute, and runs from anywhere."""
     write_bar_scene(tmp_path / "work" / "scenes", bar, samples=6)
     monkeypatch.chdir(tmp_path / "work")
-    flags = ["--workers", "0", "--hidden", "16", "--rank", "4", "--features", "8", "--epochs", "2"]
+    flags = ["--workers", "0", "--hidden", "16", "--rank", "4", "--features", "8", "--weight-decay", "3e-4",
+             "--epochs", "2"]  # fmt: skip
     assert main(["train", "scenes/bar.toml", "--store", "store", "--data", "data", *flags]) == 0
-    rebuild = json.loads((tmp_path / "work" / "store" / "bar" / "manifest.json").read_text())["rebuild"]
+    manifest = json.loads((tmp_path / "work" / "store" / "bar" / "manifest.json").read_text())
+    rebuild = manifest["rebuild"]
+    assert manifest["training"]["config"]["weight_decay"] == 3e-4
     work = (tmp_path / "work").resolve()  # the paths are recorded with links resolved
     assert rebuild == (
         f"elastreg train {work / 'scenes' / 'bar.toml'} --store {work / 'store'} --workers 0 --data {work / 'data'} "
-        "--layout reduced --hidden 16 --rank 4 --physics-skip --features 8 --epochs 2 --seed 0"
+        "--layout reduced --hidden 16 --rank 4 --physics-skip --features 8 --weight-decay 0.0003 --epochs 2 --seed 0"
     )  # the flags given and the network's every setting, in --help's order
     argv = shlex.split(rebuild)[1:] + ["--name", "again"]
     r = subprocess.run([sys.executable, "-m", "service.cli", *argv], capture_output=True, text=True, cwd=tmp_path,
@@ -436,7 +439,7 @@ def test_the_manifests_rebuild_command_names_its_paths_absolute(tmp_path, bar, m
     builtin = parser().parse_args(["train", "beam", "--no-physics-skip", "--replace", "--store", "", "--data", ""])
     assert rebuild_command(builtin) == (  # a name stays a name; '' is the default, not the folder
         f"elastreg train beam --store {work / 'relative-store'} --replace --layout reduced --hidden 512 512 "
-        "--rank 128 --no-physics-skip --features 256 --epochs 200 --seed 0"
+        "--rank 128 --no-physics-skip --features 64 --weight-decay 0.0001 --epochs 200 --seed 0"
     )
     (work / "real").mkdir()
     (work / "real" / "s.toml").write_text("")

@@ -14,7 +14,7 @@ import torch
 
 from ..fem.assembly import Assembler
 from ..fem.rest import rest_compliance
-from ..network_size import MAX_LAYERS, MAX_MEMBERS, MAX_WIDTH
+from ..network_size import FEATURES, MAX_LAYERS, MAX_MEMBERS, MAX_WEIGHT_DECAY, MAX_WIDTH, WEIGHT_DECAY
 from ..optional import need
 from .basis import pod_basis
 from .network import PaperSurrogate, ReducedSurrogate
@@ -44,11 +44,11 @@ class TrainConfig:
     physics_skip: bool = True  # the physics layout: the exact small-strain response outside the
     # network, which reads its features and learns the remainder (network.py; measured better
     # than raw forces on held-out loads, docs/performance.md)
-    features: int = 256  # POD modes of the linear response the physics layout's network reads
+    features: int = FEATURES  # POD modes of the linear response the physics layout's network reads
     epochs: int = 200
     batch: int = 128
     lr: float = 1e-3
-    weight_decay: float = 0.0
+    weight_decay: float = WEIGHT_DECAY  # Adam's L2 decay
     patience: int = 40  # epochs without validation improvement before stopping (not in a timed build)
     val_fraction: float = 0.1
     seed: int = 0
@@ -68,6 +68,8 @@ class TrainConfig:
         for key in ("rank", "features", "epochs"):
             if getattr(self, key) < 1:
                 raise ValueError(f"{key} must be a whole number >= 1, got {getattr(self, key)}")
+        if not 0 <= self.weight_decay <= MAX_WEIGHT_DECAY:  # NaN too
+            raise ValueError(f"weight_decay must be a number in 0..{MAX_WEIGHT_DECAY:g}, got {self.weight_decay}")
         if not 0 <= self.seed <= SEED_MAX:  # else torch refused it after all the data
             raise ValueError(f"seed must be a whole number in 0..{SEED_MAX}, got {self.seed}")
         if not 1 <= len(self.hidden) <= MAX_LAYERS or not 1 <= min(self.hidden) <= max(self.hidden) <= MAX_WIDTH:
