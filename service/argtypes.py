@@ -25,14 +25,19 @@ def whole_number(minimum: int, maximum: int | None = None):
     return parse
 
 
+def _number(text: str) -> float:
+    """The float a flag's text spells, or NaN (which every range refuses) where it spells none."""
+    try:
+        return float(text)
+    except ValueError:
+        return math.nan
+
+
 def positive_number(maximum: float | None = None, unit: str = ""):
     """An argparse type for positive finite numbers, at most `maximum` (`unit` names what it is)."""
 
     def parse(text: str) -> float:
-        try:
-            value = float(text)
-        except ValueError:
-            value = math.nan
+        value = _number(text)
         if not (value > 0 and math.isfinite(value)):
             raise argparse.ArgumentTypeError(f"must be a positive finite number, got {text!r}")
         if maximum is not None and value > maximum:
@@ -61,10 +66,7 @@ def non_negative_number(maximum: float, unit: str = ""):
     """An argparse type for finite numbers in 0..`maximum` (`unit` names what it is)."""
 
     def parse(text: str) -> float:
-        try:
-            value = float(text)
-        except ValueError:
-            value = math.nan
+        value = _number(text)
         if not 0 <= value <= maximum:  # NaN too
             raise argparse.ArgumentTypeError(f"must be a number in 0..{maximum:g}{unit}, got {text!r}")
         return value
