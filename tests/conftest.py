@@ -121,7 +121,9 @@ def bar_store(tmp_path_factory, bar):
     scene = load_scene(write_bar_scene(root / "scene", bar))
     # 54 training samples: the physics skip path (the small-strain response) is what makes so
     # little data usable (without it the force error of registration exceeds 100%)
-    config = TrainConfig(hidden=(64, 64), rank=24, epochs=60, batch=32, lr=3e-3, patience=60, physics_skip=True)
+    # its own settings throughout, the decay too: the session tests' figures (iterations, stalls) are this network's
+    config = TrainConfig(hidden=(64, 64), rank=24, features=256, epochs=60, batch=32, lr=3e-3, weight_decay=0.0,
+                         patience=60, physics_skip=True)  # fmt: skip
     report = build(
         scene,
         root / "store",
