@@ -34,24 +34,35 @@ from service.store import load_entry
 LEVELS = (0.3, 0.5, 0.7, 0.85, 1.0)
 
 
-def site_rows(entry, seed: int, sites: int) -> list[dict]:
-    mesh, model = entry.mesh, entry.network
-    net, C = model.net, model.compliance()
-    B, Fb = net.basis.double().numpy(), net.feature_basis.double().numpy()
+def site_loads(entry, seed: int, sites: int) -> list[tuple[int, np.ndarray, list[tuple[np.ndarray, np.ndarray]]]]:
+    """The draw's sites with their test loads: (site, tool patch, [(forces (k, 3), the Newton
+    solution (n, 3))]) for each LEVELS load whose solve converged."""
+    mesh, C = entry.mesh, entry.network.compliance()
     max_force = float(entry.manifest["training"]["load_distribution"]["max_force"])
-    rows = []
+    out = []
     rng = np.random.default_rng(seed)
     for site, tool, _ in site_patches(mesh, site_region(mesh, entry.region, seed), sites, rng):
         peak = peak_for_reach(C, tool, 0.05, max_force)
         normal, turn = mesh.patch_normal(tool), np.random.default_rng(site + 7)
-        err: dict[str, list[float]] = {"network": [], "linear": [], "floor": [], "feature_loss": []}
+        loads = []
         for level in LEVELS:
             d = normal + 0.6 * turn.normal(size=3)
             f = np.tile(d / np.linalg.norm(d) * peak * level / tool.size, (tool.size, 1))
             res = entry.fem.solve(f, tool)
-            if not res.converged:
-                continue
-            u = res.u.reshape(-1, 3)
+            if res.converged:
+                loads.append((f, res.u.reshape(-1, 3)))
+        out.append((site, tool, loads))
+    return out
+
+
+def site_rows(entry, seed: int, sites: int) -> list[dict]:
+    model = entry.network
+    net, C = model.net, model.compliance()
+    B, Fb = net.basis.double().numpy(), net.feature_basis.double().numpy()
+    rows = []
+    for site, tool, loads in site_loads(entry, seed, sites):
+        err: dict[str, list[float]] = {"network": [], "linear": [], "floor": [], "feature_loss": []}
+        for f, u in loads:
             lin = C.displacements(f[None], tool)[0]
             net_u = model.predict(f[None], tool)[0]
             rem = u.ravel() - lin

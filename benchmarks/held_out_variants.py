@@ -26,7 +26,9 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from service.bench.anysite import CALIBRATION_SEED, SITE_SEED, SITES, peak_for_reach, site_patches, site_region
+from held_out_forward import site_loads
+
+from service.bench.anysite import CALIBRATION_SEED, SITE_SEED, SITES, site_patches, site_region
 from service.fem.assembly import Assembler
 from service.fem.rest import rest_compliance
 from service.store import load_entry
@@ -42,25 +44,16 @@ p.add_argument("seconds", type=float)
 p.add_argument("variants", nargs="*")
 args = p.parse_args()
 entry = load_entry(Path(args.model))
-mesh, fem = entry.mesh, entry.fem
+mesh = entry.mesh
 region = entry.region
 material = entry.network.material.with_stiffness(entry.network.E0)
 C = rest_compliance(mesh, material)
-max_force = float(entry.manifest["training"]["load_distribution"]["max_force"])
-tests = []
-for label, seed, k in (("held", SITE_SEED, SITES), ("trained", CALIBRATION_SEED, 4)):
-    rng = np.random.default_rng(seed)
-    for site, tool, _support in site_patches(mesh, site_region(mesh, region, seed), k, rng):
-        peak = peak_for_reach(C, tool, 0.05, max_force)
-        nrm = mesh.patch_normal(tool)
-        r2 = np.random.default_rng(site + 7)
-        for level in (0.3, 0.5, 0.7, 0.85, 1.0):
-            d = nrm + 0.6 * r2.normal(size=3)
-            d /= np.linalg.norm(d)
-            f = np.tile(d * peak * level / tool.size, (tool.size, 1))
-            res = fem.solve(f, tool)
-            if res.converged:
-                tests.append(dict(set=label, site=site, tool=tool, f=f, u=res.u.reshape(-1, 3)))
+tests = [
+    dict(set=label, site=site, tool=tool, f=f, u=u)
+    for label, seed, k in (("held", SITE_SEED, SITES), ("trained", CALIBRATION_SEED, 4))
+    for site, tool, loads in site_loads(entry, seed, k)
+    for f, u in loads
+]
 print(len(tests), "test loads", flush=True)
 
 
