@@ -48,7 +48,7 @@ class TrainConfig:
     epochs: int = 200
     batch: int = 128
     lr: float = 1e-3
-    weight_decay: float = WEIGHT_DECAY  # Adam's L2 decay
+    weight_decay: float = WEIGHT_DECAY  # Adam's L2 decay of the weight matrices (decay_groups)
     patience: int = 40  # epochs without validation improvement before stopping (not in a timed build)
     val_fraction: float = 0.1
     seed: int = 0
@@ -238,6 +238,17 @@ def _bar(tqdm, config: TrainConfig, spent: float, progress: bool):
     )
 
 
+def decay_groups(model: torch.nn.Module, weight_decay: float) -> list[dict]:
+    """Adam's parameter groups: the L2 decay on weight matrices alone. Decayed, a PReLU's slopes
+    sank to 1e-15 and its units' gradients into subnormal floats, which CPUs handle slowly: epochs
+    2x slower by the 700th (docs/performance.md). Biases are left undecayed too, the usual rule."""
+    params = list(model.parameters())
+    return [
+        {"params": [p for p in params if p.ndim >= 2], "weight_decay": weight_decay},
+        {"params": [p for p in params if p.ndim < 2], "weight_decay": 0.0},
+    ]
+
+
 def train(
     F: Array,
     U: Array,
@@ -293,7 +304,7 @@ def train(
         out = model.member_coefficients(torch.cat([x, rest]))
         return out[:, :-1] - out[:, -1:]
 
-    opt = torch.optim.Adam(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    opt = torch.optim.Adam(decay_groups(model, config.weight_decay), lr=config.lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=config.epochs, eta_min=config.lr * 1e-2)
     gen = torch.Generator().manual_seed(config.seed)
     # the untrained model (the linear response alone in the physics layout) is a candidate too:
