@@ -21,6 +21,7 @@ from .argtypes import (
     scheduler_address,
     whole_number,
 )
+from .config import flush_subnormals
 from .network_size import FEATURES, MAX_MEMBERS, MAX_WEIGHT_DECAY, MAX_WIDTH, WEIGHT_DECAY
 from .started import process_started
 
@@ -159,7 +160,7 @@ def parser() -> argparse.ArgumentParser:
         "--weight-decay",
         type=non_negative_number(MAX_WEIGHT_DECAY),
         default=WEIGHT_DECAY,
-        help=f"L2 weight decay of the training (default: {WEIGHT_DECAY:g}; 0: none)",
+        help=f"L2 weight decay of the weight matrices (default: {WEIGHT_DECAY:g}; 0: none)",
     )
     t.add_argument("--epochs", type=_at_least_one, default=200)
     t.add_argument("--seed", type=_seed, default=0)
@@ -245,6 +246,8 @@ def _sync_cancel_race(record: logging.LogRecord) -> bool:
 def main(argv: list[str] | None = None) -> int:
     entered = time.perf_counter()
     args = parser().parse_args(argv)
+    if args.command != "igtl":  # the bridge computes nothing, and stays light without torch
+        flush_subnormals()  # before any thread exists that torch would compute on
     # --minutes counts from the command's start: the process's own where main is the process's
     # command (argv from sys.argv), else (a caller's argv: a test, a script) this call's
     args.started = process_started(entered) if argv is None else entered

@@ -17,7 +17,8 @@ MAX_MEMBERS = 64
 
 #: the physics layout's input: POD modes of the linear response its network reads (--features)
 FEATURES = 64
-#: Adam's L2 weight decay on the network's weights (--weight-decay)
+#: Adam's L2 weight decay on the network's weight matrices, not its biases or PReLU slopes
+#: (--weight-decay; train.decay_groups)
 WEIGHT_DECAY = 1e-4
 #: largest weight decay: past 1 the weights are held at zero, whatever the data
 MAX_WEIGHT_DECAY = 1.0

@@ -483,3 +483,29 @@ def test_the_demo_of_a_model_not_in_the_store_suggests_a_command_that_builds_it(
         f"error: no model {model!r} in the store at {tmp_path}.",
         "Build it " + hint.format(store=tmp_path),
     ]
+
+
+#: a command's process, then arithmetic on subnormal float32s on every thread torch computes on
+_FLUSHED = """
+import contextlib, sys, torch
+from service.cli import main
+with contextlib.suppress(SystemExit):
+    main(sys.argv[1:])
+torch.set_num_threads(2)
+print((torch.full((4_000_000,), 1e-39) * 1.0).abs().max().item())
+"""
+
+
+@pytest.mark.parametrize(
+    ("command", "flushed"),
+    [(["train", "no-such-scene.toml"], True), (["igtl", "liver", "--support", "no-such-file.txt"], False)],
+)
+def test_a_computing_command_flushes_subnormals_on_all_its_threads(command, flushed, tmp_path):
+    """Subnormals slowed a liver's training epochs 10x (docs/performance.md): a command that
+    computes flushes them before torch's threads exist, as each thread copies its creator's
+    flag. The bridge computes nothing and does not load torch for it."""
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    r = subprocess.run([sys.executable, "-c", _FLUSHED, *command], capture_output=True, text=True, timeout=120,
+                       cwd=tmp_path, env=env)  # fmt: skip
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert float(r.stdout.split()[-1]) == (0.0 if flushed else pytest.approx(1e-39, rel=1e-3)), r.stdout
