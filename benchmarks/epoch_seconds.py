@@ -1,7 +1,8 @@
 """Seconds per training epoch, late in a run, with the weight decay on every parameter (as
-before) and on the weight matrices alone (`decay_groups`): why the PReLU slopes are not decayed.
-A timed build gets the epochs its clock allows, so a slower epoch is a worse model. Both arms
-train the default network on one data folder, one after the other, from one seed.
+before) and on the weight matrices alone (`decay_groups`), with subnormal floats flushed
+(`--flush`, as the command line runs) or not. A timed build gets the epochs its clock allows,
+so a slower epoch is a worse model. Both arms train the default network on one data folder, one
+after the other, from one seed.
 
     python benchmarks/epoch_seconds.py --scene benchmarks/scenes/phantom_fresh_sites.toml \\
         --data DATA/phantom_fresh_sites-ce4b0f21643a --epochs 700 --out epoch_seconds.json
@@ -22,6 +23,7 @@ sys.path.insert(0, str(ROOT))
 
 from service.bench.machine import describe
 from service.build import load_spec
+from service.config import flush_subnormals
 from service.fem.assembly import Assembler
 from service.fem.material import NeoHookean
 from service.scene import load_scene
@@ -45,8 +47,11 @@ def main() -> None:
     ap.add_argument("--scene", required=True)
     ap.add_argument("--data", required=True, help="a build's data folder (its path_*.npz)")
     ap.add_argument("--epochs", type=int, default=700)
+    ap.add_argument("--flush", action="store_true", help="flush subnormals first, as `elastreg` does")
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
+    if args.flush:
+        flush_subnormals()  # before torch's threads exist: each copies its creator's flag
     torch.set_num_threads(2)
     scene = load_scene(args.scene)
     mesh, loaded = scene.build_mesh()
