@@ -246,8 +246,10 @@ def _sync_cancel_race(record: logging.LogRecord) -> bool:
 def main(argv: list[str] | None = None) -> int:
     entered = time.perf_counter()
     args = parser().parse_args(argv)
-    if args.command != "igtl":  # the bridge computes nothing, and stays light without torch
-        flush_subnormals()  # before any thread exists that torch would compute on
+    if args.command in ("train", "bench"):  # the commands that train (bench's minutes part does)
+        # before any thread exists that torch would compute on; the server keeps IEEE arithmetic,
+        # where a client's 1e-310 stays a positive number
+        flush_subnormals()
     # --minutes counts from the command's start: the process's own where main is the process's
     # command (argv from sys.argv), else (a caller's argv: a test, a script) this call's
     args.started = process_started(entered) if argv is None else entered

@@ -500,10 +500,10 @@ print((torch.full((4_000_000,), 1e-39) * 1.0).abs().max().item())
     ("command", "flushed"),
     [(["train", "no-such-scene.toml"], True), (["igtl", "liver", "--support", "no-such-file.txt"], False)],
 )
-def test_a_computing_command_flushes_subnormals_on_all_its_threads(command, flushed, tmp_path):
+def test_a_training_command_flushes_subnormals_on_all_its_threads(command, flushed, tmp_path):
     """Subnormals slowed a liver's training epochs 10x (docs/performance.md): a command that
-    computes flushes them before torch's threads exist, as each thread copies its creator's
-    flag. The bridge computes nothing and does not load torch for it."""
+    trains flushes them before torch's threads exist, as each thread copies its creator's flag.
+    The others keep IEEE arithmetic, where a client's 1e-310 is still positive."""
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
     r = subprocess.run([sys.executable, "-c", _FLUSHED, *command], capture_output=True, text=True, timeout=120,
                        cwd=tmp_path, env=env)  # fmt: skip

@@ -240,7 +240,7 @@ def _bar(tqdm, config: TrainConfig, spent: float, progress: bool):
 
 def decay_groups(model: torch.nn.Module, weight_decay: float) -> list[dict]:
     """Adam's parameter groups: the L2 decay on weight matrices alone. Decayed, a PReLU's slopes
-    sank to 1e-15 and its units' gradients into subnormal floats, which CPUs handle slowly: epochs
+    sank to 6e-15 and its units' gradients into subnormal floats, which CPUs handle slowly: epochs
     2x slower by the 700th (docs/performance.md). Biases are left undecayed too, the usual rule."""
     params = list(model.parameters())
     return [
