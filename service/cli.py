@@ -21,7 +21,6 @@ from .argtypes import (
     scheduler_address,
     whole_number,
 )
-from .config import flush_subnormals
 from .network_size import FEATURES, MAX_MEMBERS, MAX_WEIGHT_DECAY, MAX_WIDTH, WEIGHT_DECAY
 from .started import process_started
 
@@ -249,6 +248,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.command in ("train", "bench"):  # the commands that train (bench's minutes part does)
         # before any thread exists that torch would compute on; the server keeps IEEE arithmetic,
         # where a client's 1e-310 stays a positive number
+        from .config import flush_subnormals  # here: config's settings cost the other commands 0.1 s
+
         flush_subnormals()
     # --minutes counts from the command's start: the process's own where main is the process's
     # command (argv from sys.argv), else (a caller's argv: a test, a script) this call's
