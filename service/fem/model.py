@@ -8,6 +8,7 @@ previous equilibrium, so successive L-BFGS evaluations cost a couple of Newton s
 from __future__ import annotations
 
 import dataclasses
+import time
 from collections.abc import Iterator
 from functools import cached_property
 
@@ -49,7 +50,10 @@ class FEMModel:
     def with_stiffness(self, E: float) -> FEMModel:
         # the same problem in forces scaled by E / E_now: the largest tool force too (the estimate's prior)
         scaled = None if self.max_force is None else self.max_force * (E / self.material.E)
-        return dataclasses.replace(self, material=self.material.with_stiffness(E), max_force=scaled)
+        new = dataclasses.replace(self, material=self.material.with_stiffness(E), max_force=scaled)
+        if "assembler" in self.__dict__:  # the sparsity pattern is the mesh's (0.3 s on the liver to remake)
+            new.__dict__["assembler"] = self.assembler.with_material(new.material)
+        return new
 
     def newton(self) -> NewtonSolver:
         """A fresh solver (owns a factorisation: one per thread)."""
@@ -62,6 +66,9 @@ class FEMModel:
         (NewtonSolver.solve). Shape: result.u (n, 3)."""
         g = np.zeros((self.mesh.n_nodes, 3))
         g[check_support(self.mesh, support)] = forces
+        if deadline is not None and time.perf_counter() > deadline:  # before a solver's rest stiffness is made
+            u = np.zeros_like(g) if u0 is None else np.array(u0, np.float64)
+            return NewtonResult(u, False, "time_limit", 0, 0, [], 0.0)
         return self.newton().solve(g, u0, deadline)
 
     def restrict(self, support: Array, nodes: Array | None = None) -> FEMOperator:

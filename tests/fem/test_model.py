@@ -199,6 +199,33 @@ def test_with_stiffness_scales_the_response(model):
     assert model.material.E == 4500.0  # the original is untouched
 
 
+def test_with_stiffness_keeps_the_meshs_pattern_and_solves_as_a_fresh_model(model):
+    """The API's per-request E makes a model of another stiffness: it keeps the mesh's sparsity
+    pattern rather than remake it (0.3 s on the paper's liver) and solves as one built anew."""
+    support, g = support_and_load(model.mesh)
+    pattern = model.assembler._pattern
+    stiff = model.with_stiffness(2 * model.material.E)
+    assert stiff.assembler._pattern is pattern and stiff.assembler.material == stiff.material
+    fresh = FEMModel(model.mesh, stiff.material)
+    np.testing.assert_allclose(stiff.solve(g, support).u, fresh.solve(g, support).u, rtol=0, atol=1e-14)
+
+
+def test_a_models_solve_past_its_deadline_makes_no_solver(bar):
+    """A solve asked for past its deadline returns time_limit at its start (or rest) before it
+    makes a solver: a fresh model's rest stiffness and pattern cost 0.2-0.3 s on the liver."""
+    model = FEMModel(bar, NeoHookean(4500.0, 0.49))
+    support, g = support_and_load(bar)
+    res = model.solve(g, support, deadline=time.perf_counter())
+    assert (res.status, res.converged, res.iterations) == ("time_limit", False, 0)
+    assert "assembler" not in vars(model)
+    np.testing.assert_array_equal(res.u, np.zeros((bar.n_nodes, 3)))
+    u0 = np.full((bar.n_nodes, 3), 1e-4)
+    np.testing.assert_array_equal(model.solve(g, support, u0, deadline=time.perf_counter()).u, u0)
+    with pytest.raises(ValueError):  # a bad support is still refused first
+        model.solve(g, np.array([bar.n_nodes]), deadline=time.perf_counter())
+    assert model.solve(g, support, deadline=time.perf_counter() + 60).converged
+
+
 def test_failed_solve_raises_forward_failed(bar):
     model = FEMModel(bar, NeoHookean(4500.0, 0.49), NewtonOptions(max_iter=1))
     support, g = support_and_load(bar)
