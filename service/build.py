@@ -82,7 +82,7 @@ def load_spec(scene: Scene, mesh: TetMesh, loaded: LoadedMesh | None = None) -> 
     its load region, none touching its keep_off nodes."""
     t = scene.training
     region = scene.region_nodes(mesh, loaded)
-    kept = tuple(int(i) for i in scene.keep_off_nodes(mesh, loaded))
+    kept = tuple(int(i) for i in scene.keep_off_nodes(mesh, loaded, region))
     return LoadSpec(
         region=tuple(int(i) for i in region),
         max_force=float(t.max_force),

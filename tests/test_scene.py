@@ -477,6 +477,8 @@ def test_kept_off_nodes_are_read_and_checked(folder):
     kept = region[:5].tolist()
     scene = load_scene(write(folder, training=f"keep_off = {kept}"))
     np.testing.assert_array_equal(scene.keep_off_nodes(mesh), kept)
+    # a region the caller already has is used as given (load_spec's): ids outside it are dropped
+    np.testing.assert_array_equal(scene.keep_off_nodes(mesh, region=region[2:]), kept[2:])
     np.save(folder / "off.npy", np.asarray(kept))
     from_file = load_scene(write(folder, training='keep_off_file = "off.npy"'))
     np.testing.assert_array_equal(from_file.keep_off_nodes(mesh), kept)

@@ -154,17 +154,21 @@ def region_nodes(t: TrainingSpec, mesh: TetMesh, loaded: LoadedMesh | None, orig
     return _check_patch(t, np.asarray(ids, np.int64), origin)
 
 
-def keep_off_nodes(t: TrainingSpec, mesh: TetMesh, loaded: LoadedMesh | None, origin: str) -> Array:
+def keep_off_nodes(
+    t: TrainingSpec, mesh: TetMesh, loaded: LoadedMesh | None, origin: str, region: Array | None = None
+) -> Array:
     """[training] keep_off: the load region's nodes no training load may touch (none by default).
     Listed ids must be free surface nodes; those outside the region are dropped (no load reaches
     them anyway). What is left of the region must hold the smallest patch in one connected piece
-    (loads spread along the surface between nodes left: surrogate/data.py). Shape: (k,)."""
+    (loads spread along the surface between nodes left: surrogate/data.py). `region`: the load
+    region where the caller has it (region_nodes' answer). Shape: (k,)."""
     if t.keep_off is None and t.keep_off_file is None:
         return np.zeros(0, np.int64)
     key = "[training] keep_off" if t.keep_off is not None else "[training] keep_off_file"
     raw = t.keep_off if t.keep_off is not None else read_ids(t.keep_off_file, key, origin)
     ids = _free_surface_ids(raw, key, mesh, loaded, origin)
-    region = region_nodes(t, mesh, loaded, origin)
+    if region is None:
+        region = region_nodes(t, mesh, loaded, origin)
     kept = np.intersect1d(ids, region)
     left = np.setdiff1d(region, kept)
     _, pieces = mesh.surface_pieces(left)

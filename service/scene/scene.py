@@ -176,10 +176,12 @@ class Scene(Table):
         """
         return scene_ids.region_nodes(self.training, mesh, self._loaded_for(mesh, loaded), self._origin)
 
-    def keep_off_nodes(self, mesh: TetMesh, loaded: LoadedMesh | None = None) -> Array:
+    def keep_off_nodes(self, mesh: TetMesh, loaded: LoadedMesh | None = None, region: Array | None = None) -> Array:
         """[training] keep_off nodes of the load region (none by default): no training load
-        touches them. Shape: (k,) sorted mesh ids."""
-        return scene_ids.keep_off_nodes(self.training, mesh, self._loaded_for(mesh, loaded), self._origin)
+        touches them. `region`: region_nodes' answer, where the caller has it. Shape: (k,)
+        sorted mesh ids."""
+        loaded = self._loaded_for(mesh, loaded)
+        return scene_ids.keep_off_nodes(self.training, mesh, loaded, self._origin, region)
 
     def support_nodes(self, mesh: TetMesh, loaded: LoadedMesh | None = None) -> Array | None:
         """[registration] support nodes in mesh ids, or None when the scene names none.
