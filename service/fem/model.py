@@ -67,8 +67,8 @@ class FEMModel:
         g = np.zeros((self.mesh.n_nodes, 3))
         g[check_support(self.mesh, support)] = forces
         if deadline is not None and time.perf_counter() > deadline:  # before a solver's rest stiffness is made
-            u = np.zeros_like(g) if u0 is None else np.array(u0, np.float64)
-            return NewtonResult(u, False, "time_limit", 0, 0, [], 0.0)
+            u = np.zeros_like(g) if u0 is None else self.mesh.unpack(self.mesh.pack(np.asarray(u0, np.float64)))
+            return NewtonResult(u, False, "time_limit", 0, 0, [], 0.0)  # the start, as NewtonSolver's
         return self.newton().solve(g, u0, deadline)
 
     def restrict(self, support: Array, nodes: Array | None = None) -> FEMOperator:
