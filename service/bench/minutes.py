@@ -13,12 +13,14 @@ size and a hash of its loads); a curve shows only rows of one machine and one te
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import os
 import shlex
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -99,6 +101,33 @@ def score(entry_dir: Path, F: np.ndarray, U: np.ndarray, region: np.ndarray) -> 
     }
 
 
+def cores() -> int:
+    """The cores this process may run on (its affinity where the system tells it)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+@contextlib.contextmanager
+def as_train_runs() -> Iterator[int]:
+    """torch's and BLAS's threads as `elastreg train` has them, a thread a core, for a build's
+    length; yields torch's count. The bench runs at the server's one thread a solve, which timed
+    every build's training on one core of two."""
+    import torch
+
+    before, n = torch.get_num_threads(), cores()
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # BLAS as the environment left it
+        blas: contextlib.AbstractContextManager = contextlib.nullcontext()
+    else:
+        blas = threadpool_limits(limits=n)
+    torch.set_num_threads(n)
+    try:
+        with blas:
+            yield torch.get_num_threads()
+    finally:
+        torch.set_num_threads(before)
+
+
 def timed_build(
     scene: Scene, minutes: float, test: tuple, workers: int, physics_skip: bool = True, keep: Path | None = None
 ) -> dict:
@@ -111,9 +140,10 @@ def timed_build(
         load0 = os.getloadavg()[0]
         store = keep if keep is not None else Path(tmp) / "store"
         command = f"elastreg train {shlex.quote(scene_argument(scene))} --minutes {minutes:g}"
-        report = build(scene, store, workers=workers, data_root=Path(tmp) / "data", progress=False,
-                       minutes=minutes, config=TrainConfig(physics_skip=physics_skip), replace=True,
-                       command=command)  # fmt: skip
+        with as_train_runs() as threads:
+            report = build(scene, store, workers=workers, data_root=Path(tmp) / "data", progress=False,
+                           minutes=minutes, config=TrainConfig(physics_skip=physics_skip), replace=True,
+                           command=command)  # fmt: skip
         wall = time.perf_counter() - t0
         tested = score(store / scene.name, *test)
     m = report.metrics
@@ -130,6 +160,7 @@ def timed_build(
         "paths": report.paths,
         "data_s": round(report.data_seconds, 1),
         "train_s": round(report.train_seconds, 1),
+        "train_threads": threads,  # rows without it trained on one (the bench's setting)
         "epochs": m["epochs"],
         "val_mean_mm": m["mean_mm"],
         "val_p95_mm": m["p95_mm"],

@@ -4,8 +4,9 @@ import json
 
 import numpy as np
 import pytest
+import torch
 
-from service.bench.minutes import TEST_SEED, latest, merge
+from service.bench.minutes import TEST_SEED, cores, latest, merge
 from service.cli import main
 from service.store import load_entry
 from tests.conftest import write_bar_scene
@@ -24,6 +25,8 @@ def test_minutes_part_builds_on_the_clock_and_keeps_its_rows(bar, tmp_path):
     (row,) = json.loads((out / "results.json").read_text())["parts"]["minutes"]["rows"]
     assert row["scene"] == "bar" and row["minutes"] == 0.2 and row["test_seed"] == TEST_SEED
     assert row["wall_s"] <= 0.2 * 60 + 10  # the whole build on the clock (scoring is outside it)
+    # trained on a thread a core, as `elastreg train` does, and the bench's one thread back after
+    assert row["train_threads"] == cores() and torch.get_num_threads() == 1
     assert row["test_samples"] > 0 and row["samples"] > 0
     assert len(row["test_loads"]) == 12  # the test set's identity: its loads' hash
     # the build is never worse than linear physics on its own paths, and both beat no deformation
