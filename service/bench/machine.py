@@ -58,6 +58,11 @@ def _commit(root: Path = ROOT) -> str:
         return "unknown"
 
 
+def cores() -> int:
+    """The cores this process may run on (its affinity where the system tells it)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
 def describe() -> dict:
     import numpy
     import scipy
@@ -69,7 +74,7 @@ def describe() -> dict:
     gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
     return {
         "cpu": _cpu_model(),
-        "cores": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
+        "cores": cores(),
         "gpu": gpu,
         "python": platform.python_version(),
         "numpy": numpy.__version__,

@@ -101,11 +101,6 @@ def score(entry_dir: Path, F: np.ndarray, U: np.ndarray, region: np.ndarray) -> 
     }
 
 
-def cores() -> int:
-    """The cores this process may run on (its affinity where the system tells it)."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-
-
 @contextlib.contextmanager
 def as_train_runs() -> Iterator[int]:
     """torch's and BLAS's threads as `elastreg train` has them, a thread a core, for a build's
@@ -113,7 +108,7 @@ def as_train_runs() -> Iterator[int]:
     every build's training on one core of two."""
     import torch
 
-    before, n = torch.get_num_threads(), cores()
+    before, n = torch.get_num_threads(), machine.cores()
     try:
         from threadpoolctl import threadpool_limits
     except ImportError:  # BLAS as the environment left it

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from service.bench.minutes import TEST_SEED, cores, latest, merge
+from service.bench.machine import cores
+from service.bench.minutes import TEST_SEED, latest, merge
 from service.cli import main
 from service.store import load_entry
 from tests.conftest import write_bar_scene
