@@ -439,7 +439,7 @@ def test_the_manifests_rebuild_command_names_its_paths_absolute(tmp_path, bar, m
     builtin = parser().parse_args(["train", "beam", "--no-physics-skip", "--replace", "--store", "", "--data", ""])
     assert rebuild_command(builtin) == (  # a name stays a name; '' is the default, not the folder
         f"elastreg train beam --store {work / 'relative-store'} --replace --layout reduced --hidden 512 512 "
-        "--rank 128 --no-physics-skip --features 64 --weight-decay 0.0001 --epochs 200 --seed 0"
+        "--rank 128 --no-physics-skip --features 256 --weight-decay 0.0 --epochs 200 --seed 0"
     )
     (work / "real").mkdir()
     (work / "real" / "s.toml").write_text("")
