@@ -27,6 +27,7 @@ import numpy as np
 
 from ..build import build, data_key, load_spec
 from ..fem.material import NeoHookean
+from ..network_size import FEATURES, WEIGHT_DECAY
 from ..optional import need
 from ..scene import Scene
 from ..store import load_entry
@@ -102,13 +103,13 @@ def score(entry_dir: Path, F: np.ndarray, U: np.ndarray, region: np.ndarray) -> 
 
 
 @contextlib.contextmanager
-def as_train_runs() -> Iterator[int]:
-    """torch's and BLAS's threads as `elastreg train` has them, a thread a core, for a build's
-    length; yields torch's count. The bench runs at the server's one thread a solve, which timed
-    every build's training on one core of two."""
+def as_train_runs(threads: int | None = None) -> Iterator[int]:
+    """torch's and BLAS's threads as `elastreg train` has them, a thread a core (or `threads`),
+    for a build's length; yields torch's count. The bench runs at the server's one thread a
+    solve, which timed every build's training on one core of two."""
     import torch
 
-    before, n = torch.get_num_threads(), machine.cores()
+    before, n = torch.get_num_threads(), threads or machine.cores()
     try:
         from threadpoolctl import threadpool_limits
     except ImportError:  # BLAS as the environment left it
@@ -124,10 +125,20 @@ def as_train_runs() -> Iterator[int]:
 
 
 def timed_build(
-    scene: Scene, minutes: float, test: tuple, workers: int, physics_skip: bool = True, keep: Path | None = None
+    scene: Scene,
+    minutes: float,
+    test: tuple,
+    workers: int,
+    physics_skip: bool = True,
+    keep: Path | None = None,
+    config: TrainConfig | None = None,
+    threads: int | None = None,
 ) -> dict:
     """One build of `scene` within `minutes` from an empty data folder, and its row. The entry
-    goes to the store `keep` when given (for the other parts to use), else it is discarded."""
+    goes to the store `keep` when given (for the other parts to use), else it is discarded.
+    `config` (default: the defaults, with `physics_skip`) and `threads` (training's; default a
+    core each) let a study build other settings the same way (benchmarks/settings_build.py)."""
+    config = config or TrainConfig(physics_skip=physics_skip)
     stamp = machine.describe()
     started = time.strftime("%Y-%m-%d %H:%M:%S")
     with tempfile.TemporaryDirectory() as tmp:
@@ -135,18 +146,21 @@ def timed_build(
         load0 = os.getloadavg()[0]
         store = keep if keep is not None else Path(tmp) / "store"
         command = f"elastreg train {shlex.quote(scene_argument(scene))} --minutes {minutes:g}"
-        with as_train_runs() as threads:
+        if (config.features, config.weight_decay) != (FEATURES, WEIGHT_DECAY):
+            command += f" --features {config.features} --weight-decay {config.weight_decay:g}"
+        with as_train_runs(threads) as threads:
             report = build(scene, store, workers=workers, data_root=Path(tmp) / "data", progress=False,
-                           minutes=minutes, config=TrainConfig(physics_skip=physics_skip), replace=True,
-                           command=command)  # fmt: skip
+                           minutes=minutes, config=config, replace=True, command=command)  # fmt: skip
         wall = time.perf_counter() - t0
         tested = score(store / scene.name, *test)
     m = report.metrics
     return {
         "scene": scene.name,
         "minutes": minutes,
-        "physics_skip": physics_skip,
-        "layout": _LAYOUT[physics_skip],
+        "physics_skip": config.physics_skip,
+        "layout": _LAYOUT[config.physics_skip],
+        "features": config.features,
+        "weight_decay": config.weight_decay,
         "commit": stamp["commit"],
         "cpu": stamp["cpu"],
         "started": started,

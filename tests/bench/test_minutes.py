@@ -7,9 +7,12 @@ import pytest
 import torch
 
 from service.bench.machine import cores
-from service.bench.minutes import TEST_SEED, latest, merge
+from service.bench.minutes import TEST_SEED, latest, merge, test_set, timed_build
 from service.cli import main
+from service.network_size import FEATURES, WEIGHT_DECAY
+from service.scene import load_scene
 from service.store import load_entry
+from service.surrogate.train import TrainConfig
 from tests.conftest import write_bar_scene
 
 
@@ -28,6 +31,7 @@ def test_minutes_part_builds_on_the_clock_and_keeps_its_rows(bar, tmp_path):
     assert row["wall_s"] <= 0.2 * 60 + 10  # the whole build on the clock (scoring is outside it)
     # trained on a thread a core, as `elastreg train` does, and the bench's one thread back after
     assert row["train_threads"] == cores() and torch.get_num_threads() == 1
+    assert (row["features"], row["weight_decay"]) == (FEATURES, WEIGHT_DECAY)  # the defaults, recorded
     assert row["test_samples"] > 0 and row["samples"] > 0
     assert len(row["test_loads"]) == 12  # the test set's identity: its loads' hash
     # the build is never worse than linear physics on its own paths, and both beat no deformation
@@ -208,3 +212,20 @@ def test_a_curve_holds_one_machine_and_one_test_set(tmp_path):
     assert "| s | 5 |" in report and "| s | 60 |" in report and "| s | 10 |" not in report
     assert "177, aaaa |" in report
     assert "s at 10 minutes (A, test set 175, bbbb); s at 30 minutes (B, test set 177, aaaa)." in report
+
+
+def test_a_timed_build_of_other_settings_is_built_and_recorded_as_asked(bar, tmp_path):
+    """timed_build with a config and a thread count (benchmarks/settings_build.py's): the entry
+    is trained with those settings on those threads, its rebuild command names them, and the row
+    says so; the bench's one thread is back after."""
+    scene = load_scene(write_bar_scene(tmp_path / "scene", bar))
+    config = TrainConfig(physics_skip=True, features=4, weight_decay=1e-3)
+    test = test_set(scene, 3, tmp_path / "test", 0)
+    torch.set_num_threads(1)
+    row = timed_build(scene, 0.1, test, workers=0, keep=tmp_path / "kept", config=config, threads=2)
+    assert (row["features"], row["weight_decay"], row["train_threads"]) == (4, 1e-3, 2)
+    assert torch.get_num_threads() == 1
+    manifest = load_entry(tmp_path / "kept" / "bar").manifest
+    assert manifest["training"]["config"]["features"] == 4 and manifest["training"]["config"]["weight_decay"] == 1e-3
+    assert manifest["rebuild"].endswith("--minutes 0.1 --features 4 --weight-decay 0.001")
+    assert 0 < row["test_relative"] < 1
