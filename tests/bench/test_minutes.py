@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from service.bench.machine import cores
-from service.bench.minutes import TEST_SEED, latest, merge, test_set, timed_build
+from service.bench.minutes import TEST_SEED, latest, merge, timed_build
+from service.bench.minutes import test_set as solve_test_set  # not "test_*" here: pytest would collect it
 from service.cli import main
 from service.network_size import FEATURES, WEIGHT_DECAY
 from service.scene import load_scene
@@ -220,7 +221,7 @@ def test_a_timed_build_of_other_settings_is_built_and_recorded_as_asked(bar, tmp
     says so; the bench's one thread is back after."""
     scene = load_scene(write_bar_scene(tmp_path / "scene", bar))
     config = TrainConfig(physics_skip=True, features=4, weight_decay=1e-3)
-    test = test_set(scene, 3, tmp_path / "test", 0)
+    test = solve_test_set(scene, 3, tmp_path / "test", 0)
     torch.set_num_threads(1)
     row = timed_build(scene, 0.1, test, workers=0, keep=tmp_path / "kept", config=config, threads=2)
     assert (row["features"], row["weight_decay"], row["train_threads"]) == (4, 1e-3, 2)
