@@ -148,7 +148,7 @@ def timed_build(
         command = f"elastreg train {shlex.quote(scene_argument(scene))} --minutes {minutes:g}"
         if (config.features, config.weight_decay) != (FEATURES, WEIGHT_DECAY):
             command += f" --features {config.features} --weight-decay {config.weight_decay:g}"
-        with as_train_runs(threads) as threads:
+        with as_train_runs(threads) as trained_on:
             report = build(scene, store, workers=workers, data_root=Path(tmp) / "data", progress=False,
                            minutes=minutes, config=config, replace=True, command=command)  # fmt: skip
         wall = time.perf_counter() - t0
@@ -169,7 +169,7 @@ def timed_build(
         "paths": report.paths,
         "data_s": round(report.data_seconds, 1),
         "train_s": round(report.train_seconds, 1),
-        "train_threads": threads,  # rows without it trained on one (the bench's setting)
+        "train_threads": trained_on,  # rows without it trained on one (the bench's setting)
         "epochs": m["epochs"],
         "val_mean_mm": m["mean_mm"],
         "val_p95_mm": m["p95_mm"],
