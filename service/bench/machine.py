@@ -9,6 +9,8 @@ import platform
 import subprocess
 from pathlib import Path
 
+from .swap import SCRATCH_PREFIX
+
 
 def _cpu_model() -> str:
     """The CPU's name, with its family, model and cache per core: a VM may name only the
@@ -41,13 +43,17 @@ def _commit(root: Path = ROOT) -> str:
     """HEAD's short hash, and where the tree differs from it "+local changes" with a short hash
     of the changes (the diff against HEAD and the untracked files, not ignored ones, with their
     contents): untracked code ran unseen, and two different dirty trees stamped alike, so
-    ``--resume`` took rows of one for the other."""
+    ``--resume`` took rows of one for the other. A report run's own scratch files (its lock,
+    its staging folder: swap.SCRATCH_PREFIX) are not the code: its lock, made before its
+    first stamp, marked every bench run in reports/ dirty."""
     try:
         sha = _git(root, "rev-parse", "--short", "HEAD").decode().strip()
         if not sha:
             return "unknown"
         digest = hashlib.sha256(_git(root, "diff", "HEAD", "--binary", "--no-ext-diff"))
-        untracked = [n for n in _git(root, "ls-files", "--others", "--exclude-standard", "-z").split(b"\0") if n]
+        listed = _git(root, "ls-files", "--others", "--exclude-standard", "-z").split(b"\0")
+        scratch = os.fsencode(SCRATCH_PREFIX)
+        untracked = [n for n in listed if n and not any(p.startswith(scratch) for p in n.split(b"/"))]
         for name in sorted(untracked):
             digest.update(b"\0" + name + b"\0")
             with contextlib.suppress(OSError):  # gone or unreadable: its name alone

@@ -28,7 +28,7 @@ from pathlib import Path
 from ..folders import RANDOM, exchange, locked_folder, same_folder, try_lock
 from .results import MINUTES_ROWS
 
-_PREFIX = ".bench-"
+SCRATCH_PREFIX = ".bench-"
 
 
 class Busy(RuntimeError):
@@ -36,12 +36,12 @@ class Busy(RuntimeError):
 
 
 def _scratch_name(out: Path) -> re.Pattern[str]:
-    return re.compile(rf"{re.escape(_PREFIX + out.name)}-{RANDOM}")
+    return re.compile(rf"{re.escape(SCRATCH_PREFIX + out.name)}-{RANDOM}")
 
 
 def backup_of(out: Path) -> Path:
     """Where the two renames keep the old report while the new one goes in."""
-    return out.parent / f"{_PREFIX}{out.name}.old"
+    return out.parent / f"{SCRATCH_PREFIX}{out.name}.old"
 
 
 def hold(out: Path) -> tuple[Path, int] | None:
@@ -51,7 +51,7 @@ def hold(out: Path) -> tuple[Path, int] | None:
     or the system has no locks; :class:`Busy` where another run holds it. Without it two runs
     that started together both read the old report, and the later one's swap dropped the other's
     parts (or mixed its files in)."""
-    for path in (out.parent / f"{_PREFIX}{out.name}.lock", out / f"{_PREFIX}lock"):
+    for path in (out.parent / f"{SCRATCH_PREFIX}{out.name}.lock", out / f"{SCRATCH_PREFIX}lock"):
         for _ in range(8):
             try:
                 fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
@@ -115,7 +115,7 @@ def keep_unplaced(scratch: Path, out: Path) -> Path:
         if scratch.parent != out:
             return scratch
     stamp = time.strftime("%Y%m%d-%H%M%S")
-    inside = out / f"{_PREFIX}unplaced-{stamp}-{scratch.name[-8:]}"
+    inside = out / f"{SCRATCH_PREFIX}unplaced-{stamp}-{scratch.name[-8:]}"
     try:
         os.rename(scratch, inside)
     except OSError:
@@ -165,8 +165,12 @@ def recover(out: Path) -> list[str]:
             shutil.rmtree(backup)
             notes.append(f"removed {backup}, the old report of a run stopped once its own was in {out}")
     if out.is_dir():  # versions before this module, and runs that cannot swap, write theirs inside `out`
-        for path in sorted(out.glob(f"{_PREFIX}*")):
-            if re.fullmatch(rf"{re.escape(_PREFIX)}{RANDOM}", path.name) and path.is_dir() and not path.is_symlink():
+        for path in sorted(out.glob(f"{SCRATCH_PREFIX}*")):
+            if (
+                re.fullmatch(rf"{re.escape(SCRATCH_PREFIX)}{RANDOM}", path.name)
+                and path.is_dir()
+                and not path.is_symlink()
+            ):
                 if _held(path):  # a live run's, which moves its files in one by one
                     raise Busy(f"another elastreg bench is writing {out} (its scratch folder {path} is locked)")
                 notes.append(_clear(path, out, "before its files were moved"))
@@ -187,12 +191,12 @@ def scratch_folder(out: Path) -> tuple[Path, int, str | None]:
     files :func:`put_in_place` then moves in one by one, where `out` holds the working directory
     or no folder can be made beside it (a parent the user cannot write)."""
     if holds_cwd(out):
-        path, fd = _locked_folder(out, _PREFIX)
+        path, fd = _locked_folder(out, SCRATCH_PREFIX)
         return path, fd, f"{out} holds the working directory, so the report's files are moved into it one by one"
     try:
-        path, fd = _locked_folder(out.parent, f"{_PREFIX}{out.name}-")
+        path, fd = _locked_folder(out.parent, f"{SCRATCH_PREFIX}{out.name}-")
     except OSError as exc:
-        path, fd = _locked_folder(out, _PREFIX)
+        path, fd = _locked_folder(out, SCRATCH_PREFIX)
         why = exc.strerror or exc
         return path, fd, f"no scratch folder beside {out} ({why}), so the report's files are moved into it one by one"
     st = os.stat(out)
@@ -215,7 +219,7 @@ def carry_over(old: Path, new: Path) -> None:
     so nothing writes through a link into the old report."""
     for src in sorted(old.rglob("*")):
         rel = src.relative_to(old)
-        if rel.parts[0].startswith(_PREFIX) or src.is_dir() and not src.is_symlink():
+        if rel.parts[0].startswith(SCRATCH_PREFIX) or src.is_dir() and not src.is_symlink():
             continue
         dest = new / rel
         if dest.exists() or dest.is_symlink():
@@ -241,7 +245,7 @@ def put_in_place(new: Path, out: Path, whole: bool) -> str | None:
             if not exchanged:
                 _two_renames(new, out, backup)
     except OSError as exc:
-        inner, fd = _locked_folder(out, _PREFIX)  # on `out`'s file system, so each move is a rename
+        inner, fd = _locked_folder(out, SCRATCH_PREFIX)  # on `out`'s file system, so each move is a rename
         try:
             try:
                 os.rename(new, inner)  # onto the empty folder
@@ -294,10 +298,10 @@ def move_in(new: Path, out: Path, whole: bool) -> None:
     kept = set(files)
     for d, dirs, names in os.walk(out, topdown=False):
         rel_dir = Path(d).relative_to(out)
-        if rel_dir.parts and rel_dir.parts[0].startswith(_PREFIX):
+        if rel_dir.parts and rel_dir.parts[0].startswith(SCRATCH_PREFIX):
             continue
         for name in names + [x for x in dirs if Path(d, x).is_symlink()]:
-            if rel_dir / name not in kept and not (not rel_dir.parts and name.startswith(_PREFIX)):
+            if rel_dir / name not in kept and not (not rel_dir.parts and name.startswith(SCRATCH_PREFIX)):
                 os.remove(Path(d, name))
         if rel_dir.parts and not os.listdir(d):
             os.rmdir(d)

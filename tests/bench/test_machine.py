@@ -3,6 +3,7 @@
 import subprocess
 
 from service.bench.machine import _commit
+from service.bench.swap import SCRATCH_PREFIX
 
 
 def git(root, *args):
@@ -36,3 +37,20 @@ def test_the_stamp_sees_untracked_code_and_tells_dirty_trees_apart(tmp_path):
     assert a.startswith(clean + "+local changes ") and b.startswith(clean + "+local changes ") and a != b
     (tmp_path / "part.py").write_text("x = 2\n")
     assert _commit(tmp_path) == a  # the same changes, the same stamp
+
+
+def test_a_report_runs_own_scratch_is_not_a_local_change(tmp_path):
+    """A report run's lock beside its --out (made before its first stamp) and its staging
+    folder stamped every bench run in reports/ "+local changes": they are the run's, not the code."""
+    git(tmp_path, "init", "-q")
+    (tmp_path / "part.py").write_text("x = 1\n")
+    git(tmp_path, "add", ".")
+    git(tmp_path, "commit", "-q", "-m", "one")
+    clean = _commit(tmp_path)
+    reports = tmp_path / "reports"
+    (reports / f"{SCRATCH_PREFIX}latest-x1y2").mkdir(parents=True)
+    (reports / f"{SCRATCH_PREFIX}latest.lock").write_text("")
+    (reports / f"{SCRATCH_PREFIX}latest-x1y2" / "report.md").write_text("# a report being written")
+    assert _commit(tmp_path) == clean
+    (reports / "notes.py").write_text("y = 2\n")  # beside them, code still counts
+    assert _commit(tmp_path).startswith(clean + "+local changes ")
