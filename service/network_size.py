@@ -18,8 +18,8 @@ MAX_MEMBERS = 64
 #: the physics layout's input: POD modes of the linear response its network reads (--features)
 #: and Adam's L2 weight decay on its weight matrices, not its biases or PReLU slopes
 #: (--weight-decay; train.decay_groups). Chosen for whole-surface builds, the default region, on
-#: twelve calibration sites: 64 and 1e-4 generalise better to sites a build kept every load off
-#: (a scene's keep_off) and lost 3.6 % there (docs/performance.md, session 32)
+#: eighteen calibration sites: 64 and 1e-4 generalise better to sites a build kept every load off
+#: (a scene's keep_off) and lost 4.2 % there (docs/performance.md, sessions 32 and 33)
 FEATURES = 256
 WEIGHT_DECAY = 0.0
 #: largest weight decay: past 1 the weights are held at zero, whatever the data
