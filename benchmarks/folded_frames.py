@@ -61,7 +61,7 @@ class FoldRefusingModel:
 
 
 def frames(model, case: Case, variant: str) -> list[dict]:
-    """Each frame of `case`: status, TRE, force error, time, and its inverted tets."""
+    """Each frame of `case`: status, TRE, largest nodal error, force error, time, and its inverted tets."""
     mesh, out = case.mesh, []
     for k, (r, ms) in enumerate(stream_case(model, case, NETWORK_LM)):
         rec = score(case, k, r, ms, variant)
